@@ -1,0 +1,1 @@
+"""ps_lab.capture"""

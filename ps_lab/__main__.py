@@ -1,0 +1,3 @@
+from ps_lab.cli import main
+
+main()

@@ -1,0 +1,21 @@
+"""The exception hierarchy. The CLI turns any :class:`PsLabError` into one red line and exit 2."""
+
+
+class PsLabError(Exception):
+    """Base of every error ps-lab reports to the user as a one-line message."""
+
+
+class RigError(PsLabError):
+    """The light controller or rig file is unusable: no reply, wrong protocol, bad settings."""
+
+
+class CameraError(PsLabError):
+    """A camera failed to capture, timed out, or produced an unreadable frame."""
+
+
+class CalibrationError(PsLabError):
+    """Light calibration failed: no sphere, no highlight, degenerate geometry."""
+
+
+class DatasetError(PsLabError):
+    """A dataset folder is missing files, inconsistent, or holds unreadable images."""
