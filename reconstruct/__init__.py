@@ -1,1 +1,19 @@
-"""ps_lab.reconstruct"""
+"""ps_lab.reconstruct: robust photometric-stereo solvers (LS, L1, SBL, R-PCA) and light refinement.
+
+The package imports neither ``ps_lab.capture`` nor ``ps_lab.calibration``.
+"""
+
+from ._solution import METHODS, RefinementResult, Solution, SolverInputError
+from ._solve import estimate_noise, solve
+from .metrics import angular_errors_deg, error_summary
+
+__all__ = [
+    "METHODS",
+    "RefinementResult",
+    "Solution",
+    "SolverInputError",
+    "angular_errors_deg",
+    "error_summary",
+    "estimate_noise",
+    "solve",
+]

@@ -1,0 +1,268 @@
+"""`solve`: input checks, per-pixel intensity scaling, the noise level, tiles and threads."""
+
+from __future__ import annotations
+
+import math
+import os
+from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
+
+import numpy as np
+
+from . import _kernels
+from ._linalg import inverse6, outer6
+from ._solution import METHODS, Solution, SolverInputError
+
+# Defaults of each method's parameters (in units of the pixel's robust scale, see `pixel_scale`).
+DEFAULTS: dict[str, dict] = {
+    "ls": {},
+    "l1": {"max_iter": 100, "tol": 1e-6, "delta": 1e-6, "outlier_threshold": None},
+    "sbl": {"lam": None, "sigma_x2": 1e6, "max_iter": 100, "tol": 1e-6, "gamma_floor": 1e-10,
+            "outlier_threshold": None},
+    "rpca": {"lam_sparse": None, "max_iter": 500, "tol": 1e-7, "rho": 1.5, "outlier_threshold": None},
+}
+COMMON = ("dtype",)
+DEFAULT_TILE_SIZE = 4096
+DEFAULT_DTYPE = "float64"
+# Noise level floor (relative to the pixel scale): the paper's lambda for noise-free data.
+LAMBDA_FLOOR = 1e-6
+# Smallest outlier threshold (relative to the pixel scale).
+MIN_OUTLIER_THRESHOLD = 0.05
+# A pixel needs a usable 3x3 normal matrix: det >= this * (trace/3)^3 (conditioning).
+SOLVABLE_REL_DET = 1e-6
+NOISE_SAMPLE_PIXELS = 20000
+
+
+def pixel_scale(y: np.ndarray, w: np.ndarray) -> np.ndarray:
+    """Robust scale of each pixel: the median of its usable observations' magnitudes.
+
+    Parameters
+    ----------
+    y : ndarray of shape (m, n)
+    w : ndarray of shape (m, n), bool
+
+    Returns
+    -------
+    ndarray of shape (m,), float64
+        The median of ``|y|`` over usable observations; when that is zero (a pixel dark under most
+        lights), the mean of ``|y|``; zero when the pixel has no usable non-zero observation.
+    """
+    a = np.where(w, np.abs(y), np.inf).astype(np.float64)
+    a.sort(axis=1)
+    k = w.sum(axis=1)
+    lo = np.clip((k - 1) // 2, 0, None)
+    hi = np.clip(k // 2, 0, None)
+    rows = np.arange(y.shape[0])
+    med = np.where(k > 0, 0.5 * (a[rows, np.minimum(lo, a.shape[1] - 1)] + a[rows, np.minimum(hi, a.shape[1] - 1)]), 0.0)
+    a[~np.isfinite(a)] = 0.0
+    mean = a.sum(axis=1) / np.maximum(k, 1)
+    return np.where(med > 0, med, mean)
+
+
+def _check_inputs(observations, light_directions, valid):
+    obs = np.asarray(observations)
+    if obs.ndim != 2:
+        raise SolverInputError(f"observations must be (n_lights, n_pixels), got shape {obs.shape}")
+    if not np.issubdtype(obs.dtype, np.number):
+        raise SolverInputError(f"observations must be numeric, got {obs.dtype}")
+    lights = np.asarray(light_directions, dtype=np.float64)
+    n = obs.shape[0]
+    if lights.shape != (n, 3):
+        raise SolverInputError(f"light_directions must be ({n}, 3) for {n} observations per pixel, got {lights.shape}")
+    if not np.all(np.isfinite(lights)):
+        raise SolverInputError("light_directions contain NaN or infinite values")
+    if n < 3 or np.linalg.matrix_rank(lights) < 3:
+        raise SolverInputError("the light directions do not span 3-D space (need >= 3 non-coplanar lights)")
+    usable = np.isfinite(obs)
+    if valid is not None:
+        valid = np.asarray(valid, dtype=bool)
+        if valid.shape != obs.shape:
+            raise SolverInputError(f"valid must have the observations' shape {obs.shape}, got {valid.shape}")
+        usable &= valid
+    return obs, lights, usable
+
+
+def _method_params(method: str, given: dict) -> dict:
+    if method not in METHODS:
+        raise SolverInputError(f"unknown method {method!r}; choose one of {', '.join(METHODS)}")
+    allowed = set(DEFAULTS[method]) | set(COMMON)
+    unknown = sorted(set(given) - allowed)
+    if unknown:
+        raise SolverInputError(f"method {method!r} has no parameter(s) {', '.join(unknown)}; "
+                               f"it takes {', '.join(sorted(allowed))}")
+    params = dict(DEFAULTS[method])
+    params["dtype"] = DEFAULT_DTYPE
+    params.update(given)
+    if np.dtype(params["dtype"]) not in (np.dtype(np.float32), np.dtype(np.float64)):
+        raise SolverInputError(f"dtype must be float32 or float64, got {params['dtype']}")
+    return params
+
+
+def _prepare_tile(obs, usable, lights, a, b, dtype):
+    """Pixel-major scaled observations of pixels a:b and the solvable-pixel mask."""
+    y = np.ascontiguousarray(obs[:, a:b].T, dtype=np.float64)
+    w = np.ascontiguousarray(usable[:, a:b].T)
+    scale = pixel_scale(y, w)
+    _, ok = inverse6(w.astype(np.float64) @ outer6(lights), SOLVABLE_REL_DET)
+    ok &= (scale > 0) & (w.sum(axis=1) >= 3)
+    y /= np.where(ok, scale, 1.0)[:, None]
+    w &= ok[:, None]
+    return y.astype(dtype), w.astype(dtype), scale, ok
+
+
+def estimate_noise(observations, light_directions, valid=None, *, max_pixels: int = NOISE_SAMPLE_PIXELS) -> float:
+    """Noise level of the scaled observations, from residuals of a robust (L1) fit.
+
+    Parameters
+    ----------
+    observations : ndarray of shape (n, P)
+    light_directions : ndarray of shape (n, 3)
+    valid : ndarray of shape (n, P), bool, optional
+    max_pixels : int
+        At most this many pixels (evenly spaced) are used.
+
+    Returns
+    -------
+    float
+        ``1.4826 * median |r|`` over the usable observations of the sampled pixels, where ``r``
+        are the residuals of the per-pixel L1 fit on observations divided by the pixel's robust
+        scale: a standard deviation relative to a typical observation of a pixel.
+    """
+    obs, lights, usable = _check_inputs(observations, light_directions, valid)
+    return _noise_level(obs, lights, usable, max_pixels)
+
+
+def _noise_level(obs, lights, usable, max_pixels=NOISE_SAMPLE_PIXELS):
+    n, p = obs.shape
+    take = np.unique(np.linspace(0, p - 1, min(p, max_pixels)).round().astype(np.int64)) if p else np.zeros(0, np.int64)
+    y, w, _, ok = _prepare_tile(obs[:, take], usable[:, take], lights, 0, take.size, np.float64)
+    y, w = y[ok], w[ok]
+    if y.shape[0] == 0:
+        return 0.0
+    res = _kernels.l1_tile(y, w, lights, max_iter=30, tol=1e-6, delta=1e-6, outlier_threshold=np.inf)
+    r = np.abs(y - res.x @ lights.T)[w > 0]
+    return float(1.4826 * np.median(r)) if r.size else 0.0
+
+
+def solve(
+    observations: np.ndarray,
+    light_directions: np.ndarray,
+    *,
+    method: str = "sbl",
+    valid: np.ndarray | None = None,
+    threads: int | None = None,
+    tile_size: int | None = None,
+    progress: Callable[[int], None] | None = None,
+    **method_params,
+) -> Solution:
+    """Per-pixel surface normals and albedo from photometric-stereo observations.
+
+    Parameters
+    ----------
+    observations : ndarray of shape (n, P)
+        Linear intensities of P pixels under n lights (already divided by the light
+        intensities, or pass light vectors scaled by intensity as ``light_directions``).
+    light_directions : ndarray of shape (n, 3)
+        Unit vectors from the surface toward each light (camera frame, x right, y up, z to
+        the camera), optionally scaled by the light's intensity.
+    method : {"ls", "l1", "sbl", "rpca"}
+        Woodham least squares, L1 (IRLS), sparse Bayesian learning, or R-PCA + least squares.
+    valid : ndarray of shape (n, P), bool, optional
+        False for observations to drop (saturated, under the shadow threshold). Non-finite
+        observations are always dropped.
+    threads : int, optional
+        Worker threads over tiles (default: all cores).
+    tile_size : int, optional
+        Pixels per tile (default 4096). Results do not depend on it.
+    progress : callable, optional
+        Called as ``progress(k)`` with the number of pixels just finished (increments summing
+        to P).
+    **method_params
+        ``dtype`` ("float64" or "float32") and the method's parameters, all in units of the
+        pixel's robust scale (median of its usable observations):
+
+        - ``sbl``: ``lam`` (noise variance; default estimated from the data), ``sigma_x2`` (1e6),
+          ``max_iter`` (100), ``tol`` (1e-6), ``gamma_floor`` (1e-10), ``outlier_threshold``;
+        - ``l1``: ``max_iter`` (100), ``tol`` (1e-6), ``delta`` (1e-6), ``outlier_threshold``;
+        - ``rpca``: ``lam_sparse`` (1/sqrt(max(n, P))), ``max_iter`` (500), ``tol`` (1e-7),
+          ``rho`` (1.5), ``outlier_threshold``.
+
+        ``outlier_threshold`` defaults to ``max(3 sigma, 0.05)`` with sigma the noise level.
+
+    Returns
+    -------
+    Solution
+
+    Raises
+    ------
+    SolverInputError
+        Wrong shapes, non-finite or coplanar lights, unknown method or parameter.
+    """
+    obs, lights, usable = _check_inputs(observations, light_directions, valid)
+    params = _method_params(method, method_params)
+    n, p = obs.shape
+    dtype = np.dtype(params["dtype"])
+    used: dict = {"method": method, "dtype": dtype.name}
+
+    if method != "ls":
+        noise = None
+        if method == "sbl":
+            if params["lam"] is None:
+                noise = _noise_level(obs, lights, usable)
+                params["lam"] = max(noise * noise, LAMBDA_FLOOR)
+            used["lambda"] = float(params["lam"])
+            noise = math.sqrt(params["lam"]) if noise is None else noise
+        if params.get("outlier_threshold") is None:
+            if noise is None:
+                noise = _noise_level(obs, lights, usable)
+            params["outlier_threshold"] = max(3.0 * noise, MIN_OUTLIER_THRESHOLD)
+        used["noise_sigma"] = float(noise)
+    used.update({k: v for k, v in params.items() if k not in ("dtype", "lam")})
+
+    if method == "rpca":
+        from ._rpca import solve_rpca
+
+        return solve_rpca(obs, lights, usable, params, used, progress)
+
+    normals = np.zeros((p, 3))
+    albedo = np.zeros(p)
+    outliers = np.zeros((n, p), bool)
+    iterations = np.zeros(p, np.int64)
+    kernel = {"ls": _kernels.ls_tile, "l1": _kernels.l1_tile, "sbl": _kernels.sbl_tile}[method]
+    kernel_params = {k: v for k, v in params.items() if k != "dtype"}
+    if method == "ls":
+        kernel_params = {"outlier_threshold": np.inf}
+    lights_t = lights.astype(dtype)
+    tile = int(tile_size) if tile_size else DEFAULT_TILE_SIZE
+    if tile < 1:
+        raise SolverInputError(f"tile_size must be positive, got {tile_size}")
+    workers = int(threads) if threads else (os.cpu_count() or 1)
+    if workers < 1:
+        raise SolverInputError(f"threads must be positive, got {threads}")
+    used.update({"tile_size": tile, "threads": workers})
+
+    def run_tile(a: int) -> int:
+        b = min(a + tile, p)
+        y, w, scale, ok = _prepare_tile(obs, usable, lights, a, b, dtype)
+        res = kernel(y, w, lights_t, **kernel_params)
+        x = res.x.astype(np.float64) * scale[:, None]
+        length = np.linalg.norm(x, axis=1)
+        good = ok & (length > 0) & np.isfinite(length)
+        normals[a:b] = np.where(good[:, None], x / np.where(good, length, 1.0)[:, None], 0.0)
+        albedo[a:b] = np.where(good, length, 0.0)
+        outliers[:, a:b] = (res.outliers & good[:, None]).T
+        iterations[a:b] = np.where(ok, res.iterations, 0)
+        return b - a
+
+    starts = range(0, p, tile)
+    if workers == 1 or len(starts) <= 1:
+        for a in starts:
+            done = run_tile(a)
+            if progress is not None:
+                progress(done)
+    else:
+        with ThreadPoolExecutor(max_workers=workers) as pool:
+            for done in pool.map(run_tile, starts):
+                if progress is not None:
+                    progress(done)
+    return Solution(normals, albedo, outliers, iterations, used)
