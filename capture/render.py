@@ -1,0 +1,709 @@
+"""Orthographic photometric-stereo renderer with ground-truth normals.
+
+The camera looks down ``-z`` (orthographic, one pixel = one length unit); lights are directional.
+Vectors live in the camera frame: x right, y up (``y = -(row offset)``), z toward the camera, and light
+directions point from the surface toward the light (the DiLiGenT convention). Pixel ``(x, y)`` is
+(column, row) with the origin at the centre of the top-left pixel.
+
+Public API: :func:`random_light_directions`, :class:`Surface`, :func:`sphere_surface`,
+:func:`relief_surface`, :func:`render`, :func:`render_chrome_sphere`, and the scene composition used by
+the simulated rig: :class:`SceneObject`, :class:`Scene`, :func:`render_scene`,
+:func:`scene_ground_truth`. See ``docs/renderer.md`` for the model.
+"""
+
+from __future__ import annotations
+
+import functools
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+__all__ = [
+    "Scene",
+    "SceneObject",
+    "Surface",
+    "random_light_directions",
+    "relief_surface",
+    "render",
+    "render_chrome_sphere",
+    "render_scene",
+    "scene_ground_truth",
+    "sphere_surface",
+]
+
+_VIEW = np.array([0.0, 0.0, 1.0])
+# Offset (pixel units of height) that a shadow ray must clear, so a surface does not shadow itself
+# through the linear interpolation of its own curved height field.
+_SHADOW_BIAS = 0.5
+# Schlick's reflectance at normal incidence (a dielectric); the Fresnel term is divided by it so
+# that ``specular`` sets the lobe's scale independently of the material.
+_FRESNEL_F0 = 0.04
+
+
+def random_light_directions(
+    n: int, rng: np.random.Generator, *, max_zenith_deg: float = 60.0
+) -> np.ndarray:
+    """Draw light directions uniformly over the spherical cap around the viewing direction.
+
+    Parameters
+    ----------
+    n : int
+        Number of lights.
+    rng : numpy.random.Generator
+        Source of randomness.
+    max_zenith_deg : float
+        Largest angle between a light and the camera axis (+z), in degrees.
+
+    Returns
+    -------
+    ndarray of shape (n, 3)
+        Unit vectors with ``z >= cos(max_zenith_deg) > 0``.
+    """
+    if n < 0:
+        raise ValueError(f"n must be >= 0, got {n}")
+    if not 0.0 < max_zenith_deg < 90.0:
+        raise ValueError(f"max_zenith_deg must be in (0, 90), got {max_zenith_deg}")
+    cos_max = np.cos(np.deg2rad(max_zenith_deg))
+    # Uniform on the cap: z uniform in [cos_max, 1], azimuth uniform.
+    z = rng.uniform(cos_max, 1.0, size=n)
+    phi = rng.uniform(0.0, 2.0 * np.pi, size=n)
+    s = np.sqrt(np.clip(1.0 - z * z, 0.0, None))
+    return np.stack([s * np.cos(phi), s * np.sin(phi), z], axis=1)
+
+
+@dataclass(frozen=True)
+class Surface:
+    """A height-field object seen by the orthographic camera.
+
+    Attributes
+    ----------
+    normals : ndarray of shape (H, W, 3)
+        Unit normals inside ``mask`` (camera frame), zeros outside.
+    mask : ndarray of shape (H, W), bool
+        Pixels covered by the object.
+    height : ndarray of shape (H, W)
+        Surface height z in pixel units (used for ray-marched cast shadows), 0 outside.
+    albedo : ndarray of shape (H, W) or (H, W, 3)
+        Lambertian albedo (grey or per channel).
+    """
+
+    normals: np.ndarray
+    mask: np.ndarray
+    height: np.ndarray
+    albedo: np.ndarray
+
+
+def _pixel_grid(shape: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
+    h, w = shape
+    rows, cols = np.mgrid[0:h, 0:w].astype(np.float64)
+    return cols, rows
+
+
+def _albedo_array(albedo: object, shape: tuple[int, int], mask: np.ndarray) -> np.ndarray:
+    a = np.asarray(albedo, dtype=np.float64)
+    h, w = shape
+    if a.ndim == 0:
+        out = np.full((h, w), float(a))
+    elif a.shape == (3,):
+        out = np.broadcast_to(a, (h, w, 3)).copy()
+    elif a.shape in ((h, w), (h, w, 3)):
+        out = a.copy()
+    else:
+        raise ValueError(f"albedo must be a scalar, (3,), {(h, w)} or {(h, w, 3)}; got {a.shape}")
+    out[~mask] = 0.0
+    return out
+
+
+def sphere_surface(
+    shape: tuple[int, int],
+    center: tuple[float, float] | None = None,
+    radius: float | None = None,
+    albedo: object = 1.0,
+) -> Surface:
+    """Build a sphere seen orthographically.
+
+    Parameters
+    ----------
+    shape : (H, W)
+        Image size.
+    center : (x, y), optional
+        Sphere centre in pixels (column, row); default the image centre.
+    radius : float, optional
+        Radius in pixels; default ``0.45 * min(H, W)``.
+    albedo : float, (3,), (H, W) or (H, W, 3)
+        Lambertian albedo.
+
+    Returns
+    -------
+    Surface
+        Height ``z = sqrt(r^2 - dx^2 - dy^2)`` and normals ``(dx, dy, z) / r`` with ``dy`` pointing up.
+    """
+    h, w = shape
+    if center is None:
+        center = ((w - 1) / 2.0, (h - 1) / 2.0)
+    if radius is None:
+        radius = 0.45 * min(h, w)
+    if radius <= 0:
+        raise ValueError(f"radius must be positive, got {radius}")
+    cols, rows = _pixel_grid(shape)
+    dx = cols - center[0]
+    dy = -(rows - center[1])
+    d2 = dx * dx + dy * dy
+    mask = d2 < radius * radius
+    z = np.where(mask, np.sqrt(np.clip(radius * radius - d2, 0.0, None)), 0.0)
+    normals = np.stack([dx, dy, z], axis=-1) / radius
+    normals[~mask] = 0.0
+    # Renormalise against rounding so normals are unit to machine precision.
+    norm = np.linalg.norm(normals, axis=-1, keepdims=True)
+    normals = np.divide(normals, norm, out=np.zeros_like(normals), where=norm > 0)
+    return Surface(normals=normals, mask=mask, height=z, albedo=_albedo_array(albedo, shape, mask))
+
+
+def _smooth_noise(shape: tuple[int, int], rng: np.random.Generator, scale: float) -> np.ndarray:
+    """Smooth random field in [0, 1] with features of about ``scale`` pixels."""
+    field = rng.standard_normal(shape)
+    sigma = max(scale, 0.5)
+    field = cv2.GaussianBlur(field, (0, 0), sigmaX=sigma, sigmaY=sigma, borderType=cv2.BORDER_REFLECT)
+    lo, hi = field.min(), field.max()
+    return (field - lo) / (hi - lo) if hi > lo else np.zeros(shape)
+
+
+def relief_surface(
+    shape: tuple[int, int],
+    *,
+    seed: int = 0,
+    albedo: object = None,
+    center: tuple[float, float] | None = None,
+    radius: float | None = None,
+) -> Surface:
+    """Build a height-field object: a rounded dome carrying smooth bumps and ridges.
+
+    The bumps are steep enough (slopes up to about 60-70 degrees) to cast visible shadows onto the dome
+    under oblique light. The normals are the analytic normals of the very height field returned in
+    ``height``, so shading and ray-marched shadows agree.
+
+    Parameters
+    ----------
+    shape : (H, W)
+        Image size.
+    seed : int
+        Seed of the bump layout and of the default albedo pattern.
+    albedo : float, (3,), (H, W) or (H, W, 3), optional
+        Lambertian albedo; default a smooth seeded pattern in [0.55, 1].
+    center : (x, y), optional
+        Centre of the object's bounding circle; default the image centre.
+    radius : float, optional
+        Radius of the bounding circle; default ``0.45 * min(H, W)``.
+
+    Returns
+    -------
+    Surface
+    """
+    h, w = shape
+    if center is None:
+        center = ((w - 1) / 2.0, (h - 1) / 2.0)
+    if radius is None:
+        radius = 0.45 * min(h, w)
+    if radius <= 0:
+        raise ValueError(f"radius must be positive, got {radius}")
+    rng = np.random.default_rng(seed)
+    cols, rows = _pixel_grid(shape)
+    # Work in units of the radius: u right, v up.
+    u = (cols - center[0]) / radius
+    v = -(rows - center[1]) / radius
+    rho2 = u * u + v * v
+    mask = rho2 < 1.0
+
+    # Dome: an ellipsoid cap of height `dome` (in radius units) -> vertical tangent at the rim.
+    dome = 0.35
+    root = np.sqrt(np.clip(1.0 - rho2, 1e-12, None))
+    height = dome * root
+    gu = -dome * u / root
+    gv = -dome * v / root
+
+    # Bumps (isotropic) and ridges (elongated) of Gaussian profile, placed well inside the rim.
+    n_bumps = 5
+    n_ridges = 2
+    for k in range(n_bumps + n_ridges):
+        for _attempt in range(50):
+            c = rng.uniform(-0.65, 0.65, size=2)
+            if c @ c < 0.6**2:
+                break
+        amp = rng.uniform(0.18, 0.28)
+        if k < n_bumps:
+            s_major = s_minor = rng.uniform(0.07, 0.11)
+        else:
+            s_major = rng.uniform(0.25, 0.35)
+            s_minor = rng.uniform(0.05, 0.07)
+        theta = rng.uniform(0.0, np.pi)
+        ct, st = np.cos(theta), np.sin(theta)
+        du, dv = u - c[0], v - c[1]
+        a = ct * du + st * dv  # along the ridge
+        b = -st * du + ct * dv  # across
+        g = amp * np.exp(-0.5 * ((a / s_major) ** 2 + (b / s_minor) ** 2))
+        da = -a / s_major**2 * g
+        db = -b / s_minor**2 * g
+        height = height + g
+        gu = gu + ct * da - st * db
+        gv = gv + st * da + ct * db
+
+    # Back to pixel units: height scales with the radius, gradients are dimensionless.
+    height = np.where(mask, height * radius, 0.0)
+    normals = np.stack([-gu, -gv, np.ones_like(gu)], axis=-1)
+    normals /= np.linalg.norm(normals, axis=-1, keepdims=True)
+    normals[~mask] = 0.0
+    if albedo is None:
+        albedo = 0.55 + 0.45 * _smooth_noise(shape, rng, 0.12 * radius)
+    return Surface(normals=normals, mask=mask, height=height, albedo=_albedo_array(albedo, shape, mask))
+
+
+def _bilinear_on_object(
+    height: np.ndarray, mask: np.ndarray, x: np.ndarray, y: np.ndarray
+) -> np.ndarray:
+    """Exact bilinear samples of ``height`` at float64 positions.
+
+    A sample whose four neighbouring pixels are not all on the object is ``-inf`` (it blocks nothing):
+    interpolating across the silhouette would smear the object's rim height into empty space.
+    """
+    h, w = height.shape
+    x0 = np.floor(x).astype(np.intp)
+    y0 = np.floor(y).astype(np.intp)
+    inside = (x0 >= 0) & (y0 >= 0) & (x0 < w - 1) & (y0 < h - 1)
+    out = np.full(x.shape, -np.inf)
+    x0, y0, fx, fy = x0[inside], y0[inside], x[inside] - x0[inside], y[inside] - y0[inside]
+    corners = mask[y0, x0] & mask[y0, x0 + 1] & mask[y0 + 1, x0] & mask[y0 + 1, x0 + 1]
+    top = height[y0, x0] * (1.0 - fx) + height[y0, x0 + 1] * fx
+    bottom = height[y0 + 1, x0] * (1.0 - fx) + height[y0 + 1, x0 + 1] * fx
+    out[inside] = np.where(corners, top * (1.0 - fy) + bottom * fy, -np.inf)
+    return out
+
+
+def _cast_shadow(
+    height: np.ndarray, mask: np.ndarray, lit: np.ndarray, light: np.ndarray
+) -> np.ndarray:
+    """Ray-march the height field from every lit pixel toward a directional light.
+
+    Parameters
+    ----------
+    height : ndarray of shape (H, W)
+        Height field in pixel units (0 off the object).
+    mask : ndarray of shape (H, W), bool
+        The object.
+    lit : ndarray of shape (H, W), bool
+        Pixels to test (those facing the light).
+    light : ndarray of shape (3,)
+        Unit direction toward the light.
+
+    Returns
+    -------
+    ndarray of shape (H, W), bool
+        True where some sample along the ray lies above the ray (plus a small bias).
+
+    Notes
+    -----
+    The ray advances one pixel per step along the light's image-plane direction and rises by
+    ``l_z / |l_xy|`` per step; it stops once it is above the highest point. Each step samples the
+    whole height field at once with ``cv2.remap`` (fast, but its bilinear weights are quantised to
+    1/32 pixel, which matters on the steep rim of a sphere), and every pixel that this sample says is
+    blocked is confirmed with an exact float64 bilinear sample.
+    """
+    shadow = np.zeros(height.shape, dtype=bool)
+    horizontal = float(np.hypot(light[0], light[1]))
+    if horizontal < 1e-9 or not lit.any():
+        return shadow  # light along the camera axis: nothing can block it
+    rise = light[2] / horizontal  # height gained per pixel travelled
+    step_x = light[0] / horizontal
+    step_y = -light[1] / horizontal  # y up -> rows down
+    h, w = height.shape
+    src = height.astype(np.float32)
+    cols, rows = np.meshgrid(np.arange(w, dtype=np.float32), np.arange(h, dtype=np.float32))
+    ray0 = height + _SHADOW_BIAS
+    top = float(height.max())
+    max_steps = int(np.ceil(np.hypot(h, w)))
+    n_steps = int(np.ceil((top - float(ray0[lit].min())) / rise)) if rise > 0 else max_steps
+    n_steps = min(max(n_steps, 0), max_steps)
+    for t in range(1, n_steps + 1):
+        sample = cv2.remap(
+            src,
+            cols + np.float32(t * step_x),
+            rows + np.float32(t * step_y),
+            interpolation=cv2.INTER_LINEAR,
+            borderMode=cv2.BORDER_CONSTANT,
+            borderValue=0.0,
+        )
+        ray = ray0 + t * rise
+        candidate = lit & ~shadow & (sample > ray)
+        if candidate.any():
+            ys, xs = np.nonzero(candidate)
+            exact = _bilinear_on_object(height, mask, xs + t * step_x, ys + t * step_y)
+            blocked = exact > ray[ys, xs]
+            shadow[ys[blocked], xs[blocked]] = True
+    return shadow
+
+
+def _normalise_lights(light_directions: np.ndarray) -> np.ndarray:
+    lights = np.asarray(light_directions, dtype=np.float64)
+    if lights.ndim == 1:
+        lights = lights[None, :]
+    if lights.ndim != 2 or lights.shape[1] != 3:
+        raise ValueError(f"light_directions must have shape (n, 3), got {lights.shape}")
+    norm = np.linalg.norm(lights, axis=1, keepdims=True)
+    if np.any(~np.isfinite(norm)) or np.any(norm <= 0):
+        raise ValueError("light directions must be finite and non-zero")
+    return lights / norm
+
+
+def _cook_torrance(
+    normals: np.ndarray, light: np.ndarray, n_dot_l: np.ndarray, roughness: float
+) -> np.ndarray:
+    """Cook-Torrance specular radiance per unit strength and irradiance, (P,) for (P, 3) normals.
+
+    ``D F G / (4 (n.v))`` times the Fresnel normalisation ``1 / F0`` (see ``docs/renderer.md``); the
+    ``n.l`` of the rendering equation cancels that of the BRDF denominator.
+    """
+    half = light + _VIEW
+    half = half / np.linalg.norm(half)
+    n_dot_h = np.clip(normals @ half, 1e-6, 1.0)
+    n_dot_v = np.clip(normals[:, 2], 1e-6, 1.0)
+    v_dot_h = max(float(half[2]), 1e-6)
+    m2 = roughness * roughness
+    cos2 = n_dot_h * n_dot_h
+    tan2 = (1.0 - cos2) / cos2
+    beckmann = np.exp(-tan2 / m2) / (np.pi * m2 * cos2 * cos2)
+    fresnel = (_FRESNEL_F0 + (1.0 - _FRESNEL_F0) * (1.0 - v_dot_h) ** 5) / _FRESNEL_F0
+    geometry = np.minimum(
+        1.0, np.minimum(2.0 * n_dot_h * n_dot_v / v_dot_h, 2.0 * n_dot_h * n_dot_l / v_dot_h)
+    )
+    return beckmann * fresnel * geometry / (4.0 * n_dot_v)
+
+
+def render(
+    surface: Surface,
+    light_directions: np.ndarray,
+    light_intensities: np.ndarray | None = None,
+    *,
+    cast_shadows: bool = True,
+    specular: float = 0.0,
+    roughness: float = 0.3,
+    noise_sigma: float = 0.0,
+    noise_fraction: float = 0.0,
+    rng: np.random.Generator | None = None,
+) -> np.ndarray:
+    """Render one image per light.
+
+    Parameters
+    ----------
+    surface : Surface
+        The object.
+    light_directions : ndarray of shape (n, 3)
+        Directions toward the lights (normalised here).
+    light_intensities : ndarray of shape (n,), (n, 1) or (n, 3), optional
+        Light intensities (grey or per channel); default all ones.
+    cast_shadows : bool
+        Ray-march the height field toward each light and darken occluded points.
+    specular : float
+        Strength of the Cook-Torrance lobe (about the peak radiance at normal incidence for
+        ``roughness = 0.3``); 0 gives a purely Lambertian object.
+    roughness : float
+        Beckmann RMS slope ``m`` of the specular lobe.
+    noise_sigma : float
+        Standard deviation of the additive Gaussian noise.
+    noise_fraction : float
+        Share of the object's observations (light x pixel) that receive noise (the paper's noise density).
+    rng : numpy.random.Generator, optional
+        Noise source; default ``numpy.random.default_rng(0)``.
+
+    Returns
+    -------
+    ndarray of shape (n, H, W), or (n, H, W, 3) when albedo or intensities are per channel
+        Linear radiance, zeros outside the mask, not clipped (noise can make values negative).
+    """
+    lights = _normalise_lights(light_directions)
+    n = lights.shape[0]
+    if roughness <= 0:
+        raise ValueError(f"roughness must be positive, got {roughness}")
+    if specular < 0:
+        raise ValueError(f"specular must be >= 0, got {specular}")
+    if not 0.0 <= noise_fraction <= 1.0:
+        raise ValueError(f"noise_fraction must be in [0, 1], got {noise_fraction}")
+    if light_intensities is None:
+        intensities = np.ones((n, 1))
+    else:
+        intensities = np.asarray(light_intensities, dtype=np.float64).reshape(n, -1)
+        if intensities.shape[1] not in (1, 3):
+            raise ValueError(f"light_intensities must be (n,), (n, 1) or (n, 3); got {intensities.shape}")
+    albedo = np.asarray(surface.albedo, dtype=np.float64)
+    colour = albedo.ndim == 3 or intensities.shape[1] == 3
+    mask = surface.mask
+    h, w = mask.shape
+    normals = surface.normals[mask]  # (P, 3)
+    albedo_p = albedo[mask].reshape(normals.shape[0], -1)  # (P, 1) or (P, 3)
+
+    shading = np.zeros((n, normals.shape[0]))  # Lambertian cosine, 0 in attached/cast shadow
+    spec = np.zeros((n, normals.shape[0]))
+    for i, light in enumerate(lights):
+        n_dot_l = normals @ light
+        lit = n_dot_l > 0
+        if cast_shadows:
+            lit_map = np.zeros((h, w), dtype=bool)
+            lit_map[mask] = lit
+            lit &= ~_cast_shadow(surface.height, mask, lit_map, light)[mask]
+        shading[i] = np.where(lit, n_dot_l, 0.0)
+        if specular > 0:
+            spec[i] = np.where(lit, specular * _cook_torrance(normals, light, n_dot_l, roughness), 0.0)
+
+    # (n, P, C) radiance: albedo-weighted diffuse plus (white) specular, times the light intensity.
+    radiance = (shading[:, :, None] * albedo_p[None] + spec[:, :, None]) * intensities[:, None, :]
+    if noise_fraction > 0 and noise_sigma > 0:
+        rng = np.random.default_rng(0) if rng is None else rng
+        total = n * normals.shape[0]
+        count = int(round(noise_fraction * total))
+        chosen = rng.choice(total, size=count, replace=False)
+        noise = rng.normal(0.0, noise_sigma, size=(count, radiance.shape[2]))
+        flat = radiance.reshape(total, radiance.shape[2])
+        flat[chosen] += noise
+    out = np.zeros((n, h, w, radiance.shape[2]))
+    out[:, mask] = radiance
+    return out if colour else out[..., 0]
+
+
+def _subpixel_offsets(supersample: int) -> np.ndarray:
+    s = int(supersample)
+    if s < 1:
+        raise ValueError(f"supersample must be >= 1, got {supersample}")
+    return (np.arange(s) + 0.5) / s - 0.5
+
+
+def render_chrome_sphere(
+    shape: tuple[int, int],
+    center: tuple[float, float],
+    radius: float,
+    light_directions: np.ndarray,
+    *,
+    light_angular_radius_deg: float = 1.5,
+    light_radiance: float = 50.0,
+    ambient: float = 0.02,
+    supersample: int = 4,
+) -> np.ndarray:
+    """Render a mirror sphere under small disc-shaped lights.
+
+    A sub-pixel sample on the sphere reflects the view vector ``v = (0, 0, 1)`` into
+    ``r = 2 (n.v) n - v``; it sees ``light_radiance`` where ``r`` falls inside a light's disc of angular
+    radius ``light_angular_radius_deg`` (with a narrow linear ramp at the disc's edge) and ``ambient``
+    everywhere on the sphere. Each pixel averages an ``s x s`` grid of sub-pixel samples, so the outline
+    and the highlight are anti-aliased. The background is 0.
+
+    Parameters
+    ----------
+    shape : (H, W)
+    center : (x, y)
+        Sphere centre in pixels.
+    radius : float
+        Sphere radius in pixels.
+    light_directions : ndarray of shape (n, 3)
+    light_angular_radius_deg, light_radiance, ambient : float
+    supersample : int
+        Sub-pixel grid size ``s``.
+
+    Returns
+    -------
+    ndarray of shape (n, H, W)
+    """
+    lights = _normalise_lights(light_directions)
+    h, w = shape
+    if radius <= 0:
+        raise ValueError(f"radius must be positive, got {radius}")
+    offsets = _subpixel_offsets(supersample)
+    s2 = offsets.size**2
+    # Restrict the work to the sphere's bounding box (plus one pixel).
+    x0 = max(int(np.floor(center[0] - radius)) - 1, 0)
+    x1 = min(int(np.ceil(center[0] + radius)) + 2, w)
+    y0 = max(int(np.floor(center[1] - radius)) - 1, 0)
+    y1 = min(int(np.ceil(center[1] + radius)) + 2, h)
+    out = np.zeros((lights.shape[0], h, w))
+    if x0 >= x1 or y0 >= y1:
+        return out
+    cols = np.arange(x0, x1, dtype=np.float64)
+    rows = np.arange(y0, y1, dtype=np.float64)
+    # Sub-pixel sample positions, shape (s2, bh, bw).
+    oy, ox = np.meshgrid(offsets, offsets, indexing="ij")
+    sx = cols[None, None, :] + ox.reshape(-1, 1, 1)
+    sy = rows[None, :, None] + oy.reshape(-1, 1, 1)
+    dx = (sx - center[0]) / radius
+    dy = -(sy - center[1]) / radius
+    d2 = dx * dx + dy * dy
+    inside = d2 < 1.0
+    nz = np.sqrt(np.clip(1.0 - d2, 0.0, None))
+    # Reflected view vector r = 2 nz n - v.
+    rx = np.where(inside, 2.0 * nz * dx, 0.0)
+    ry = np.where(inside, 2.0 * nz * dy, 0.0)
+    rz = np.where(inside, 2.0 * nz * nz - 1.0, -1.0)
+    coverage = inside.mean(axis=0)  # (bh, bw) anti-aliased outline
+
+    disc = np.deg2rad(light_angular_radius_deg)
+    edge = 0.25 * disc  # width of the linear ramp at the disc edge
+    cos_outer = np.cos(disc + 0.5 * edge)
+    for i, light in enumerate(lights):
+        cos_angle = rx * light[0] + ry * light[1] + rz * light[2]  # (s2, bh, bw)
+        near = cos_angle > cos_outer
+        highlight = np.zeros_like(coverage)
+        if near.any():
+            angle = np.arccos(np.clip(cos_angle[near], -1.0, 1.0))
+            weight = np.zeros(cos_angle.shape)
+            weight[near] = np.clip((disc - angle) / edge + 0.5, 0.0, 1.0)
+            highlight = weight.sum(axis=0) / s2
+        out[i, y0:y1, x0:x1] = ambient * coverage + light_radiance * highlight
+    return out
+
+
+@dataclass(frozen=True)
+class SceneObject:
+    """One object of a simulated rig scene.
+
+    Attributes
+    ----------
+    kind : str
+        ``'sphere'`` (Lambertian + specular sphere), ``'relief'`` (height-field object, placed in its
+        bounding circle), ``'chrome'`` (mirror sphere) or ``'matte'`` (Lambertian sphere).
+    center : (x, y)
+        Centre in pixels.
+    radius : float
+        Radius (of the bounding circle for ``'relief'``) in pixels.
+    albedo : (r, g, b)
+        Per-channel albedo (the mirror's reflectance for ``'chrome'``).
+    specular, roughness : float
+        Cook-Torrance lobe of ``'sphere'`` and ``'relief'`` objects.
+    seed : int
+        Layout seed of a ``'relief'`` object.
+    """
+
+    kind: str
+    center: tuple[float, float]
+    radius: float
+    albedo: tuple[float, float, float] = (1.0, 1.0, 1.0)
+    specular: float = 0.0
+    roughness: float = 0.3
+    seed: int = 0
+
+
+@dataclass(frozen=True)
+class Scene:
+    """Objects on a constant background, seen by an orthographic camera of ``height x width`` pixels.
+
+    ``background`` is a light-independent level (stray light, sensor offset) present in every frame
+    outside the objects, including the dark frame.
+    """
+
+    width: int
+    height: int
+    objects: tuple[SceneObject, ...]
+    background: float = 0.0
+
+
+_KINDS = ("sphere", "relief", "chrome", "matte")
+
+
+@functools.lru_cache(maxsize=16)
+def _scene_surfaces(scene: Scene) -> tuple[Surface | None, ...]:
+    shape = (scene.height, scene.width)
+    surfaces: list[Surface | None] = []
+    for obj in scene.objects:
+        if obj.kind not in _KINDS:
+            raise ValueError(f"unknown scene object kind {obj.kind!r}; expected one of {_KINDS}")
+        albedo = np.asarray(obj.albedo, dtype=np.float64)
+        if obj.kind in ("sphere", "matte"):
+            surfaces.append(sphere_surface(shape, obj.center, obj.radius, albedo=albedo))
+        elif obj.kind == "relief":
+            base = relief_surface(shape, seed=obj.seed, center=obj.center, radius=obj.radius)
+            colour = base.albedo[..., None] * albedo
+            surfaces.append(
+                Surface(normals=base.normals, mask=base.mask, height=base.height, albedo=colour)
+            )
+        else:
+            surfaces.append(None)
+    return tuple(surfaces)
+
+
+def _object_mask(scene: Scene, obj: SceneObject, surface: Surface | None) -> np.ndarray:
+    if surface is not None:
+        return surface.mask
+    cols, rows = _pixel_grid((scene.height, scene.width))
+    return (cols - obj.center[0]) ** 2 + (rows - obj.center[1]) ** 2 < obj.radius**2
+
+
+def render_scene(
+    scene: Scene, light_directions: np.ndarray, light_intensities: np.ndarray | None = None
+) -> np.ndarray:
+    """Render the frame seen with the given lights lit together.
+
+    Parameters
+    ----------
+    scene : Scene
+    light_directions : ndarray of shape (k, 3)
+        The lit lights; ``k = 0`` gives the dark frame.
+    light_intensities : ndarray of shape (k, 3), optional
+        Per-channel intensities; default ones.
+
+    Returns
+    -------
+    ndarray of shape (H, W, 3)
+        ``background`` outside the objects plus the sum over lit lights of each object's radiance.
+        Later objects cover earlier ones; cast shadows are computed within each object.
+    """
+    h, w = scene.height, scene.width
+    lights = np.asarray(light_directions, dtype=np.float64).reshape(-1, 3)
+    k = lights.shape[0]
+    if light_intensities is None:
+        intensities = np.ones((k, 3))
+    else:
+        intensities = np.broadcast_to(
+            np.asarray(light_intensities, dtype=np.float64).reshape(k, -1), (k, 3)
+        )
+    frame = np.zeros((h, w, 3))
+    covered = np.zeros((h, w), dtype=bool)
+    for obj, surface in zip(scene.objects, _scene_surfaces(scene), strict=True):
+        obj_mask = _object_mask(scene, obj, surface)
+        if k == 0:
+            image = np.zeros((h, w, 3))
+        elif obj.kind == "chrome":
+            grey = render_chrome_sphere((h, w), obj.center, obj.radius, lights)  # (k, H, W)
+            image = np.einsum("khw,kc->hwc", grey, intensities) * np.asarray(obj.albedo)
+        else:
+            spec = obj.specular if obj.kind != "matte" else 0.0
+            images = render(surface, lights, intensities, specular=spec, roughness=obj.roughness)
+            image = images.sum(axis=0)
+        # The chrome outline is anti-aliased: blend it over what lies behind.
+        frame[obj_mask] = image[obj_mask]
+        covered |= obj_mask
+    frame[~covered] = scene.background
+    return frame
+
+
+def scene_ground_truth(scene: Scene) -> dict:
+    """Ground truth of a scene.
+
+    Returns
+    -------
+    dict
+        ``normals`` (H, W, 3) of the sphere/relief objects (zeros elsewhere), ``mask`` (H, W) bool of
+        those objects, ``chrome`` and ``matte``: lists of ``(cx, cy, r)`` circles.
+    """
+    h, w = scene.height, scene.width
+    normals = np.zeros((h, w, 3))
+    mask = np.zeros((h, w), dtype=bool)
+    chrome: list[tuple[float, float, float]] = []
+    matte: list[tuple[float, float, float]] = []
+    for obj, surface in zip(scene.objects, _scene_surfaces(scene), strict=True):
+        obj_mask = _object_mask(scene, obj, surface)
+        # A later object hides what is behind it.
+        normals[obj_mask] = 0.0
+        mask &= ~obj_mask
+        if obj.kind in ("sphere", "relief"):
+            normals[obj_mask] = surface.normals[obj_mask]
+            mask |= obj_mask
+        elif obj.kind == "chrome":
+            chrome.append((float(obj.center[0]), float(obj.center[1]), float(obj.radius)))
+        else:
+            matte.append((float(obj.center[0]), float(obj.center[1]), float(obj.radius)))
+    return {"normals": normals, "mask": mask, "chrome": chrome, "matte": matte}
