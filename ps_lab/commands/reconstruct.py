@@ -1,7 +1,101 @@
-"""`ps-lab reconstruct` (not yet wired)."""
+"""`ps-lab reconstruct`: surface normals from a dataset folder or capture run."""
+
+from __future__ import annotations
+
+from enum import Enum
+from pathlib import Path
+from typing import Annotated
 
 import typer
 
+from ps_lab._cli_util import lab_command, progress_bar
+
+
+class Method(str, Enum):
+    """Solver choices (see ``ps_lab.reconstruct.METHODS``)."""
+
+    ls = "ls"
+    l1 = "l1"
+    sbl = "sbl"
+    rpca = "rpca"
+
+
+class Channel(str, Enum):
+    """How colour observations become one value per light and pixel."""
+
+    mean = "mean"
+    r = "r"
+    g = "g"
+    b = "b"
+
+
+@lab_command
+def reconstruct(
+    dataset: Annotated[
+        Path, typer.Argument(help="Image folder (DiLiGenT layout) or capture run.", show_default=False)
+    ],
+    method: Annotated[
+        Method, typer.Option(help="Solver: ls (Woodham), l1 (IRLS), sbl (robust, default), rpca.")
+    ] = Method.sbl,
+    out: Annotated[
+        Path | None,
+        typer.Option(help="Output folder [default: DATASET/recon/<method>].", show_default=False),
+    ] = None,
+    shadow_threshold: Annotated[
+        float | None,
+        typer.Option(help="Drop observations at or below this value (after intensity division)."),
+    ] = None,
+    channel: Annotated[
+        Channel, typer.Option(help="Colour rule: mean of the channels, or one of r, g, b.")
+    ] = Channel.mean,
+    threads: Annotated[
+        int | None, typer.Option(min=1, help="Solver threads [default: all cores].", show_default=False)
+    ] = None,
+    refine_lights: Annotated[
+        int, typer.Option(min=0, help="Iterations of light refinement (0 = none).")
+    ] = 0,
+    fixed_intensities: Annotated[
+        bool, typer.Option(help="With --refine-lights: refine directions only.")
+    ] = False,
+) -> None:
+    """Estimate surface normals and albedo; write normals.npy, normal.png, albedo, metrics.json."""
+    from ps_lab.dataset import load_dataset
+    from ps_lab.outputs import check_output_folder, reconstruct_to_folder
+
+    out = out if out is not None else dataset / "recon" / method.value
+    check_output_folder(out)
+    data = load_dataset(dataset, channel=channel.value, shadow_threshold=shadow_threshold)
+    pixels = int(data.mask.sum())
+    extra = {"channel": channel.value, "shadow_threshold": shadow_threshold}
+    with progress_bar(pixels * (refine_lights + 1), f"{method.value}: pixels") as advance:
+        metrics = reconstruct_to_folder(
+            data,
+            out,
+            method=method.value,
+            threads=threads,
+            refine_lights=refine_lights,
+            fixed_intensities=fixed_intensities,
+            progress=advance,
+            extra=extra,
+        )
+    typer.echo(
+        f"{metrics['pixels']} pixels, {metrics['lights']} lights, {method.value} "
+        f"in {metrics['solve_seconds']:.2f} s"
+    )
+    errors = metrics.get("angular_error_deg")
+    if errors:
+        typer.echo(
+            f"normal error vs ground truth: mean {errors['mean']:.2f} deg, "
+            f"median {errors['median']:.2f} deg, p90 {errors['p90']:.2f} deg"
+        )
+    history = metrics.get("refinement", {}).get("history") or []
+    if history:
+        change = history[-1].get("mean_direction_change_deg")
+        if change is not None:
+            typer.echo(f"light refinement: last mean direction change {change:.3f} deg")
+    typer.echo(f"results: {out}")
+
 
 def register(app: typer.Typer) -> None:
-    """Add this module's command(s) to app."""
+    """Add ``reconstruct`` to the app."""
+    app.command("reconstruct")(reconstruct)

@@ -1,0 +1,691 @@
+"""Dataset loading: the input contract of ``ps-lab calibrate`` and ``ps-lab reconstruct``.
+
+Two kinds of folder are datasets:
+
+- an **image folder** (DiLiGenT layout): one image per light, ordered by ``filenames.txt`` when present,
+  else by file name (numbers compared numerically); ``light_directions.txt``; optional
+  ``light_intensities.txt``, ``mask.png``, ``normal_gt.npy`` or ``Normal_gt.mat``, and ``dark.<ext>``;
+- a **capture run** written by ``ps-lab capture`` (a folder with ``manifest.json``): frames come from
+  the manifest, repeats are averaged, the dark frame is subtracted, exposures are equalised, and the
+  lights come from ``light_directions.txt`` / ``light_intensities.txt`` written by ``ps-lab calibrate``.
+
+:func:`load_frames` returns the linear frames (what calibration reads); :func:`load_dataset` adds the
+lights, mask and ground truth and reduces colour to one observation per light and pixel (what the
+solvers read). Every problem raises :class:`~ps_lab.errors.DatasetError` with one line naming the file.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import logging
+import re
+from dataclasses import dataclass
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from ps_lab.errors import DatasetError
+from ps_lab.imageio import SUPPORTED_SUFFIXES, Image, is_supported, read_image
+
+log = logging.getLogger("ps_lab.dataset")
+
+CHANNELS = ("r", "g", "b", "mean")
+MANIFEST = "manifest.json"
+FILENAMES = "filenames.txt"
+LIGHT_DIRECTIONS = "light_directions.txt"
+LIGHT_INTENSITIES = "light_intensities.txt"
+MASK = "mask.png"
+SIMULATION = "simulation"
+
+# Files in an image folder that are never light frames (outputs, calibration pictures, ground truth).
+_NOT_FRAMES = {
+    "mask.png",
+    "normal.png",
+    "normals.npy",
+    "albedo.png",
+    "albedo.npy",
+    "corruption.png",
+    "calibration.png",
+}
+_GT_NAME = re.compile(r".*[_-]gt(\.[^.]+)?$", re.IGNORECASE)
+_DARK_STEM = "dark"
+_UNIT_TOLERANCE = 1e-3
+
+
+@dataclass(frozen=True)
+class Frames:
+    """Linear frames, one per light: dark-subtracted, exposure-normalised, repeats averaged.
+
+    Attributes
+    ----------
+    images : ndarray of shape (n, H, W, C), float32
+        C = 1 (grey) or 3 (RGB).
+    saturated : ndarray of shape (n, H, W), bool
+        True where any repeat of the frame clipped in any channel.
+    names : list of str
+        File name per frame (the first repeat's), in light order.
+    root : Path
+        The dataset folder.
+    manifest : dict or None
+        The parsed ``manifest.json`` of a capture run, else None.
+    """
+
+    images: np.ndarray
+    saturated: np.ndarray
+    names: list[str]
+    root: Path
+    manifest: dict | None
+
+
+@dataclass(frozen=True)
+class Dataset:
+    """Observations and lights ready for the solvers.
+
+    Attributes
+    ----------
+    images : ndarray of shape (n, H, W), float32
+        Each channel divided by the light's intensity for that channel, then channels combined.
+    valid : ndarray of shape (n, H, W), bool
+        False where saturated, or at or below the shadow threshold when one was given.
+    light_directions : ndarray of shape (n, 3), float64
+        Unit vectors from the surface toward each light (x right, y up, z toward the camera).
+    light_intensities : ndarray of shape (n, 3), float64
+        Per-channel intensity of each light (ones when the folder has no intensities file).
+    mask : ndarray of shape (H, W), bool
+        Object pixels (all pixels when the folder has no mask).
+    normal_gt : ndarray of shape (H, W, 3), float64, or None
+        Ground-truth normals when the folder has them.
+    names : list of str
+        Frame file name per light.
+    root : Path
+        The dataset folder.
+    """
+
+    images: np.ndarray
+    valid: np.ndarray
+    light_directions: np.ndarray
+    light_intensities: np.ndarray
+    mask: np.ndarray
+    normal_gt: np.ndarray | None
+    names: list[str]
+    root: Path
+
+
+@dataclass(frozen=True)
+class FramePlan:
+    """Which files make up each frame of a dataset, before any pixel is read.
+
+    Attributes
+    ----------
+    light_files : list of list of Path
+        Per light (in light order), the files of its repeats.
+    light_exposures : list of list of float or None
+        Exposure time of each of those files when known (manifest), else None.
+    dark_files : list of Path
+        Dark frames (all lights off); may be empty.
+    dark_exposures : list of float or None
+    root : Path
+    manifest : dict or None
+    """
+
+    light_files: list[list[Path]]
+    light_exposures: list[list[float | None]]
+    dark_files: list[Path]
+    dark_exposures: list[float | None]
+    root: Path
+    manifest: dict | None
+
+    @property
+    def names(self) -> list[str]:
+        """File name per light (the first repeat's)."""
+        return [files[0].name for files in self.light_files]
+
+
+def is_capture_run(path: Path) -> bool:
+    """True if ``path`` is a capture-run folder (it holds ``manifest.json``)."""
+    return (Path(path) / MANIFEST).is_file()
+
+
+def plan_frames(path: Path) -> FramePlan:
+    """List the files of every frame of an image folder or capture run.
+
+    Parameters
+    ----------
+    path : Path
+        Dataset folder.
+
+    Returns
+    -------
+    FramePlan
+
+    Raises
+    ------
+    DatasetError
+        Missing folder, no images, unreadable ``filenames.txt`` or ``manifest.json``, missing files.
+    """
+    root = Path(path)
+    if not root.exists():
+        raise DatasetError(f"{root}: no such dataset folder")
+    if not root.is_dir():
+        raise DatasetError(f"{root}: not a folder (a dataset is a folder of images)")
+    if is_capture_run(root):
+        return _plan_run(root)
+    return _plan_image_folder(root)
+
+
+def load_frames(path: Path) -> Frames:
+    """Load the linear frames of an image folder or capture run.
+
+    Repeats of a light are averaged, a dark frame (manifest ``kind: dark``, or ``dark.<ext>`` in an
+    image folder) is subtracted after scaling it by the exposure ratio, and every frame is scaled to
+    the exposure of the first light frame when the exposures are known.
+
+    Parameters
+    ----------
+    path : Path
+        Dataset folder.
+
+    Returns
+    -------
+    Frames
+        ``images`` of shape (n, H, W, C) float32, ``saturated`` of shape (n, H, W).
+    """
+    plan = plan_frames(path)
+    reference: Image | None = None
+    reference_path: Path | None = None
+
+    def read_checked(file: Path) -> Image:
+        nonlocal reference, reference_path
+        image = read_image(file)
+        if reference is None:
+            reference, reference_path = image, file
+        else:
+            _check_same_geometry(image, file, reference, reference_path)
+        return image
+
+    dark, dark_exposure = None, None
+    if plan.dark_files:
+        dark, dark_exposure = _average_dark(plan, read_checked)
+
+    # A frame's exposure is the manifest's, else the file's own (RAW metadata); scaling happens only
+    # when every exposure is known.
+    n = len(plan.light_files)
+    images: np.ndarray | None = None
+    saturated: np.ndarray | None = None
+    common_exposure: float | None = None
+    for i, (files, exposures) in enumerate(zip(plan.light_files, plan.light_exposures, strict=True)):
+        total: np.ndarray | None = None
+        clipped: np.ndarray | None = None
+        for file, exposure in zip(files, exposures, strict=True):
+            image = read_checked(file)
+            exposure = exposure if exposure is not None else image.exposure_s
+            data = image.data
+            if dark is not None:
+                ratio = _ratio(exposure, dark_exposure)
+                data = data - dark * np.float32(ratio)
+            if common_exposure is None and i == 0:
+                common_exposure = exposure
+            data = data * np.float32(_ratio(common_exposure, exposure))
+            total = data if total is None else total + data
+            clipped = image.saturated if clipped is None else clipped | image.saturated
+        assert total is not None and clipped is not None
+        if images is None:
+            h, w, c = total.shape
+            images = np.empty((n, h, w, c), dtype=np.float32)
+            saturated = np.empty((n, h, w), dtype=bool)
+        images[i] = total / np.float32(len(files))
+        saturated[i] = clipped
+    assert images is not None and saturated is not None
+    return Frames(
+        images=images, saturated=saturated, names=plan.names, root=plan.root, manifest=plan.manifest
+    )
+
+
+def load_dataset(
+    path: Path, *, channel: str = "mean", shadow_threshold: float | None = None
+) -> Dataset:
+    """Load a dataset folder into observations, lights, mask and ground truth.
+
+    Colour rule: each channel is divided by the light's intensity for that channel, then the
+    channels are combined: ``channel="mean"`` averages them, ``"r"``/``"g"``/``"b"`` keeps one. A
+    grey image is divided by the selected channel's intensity (the mean of the three for ``"mean"``).
+
+    Parameters
+    ----------
+    path : Path
+        Image folder or capture run.
+    channel : {"mean", "r", "g", "b"}
+        How colour is reduced to one observation per light and pixel.
+    shadow_threshold : float or None
+        Observations at or below this value (after the intensity division) are marked invalid.
+
+    Returns
+    -------
+    Dataset
+        ``images`` of shape (n, H, W) float32, ``valid`` of shape (n, H, W), lights (n, 3).
+
+    Raises
+    ------
+    DatasetError
+        Any problem with the folder, with one line naming the file and the problem.
+    """
+    if channel not in CHANNELS:
+        raise DatasetError(f"unknown channel {channel!r} (choose one of {', '.join(CHANNELS)})")
+    root = Path(path)
+    run = is_capture_run(root) if root.is_dir() else False
+    # Lights are checked before pixels are read: a missing file should not cost a long load.
+    directions_file = root / LIGHT_DIRECTIONS
+    if root.is_dir() and not directions_file.is_file():
+        if run:
+            raise DatasetError(
+                f"run {root} is not calibrated: run `ps-lab calibrate {root}` first"
+            )
+        raise DatasetError(f"{root}: no {LIGHT_DIRECTIONS} (one row 'x y z' per image)")
+    frames = load_frames(root)
+    n, height, width = frames.images.shape[:3]
+    light_directions = read_light_directions(directions_file, n)
+    intensities_file = root / LIGHT_INTENSITIES
+    if intensities_file.is_file():
+        light_intensities = read_light_intensities(intensities_file, n)
+    else:
+        light_intensities = np.ones((n, 3))
+    mask = _find_mask(root, (height, width))
+    normal_gt = _find_normal_gt(root, (height, width))
+
+    images = np.empty((n, height, width), dtype=np.float32)
+    for i in range(n):
+        images[i] = combine_channels(frames.images[i], light_intensities[i], channel)
+    valid = ~frames.saturated
+    if shadow_threshold is not None:
+        valid &= images > np.float32(shadow_threshold)
+    return Dataset(
+        images=images,
+        valid=valid,
+        light_directions=light_directions,
+        light_intensities=light_intensities,
+        mask=mask,
+        normal_gt=normal_gt,
+        names=frames.names,
+        root=root,
+    )
+
+
+def combine_channels(image: np.ndarray, intensity: np.ndarray, channel: str = "mean") -> np.ndarray:
+    """Divide each channel by the light's intensity, then reduce to one value per pixel.
+
+    Parameters
+    ----------
+    image : ndarray of shape (H, W, C)
+        C = 1 or 3.
+    intensity : ndarray of shape (3,)
+        The light's RGB intensity.
+    channel : {"mean", "r", "g", "b"}
+
+    Returns
+    -------
+    ndarray of shape (H, W), float32
+    """
+    intensity = np.asarray(intensity, dtype=np.float64)
+    pick = {"r": 0, "g": 1, "b": 2}
+    if image.shape[-1] == 1:
+        scale = intensity.mean() if channel == "mean" else intensity[pick[channel]]
+        return (image[..., 0] / np.float32(scale)).astype(np.float32)
+    if channel == "mean":
+        weights = (1.0 / (3.0 * intensity)).astype(np.float32)
+        return (image @ weights).astype(np.float32)
+    k = pick[channel]
+    return (image[..., k] / np.float32(intensity[k])).astype(np.float32)
+
+
+def read_light_directions(path: Path, count: int | None = None) -> np.ndarray:
+    """Read ``light_directions.txt``: one row ``x y z`` per light.
+
+    Rows that are not unit length are normalised (with a logged warning).
+
+    Parameters
+    ----------
+    path : Path
+    count : int or None
+        Expected number of rows (the number of images).
+
+    Returns
+    -------
+    ndarray of shape (n, 3), float64, unit rows
+    """
+    rows = _read_table(path, (3,))
+    if count is not None and len(rows) != count:
+        raise DatasetError(
+            f"{path}: {len(rows)} light directions but the dataset has {count} images"
+        )
+    norms = np.linalg.norm(rows, axis=1)
+    for i, norm in enumerate(norms):
+        if norm < 1e-12:
+            raise DatasetError(f"{path}: light {i + 1} (row {i + 1}) has zero length")
+    off = np.abs(norms - 1.0) > _UNIT_TOLERANCE
+    if off.any():
+        log.warning(
+            "%s: %d light direction(s) not unit length (rows %s); normalised",
+            path,
+            int(off.sum()),
+            ", ".join(str(i + 1) for i in np.flatnonzero(off)[:10]),
+        )
+    return rows / norms[:, None]
+
+
+def read_light_intensities(path: Path, count: int | None = None) -> np.ndarray:
+    """Read ``light_intensities.txt``: one row per light, ``r g b`` or a single value.
+
+    Returns
+    -------
+    ndarray of shape (n, 3), float64, positive
+    """
+    rows = _read_table(path, (1, 3))
+    if count is not None and len(rows) != count:
+        raise DatasetError(
+            f"{path}: {len(rows)} light intensities but the dataset has {count} images"
+        )
+    bad = np.flatnonzero(np.any(rows <= 0, axis=1))
+    if bad.size:
+        raise DatasetError(f"{path}: row {bad[0] + 1}: intensities must be positive")
+    return np.repeat(rows, 3, axis=1) if rows.shape[1] == 1 else rows
+
+
+def write_light_table(path: Path, rows: np.ndarray) -> None:
+    """Write a light table (directions or intensities) in the DiLiGenT text format."""
+    rows = np.atleast_2d(np.asarray(rows, dtype=np.float64))
+    np.savetxt(path, rows, fmt="%.9f")
+
+
+def _read_table(path: Path, widths: tuple[int, ...]) -> np.ndarray:
+    """Parse a whitespace (or comma) separated numeric table; ``#`` starts a comment."""
+    try:
+        text = path.read_text(encoding="utf-8")
+    except FileNotFoundError:
+        raise DatasetError(f"{path}: file not found") from None
+    except (OSError, UnicodeDecodeError) as exc:
+        raise DatasetError(f"{path}: cannot read file ({exc})") from None
+    rows: list[list[float]] = []
+    width: int | None = None
+    for number, line in enumerate(text.splitlines(), start=1):
+        fields = line.split("#", 1)[0].replace(",", " ").split()
+        if not fields:
+            continue
+        try:
+            values = [float(field) for field in fields]
+        except ValueError:
+            raise DatasetError(f"{path}: line {number}: not a row of numbers: {line.strip()!r}") from None
+        if len(values) not in widths:
+            expected = " or ".join(str(w) for w in widths)
+            raise DatasetError(
+                f"{path}: line {number}: expected {expected} numbers, got {len(values)}"
+            )
+        if width is not None and len(values) != width:
+            raise DatasetError(f"{path}: line {number}: {len(values)} numbers, earlier rows have {width}")
+        width = len(values)
+        if not all(np.isfinite(values)):
+            raise DatasetError(f"{path}: line {number}: value is NaN or infinite")
+        rows.append(values)
+    if not rows:
+        raise DatasetError(f"{path}: file is empty")
+    return np.asarray(rows, dtype=np.float64)
+
+
+def _natural_key(name: str) -> list:
+    return [int(part) if part.isdigit() else part.lower() for part in re.split(r"(\d+)", name)]
+
+
+def _is_light_frame(path: Path) -> bool:
+    name = path.name
+    return (
+        path.is_file()
+        and is_supported(path)
+        and not name.startswith(".")
+        and name.lower() not in _NOT_FRAMES
+        and not _GT_NAME.match(name)
+        and path.stem.lower() != _DARK_STEM
+    )
+
+
+def _plan_image_folder(root: Path) -> FramePlan:
+    listing = root / FILENAMES
+    if listing.is_file():
+        try:
+            names = [line.strip() for line in listing.read_text(encoding="utf-8").splitlines()]
+        except (OSError, UnicodeDecodeError) as exc:
+            raise DatasetError(f"{listing}: cannot read file ({exc})") from None
+        names = [name for name in names if name and not name.startswith("#")]
+        if not names:
+            raise DatasetError(f"{listing}: lists no images")
+        files = []
+        for name in names:
+            file = root / name
+            if not file.is_file():
+                raise DatasetError(f"{listing}: lists {name}, which does not exist")
+            if not is_supported(file):
+                raise DatasetError(f"{file}: unsupported image type {file.suffix!r}")
+            files.append(file)
+    else:
+        files = sorted(
+            (p for p in root.iterdir() if _is_light_frame(p)), key=lambda p: _natural_key(p.name)
+        )
+        if not files:
+            raise DatasetError(
+                f"{root}: no images found (supported: {' '.join(SUPPORTED_SUFFIXES)})"
+            )
+    darks = [
+        p for p in sorted(root.iterdir()) if p.stem.lower() == _DARK_STEM and is_supported(p)
+    ]
+    if len(darks) > 1:
+        raise DatasetError(f"{root}: more than one dark frame ({', '.join(p.name for p in darks)})")
+    return FramePlan(
+        light_files=[[f] for f in files],
+        light_exposures=[[None] for _ in files],
+        dark_files=darks,
+        dark_exposures=[None] * len(darks),
+        root=root,
+        manifest=None,
+    )
+
+
+def _plan_run(root: Path) -> FramePlan:
+    manifest_file = root / MANIFEST
+    try:
+        manifest = json.loads(manifest_file.read_text(encoding="utf-8"))
+    except (OSError, UnicodeDecodeError) as exc:
+        raise DatasetError(f"{manifest_file}: cannot read file ({exc})") from None
+    except json.JSONDecodeError as exc:
+        raise DatasetError(f"{manifest_file}: not valid JSON ({exc})") from None
+    if not isinstance(manifest, dict) or manifest.get("format") != "ps-lab-run":
+        raise DatasetError(f"{manifest_file}: not a ps-lab run manifest (format != 'ps-lab-run')")
+    records = manifest.get("frames")
+    if not isinstance(records, list):
+        raise DatasetError(f"{manifest_file}: 'frames' is missing or not a list")
+
+    per_light: dict[int, list[dict]] = {}
+    darks: list[dict] = []
+    for position, record in enumerate(records):
+        if not isinstance(record, dict) or "file" not in record or "kind" not in record:
+            raise DatasetError(f"{manifest_file}: frame record {position} lacks 'kind' or 'file'")
+        if record["kind"] == "dark":
+            darks.append(record)
+        elif record["kind"] == "light":
+            lights = record.get("lights")
+            if not isinstance(lights, list) or len(lights) != 1:
+                log.debug("skipping frame %s: not a single-light frame", record["file"])
+                continue
+            per_light.setdefault(int(lights[0]), []).append(record)
+        else:
+            log.debug("skipping frame %s of kind %r", record["file"], record["kind"])
+
+    plan = manifest.get("plan") or {}
+    order = plan.get("lights") if isinstance(plan, dict) else None
+    if not order:
+        order = sorted(per_light)
+    if not order:
+        raise DatasetError(f"{manifest_file}: the run has no light frames")
+    missing = [light for light in order if light not in per_light]
+    if missing:
+        raise DatasetError(
+            f"{manifest_file}: run is incomplete: no frame for light(s) "
+            f"{', '.join(str(m) for m in missing[:10])} (resume the capture with --resume)"
+        )
+
+    def file_of(record: dict) -> Path:
+        file = root / record["file"]
+        if not file.is_file():
+            raise DatasetError(f"{file}: frame file listed in {MANIFEST} is missing")
+        digest = record.get("sha256")
+        if digest and _sha256(file) != str(digest).lower():
+            raise DatasetError(f"{file}: frame file changed since capture (sha256 mismatch)")
+        return file
+
+    def exposure_of(record: dict) -> float | None:
+        value = record.get("exposure_s")
+        if value is None:
+            return None
+        try:
+            value = float(value)
+        except (TypeError, ValueError):
+            raise DatasetError(f"{manifest_file}: bad exposure_s {value!r} for {record['file']}") from None
+        if not np.isfinite(value) or value <= 0:
+            raise DatasetError(f"{manifest_file}: exposure_s must be positive for {record['file']}")
+        return value
+
+    light_records = [sorted(per_light[light], key=lambda r: r.get("repeat", 0)) for light in order]
+    return FramePlan(
+        light_files=[[file_of(r) for r in records_] for records_ in light_records],
+        light_exposures=[[exposure_of(r) for r in records_] for records_ in light_records],
+        dark_files=[file_of(r) for r in darks],
+        dark_exposures=[exposure_of(r) for r in darks],
+        root=root,
+        manifest=manifest,
+    )
+
+
+def _sha256(path: Path) -> str:
+    digest = hashlib.sha256()
+    with path.open("rb") as stream:
+        for block in iter(lambda: stream.read(1 << 20), b""):
+            digest.update(block)
+    return digest.hexdigest()
+
+
+def _ratio(numerator: float | None, denominator: float | None) -> float:
+    if numerator is None or denominator is None:
+        return 1.0
+    return numerator / denominator
+
+
+def _average_dark(plan: FramePlan, read) -> tuple[np.ndarray, float | None]:
+    total = None
+    reference_exposure: float | None = None
+    for file, exposure in zip(plan.dark_files, plan.dark_exposures, strict=True):
+        image = read(file)
+        exposure = exposure if exposure is not None else image.exposure_s
+        if reference_exposure is None:
+            reference_exposure = exposure
+        data = image.data * np.float32(_ratio(reference_exposure, exposure))
+        total = data if total is None else total + data
+    return total / np.float32(len(plan.dark_files)), reference_exposure
+
+
+def _check_same_geometry(image: Image, file: Path, reference: Image, reference_path: Path) -> None:
+    if image.data.shape[:2] != reference.data.shape[:2]:
+        h, w = image.data.shape[:2]
+        rh, rw = reference.data.shape[:2]
+        raise DatasetError(
+            f"{file}: image size {w}x{h} differs from {reference_path.name} ({rw}x{rh})"
+        )
+    if image.data.shape[2] != reference.data.shape[2]:
+        kinds = {1: "grey", 3: "colour"}
+        raise DatasetError(
+            f"{file}: {kinds[image.data.shape[2]]} image among "
+            f"{kinds[reference.data.shape[2]]} images (first: {reference_path.name})"
+        )
+
+
+def read_mask(path: Path, shape: tuple[int, int] | None = None) -> np.ndarray:
+    """Read a mask image: any non-zero value marks an object pixel.
+
+    Parameters
+    ----------
+    path : Path
+        ``mask.png`` (grey or colour).
+    shape : (H, W) or None
+        Expected image size.
+
+    Returns
+    -------
+    ndarray of shape (H, W), bool
+    """
+    try:
+        raw = path.read_bytes()
+    except OSError as exc:
+        raise DatasetError(f"{path}: cannot read file ({exc.strerror})") from None
+    array = cv2.imdecode(np.frombuffer(raw, np.uint8), cv2.IMREAD_UNCHANGED)
+    if array is None:
+        raise DatasetError(f"{path}: corrupt or unreadable mask image")
+    mask = array != 0 if array.ndim == 2 else np.any(array[:, :, :3] != 0, axis=2)
+    if shape is not None and mask.shape != tuple(shape):
+        raise DatasetError(
+            f"{path}: mask size {mask.shape[1]}x{mask.shape[0]} differs from the image size "
+            f"{shape[1]}x{shape[0]}"
+        )
+    if not mask.any():
+        raise DatasetError(f"{path}: mask is empty (no non-zero pixel)")
+    return mask
+
+
+def _find_mask(root: Path, shape: tuple[int, int]) -> np.ndarray:
+    for candidate in (root / MASK, root / SIMULATION / MASK):
+        if candidate.is_file():
+            return read_mask(candidate, shape)
+    return np.ones(shape, dtype=bool)
+
+
+def read_normal_gt(path: Path, shape: tuple[int, int] | None = None) -> np.ndarray:
+    """Read ground-truth normals from ``normal_gt.npy`` or DiLiGenT's ``Normal_gt.mat``.
+
+    Returns
+    -------
+    ndarray of shape (H, W, 3), float64
+    """
+    if path.suffix.lower() == ".mat":
+        import scipy.io
+
+        try:
+            content = scipy.io.loadmat(path)
+        except Exception as exc:  # noqa: BLE001 - scipy raises several types for a bad .mat
+            raise DatasetError(f"{path}: cannot read MATLAB file ({exc})") from None
+        if "Normal_gt" not in content:
+            raise DatasetError(f"{path}: no variable 'Normal_gt' in the MATLAB file")
+        normals = np.asarray(content["Normal_gt"])
+    else:
+        try:
+            normals = np.load(path, allow_pickle=False)
+        except (OSError, ValueError, EOFError) as exc:
+            raise DatasetError(f"{path}: corrupt or unreadable .npy file ({exc})") from None
+    if normals.ndim != 3 or normals.shape[2] != 3:
+        raise DatasetError(f"{path}: ground-truth normals must be H x W x 3, got {normals.shape}")
+    if shape is not None and normals.shape[:2] != tuple(shape):
+        raise DatasetError(
+            f"{path}: ground-truth size {normals.shape[1]}x{normals.shape[0]} differs from the "
+            f"image size {shape[1]}x{shape[0]}"
+        )
+    normals = normals.astype(np.float64)
+    if not np.all(np.isfinite(normals)):
+        raise DatasetError(f"{path}: ground-truth normals contain NaN or infinite values")
+    return normals
+
+
+def _find_normal_gt(root: Path, shape: tuple[int, int]) -> np.ndarray | None:
+    for candidate in (
+        root / "normal_gt.npy",
+        root / "Normal_gt.mat",
+        root / SIMULATION / "normal_gt.npy",
+    ):
+        if candidate.is_file():
+            return read_normal_gt(candidate, shape)
+    return None
