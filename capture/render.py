@@ -442,13 +442,20 @@ def render(
 
     shading = np.zeros((n, normals.shape[0]))  # Lambertian cosine, 0 in attached/cast shadow
     spec = np.zeros((n, normals.shape[0]))
+    if cast_shadows and normals.shape[0]:
+        # Shadows fall within the object: march over its bounding box only.
+        rows = np.flatnonzero(mask.any(axis=1))
+        cols = np.flatnonzero(mask.any(axis=0))
+        box = (slice(rows[0], rows[-1] + 1), slice(cols[0], cols[-1] + 1))
+        box_mask = mask[box]
+        box_height = np.asarray(surface.height, dtype=np.float64)[box]
     for i, light in enumerate(lights):
         n_dot_l = normals @ light
         lit = n_dot_l > 0
-        if cast_shadows:
-            lit_map = np.zeros((h, w), dtype=bool)
-            lit_map[mask] = lit
-            lit &= ~_cast_shadow(surface.height, mask, lit_map, light)[mask]
+        if cast_shadows and normals.shape[0]:
+            lit_map = np.zeros(box_mask.shape, dtype=bool)
+            lit_map[box_mask] = lit
+            lit &= ~_cast_shadow(box_height, box_mask, lit_map, light)[box_mask]
         shading[i] = np.where(lit, n_dot_l, 0.0)
         if specular > 0:
             spec[i] = np.where(lit, specular * _cook_torrance(normals, light, n_dot_l, roughness), 0.0)
@@ -473,6 +480,39 @@ def _subpixel_offsets(supersample: int) -> np.ndarray:
     if s < 1:
         raise ValueError(f"supersample must be >= 1, got {supersample}")
     return (np.arange(s) + 0.5) / s - 0.5
+
+
+def _chrome_geometry(
+    shape: tuple[int, int], center: tuple[float, float], radius: float, supersample: int
+) -> tuple[tuple[slice, slice], np.ndarray, tuple[np.ndarray, ...]] | None:
+    """Sub-pixel geometry of a mirror sphere over its bounding box.
+
+    Returns the box (row slice, column slice), the (bh, bw) share of each pixel covered by the sphere,
+    and the reflected view vector components, each of shape (s*s, bh, bw); None if the box is empty.
+    """
+    h, w = shape
+    if radius <= 0:
+        raise ValueError(f"radius must be positive, got {radius}")
+    offsets = _subpixel_offsets(supersample)
+    x0 = max(int(np.floor(center[0] - radius)) - 1, 0)
+    x1 = min(int(np.ceil(center[0] + radius)) + 2, w)
+    y0 = max(int(np.floor(center[1] - radius)) - 1, 0)
+    y1 = min(int(np.ceil(center[1] + radius)) + 2, h)
+    if x0 >= x1 or y0 >= y1:
+        return None
+    cols = np.arange(x0, x1, dtype=np.float64)
+    rows = np.arange(y0, y1, dtype=np.float64)
+    oy, ox = np.meshgrid(offsets, offsets, indexing="ij")
+    dx = (cols[None, None, :] + ox.reshape(-1, 1, 1) - center[0]) / radius
+    dy = -(rows[None, :, None] + oy.reshape(-1, 1, 1) - center[1]) / radius
+    d2 = dx * dx + dy * dy
+    inside = d2 < 1.0
+    nz = np.sqrt(np.clip(1.0 - d2, 0.0, None))
+    # Reflected view vector r = 2 (n.v) n - v with v = (0, 0, 1); off the sphere it points away.
+    rx = np.where(inside, 2.0 * nz * dx, 0.0)
+    ry = np.where(inside, 2.0 * nz * dy, 0.0)
+    rz = np.where(inside, 2.0 * nz * nz - 1.0, -1.0)
+    return (slice(y0, y1), slice(x0, x1)), inside.mean(axis=0), (rx, ry, rz)
 
 
 def render_chrome_sphere(
@@ -511,36 +551,12 @@ def render_chrome_sphere(
     ndarray of shape (n, H, W)
     """
     lights = _normalise_lights(light_directions)
-    h, w = shape
-    if radius <= 0:
-        raise ValueError(f"radius must be positive, got {radius}")
-    offsets = _subpixel_offsets(supersample)
-    s2 = offsets.size**2
-    # Restrict the work to the sphere's bounding box (plus one pixel).
-    x0 = max(int(np.floor(center[0] - radius)) - 1, 0)
-    x1 = min(int(np.ceil(center[0] + radius)) + 2, w)
-    y0 = max(int(np.floor(center[1] - radius)) - 1, 0)
-    y1 = min(int(np.ceil(center[1] + radius)) + 2, h)
-    out = np.zeros((lights.shape[0], h, w))
-    if x0 >= x1 or y0 >= y1:
+    out = np.zeros((lights.shape[0], shape[0], shape[1]))
+    geometry = _chrome_geometry(shape, center, radius, supersample)
+    if geometry is None:
         return out
-    cols = np.arange(x0, x1, dtype=np.float64)
-    rows = np.arange(y0, y1, dtype=np.float64)
-    # Sub-pixel sample positions, shape (s2, bh, bw).
-    oy, ox = np.meshgrid(offsets, offsets, indexing="ij")
-    sx = cols[None, None, :] + ox.reshape(-1, 1, 1)
-    sy = rows[None, :, None] + oy.reshape(-1, 1, 1)
-    dx = (sx - center[0]) / radius
-    dy = -(sy - center[1]) / radius
-    d2 = dx * dx + dy * dy
-    inside = d2 < 1.0
-    nz = np.sqrt(np.clip(1.0 - d2, 0.0, None))
-    # Reflected view vector r = 2 nz n - v.
-    rx = np.where(inside, 2.0 * nz * dx, 0.0)
-    ry = np.where(inside, 2.0 * nz * dy, 0.0)
-    rz = np.where(inside, 2.0 * nz * nz - 1.0, -1.0)
-    coverage = inside.mean(axis=0)  # (bh, bw) anti-aliased outline
-
+    box, coverage, (rx, ry, rz) = geometry
+    s2 = rx.shape[0]
     disc = np.deg2rad(light_angular_radius_deg)
     edge = 0.25 * disc  # width of the linear ramp at the disc edge
     cos_outer = np.cos(disc + 0.5 * edge)
@@ -553,7 +569,7 @@ def render_chrome_sphere(
             weight = np.zeros(cos_angle.shape)
             weight[near] = np.clip((disc - angle) / edge + 0.5, 0.0, 1.0)
             highlight = weight.sum(axis=0) / s2
-        out[i, y0:y1, x0:x1] = ambient * coverage + light_radiance * highlight
+        out[(i, *box)] = ambient * coverage + light_radiance * highlight
     return out
 
 
@@ -604,8 +620,7 @@ class Scene:
 _KINDS = ("sphere", "relief", "chrome", "matte")
 
 
-@functools.lru_cache(maxsize=16)
-def _scene_surfaces(scene: Scene) -> tuple[Surface | None, ...]:
+def _build_surfaces(scene: Scene) -> tuple[Surface | None, ...]:
     shape = (scene.height, scene.width)
     surfaces: list[Surface | None] = []
     for obj in scene.objects:
@@ -625,11 +640,27 @@ def _scene_surfaces(scene: Scene) -> tuple[Surface | None, ...]:
     return tuple(surfaces)
 
 
-def _object_mask(scene: Scene, obj: SceneObject, surface: Surface | None) -> np.ndarray:
+_cached_surfaces = functools.lru_cache(maxsize=8)(_build_surfaces)
+
+
+def _scene_surfaces(scene: Scene) -> tuple[Surface | None, ...]:
+    # The simulated camera renders the same scene once per frame: build its surfaces once.
+    try:
+        return _cached_surfaces(scene)
+    except TypeError:  # unhashable fields (lists): build without the cache
+        return _build_surfaces(scene)
+
+
+def _object_alpha(scene: Scene, obj: SceneObject, surface: Surface | None) -> np.ndarray:
+    """(H, W) share of each pixel covered by the object (anti-aliased for the chrome sphere)."""
     if surface is not None:
-        return surface.mask
-    cols, rows = _pixel_grid((scene.height, scene.width))
-    return (cols - obj.center[0]) ** 2 + (rows - obj.center[1]) ** 2 < obj.radius**2
+        return surface.mask.astype(np.float64)
+    alpha = np.zeros((scene.height, scene.width))
+    geometry = _chrome_geometry((scene.height, scene.width), obj.center, obj.radius, 4)
+    if geometry is not None:
+        box, coverage, _ = geometry
+        alpha[box] = coverage
+    return alpha
 
 
 def render_scene(
@@ -649,7 +680,8 @@ def render_scene(
     -------
     ndarray of shape (H, W, 3)
         ``background`` outside the objects plus the sum over lit lights of each object's radiance.
-        Later objects cover earlier ones; cast shadows are computed within each object.
+        Later objects cover earlier ones (the chrome sphere's outline is anti-aliased); cast shadows
+        are computed within each object. ``frame(A and B) - dark = (frame(A) - dark) + (frame(B) - dark)``.
     """
     h, w = scene.height, scene.width
     lights = np.asarray(light_directions, dtype=np.float64).reshape(-1, 3)
@@ -660,23 +692,20 @@ def render_scene(
         intensities = np.broadcast_to(
             np.asarray(light_intensities, dtype=np.float64).reshape(k, -1), (k, 3)
         )
-    frame = np.zeros((h, w, 3))
-    covered = np.zeros((h, w), dtype=bool)
+    frame = np.full((h, w, 3), float(scene.background))
     for obj, surface in zip(scene.objects, _scene_surfaces(scene), strict=True):
-        obj_mask = _object_mask(scene, obj, surface)
+        alpha = _object_alpha(scene, obj, surface)
+        # "Over" compositing: linear in the object's radiance, so frames add up light by light.
+        frame *= 1.0 - alpha[..., None]
         if k == 0:
-            image = np.zeros((h, w, 3))
-        elif obj.kind == "chrome":
+            continue
+        if obj.kind == "chrome":
             grey = render_chrome_sphere((h, w), obj.center, obj.radius, lights)  # (k, H, W)
-            image = np.einsum("khw,kc->hwc", grey, intensities) * np.asarray(obj.albedo)
+            frame += np.einsum("khw,kc->hwc", grey, intensities) * np.asarray(obj.albedo)
         else:
             spec = obj.specular if obj.kind != "matte" else 0.0
             images = render(surface, lights, intensities, specular=spec, roughness=obj.roughness)
-            image = images.sum(axis=0)
-        # The chrome outline is anti-aliased: blend it over what lies behind.
-        frame[obj_mask] = image[obj_mask]
-        covered |= obj_mask
-    frame[~covered] = scene.background
+            frame += images.sum(axis=0)
     return frame
 
 
@@ -695,7 +724,7 @@ def scene_ground_truth(scene: Scene) -> dict:
     chrome: list[tuple[float, float, float]] = []
     matte: list[tuple[float, float, float]] = []
     for obj, surface in zip(scene.objects, _scene_surfaces(scene), strict=True):
-        obj_mask = _object_mask(scene, obj, surface)
+        obj_mask = _object_alpha(scene, obj, surface) > 0.5
         # A later object hides what is behind it.
         normals[obj_mask] = 0.0
         mask &= ~obj_mask
