@@ -8,20 +8,29 @@ directions point from the surface toward the light (the DiLiGenT convention). Pi
 Public API: :func:`random_light_directions`, :class:`Surface`, :func:`sphere_surface`,
 :func:`relief_surface`, :func:`render`, :func:`render_chrome_sphere`, and the scene composition used by
 the simulated rig: :class:`SceneObject`, :class:`Scene`, :func:`render_scene`,
-:func:`scene_ground_truth`. See ``docs/renderer.md`` for the model.
+:func:`scene_ground_truth`; and :func:`write_simulated_dataset` behind ``ps-lab simulate``. See ``docs/renderer.md`` for the model.
 """
 
 from __future__ import annotations
 
 import functools
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import cv2
 import numpy as np
 
+from ps_lab.capture._render_dataset import (
+    SimulationSettings,
+    check_new_dataset_folder,
+    write_simulated_dataset,
+)
+
 __all__ = [
     "Scene",
     "SceneObject",
+    "SimulationSettings",
+    "check_new_dataset_folder",
     "Surface",
     "random_light_directions",
     "relief_surface",
@@ -30,6 +39,7 @@ __all__ = [
     "render_scene",
     "scene_ground_truth",
     "sphere_surface",
+    "write_simulated_dataset",
 ]
 
 _VIEW = np.array([0.0, 0.0, 1.0])
@@ -235,7 +245,7 @@ def relief_surface(
             s_major = s_minor = rng.uniform(0.07, 0.11)
         else:
             s_major = rng.uniform(0.25, 0.35)
-            s_minor = rng.uniform(0.05, 0.07)
+            s_minor = rng.uniform(0.06, 0.09)
         theta = rng.uniform(0.0, np.pi)
         ct, st = np.cos(theta), np.sin(theta)
         du, dv = u - c[0], v - c[1]
@@ -389,6 +399,7 @@ def render(
     noise_sigma: float = 0.0,
     noise_fraction: float = 0.0,
     rng: np.random.Generator | None = None,
+    progress: Callable[[int], None] | None = None,
 ) -> np.ndarray:
     """Render one image per light.
 
@@ -413,6 +424,8 @@ def render(
         Share of the object's observations (light x pixel) that receive noise (the paper's noise density).
     rng : numpy.random.Generator, optional
         Noise source; default ``numpy.random.default_rng(0)``.
+    progress : callable, optional
+        Called with 1 after each light is shaded.
 
     Returns
     -------
@@ -459,6 +472,8 @@ def render(
         shading[i] = np.where(lit, n_dot_l, 0.0)
         if specular > 0:
             spec[i] = np.where(lit, specular * _cook_torrance(normals, light, n_dot_l, roughness), 0.0)
+        if progress is not None:
+            progress(1)
 
     # (n, P, C) radiance: albedo-weighted diffuse plus (white) specular, times the light intensity.
     radiance = (shading[:, :, None] * albedo_p[None] + spec[:, :, None]) * intensities[:, None, :]

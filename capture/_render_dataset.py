@@ -1,0 +1,176 @@
+"""Write a rendered scene as a photometric-stereo dataset folder (the layout ``ps-lab reconstruct`` reads)."""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import tempfile
+from collections.abc import Callable
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import cv2
+import numpy as np
+import tifffile
+
+from ps_lab.errors import DatasetError
+
+FORMATS = ("png16", "tiff32", "npy")
+SCENES = ("sphere", "relief")
+# png16: the brightest rendered value is written as this share of 65535 (headroom for noise).
+PNG16_PEAK = 0.9
+
+
+@dataclass(frozen=True)
+class SimulationSettings:
+    """Options of ``ps-lab simulate`` (see ``docs/renderer.md``)."""
+
+    scene: str = "sphere"
+    lights: int = 40
+    size: int = 128
+    seed: int = 0
+    specular: float = 0.0
+    roughness: float = 0.3
+    noise_fraction: float = 0.0
+    noise_sigma: float = 0.0
+    cast_shadows: bool = True
+    max_zenith_deg: float = 60.0
+    image_format: str = "png16"
+
+    def validate(self) -> None:
+        """Raise :class:`DatasetError` on settings that cannot be rendered."""
+        if self.scene not in SCENES:
+            raise DatasetError(f"unknown scene {self.scene!r}; choose one of {', '.join(SCENES)}")
+        if self.image_format not in FORMATS:
+            raise DatasetError(
+                f"unknown image format {self.image_format!r}; choose one of {', '.join(FORMATS)}"
+            )
+        if self.lights < 3:
+            raise DatasetError(f"need at least 3 lights, got {self.lights}")
+        if self.size < 8:
+            raise DatasetError(f"image size must be at least 8 pixels, got {self.size}")
+        if self.roughness <= 0:
+            raise DatasetError(f"roughness must be positive, got {self.roughness}")
+        if self.specular < 0 or self.noise_sigma < 0:
+            raise DatasetError("specular and noise sigma must be >= 0")
+        if not 0.0 <= self.noise_fraction <= 1.0:
+            raise DatasetError(f"noise fraction must be in [0, 1], got {self.noise_fraction}")
+        if not 0.0 < self.max_zenith_deg < 90.0:
+            raise DatasetError(f"max zenith must be in (0, 90) degrees, got {self.max_zenith_deg}")
+
+
+def check_new_dataset_folder(out: Path) -> None:
+    """Raise :class:`DatasetError` unless ``out`` is absent or an empty folder."""
+    if out.exists():
+        if not out.is_dir():
+            raise DatasetError(f"{out}: exists and is not a folder; choose a new output folder")
+        if any(out.iterdir()):
+            raise DatasetError(f"{out}: folder exists and is not empty; choose a new output folder")
+
+
+def write_simulated_dataset(
+    out: Path,
+    settings: SimulationSettings,
+    *,
+    progress: Callable[[int], None] | None = None,
+) -> dict:
+    """Render a scene under random lights and write it as a dataset folder.
+
+    Parameters
+    ----------
+    out : Path
+        Target folder; must not exist or be empty. Written into a temporary sibling folder and
+        renamed at the end, so a failed run leaves nothing behind.
+    settings : SimulationSettings
+    progress : callable, optional
+        Called with 1 after each light is rendered and again after each image is written
+        (``2 * settings.lights`` calls in all).
+
+    Returns
+    -------
+    dict
+        What was written: ``path``, ``images``, ``shape``, ``png16_scale`` (or None), ``pixels``.
+    """
+    # Imported here: the render module re-exports this function.
+    from ps_lab.capture.render import (
+        random_light_directions,
+        relief_surface,
+        render,
+        sphere_surface,
+    )
+
+    settings.validate()
+    out = Path(out)
+    check_new_dataset_folder(out)
+    parent = out.parent if str(out.parent) else Path(".")
+    if not parent.is_dir():
+        raise DatasetError(f"{parent}: parent folder does not exist")
+
+    rng = np.random.default_rng(settings.seed)
+    shape = (settings.size, settings.size)
+    if settings.scene == "sphere":
+        surface = sphere_surface(shape)
+    else:
+        surface = relief_surface(shape, seed=settings.seed)
+    light_directions = random_light_directions(
+        settings.lights, rng, max_zenith_deg=settings.max_zenith_deg
+    )
+    images = render(
+        surface,
+        light_directions,
+        cast_shadows=settings.cast_shadows,
+        specular=settings.specular,
+        roughness=settings.roughness,
+        noise_sigma=settings.noise_sigma,
+        noise_fraction=settings.noise_fraction,
+        rng=rng,
+        progress=progress,
+    )
+
+    digits = max(3, len(str(settings.lights)))
+    suffix = {"png16": ".png", "tiff32": ".tiff", "npy": ".npy"}[settings.image_format]
+    names = [f"{i + 1:0{digits}d}{suffix}" for i in range(settings.lights)]
+    peak = float(images.max())
+    scale = PNG16_PEAK * 65535.0 / peak if peak > 0 else 1.0
+
+    staging = Path(tempfile.mkdtemp(prefix=f".{out.name}.", suffix=".tmp", dir=parent))
+    try:
+        for name, image in zip(names, images, strict=True):
+            path = staging / name
+            if settings.image_format == "png16":
+                pixels = np.clip(np.rint(image * scale), 0, 65535).astype(np.uint16)
+                if not cv2.imwrite(str(path), pixels):
+                    raise DatasetError(f"{path}: OpenCV could not write the image")
+            elif settings.image_format == "tiff32":
+                tifffile.imwrite(path, image.astype(np.float32))
+            else:
+                np.save(path, image.astype(np.float32))
+            if progress is not None:
+                progress(1)
+        (staging / "filenames.txt").write_text("".join(f"{n}\n" for n in names))
+        np.savetxt(staging / "light_directions.txt", light_directions, fmt="%.9f")
+        np.savetxt(staging / "light_intensities.txt", np.ones((settings.lights, 3)), fmt="%.6f")
+        cv2.imwrite(str(staging / "mask.png"), surface.mask.astype(np.uint8) * 255)
+        np.save(staging / "normal_gt.npy", surface.normals.astype(np.float32))
+        meta = {
+            "format": "ps-lab-simulation",
+            "version": 1,
+            "settings": asdict(settings),
+            "png16_scale": scale if settings.image_format == "png16" else None,
+        }
+        (staging / "simulation.json").write_text(json.dumps(meta, indent=2) + "\n")
+        check_new_dataset_folder(out)  # nobody wrote there meanwhile
+        if out.exists():
+            out.rmdir()
+        os.replace(staging, out)
+    except BaseException:
+        shutil.rmtree(staging, ignore_errors=True)
+        raise
+    return {
+        "path": out,
+        "images": settings.lights,
+        "shape": shape,
+        "png16_scale": meta["png16_scale"],
+        "pixels": int(surface.mask.sum()),
+    }
