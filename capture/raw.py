@@ -36,7 +36,7 @@ import numpy as np
 
 from ps_lab.errors import DatasetError
 
-__all__ = ["DEMOSAIC_MODES", "RAW_SUFFIXES", "RawImage", "is_raw_file", "load_raw"]
+__all__ = ["DEMOSAIC_MODES", "RAW_SUFFIXES", "RawImage", "is_raw_file", "load_raw", "read_exposure"]
 
 RAW_SUFFIXES = (".dng", ".cr2", ".cr3", ".nef", ".arw")
 DEMOSAIC_MODES = ("half", "linear")
@@ -137,6 +137,28 @@ def load_raw(path: str | PathLike[str], *, demosaic: str = "half") -> RawImage:
         white_level=white_f,
         exposure_s=exposure_s,
     )
+
+
+def read_exposure(path: str | PathLike[str]) -> float | None:
+    """Return the exposure time (s) stored in a RAW file, or None when absent or unreadable.
+
+    Reads metadata only (the ExposureTime rational of a DNG/TIFF, else LibRaw's shutter value);
+    never raises for a bad file.
+    """
+    path = Path(path)
+    if not path.is_file():
+        return None
+    exposure = _exposure_from_tiff(path)
+    if exposure is not None:
+        return exposure
+    import rawpy
+
+    try:
+        with rawpy.imread(str(path)) as handle:
+            shutter = float(handle.other.shutter_speed)
+    except (rawpy.LibRawError, AttributeError, OSError):
+        return None
+    return float(f"{shutter:.7g}") if math.isfinite(shutter) and shutter > 0 else None
 
 
 def _read_with_rawpy(
