@@ -31,6 +31,8 @@ MIN_OUTLIER_THRESHOLD = 0.05
 # A pixel needs a usable 3x3 normal matrix: det >= this * (trace/3)^3 (conditioning).
 SOLVABLE_REL_DET = 1e-6
 NOISE_SAMPLE_PIXELS = 20000
+# Observations below this share of the pixel scale are not used to estimate the noise.
+SHADOW_FRACTION = 0.1
 
 
 def pixel_scale(y: np.ndarray, w: np.ndarray) -> np.ndarray:
@@ -100,7 +102,7 @@ def _method_params(method: str, given: dict) -> dict:
 
 def _prepare_tile(obs, usable, lights, a, b, dtype):
     """Pixel-major scaled observations of pixels a:b and the solvable-pixel mask."""
-    y = np.ascontiguousarray(obs[:, a:b].T, dtype=np.float64)
+    y = np.array(obs[:, a:b].T, dtype=np.float64, order="C")  # a copy: scaled in place below
     w = np.ascontiguousarray(usable[:, a:b].T)
     scale = pixel_scale(y, w)
     _, ok = inverse6(w.astype(np.float64) @ outer6(lights), SOLVABLE_REL_DET)
@@ -140,7 +142,13 @@ def _noise_level(obs, lights, usable, max_pixels=NOISE_SAMPLE_PIXELS):
     if y.shape[0] == 0:
         return 0.0
     res = _kernels.l1_tile(y, w, lights, max_iter=30, tol=1e-6, delta=1e-6, outlier_threshold=np.inf)
-    r = np.abs(y - res.x @ lights.T)[w > 0]
+    model = res.x @ lights.T
+    r = np.abs(y - model)
+    # Attached and cast shadows are the bulk of the corruptions (often half the observations of a
+    # pixel), so keep only observations that are lit and predicted lit; the L1 fit interpolates
+    # three observations per pixel exactly, which are not residual samples either.
+    keep = (w > 0) & (y > SHADOW_FRACTION) & (model > SHADOW_FRACTION) & (r > 1e-12)
+    r = r[keep]
     return float(1.4826 * np.median(r)) if r.size else 0.0
 
 
