@@ -1,0 +1,949 @@
+"""Rig files: the light controller, camera, calibration target and (simulated) scene of a rig.
+
+A rig file is TOML data, never code. :func:`load_rig` reads it with :mod:`tomllib` into frozen
+dataclasses and validates every key: an unknown key or a value of the wrong type raises
+:class:`~ps_lab.errors.RigError` naming the file, the table and the key. Command-line flags
+override the file through :func:`apply_overrides`.
+
+:func:`open_rig` turns a :class:`Rig` into live hardware: a light controller and a camera. For a
+simulated controller it starts the simulated firmware on an in-process pseudo-terminal and opens
+the pty's device path through the OS serial layer, exactly as a real ``/dev/ttyACM0`` would be
+opened, and hands the firmware's light state to the simulated camera so that a driver bug that
+leaves the wrong light on shows up in the images.
+
+The simulator modules are imported only when a rig file selects them.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+import math
+import tomllib
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from ps_lab.errors import CameraError, PsLabError, RigError
+
+log = logging.getLogger(__name__)
+
+CONTROLLER_DRIVERS = ("serial", "simulated")
+CAMERA_DRIVERS = ("simulated", "gphoto2", "folder")
+CONTROLLER_FAULT_KINDS = ("drop", "garble", "delay", "reboot", "silence")
+CAMERA_FAULT_KINDS = ("timeout", "truncated")
+OBJECT_KINDS = ("sphere", "relief", "chrome", "matte")
+#: File types a frame may have; RAW types are verified with ``load_raw``, the others with OpenCV.
+FILE_TYPES = ("dng", "cr2", "cr3", "nef", "arw", "tif", "tiff", "png")
+
+#: Settings that name *where* a device is plugged in rather than *what* it does: they may change
+#: between the sessions of one run (a re-plugged USB adapter gets a new name), so a resumed run
+#: ignores them when it compares rig snapshots.
+TRANSPORT_KEYS = (("controller", "port"), ("camera", "port"))
+
+
+# --------------------------------------------------------------------------------------------
+# Schema
+# --------------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class Fault:
+    """One injected fault of a simulated device.
+
+    ``at`` counts in the device's own units: protocol commands for the controller (1 = the first
+    command after the boot banner), capture calls for the camera (1 = the first capture of a
+    session, re-shoots included).
+    """
+
+    kind: str
+    at: int | None = None
+    probability: float = 0.0
+
+
+@dataclass(frozen=True)
+class ControllerConfig:
+    """``[controller]``: the light controller."""
+
+    driver: str
+    lights: int
+    port: str | None = None
+    level: int = 255
+    watchdog_ms: int = 10000
+    timeout_s: float = 1.0
+    baudrate: int = 115200
+    settle_ms: int = 0
+    directions: tuple[tuple[float, float, float], ...] | None = None
+
+
+@dataclass(frozen=True)
+class CameraConfig:
+    """``[camera]``: the camera and its fixed (manual) settings."""
+
+    driver: str
+    exposure_s: float
+    file_type: str = "dng"
+    timeout_s: float = 30.0
+    retries: int = 1
+    iso: int | None = None
+    aperture: float | None = None
+    port: str | None = None
+    folder: str | None = None
+    prompt: bool = False
+    light_state_file: str | None = None
+    pattern: str = "*"
+    black_level: int = 512
+    white_level: int = 16383
+    gain: float = 200_000.0
+    read_noise_dn: float = 2.0
+    shot_noise: bool = True
+    dn_per_electron: float = 0.5
+    seed: int = 0
+
+
+@dataclass(frozen=True)
+class Circle:
+    """A circle in loaded-image pixels: x = column, y = row, origin at the top-left pixel centre."""
+
+    center: tuple[float, float]
+    radius: float
+
+
+@dataclass(frozen=True)
+class CalibrationConfig:
+    """``[calibration]``: nominal position of the calibration targets."""
+
+    chrome_sphere: Circle | None = None
+    matte_sphere: Circle | None = None
+
+
+@dataclass(frozen=True)
+class SceneObjectConfig:
+    """One ``[[scene.objects]]`` entry of a simulated rig."""
+
+    kind: str
+    center: tuple[float, float]
+    radius: float
+    albedo: tuple[float, float, float] = (0.8, 0.8, 0.8)
+    specular: float = 0.0
+    roughness: float = 0.3
+    seed: int = 0
+
+
+@dataclass(frozen=True)
+class LightLayoutConfig:
+    """``[scene.lights]``: where the simulated lights really are and how bright they are."""
+
+    seed: int = 0
+    max_zenith_deg: float = 55.0
+    directions: tuple[tuple[float, float, float], ...] | None = None
+    intensity_spread: float = 0.0
+    color_spread: float = 0.0
+    nominal_error_deg: float = 0.0
+
+
+@dataclass(frozen=True)
+class SceneConfig:
+    """``[scene]``: what the simulated camera sees."""
+
+    width: int
+    height: int
+    objects: tuple[SceneObjectConfig, ...]
+    lights: LightLayoutConfig = field(default_factory=LightLayoutConfig)
+    background: float = 0.0
+
+
+@dataclass(frozen=True)
+class FaultsConfig:
+    """``[faults]``: faults to inject into the simulated controller and camera."""
+
+    controller: tuple[Fault, ...] = ()
+    camera: tuple[Fault, ...] = ()
+    seed: int = 0
+
+
+@dataclass(frozen=True)
+class Rig:
+    """A validated rig file."""
+
+    name: str
+    controller: ControllerConfig
+    camera: CameraConfig
+    calibration: CalibrationConfig = field(default_factory=CalibrationConfig)
+    scene: SceneConfig | None = None
+    faults: FaultsConfig = field(default_factory=FaultsConfig)
+    description: str = ""
+    source: Path | None = field(default=None, compare=False)
+
+    @property
+    def n_lights(self) -> int:
+        """Number of lights, numbered 1..N."""
+        return self.controller.lights
+
+    @property
+    def simulated_camera(self) -> bool:
+        """Whether the camera is the simulated one (the run then gets ground truth)."""
+        return self.camera.driver == "simulated"
+
+    def snapshot(self) -> dict[str, Any]:
+        """Return the rig as a JSON-ready dict (what a capture run's manifest stores)."""
+        snap = _jsonable(dataclasses.asdict(self))
+        snap.pop("source", None)
+        snap["source"] = str(self.source) if self.source is not None else None
+        cal: dict[str, Any] = {}
+        for key in ("chrome_sphere", "matte_sphere"):
+            circle = getattr(self.calibration, key)
+            if circle is not None:
+                cal[key] = {"center": list(circle.center), "radius": circle.radius}
+        snap["calibration"] = cal
+        return snap
+
+    def camera_settings(self) -> dict[str, Any]:
+        """Return the settings that shape the frames (stored in the manifest)."""
+        cam = self.camera
+        settings: dict[str, Any] = {
+            "driver": cam.driver,
+            "exposure_s": cam.exposure_s,
+            "iso": cam.iso,
+            "aperture": cam.aperture,
+            "file_type": cam.file_type,
+        }
+        if cam.driver == "simulated":
+            settings.update(
+                black_level=cam.black_level,
+                white_level=cam.white_level,
+                gain=cam.gain,
+                read_noise_dn=cam.read_noise_dn,
+                shot_noise=cam.shot_noise,
+                dn_per_electron=cam.dn_per_electron,
+                seed=cam.seed,
+            )
+        return settings
+
+
+def comparable_snapshot(snapshot: Mapping[str, Any]) -> dict[str, Any]:
+    """Return ``snapshot`` without the keys a resumed run may change (ports, file path)."""
+    snap = _jsonable(dict(snapshot))
+    snap.pop("source", None)
+    for table, key in TRANSPORT_KEYS:
+        if isinstance(snap.get(table), dict):
+            snap[table] = {k: v for k, v in snap[table].items() if k != key}
+    return snap
+
+
+def snapshot_differences(old: Mapping[str, Any], new: Mapping[str, Any], prefix: str = "") -> list[str]:
+    """List the dotted keys whose values differ between two JSON-like dicts."""
+    diffs: list[str] = []
+    for key in sorted(set(old) | set(new)):
+        a, b = old.get(key, "<missing>"), new.get(key, "<missing>")
+        name = f"{prefix}{key}"
+        if isinstance(a, dict) and isinstance(b, dict):
+            diffs.extend(snapshot_differences(a, b, name + "."))
+        elif a != b:
+            diffs.append(name)
+    return diffs
+
+
+def _jsonable(value: Any) -> Any:
+    if isinstance(value, dict):
+        return {str(k): _jsonable(v) for k, v in value.items()}
+    if isinstance(value, list | tuple):
+        return [_jsonable(v) for v in value]
+    if isinstance(value, Path):
+        return str(value)
+    return value
+
+
+# --------------------------------------------------------------------------------------------
+# Reading and validation
+# --------------------------------------------------------------------------------------------
+
+
+class _Table:
+    """Typed access to one TOML table; every read key is recorded so leftovers are errors."""
+
+    def __init__(self, data: Any, where: str, origin: str) -> None:
+        if not isinstance(data, dict):
+            raise RigError(f"{origin}: [{where}] must be a table, got {_kind(data)}")
+        self.data = data
+        self.where = where
+        self.origin = origin
+        self.used: set[str] = set()
+
+    def error(self, key: str, message: str) -> RigError:
+        return RigError(f"{self.origin}: [{self.where}] {key}: {message}")
+
+    def _get(self, key: str, default: Any, required: bool) -> Any:
+        self.used.add(key)
+        if key not in self.data:
+            if required:
+                raise self.error(key, "missing (required)")
+            return default
+        return self.data[key]
+
+    def str(self, key: str, default: Any = None, *, required: bool = False, choices=None) -> Any:
+        value = self._get(key, default, required)
+        if key in self.data:
+            if not isinstance(value, str):
+                raise self.error(key, f"expected a string, got {_kind(value)}")
+            if choices is not None and value not in choices:
+                raise self.error(key, f"unknown value {value!r} (choose from {', '.join(choices)})")
+        return value
+
+    def int(self, key: str, default: Any = None, *, required: bool = False, lo=None, hi=None) -> Any:
+        value = self._get(key, default, required)
+        if key in self.data:
+            if isinstance(value, bool) or not isinstance(value, int):
+                raise self.error(key, f"expected an integer, got {_kind(value)}")
+            self._range(key, value, lo, hi)
+        return value
+
+    def float(self, key: str, default: Any = None, *, required: bool = False, lo=None, hi=None) -> Any:
+        value = self._get(key, default, required)
+        if key in self.data:
+            if isinstance(value, bool) or not isinstance(value, int | float):
+                raise self.error(key, f"expected a number, got {_kind(value)}")
+            if not math.isfinite(value):
+                raise self.error(key, "must be finite")
+            value = float(value)
+            self._range(key, value, lo, hi)
+        return value
+
+    def bool(self, key: str, default: bool = False) -> bool:
+        value = self._get(key, default, False)
+        if not isinstance(value, bool):
+            raise self.error(key, f"expected true or false, got {_kind(value)}")
+        return value
+
+    def vector(self, key: str, length: int, default: Any = None, *, required: bool = False) -> Any:
+        value = self._get(key, default, required)
+        if key in self.data:
+            value = self._vector(key, value, length)
+        return value
+
+    def vectors(self, key: str, length: int) -> tuple[tuple[float, ...], ...] | None:
+        value = self._get(key, None, False)
+        if value is None:
+            return None
+        if not isinstance(value, list):
+            raise self.error(key, f"expected a list of {length}-vectors, got {_kind(value)}")
+        return tuple(self._vector(f"{key}[{i}]", v, length) for i, v in enumerate(value))
+
+    def table(self, key: str) -> _Table | None:
+        value = self._get(key, None, False)
+        if value is None:
+            return None
+        return _Table(value, f"{self.where}.{key}" if self.where else key, self.origin)
+
+    def tables(self, key: str) -> list[_Table]:
+        value = self._get(key, [], False)
+        if not isinstance(value, list):
+            raise self.error(key, f"expected an array of tables, got {_kind(value)}")
+        prefix = f"{self.where}." if self.where else ""
+        return [_Table(v, f"{prefix}{key}[{i}]", self.origin) for i, v in enumerate(value)]
+
+    def done(self) -> None:
+        unknown = sorted(set(self.data) - self.used)
+        if unknown:
+            raise self.error(unknown[0], "unknown key" + (f" (also: {', '.join(unknown[1:])})" if unknown[1:] else ""))
+
+    def _range(self, key: str, value: float, lo: float | None, hi: float | None) -> None:
+        if lo is not None and value < lo:
+            raise self.error(key, f"must be >= {lo}, got {value}")
+        if hi is not None and value > hi:
+            raise self.error(key, f"must be <= {hi}, got {value}")
+
+    def _vector(self, key: str, value: Any, length: int) -> tuple[float, ...]:
+        if (
+            not isinstance(value, list)
+            or len(value) != length
+            or any(isinstance(v, bool) or not isinstance(v, int | float) for v in value)
+        ):
+            raise self.error(key, f"expected a list of {length} numbers, got {value!r}")
+        return tuple(float(v) for v in value)
+
+
+def _kind(value: Any) -> str:
+    return {
+        bool: "a boolean",
+        int: "an integer",
+        float: "a number",
+        str: "a string",
+        list: "a list",
+        dict: "a table",
+    }.get(type(value), type(value).__name__)
+
+
+def load_rig(path: str | Path) -> Rig:
+    """Read and validate a rig file.
+
+    Parameters
+    ----------
+    path : str or Path
+        A TOML rig file.
+
+    Returns
+    -------
+    Rig
+
+    Raises
+    ------
+    RigError
+        The file is missing, not TOML, or has an unknown key or a value of the wrong type.
+    """
+    path = Path(path)
+    try:
+        raw = path.read_bytes()
+    except FileNotFoundError:
+        raise RigError(f"rig file {path} does not exist") from None
+    except IsADirectoryError:
+        raise RigError(f"rig file {path} is a directory") from None
+    except OSError as exc:
+        raise RigError(f"cannot read rig file {path}: {exc.strerror or exc}") from None
+    try:
+        data = tomllib.loads(raw.decode("utf-8"))
+    except UnicodeDecodeError:
+        raise RigError(f"rig file {path} is not UTF-8 text") from None
+    except tomllib.TOMLDecodeError as exc:
+        raise RigError(f"rig file {path} is not valid TOML: {exc}") from None
+    return parse_rig(data, origin=str(path), source=path)
+
+
+def parse_rig(data: Mapping[str, Any], *, origin: str = "<rig>", source: Path | None = None) -> Rig:
+    """Validate a rig already parsed from TOML (see :func:`load_rig`)."""
+    top = _Table(dict(data), "", origin)
+    name = top.str("name", source.stem if source is not None else "rig")
+    description = top.str("description", "")
+    ctl_table = top.table("controller")
+    cam_table = top.table("camera")
+    if ctl_table is None:
+        raise RigError(f"{origin}: missing table [controller]")
+    if cam_table is None:
+        raise RigError(f"{origin}: missing table [camera]")
+    controller = _parse_controller(ctl_table)
+    camera = _parse_camera(cam_table)
+    cal_table = top.table("calibration")
+    calibration = _parse_calibration(cal_table) if cal_table is not None else CalibrationConfig()
+    scene_table = top.table("scene")
+    scene = _parse_scene(scene_table, controller.lights) if scene_table is not None else None
+    faults_table = top.table("faults")
+    faults = _parse_faults(faults_table) if faults_table is not None else FaultsConfig()
+    top.done()
+
+    if camera.driver == "simulated" and scene is None:
+        raise RigError(f"{origin}: the simulated camera needs a [scene] table")
+    if camera.driver != "simulated" and scene is not None:
+        raise RigError(f"{origin}: [scene] only applies to a simulated camera (camera driver is {camera.driver!r})")
+    if camera.driver == "simulated" and camera.file_type != "dng":
+        raise RigError(f"{origin}: [camera] file_type: the simulated camera writes 'dng' files")
+    if camera.driver == "simulated" and controller.driver == "serial" and camera.light_state_file is None:
+        raise RigError(
+            f"{origin}: [camera] light_state_file: required when a simulated camera works with a serial "
+            "controller (the state file written by `ps-lab rig serve-sim --state-file`)"
+        )
+    if faults.controller and controller.driver != "simulated":
+        raise RigError(f"{origin}: [faults] controller: faults can only be injected into a simulated controller")
+    if faults.camera and camera.driver != "simulated":
+        raise RigError(f"{origin}: [faults] camera: faults can only be injected into a simulated camera")
+    return Rig(
+        name=name,
+        description=description,
+        controller=controller,
+        camera=camera,
+        calibration=calibration,
+        scene=scene,
+        faults=faults,
+        source=source,
+    )
+
+
+def _parse_controller(t: _Table) -> ControllerConfig:
+    driver = t.str("driver", required=True, choices=CONTROLLER_DRIVERS)
+    lights = t.int("lights", required=True, lo=1, hi=999)
+    port = t.str("port", None, required=driver == "serial")
+    if driver == "simulated" and port is not None:
+        raise t.error("port", "a simulated controller is served on its own pty; remove the port")
+    cfg = ControllerConfig(
+        driver=driver,
+        lights=lights,
+        port=port,
+        level=t.int("level", 255, lo=0, hi=255),
+        watchdog_ms=t.int("watchdog_ms", 10000, lo=0, hi=3_600_000),
+        timeout_s=t.float("timeout_s", 1.0, lo=0.01, hi=60.0),
+        baudrate=t.int("baudrate", 115200, lo=300),
+        settle_ms=t.int("settle_ms", 0, lo=0, hi=60_000),
+        directions=_unit_vectors(t, "directions", lights),
+    )
+    t.done()
+    return cfg
+
+
+def _unit_vectors(t: _Table, key: str, count: int) -> tuple[tuple[float, float, float], ...] | None:
+    vectors = t.vectors(key, 3)
+    if vectors is None:
+        return None
+    if len(vectors) != count:
+        raise t.error(key, f"expected {count} directions (one per light), got {len(vectors)}")
+    out = []
+    for i, v in enumerate(vectors):
+        norm = math.sqrt(sum(c * c for c in v))
+        if norm < 1e-9:
+            raise t.error(f"{key}[{i}]", "zero vector")
+        out.append(tuple(c / norm for c in v))
+    return tuple(out)  # type: ignore[return-value]
+
+
+_CAMERA_KEYS = {
+    "simulated": {
+        "black_level", "white_level", "gain", "read_noise_dn", "shot_noise", "dn_per_electron", "seed",
+        "light_state_file",
+    },
+    "gphoto2": {"iso", "aperture", "port"},
+    "folder": {"folder", "prompt", "pattern"},
+}
+
+
+def _parse_camera(t: _Table) -> CameraConfig:
+    driver = t.str("driver", required=True, choices=CAMERA_DRIVERS)
+    for key in t.data:
+        other = {k for d, keys in _CAMERA_KEYS.items() if d != driver for k in keys} - _CAMERA_KEYS[driver]
+        if key in other:
+            raise t.error(key, f"does not apply to the {driver!r} camera")
+    cfg = CameraConfig(
+        driver=driver,
+        exposure_s=t.float("exposure_s", required=True, lo=1e-6, hi=3600.0),
+        file_type=t.str("file_type", "dng", choices=FILE_TYPES),
+        timeout_s=t.float("timeout_s", 30.0, lo=0.01, hi=3600.0),
+        retries=t.int("retries", 1, lo=0, hi=10),
+        iso=t.int("iso", None, lo=1),
+        aperture=t.float("aperture", None, lo=0.1),
+        port=t.str("port", None),
+        folder=t.str("folder", None, required=driver == "folder"),
+        prompt=t.bool("prompt", False),
+        light_state_file=t.str("light_state_file", None),
+        black_level=t.int("black_level", 512, lo=0, hi=65534),
+        white_level=t.int("white_level", 16383, lo=1, hi=65535),
+        pattern=t.str("pattern", "*"),
+        gain=t.float("gain", 200_000.0, lo=1e-6),
+        read_noise_dn=t.float("read_noise_dn", 2.0, lo=0.0),
+        shot_noise=t.bool("shot_noise", True),
+        dn_per_electron=t.float("dn_per_electron", 0.5, lo=1e-6),
+        seed=t.int("seed", 0, lo=0),
+    )
+    if cfg.white_level <= cfg.black_level:
+        raise t.error("white_level", f"must exceed black_level ({cfg.black_level})")
+    t.done()
+    return cfg
+
+
+def _parse_circle(t: _Table) -> Circle:
+    center = t.vector("center", 2, required=True)
+    radius = t.float("radius", required=True, lo=1.0)
+    t.done()
+    return Circle(center=center, radius=radius)
+
+
+def _parse_calibration(t: _Table) -> CalibrationConfig:
+    chrome = t.table("chrome_sphere")
+    matte = t.table("matte_sphere")
+    cfg = CalibrationConfig(
+        chrome_sphere=_parse_circle(chrome) if chrome is not None else None,
+        matte_sphere=_parse_circle(matte) if matte is not None else None,
+    )
+    t.done()
+    return cfg
+
+
+def _parse_scene(t: _Table, n_lights: int) -> SceneConfig:
+    width = t.int("width", required=True, lo=8, hi=8192)
+    height = t.int("height", required=True, lo=8, hi=8192)
+    background = t.float("background", 0.0, lo=0.0)
+    objects = []
+    for ot in t.tables("objects"):
+        obj = SceneObjectConfig(
+            kind=ot.str("kind", required=True, choices=OBJECT_KINDS),
+            center=ot.vector("center", 2, required=True),
+            radius=ot.float("radius", required=True, lo=1.0),
+            albedo=ot.vector("albedo", 3, (0.8, 0.8, 0.8)),
+            specular=ot.float("specular", 0.0, lo=0.0),
+            roughness=ot.float("roughness", 0.3, lo=0.01, hi=1.0),
+            seed=ot.int("seed", 0, lo=0),
+        )
+        ot.done()
+        cx, cy = obj.center
+        if cx - obj.radius < -0.5 or cy - obj.radius < -0.5 or cx + obj.radius > width - 0.5 or cy + obj.radius > height - 0.5:
+            raise ot.error("center", f"the {obj.kind} object does not fit in the {width}x{height} image")
+        objects.append(obj)
+    if not objects:
+        raise t.error("objects", "a scene needs at least one object")
+    lt = t.table("lights")
+    if lt is None:
+        lights = LightLayoutConfig()
+    else:
+        lights = LightLayoutConfig(
+            seed=lt.int("seed", 0, lo=0),
+            max_zenith_deg=lt.float("max_zenith_deg", 55.0, lo=1.0, hi=89.0),
+            directions=_unit_vectors(lt, "directions", n_lights),
+            intensity_spread=lt.float("intensity_spread", 0.0, lo=0.0, hi=0.9),
+            color_spread=lt.float("color_spread", 0.0, lo=0.0, hi=0.9),
+            nominal_error_deg=lt.float("nominal_error_deg", 0.0, lo=0.0, hi=20.0),
+        )
+        lt.done()
+    t.done()
+    return SceneConfig(width=width, height=height, objects=tuple(objects), lights=lights, background=background)
+
+
+def _parse_faults(t: _Table) -> FaultsConfig:
+    def faults(key: str, kinds: tuple[str, ...], unit: str, random_allowed: bool) -> tuple[Fault, ...]:
+        out = []
+        for ft in t.tables(key):
+            kind = ft.str("kind", required=True, choices=kinds)
+            at = ft.int("at", None, lo=1)
+            probability = ft.float("probability", 0.0, lo=0.0, hi=1.0) if random_allowed else 0.0
+            if at is None and probability == 0.0:
+                hint = " or 'probability'" if random_allowed else ""
+                raise ft.error("at", f"missing: give the {unit} number (1 = first){hint}")
+            out.append(Fault(kind=kind, at=at, probability=probability))
+            ft.done()
+        return tuple(out)
+
+    cfg = FaultsConfig(
+        controller=faults("controller", CONTROLLER_FAULT_KINDS, "command", True),
+        camera=faults("camera", CAMERA_FAULT_KINDS, "capture", False),
+        seed=t.int("seed", 0, lo=0),
+    )
+    t.done()
+    return cfg
+
+
+# --------------------------------------------------------------------------------------------
+# Overrides
+# --------------------------------------------------------------------------------------------
+
+
+def apply_overrides(rig: Rig, *, port: str | None = None, exposure_s: float | None = None) -> Rig:
+    """Return ``rig`` with command-line overrides applied (``--port``, ``--exposure``)."""
+    controller, camera = rig.controller, rig.camera
+    if port is not None:
+        if controller.driver != "serial":
+            raise RigError(f"--port applies to a serial controller; this rig's controller is {controller.driver!r}")
+        controller = dataclasses.replace(controller, port=port)
+    if exposure_s is not None:
+        if not (math.isfinite(exposure_s) and exposure_s > 0):
+            raise RigError(f"--exposure must be a positive number of seconds, got {exposure_s}")
+        camera = dataclasses.replace(camera, exposure_s=float(exposure_s))
+    return dataclasses.replace(rig, controller=controller, camera=camera)
+
+
+def parse_light_selection(text: str, n_lights: int) -> tuple[int, ...]:
+    """Parse ``"1-24"`` or ``"1,3,5-9"`` into sorted unique 1-based light numbers.
+
+    Raises
+    ------
+    RigError
+        Bad syntax, an empty selection, or a light outside ``1..n_lights``.
+    """
+    chosen: set[int] = set()
+    for part in text.split(","):
+        part = part.strip()
+        if not part:
+            raise RigError(f"--lights {text!r}: empty item")
+        try:
+            if "-" in part:
+                first_s, last_s = part.split("-", 1)
+                first, last = int(first_s), int(last_s)
+            else:
+                first = last = int(part)
+        except ValueError:
+            raise RigError(f"--lights {text!r}: {part!r} is not a number or a range like 1-24") from None
+        if first > last:
+            raise RigError(f"--lights {text!r}: range {part!r} runs backwards")
+        if first < 1 or last > n_lights:
+            raise RigError(f"--lights {text!r}: the rig has lights 1-{n_lights}")
+        chosen.update(range(first, last + 1))
+    return tuple(sorted(chosen))
+
+
+# --------------------------------------------------------------------------------------------
+# Simulated scene
+# --------------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class Simulation:
+    """The true scene and lights behind a simulated rig."""
+
+    scene: Any  # ps_lab.capture.render.Scene
+    light_directions: np.ndarray  # (N, 3) true unit directions
+    light_intensities: np.ndarray  # (N, 3) true per-channel intensities
+
+
+def build_simulation(rig: Rig) -> Simulation:
+    """Build the renderer scene and the true light layout of a simulated rig."""
+    from ps_lab.capture import render
+
+    if rig.scene is None:
+        raise RigError(f"rig {rig.name!r} has no [scene] to simulate")
+    sc = rig.scene
+    scene = render.Scene(
+        width=sc.width,
+        height=sc.height,
+        objects=tuple(
+            render.SceneObject(
+                kind=o.kind,
+                center=o.center,
+                radius=o.radius,
+                albedo=o.albedo,
+                specular=o.specular,
+                roughness=o.roughness,
+                seed=o.seed,
+            )
+            for o in sc.objects
+        ),
+        background=sc.background,
+    )
+    n = rig.n_lights
+    layout = sc.lights
+    if layout.directions is not None:
+        directions = np.asarray(layout.directions, dtype=np.float64)
+    else:
+        directions = render.random_light_directions(
+            n, np.random.default_rng(layout.seed), max_zenith_deg=layout.max_zenith_deg
+        )
+    rng = np.random.default_rng([layout.seed, 1])
+    scale = 1.0 + layout.intensity_spread * rng.uniform(-1.0, 1.0, size=(n, 1))
+    color = 1.0 + layout.color_spread * rng.uniform(-1.0, 1.0, size=(n, 3))
+    intensities = scale * color
+    return Simulation(scene=scene, light_directions=directions, light_intensities=intensities)
+
+
+def nominal_directions(rig: Rig, simulation: Simulation | None = None) -> np.ndarray | None:
+    """Return the rig's nominal light directions (N, 3), if it has any.
+
+    For a simulated rig without ``[controller] directions``, the nominal directions are the true
+    ones turned by ``[scene.lights] nominal_error_deg`` in a seeded random direction: what a lab
+    would know from measuring its rig with a ruler.
+    """
+    if rig.controller.directions is not None:
+        return np.asarray(rig.controller.directions, dtype=np.float64)
+    if simulation is None or rig.scene is None:
+        return None
+    true = simulation.light_directions
+    err = math.radians(rig.scene.lights.nominal_error_deg)
+    if err == 0.0:
+        return true.copy()
+    rng = np.random.default_rng([rig.scene.lights.seed, 2])
+    axis = np.cross(true, rng.normal(size=true.shape))
+    axis /= np.linalg.norm(axis, axis=1, keepdims=True)
+    # Rodrigues rotation about an axis perpendicular to each direction.
+    rotated = true * math.cos(err) + np.cross(axis, true) * math.sin(err)
+    return rotated / np.linalg.norm(rotated, axis=1, keepdims=True)
+
+
+# --------------------------------------------------------------------------------------------
+# Opening the hardware
+# --------------------------------------------------------------------------------------------
+
+
+class OpenRig:
+    """A rig with its controller and camera open; a context manager that closes both.
+
+    Closing switches the lights off (the controller's own close does that) and stops the
+    simulated controller's pty server, whatever happened before.
+    """
+
+    def __init__(self, rig: Rig) -> None:
+        self.rig = rig
+        self.controller: Any = None
+        self.camera: Any = None
+        self.simulation: Simulation | None = None
+        self.firmware: Any = None  # the simulated controller's firmware, when simulated
+        self._closers: list[Callable[[], None]] = []
+
+    def __enter__(self) -> OpenRig:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    def close(self) -> None:
+        """Close the camera, the controller (lights off) and any simulator, in that order."""
+        first_error: BaseException | None = None
+        while self._closers:
+            closer = self._closers.pop()
+            try:
+                closer()
+            except Exception as exc:  # keep closing the rest; report the first failure
+                log.warning("while closing the rig: %s", exc)
+                first_error = first_error or exc
+        if first_error is not None and not isinstance(first_error, PsLabError):
+            log.debug("close error", exc_info=first_error)
+
+
+def open_rig(
+    rig: Rig, *, open_camera: bool = True, prompt: Callable[[str], Any] | None = None
+) -> OpenRig:
+    """Open the controller (handshake) and the camera of ``rig``.
+
+    ``prompt`` tells the operator to press the shutter (folder camera with ``prompt = true``).
+
+    Returns
+    -------
+    OpenRig
+        Use it as a context manager; it closes everything (lights off) on exit.
+
+    Raises
+    ------
+    RigError, CameraError
+        With a one-line reason (port missing, busy, permission denied, no handshake, ...).
+    """
+    opened = OpenRig(rig)
+    try:
+        light_state = _open_controller(rig, opened)
+        if open_camera:
+            _open_camera(rig, opened, light_state, prompt)
+    except BaseException:
+        opened.close()
+        raise
+    return opened
+
+
+def _open_controller(rig: Rig, opened: OpenRig) -> Callable[[], Any] | None:
+    from ps_lab.capture import lights
+
+    cfg = rig.controller
+    light_state: Callable[[], Any] | None = None
+    if cfg.driver == "simulated":
+        from ps_lab.capture import sim_lights
+
+        firmware = _make_firmware(sim_lights, rig)
+        server = sim_lights.PtyServer(firmware).start()
+        opened._closers.append(server.stop)
+        assert server.path is not None
+        port = server.path
+        light_state = firmware.state
+        opened.firmware = firmware
+        log.info("simulated controller on %s", port)
+    else:
+        port = cfg.port
+        assert port is not None
+        _check_port(port)
+    controller = _make_controller(lights, port, rig)
+    opened.controller = controller
+    opened._closers.append(controller.close)
+    return light_state
+
+
+def _make_firmware(sim_lights: Any, rig: Rig) -> Any:
+    faults = [
+        {"kind": f.kind, "at": f.at} if f.at is not None else {"kind": f.kind, "probability": f.probability}
+        for f in rig.faults.controller
+    ]
+    # A delayed reply arrives well after the driver has given up on it.
+    return sim_lights.SimulatedFirmware(
+        rig.n_lights, faults=faults, seed=rig.faults.seed, delay_s=max(0.2, 3.0 * rig.controller.timeout_s)
+    )
+
+
+def _call_flexible(func: Callable[..., Any], *args: Any, **kwargs: Any) -> Any:
+    """Call ``func`` with the keyword arguments it accepts (drop ``None`` ones it lacks)."""
+    import inspect
+
+    try:
+        params = inspect.signature(func).parameters
+    except (TypeError, ValueError):
+        return func(*args, **kwargs)
+    accepts_any = any(p.kind is inspect.Parameter.VAR_KEYWORD for p in params.values())
+    usable = {k: v for k, v in kwargs.items() if accepts_any or k in params}
+    dropped = {k: v for k, v in kwargs.items() if k not in usable and v is not None}
+    if dropped:
+        log.debug("%s does not take %s", getattr(func, "__name__", func), sorted(dropped))
+    return func(*args, **{k: v for k, v in usable.items() if v is not None or k in params})
+
+
+def _check_port(port: str) -> None:
+    """Turn the usual reasons a device port cannot be opened into one clear line."""
+    if "://" in port:
+        return
+    path = Path(port)
+    if not path.exists():
+        raise RigError(f"serial port {port} does not exist (is the controller plugged in?)")
+
+
+def _make_controller(lights: Any, port: str, rig: Rig) -> Any:
+    cfg = rig.controller
+    try:
+        return _call_flexible(
+            lights.SerialLightController,
+            port,
+            lights=cfg.lights,
+            level=cfg.level,
+            watchdog_ms=cfg.watchdog_ms,
+            timeout_s=cfg.timeout_s,
+            baudrate=cfg.baudrate,
+        )
+    except PermissionError:
+        raise RigError(f"permission denied opening serial port {port} (add yourself to the dialout group)") from None
+    except PsLabError:
+        raise
+    except OSError as exc:
+        raise RigError(f"cannot open serial port {port}: {exc}") from None
+
+
+def _open_camera(
+    rig: Rig, opened: OpenRig, light_state: Callable[[], Any] | None, prompt: Callable[[str], Any] | None
+) -> None:
+    from ps_lab.capture import cameras
+
+    cfg = rig.camera
+    if cfg.driver == "simulated":
+        if light_state is None:
+            from ps_lab.capture import sim_lights
+
+            assert cfg.light_state_file is not None
+            light_state = sim_lights.state_file_reader(Path(cfg.light_state_file))
+        simulation = build_simulation(rig)
+        opened.simulation = simulation
+        camera: Any = cameras.SimulatedCamera(
+            simulation.scene,
+            simulation.light_directions,
+            simulation.light_intensities,
+            light_state,
+            exposure_s=cfg.exposure_s,
+            black_level=cfg.black_level,
+            white_level=cfg.white_level,
+            gain=cfg.gain,
+            read_noise_dn=cfg.read_noise_dn,
+            shot_noise=cfg.shot_noise,
+            dn_per_electron=cfg.dn_per_electron,
+            seed=cfg.seed,
+            timeout_s=cfg.timeout_s,
+            faults=[{"kind": f.kind, "at": f.at} for f in rig.faults.camera],
+        )
+    elif cfg.driver == "folder":
+        assert cfg.folder is not None
+        camera = cameras.FolderCamera(
+            Path(cfg.folder),
+            timeout_s=cfg.timeout_s,
+            pattern=cfg.pattern,
+            prompt=prompt if cfg.prompt else None,
+            exposure_s=cfg.exposure_s,
+        )
+    elif cfg.driver == "gphoto2":
+        from ps_lab.capture import gphoto2_camera
+
+        camera = _call_flexible(
+            gphoto2_camera.Gphoto2Camera,
+            exposure_s=cfg.exposure_s,
+            iso=cfg.iso,
+            aperture=cfg.aperture,
+            port=cfg.port,
+            timeout_s=cfg.timeout_s,
+        )
+    else:  # pragma: no cover - parse_rig rejects other drivers
+        raise CameraError(f"unknown camera driver {cfg.driver!r}")
+    opened.camera = camera
+    opened._closers.append(camera.close)
