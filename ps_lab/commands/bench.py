@@ -1,7 +1,68 @@
-"""`ps-lab bench` (not yet wired)."""
+"""`ps-lab bench`: benchmarks that regenerate published results on rendered scenes."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Annotated
 
 import typer
 
+from ps_lab._cli_util import lab_command, progress_bar
+
+bench_app = typer.Typer(
+    name="bench",
+    help="Benchmarks on rendered scenes (the paper's tables).",
+    no_args_is_help=True,
+)
+
+
+@bench_app.command("paper")
+@lab_command
+def paper(
+    quick: Annotated[
+        bool, typer.Option("--quick", help="Reduced run for CI: 48x48 images, two light sets.")
+    ] = False,
+    size: Annotated[
+        int | None, typer.Option(min=8, help="Image width and height in pixels (default 128).")
+    ] = None,
+    light_sets: Annotated[
+        int | None, typer.Option(min=1, help="Random light sets to average (default 5).")
+    ] = None,
+    seed: Annotated[int | None, typer.Option(help="Seed of the light sets (default 0).")] = None,
+    tables: Annotated[
+        str | None, typer.Option(help="Tables to run, comma-separated from 1,3,4,5 (default all).")
+    ] = None,
+    markdown: Annotated[
+        bool, typer.Option("--markdown", help="Print Markdown (for docs/results.md) instead of text.")
+    ] = False,
+    json_out: Annotated[
+        Path | None, typer.Option("--json", help="Also write all numbers to this JSON file.")
+    ] = None,
+    progress: Annotated[bool, typer.Option(help="Show a progress bar on stderr.")] = True,
+) -> None:
+    """Regenerate Tables 1, 3, 4 and 5 of Ikehata et al. (CVPR 2012) for LS, L1, R-PCA and SBL."""
+    from ps_lab import bench_paper
+
+    try:
+        config = bench_paper.make_config(
+            quick=quick,
+            size=size,
+            light_sets=light_sets,
+            seed=seed,
+            tables=bench_paper.parse_tables(tables) if tables else None,
+        )
+    except ValueError as exc:
+        raise typer.BadParameter(str(exc)) from None
+    with progress_bar(bench_paper.total_steps(config), "paper tables", enabled=progress) as advance:
+        results = bench_paper.run_paper(config, progress=advance)
+    typer.echo(
+        bench_paper.format_markdown(results) if markdown else bench_paper.format_text(results)
+    )
+    if json_out is not None:
+        json_out.write_text(json.dumps(bench_paper.results_as_dict(results), indent=1))
+
 
 def register(app: typer.Typer) -> None:
-    """Add this module's command(s) to app."""
+    """Add the ``bench`` command group to ``app``."""
+    app.add_typer(bench_app, name="bench")

@@ -1,0 +1,950 @@
+"""The experiments of Ikehata et al. (CVPR 2012), regenerated on rendered scenes.
+
+The paper evaluates its sparse-regression photometric stereo (SBL) against least squares (LS),
+L1 regression and R-PCA on a synthetic object with attached and cast shadows and Cook-Torrance
+speculars, with light directions drawn at random from the upper hemisphere. This module renders
+its own scenes with :mod:`ps_lab.capture.render` (a sphere and the height-field "relief" object)
+and rebuilds the paper's tables:
+
+* Table 1 -- number of images 5...40, **with** shadow removal: observations whose noise-free
+  rendered value is at most ``shadow_threshold`` (attached and cast shadows render to exactly 0)
+  are dropped through the solvers' ``valid`` mask. Errors are taken over the pixels that keep at
+  least 3 valid observations (the share is reported).
+* Table 3 -- the same **without** shadow removal: shadows stay in the data as corruptions.
+* Table 4 -- noise density 10...50 %: additive Gaussian noise of variance ``noise_variance`` (0.1,
+  in units of the scene's largest Lambertian radiance, i.e. albedo 1 under a unit light gives 1,
+  as in the paper's [0, 1] intensity scale) on that share of observations; 40 images, shadows
+  and speculars kept.
+* Table 5 -- every light turned by ``light_error_deg`` (5 degrees) about a random axis; the
+  normals are estimated with the wrong lights and the lights are refined 1...6 times
+  (:func:`ps_lab.reconstruct.refine_lights`); normal and light-direction errors per iteration.
+
+Speculars: a white Cook-Torrance lobe of strength ``specular_strength`` (1: at roughness 0.3
+its peak is about the largest Lambertian radiance) whose roughness is chosen per scene, by
+bisection on the first light set, so that a share ``specular_share`` (10 %) of all observations
+carries a specular part larger than ``specular_threshold`` (0.1) times the scene's largest
+Lambertian radiance: a narrow, bright lobe, i.e. sparse and large corruptions. The measured share
+is reported for every light set.
+
+Every number is averaged over ``light_sets`` random light sets drawn with fixed seeds
+(``numpy.random.default_rng([seed, set_index])``); each set has 40 lights and the smaller image
+counts use its first k lights.
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import platform
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import asdict, dataclass, field, replace
+from datetime import UTC, datetime
+
+import numpy as np
+
+from ps_lab.capture import render as _render
+from ps_lab.reconstruct import metrics as _metrics
+
+__all__ = [
+    "METHOD_LABELS",
+    "PaperConfig",
+    "Cell",
+    "ErrorTable",
+    "RefinementTable",
+    "SceneStats",
+    "PaperResults",
+    "perturb_light_directions",
+    "specular_share",
+    "roughness_for_specular_share",
+    "run_paper",
+    "table_images",
+    "table_noise",
+    "table_refinement",
+    "format_text",
+    "format_markdown",
+    "main",
+]
+
+METHOD_LABELS = {"ls": "LS", "l1": "L1", "rpca": "R-PCA", "sbl": "SBL"}
+
+Progress = Callable[[int], None] | None
+
+
+@dataclass(frozen=True)
+class PaperConfig:
+    """Everything that defines a run of the paper's experiments (the defaults are the full run)."""
+
+    size: int = 128
+    light_sets: int = 5
+    seed: int = 0
+    scenes: tuple[str, ...] = ("sphere", "relief")
+    methods: tuple[str, ...] = ("ls", "l1", "rpca", "sbl")
+    n_lights: int = 40
+    max_zenith_deg: float = 60.0
+    image_counts: tuple[int, ...] = (5, 10, 15, 20, 25, 30, 35, 40)
+    noise_densities: tuple[float, ...] = (0.1, 0.2, 0.3, 0.4, 0.5)
+    noise_variance: float = 0.1
+    specular_share: float = 0.10
+    specular_strength: float = 1.0
+    specular_threshold: float = 0.1
+    shadow_threshold: float = 1e-6
+    light_error_deg: float = 5.0
+    refine_iterations: int = 6
+    refine_methods: tuple[str, ...] = ("ls", "l1", "rpca", "sbl")
+    tables: tuple[int, ...] = (1, 3, 4, 5)
+
+    @classmethod
+    def quick(cls, **overrides: object) -> PaperConfig:
+        """The reduced version CI runs: 48 x 48 images and two light sets."""
+        base = cls(size=48, light_sets=2)
+        return replace(base, **overrides)  # type: ignore[arg-type]
+
+    def command_line(self) -> str:
+        """The ``ps-lab bench paper`` arguments that reproduce this configuration."""
+        parts = [f"--size {self.size}", f"--light-sets {self.light_sets}", f"--seed {self.seed}"]
+        if self.tables != (1, 3, 4, 5):
+            parts.append("--tables " + ",".join(str(t) for t in self.tables))
+        return "ps-lab bench paper " + " ".join(parts)
+
+
+@dataclass(frozen=True)
+class Cell:
+    """One method in one row: angular error of the normals in degrees and solve time in seconds."""
+
+    mean: float
+    median: float
+    seconds: float
+
+
+@dataclass(frozen=True)
+class ErrorTable:
+    """Tables 1, 3 and 4: rows (``keys``) by method, one block per scene."""
+
+    number: int
+    title: str
+    key_label: str
+    keys: tuple
+    scenes: tuple[str, ...]
+    methods: tuple[str, ...]
+    cells: dict  # (scene, key, method) -> Cell
+    coverage: dict  # (scene, key) -> share of object pixels evaluated
+    notes: tuple[str, ...] = ()
+
+    def cell(self, scene: str, key: object, method: str) -> Cell:
+        """The cell of ``method`` in row ``key`` of ``scene``."""
+        return self.cells[(scene, key, method)]
+
+
+@dataclass(frozen=True)
+class RefinementTable:
+    """Table 5: mean normal error and mean light-direction error (degrees) per iteration."""
+
+    number: int
+    title: str
+    iterations: tuple[int, ...]  # 0 = unrefined
+    scenes: tuple[str, ...]
+    methods: tuple[str, ...]
+    normal_error: dict  # (scene, iteration, method) -> float
+    light_error: dict  # (scene, iteration, method) -> float
+    seconds: dict  # (scene, method) -> float, time for all iterations of one light set
+    notes: tuple[str, ...] = ()
+
+
+@dataclass(frozen=True)
+class SceneStats:
+    """What the rendered scene looks like: how much of it is corrupted, and by what."""
+
+    scene: str
+    pixels: int
+    roughness: float
+    specular_share: tuple[float, ...]  # measured per light set, all 40 observations
+    shadow_share: tuple[float, ...]  # observations at or below the shadow threshold
+    max_specular_ratio: float  # largest specular part / largest Lambertian radiance
+
+
+@dataclass(frozen=True)
+class PaperResults:
+    """All tables of one run, with the configuration and the machine that made them."""
+
+    config: PaperConfig
+    scene_stats: tuple[SceneStats, ...]
+    tables: tuple  # ErrorTable | RefinementTable, in the order of config.tables
+    seconds: float
+    machine: str
+    date: str = field(default="")
+
+
+# --------------------------------------------------------------------------------------------
+# Scene preparation
+
+
+@dataclass(frozen=True)
+class _LightSet:
+    light_directions: np.ndarray  # (N, 3)
+    observations: np.ndarray  # (N, P) speculars, shadows, no noise
+    specular_share: float
+    shadow_share: float
+
+
+@dataclass(frozen=True)
+class _PreparedScene:
+    name: str
+    surface: _render.Surface
+    normals: np.ndarray  # (P, 3) ground truth
+    scale: float  # largest Lambertian radiance (max albedo under a unit light)
+    roughness: float
+    max_specular_ratio: float
+    light_sets: tuple[_LightSet, ...]
+
+
+def _make_surface(name: str, size: int, seed: int) -> _render.Surface:
+    if name == "sphere":
+        return _render.sphere_surface((size, size))
+    if name == "relief":
+        return _render.relief_surface((size, size), seed=seed)
+    raise ValueError(f"unknown scene {name!r} (sphere or relief)")
+
+
+def _observations(images: np.ndarray, mask: np.ndarray) -> np.ndarray:
+    """(n, H, W[, C]) rendered images -> (n, P) observations of the masked pixels (grey)."""
+    images = np.asarray(images, dtype=np.float64)
+    if images.ndim == 4:
+        images = images.mean(axis=-1)
+    observations = np.ascontiguousarray(images[:, mask])
+    # Shared by every table: nothing may change them in place.
+    observations.flags.writeable = False
+    return observations
+
+
+def _albedo_scale(surface: _render.Surface) -> float:
+    albedo = np.asarray(surface.albedo, dtype=np.float64)
+    if albedo.ndim == 3:
+        albedo = albedo.mean(axis=-1)
+    albedo = np.broadcast_to(albedo, surface.mask.shape)
+    return float(albedo[surface.mask].max())
+
+
+def light_set_rng(seed: int, index: int) -> np.random.Generator:
+    """The generator of light set ``index``: fixed by the run's seed, independent of the rest."""
+    return np.random.default_rng([seed, index])
+
+
+def specular_share(
+    surface: _render.Surface,
+    light_directions: np.ndarray,
+    *,
+    strength: float,
+    roughness: float,
+    threshold: float,
+) -> float:
+    """Share of observations whose Cook-Torrance part exceeds ``threshold``.
+
+    Parameters
+    ----------
+    surface : Surface
+        The rendered object.
+    light_directions : ndarray of shape (n, 3)
+        The lights.
+    strength, roughness : float
+        The renderer's ``specular`` and ``roughness``.
+    threshold : float
+        Radiance above which an observation counts as specular-corrupted.
+
+    Returns
+    -------
+    float
+        Share over all ``n x P`` observations of the object (shadowed ones included).
+    """
+    diffuse = _observations(_render.render(surface, light_directions), surface.mask)
+    full = _observations(
+        _render.render(surface, light_directions, specular=strength, roughness=roughness),
+        surface.mask,
+    )
+    return float(np.mean(full - diffuse > threshold))
+
+
+def roughness_for_specular_share(
+    surface: _render.Surface,
+    light_directions: np.ndarray,
+    *,
+    strength: float,
+    share: float,
+    threshold: float,
+    bounds: tuple[float, float] = (0.03, 0.5),
+    steps: int = 14,
+) -> float:
+    """Roughness of the Cook-Torrance lobe that corrupts ``share`` of the observations.
+
+    A narrower lobe (smaller roughness) is brighter but hits fewer observations; within
+    ``bounds`` the share above ``threshold`` grows with the roughness, so bisection (on the
+    logarithm of the roughness) finds it.
+
+    Parameters
+    ----------
+    surface : Surface
+        The rendered object.
+    light_directions : ndarray of shape (n, 3)
+        The lights the share is measured with.
+    strength : float
+        The renderer's ``specular`` (kept fixed).
+    share : float
+        Wanted share of observations with a specular part above ``threshold``.
+    threshold : float
+        Radiance above which an observation counts as specular-corrupted.
+    bounds : (float, float)
+        Search interval of the roughness.
+    steps : int
+        Bisection steps.
+
+    Returns
+    -------
+    float
+        The roughness.
+    """
+    if not 0.0 < share < 1.0:
+        raise ValueError(f"share must lie in (0, 1), got {share}")
+
+    diffuse = _observations(_render.render(surface, light_directions), surface.mask)
+
+    def measured(roughness: float) -> float:
+        full = _render.render(surface, light_directions, specular=strength, roughness=roughness)
+        return float(np.mean(_observations(full, surface.mask) - diffuse > threshold))
+
+    lo, hi = math.log(bounds[0]), math.log(bounds[1])
+    if measured(math.exp(hi)) < share:
+        raise ValueError(
+            f"the specular lobe cannot corrupt {share:.0%} of observations above {threshold:g} "
+            f"with strength {strength:g}; raise the strength"
+        )
+    if measured(math.exp(lo)) > share:
+        return math.exp(lo)
+    for _ in range(steps):
+        mid = 0.5 * (lo + hi)
+        if measured(math.exp(mid)) < share:
+            lo = mid
+        else:
+            hi = mid
+    return math.exp(0.5 * (lo + hi))
+
+
+def perturb_light_directions(
+    light_directions: np.ndarray, angle_deg: float, rng: np.random.Generator
+) -> np.ndarray:
+    """Turn every light by exactly ``angle_deg`` about a random axis perpendicular to it.
+
+    Parameters
+    ----------
+    light_directions : ndarray of shape (n, 3)
+        Unit light directions.
+    angle_deg : float
+        Angle between each light and its perturbed copy.
+    rng : numpy.random.Generator
+        Source of the random directions of the turn.
+
+    Returns
+    -------
+    ndarray of shape (n, 3)
+        Unit vectors at ``angle_deg`` from the input, in uniformly random directions.
+    """
+    lights = np.asarray(light_directions, dtype=np.float64)
+    lights = lights / np.linalg.norm(lights, axis=1, keepdims=True)
+    tangent = rng.standard_normal(lights.shape)
+    tangent -= np.sum(tangent * lights, axis=1, keepdims=True) * lights
+    tangent /= np.linalg.norm(tangent, axis=1, keepdims=True)
+    a = math.radians(angle_deg)
+    return math.cos(a) * lights + math.sin(a) * tangent
+
+
+def _prepare_scene(name: str, config: PaperConfig) -> _PreparedScene:
+    surface = _make_surface(name, config.size, config.seed)
+    mask = surface.mask
+    normals = np.asarray(surface.normals, dtype=np.float64)[mask]
+    scale = _albedo_scale(surface)
+    threshold = config.specular_threshold * scale
+    roughness = None
+    max_ratio = 0.0
+    sets = []
+    for index in range(config.light_sets):
+        lights = _render.random_light_directions(
+            config.n_lights, light_set_rng(config.seed, index), max_zenith_deg=config.max_zenith_deg
+        )
+        if roughness is None:
+            # Tuned once per scene, on the first light set, then kept for every set.
+            roughness = roughness_for_specular_share(
+                surface,
+                lights,
+                strength=config.specular_strength,
+                share=config.specular_share,
+                threshold=threshold,
+            )
+        diffuse = _observations(_render.render(surface, lights), mask)
+        observed = _observations(
+            _render.render(
+                surface, lights, specular=config.specular_strength, roughness=roughness
+            ),
+            mask,
+        )
+        specular = observed - diffuse
+        max_ratio = max(max_ratio, float(specular.max()) / scale)
+        sets.append(
+            _LightSet(
+                light_directions=lights,
+                observations=observed,
+                specular_share=float(np.mean(specular > threshold)),
+                shadow_share=float(np.mean(observed <= config.shadow_threshold)),
+            )
+        )
+    return _PreparedScene(
+        name=name,
+        surface=surface,
+        normals=normals,
+        scale=scale,
+        roughness=float(roughness),
+        max_specular_ratio=max_ratio,
+        light_sets=tuple(sets),
+    )
+
+
+def _stats(scene: _PreparedScene) -> SceneStats:
+    return SceneStats(
+        scene=scene.name,
+        pixels=int(scene.normals.shape[0]),
+        roughness=scene.roughness,
+        specular_share=tuple(s.specular_share for s in scene.light_sets),
+        shadow_share=tuple(s.shadow_share for s in scene.light_sets),
+        max_specular_ratio=scene.max_specular_ratio,
+    )
+
+
+# --------------------------------------------------------------------------------------------
+# Experiments
+
+
+def _solve(observations, lights, method, valid=None):
+    from ps_lab.reconstruct import solve
+
+    # A private writable copy per solve: a solver must not be able to change the shared data.
+    observations = np.array(observations, dtype=np.float64, order="C")
+    start = time.perf_counter()
+    solution = solve(observations, lights, method=method, valid=valid)
+    return solution, time.perf_counter() - start
+
+
+def _average(cells: list[tuple[float, float, float]]) -> Cell:
+    arr = np.asarray(cells, dtype=np.float64)
+    return Cell(mean=float(arr[:, 0].mean()), median=float(arr[:, 1].mean()), seconds=float(arr[:, 2].mean()))
+
+
+def _tick(progress: Progress) -> None:
+    if progress is not None:
+        progress(1)
+
+
+def table_images(
+    config: PaperConfig,
+    *,
+    shadow_removal: bool,
+    scenes: Sequence[_PreparedScene] | None = None,
+    progress: Progress = None,
+) -> ErrorTable:
+    """Table 1 (``shadow_removal=True``) or Table 3: error against the number of images.
+
+    Returns
+    -------
+    ErrorTable
+        Keys are the image counts of ``config.image_counts``; cells average over light sets the
+        per-set mean and median angular errors (degrees) and the solve time (seconds).
+    """
+    scenes = scenes if scenes is not None else [_prepare_scene(s, config) for s in config.scenes]
+    cells: dict = {}
+    coverage: dict = {}
+    for scene in scenes:
+        for count in config.image_counts:
+            per_method: dict[str, list] = {m: [] for m in config.methods}
+            shares = []
+            for light_set in scene.light_sets:
+                obs = light_set.observations[:count]
+                lights = light_set.light_directions[:count]
+                if shadow_removal:
+                    valid = obs > config.shadow_threshold
+                    evaluated = valid.sum(axis=0) >= 3
+                else:
+                    valid = None
+                    evaluated = np.ones(obs.shape[1], dtype=bool)
+                shares.append(float(evaluated.mean()))
+                for method in config.methods:
+                    solution, seconds = _solve(obs, lights, method, valid)
+                    errors = _metrics.angular_errors_deg(
+                        solution.normals[evaluated], scene.normals[evaluated]
+                    )
+                    summary = _metrics.error_summary(errors)
+                    per_method[method].append((summary["mean"], summary["median"], seconds))
+                    _tick(progress)
+            for method in config.methods:
+                cells[(scene.name, count, method)] = _average(per_method[method])
+            coverage[(scene.name, count)] = float(np.mean(shares))
+    if shadow_removal:
+        number, title = 1, "with shadow removal"
+        notes = (
+            f"observations whose rendered value is <= {config.shadow_threshold:g} (attached and "
+            "cast shadows) are dropped via `valid`; errors over pixels that keep >= 3 observations",
+        )
+    else:
+        number, title = 3, "without shadow removal (shadows kept as corruptions)"
+        notes = ("all observations used; errors over all object pixels",)
+    return ErrorTable(
+        number=number,
+        title=title,
+        key_label="images",
+        keys=tuple(config.image_counts),
+        scenes=tuple(s.name for s in scenes),
+        methods=tuple(config.methods),
+        cells=cells,
+        coverage=coverage,
+        notes=notes,
+    )
+
+
+def table_noise(
+    config: PaperConfig,
+    *,
+    scenes: Sequence[_PreparedScene] | None = None,
+    progress: Progress = None,
+) -> ErrorTable:
+    """Table 4: error against the share of observations with additive Gaussian noise.
+
+    The noise is rendered by :func:`ps_lab.capture.render.render` (``noise_fraction`` = the
+    density, ``noise_sigma`` = sqrt(``noise_variance``) times the scene's largest Lambertian
+    radiance), on top of the speculars and the shadows, with all ``n_lights`` images.
+    """
+    scenes = scenes if scenes is not None else [_prepare_scene(s, config) for s in config.scenes]
+    sigma_rel = math.sqrt(config.noise_variance)
+    cells: dict = {}
+    coverage: dict = {}
+    measured: list[str] = []
+    for scene_index, scene in enumerate(scenes):
+        for density in config.noise_densities:
+            per_method: dict[str, list] = {m: [] for m in config.methods}
+            shares = []
+            for set_index, light_set in enumerate(scene.light_sets):
+                rng = np.random.default_rng(
+                    [config.seed, set_index, scene_index, round(density * 1000), 4]
+                )
+                images = _render.render(
+                    scene.surface,
+                    light_set.light_directions,
+                    cast_shadows=True,
+                    specular=config.specular_strength,
+                    roughness=scene.roughness,
+                    noise_sigma=sigma_rel * scene.scale,
+                    noise_fraction=density,
+                    rng=rng,
+                )
+                obs = _observations(images, scene.surface.mask)
+                shares.append(float(np.mean(obs != light_set.observations)))
+                for method in config.methods:
+                    solution, seconds = _solve(obs, light_set.light_directions, method)
+                    errors = _metrics.angular_errors_deg(solution.normals, scene.normals)
+                    summary = _metrics.error_summary(errors)
+                    per_method[method].append((summary["mean"], summary["median"], seconds))
+                    _tick(progress)
+            for method in config.methods:
+                cells[(scene.name, density, method)] = _average(per_method[method])
+            coverage[(scene.name, density)] = 1.0
+            measured.append(f"{scene.name} {density:.0%}: {np.mean(shares):.1%}")
+    return ErrorTable(
+        number=4,
+        title=(
+            f"noise density, {config.n_lights} images, sigma^2 = {config.noise_variance:g} "
+            "(x largest Lambertian radiance), shadows and speculars kept"
+        ),
+        key_label="noise",
+        keys=tuple(config.noise_densities),
+        scenes=tuple(s.name for s in scenes),
+        methods=tuple(config.methods),
+        cells=cells,
+        coverage=coverage,
+        notes=("measured share of noisy observations: " + ", ".join(measured),),
+    )
+
+
+def _refine_once(observations, light_directions, light_intensities, method):
+    from ps_lab.reconstruct import refine_lights
+
+    return refine_lights(
+        observations,
+        light_directions,
+        method=method,
+        iterations=1,
+        light_intensities=light_intensities,
+    )
+
+
+def table_refinement(
+    config: PaperConfig,
+    *,
+    scenes: Sequence[_PreparedScene] | None = None,
+    progress: Progress = None,
+) -> RefinementTable:
+    """Table 5: normals from lights turned by ``light_error_deg``, refined 1...K times.
+
+    Iteration 0 is the plain solve with the wrong lights. Iteration k chains k single
+    refinement steps of :func:`ps_lab.reconstruct.refine_lights` (normals with the current
+    lights, then lights re-fitted with the normals fixed); the normal error of iteration k is
+    that of a solve with the lights refined k times. All ``n_lights`` images, shadows and
+    speculars kept.
+    """
+    scenes = scenes if scenes is not None else [_prepare_scene(s, config) for s in config.scenes]
+    iterations = tuple(range(config.refine_iterations + 1))
+    normal_error: dict = {}
+    light_error: dict = {}
+    seconds: dict = {}
+    for scene in scenes:
+        for method in config.refine_methods:
+            normal_runs = np.zeros((len(scene.light_sets), len(iterations)))
+            light_runs = np.zeros_like(normal_runs)
+            elapsed = []
+            for set_index, light_set in enumerate(scene.light_sets):
+                true_lights = light_set.light_directions
+                rng = np.random.default_rng([config.seed, set_index, 5])
+                lights = perturb_light_directions(true_lights, config.light_error_deg, rng)
+                intensities = None
+                obs = light_set.observations
+                start = time.perf_counter()
+                solution, _ = _solve(obs, lights, method)
+                for k in iterations:
+                    if k > 0:
+                        result = _refine_once(obs, lights, intensities, method)
+                        lights = np.asarray(result.light_directions, dtype=np.float64)
+                        intensities = result.light_intensities
+                        solution = _refined_solution(obs, lights, intensities, method)
+                    normal_runs[set_index, k] = _metrics.error_summary(
+                        _metrics.angular_errors_deg(solution.normals, scene.normals)
+                    )["mean"]
+                    light_runs[set_index, k] = float(
+                        _metrics.angular_errors_deg(lights, true_lights).mean()
+                    )
+                    _tick(progress)
+                elapsed.append(time.perf_counter() - start)
+            for k in iterations:
+                normal_error[(scene.name, k, method)] = float(normal_runs[:, k].mean())
+                light_error[(scene.name, k, method)] = float(light_runs[:, k].mean())
+            seconds[(scene.name, method)] = float(np.mean(elapsed))
+    return RefinementTable(
+        number=5,
+        title=(
+            f"every light turned {config.light_error_deg:g} deg in a random direction, "
+            f"{config.n_lights} images, shadows and speculars kept; iteration 0 = unrefined"
+        ),
+        iterations=iterations,
+        scenes=tuple(s.name for s in scenes),
+        methods=tuple(config.refine_methods),
+        normal_error=normal_error,
+        light_error=light_error,
+        seconds=seconds,
+        notes=(
+            "light error: mean angle between the refined and the true light directions; "
+            "a common rotation of all lights cannot be recovered, so it need not reach 0",
+        ),
+    )
+
+
+def _refined_solution(observations, lights, intensities, method):
+    """Normals with refined lights: observations divided by the refined intensities."""
+    obs = observations
+    if intensities is not None:
+        scale = np.asarray(intensities, dtype=np.float64).reshape(len(lights), -1).mean(axis=1)
+        obs = observations / scale[:, None]
+    solution, _ = _solve(obs, lights, method)
+    return solution
+
+
+def _solve_count(config: PaperConfig) -> int:
+    per_scene = config.light_sets * (
+        (len(config.image_counts) * len(config.methods) * sum(t in (1, 3) for t in config.tables))
+        + (len(config.noise_densities) * len(config.methods) * (4 in config.tables))
+        + ((config.refine_iterations + 1) * len(config.refine_methods) * (5 in config.tables))
+    )
+    return per_scene * len(config.scenes)
+
+
+def machine_description() -> str:
+    """CPU model and core count of this machine (from /proc/cpuinfo where available)."""
+    import os
+
+    model = platform.processor() or platform.machine()
+    try:
+        with open("/proc/cpuinfo", encoding="utf-8") as fh:
+            for line in fh:
+                if line.startswith("model name"):
+                    model = line.split(":", 1)[1].strip()
+                    break
+    except OSError:
+        pass
+    return f"{model}, {os.cpu_count()} cores, Python {platform.python_version()}, numpy {np.__version__}"
+
+
+def run_paper(config: PaperConfig, *, progress: Progress = None) -> PaperResults:
+    """Render the scenes once and run every table of ``config.tables``.
+
+    Parameters
+    ----------
+    config : PaperConfig
+        What to run.
+    progress : callable, optional
+        Called with 1 after every solve (see :func:`total_steps`).
+
+    Returns
+    -------
+    PaperResults
+    """
+    start = time.perf_counter()
+    scenes = [_prepare_scene(name, config) for name in config.scenes]
+    tables: list = []
+    for number in config.tables:
+        if number == 1:
+            tables.append(table_images(config, shadow_removal=True, scenes=scenes, progress=progress))
+        elif number == 3:
+            tables.append(table_images(config, shadow_removal=False, scenes=scenes, progress=progress))
+        elif number == 4:
+            tables.append(table_noise(config, scenes=scenes, progress=progress))
+        elif number == 5:
+            tables.append(table_refinement(config, scenes=scenes, progress=progress))
+        else:
+            raise ValueError(f"no table {number} (the paper's tables are 1, 3, 4, 5)")
+    return PaperResults(
+        config=config,
+        scene_stats=tuple(_stats(s) for s in scenes),
+        tables=tuple(tables),
+        seconds=time.perf_counter() - start,
+        machine=machine_description(),
+        date=datetime.now(UTC).strftime("%Y-%m-%d %H:%M UTC"),
+    )
+
+
+def total_steps(config: PaperConfig) -> int:
+    """Number of progress ticks :func:`run_paper` makes (one per solve)."""
+    return _solve_count(config)
+
+
+# --------------------------------------------------------------------------------------------
+# Formatting
+
+
+def _key_text(table: ErrorTable, key: object) -> str:
+    if table.key_label == "noise":
+        return f"{float(key):.0%}"
+    return str(key)
+
+
+def _error_rows(table: ErrorTable, scene: str) -> tuple[list[str], list[list[str]]]:
+    header = [table.key_label]
+    for method in table.methods:
+        label = METHOD_LABELS.get(method, method)
+        header += [f"{label} mean", f"{label} median", f"{label} s"]
+    header.append("pixels")
+    rows = []
+    for key in table.keys:
+        row = [_key_text(table, key)]
+        for method in table.methods:
+            c = table.cell(scene, key, method)
+            row += [f"{c.mean:.2f}", f"{c.median:.2f}", f"{c.seconds:.3f}"]
+        row.append(f"{table.coverage[(scene, key)]:.0%}")
+        rows.append(row)
+    return header, rows
+
+
+def _refinement_rows(table: RefinementTable, scene: str) -> tuple[list[str], list[list[str]]]:
+    header = ["iteration"]
+    for method in table.methods:
+        label = METHOD_LABELS.get(method, method)
+        header += [f"{label} normal", f"{label} light"]
+    rows = []
+    for k in table.iterations:
+        row = [str(k)]
+        for method in table.methods:
+            row += [
+                f"{table.normal_error[(scene, k, method)]:.2f}",
+                f"{table.light_error[(scene, k, method)]:.2f}",
+            ]
+        rows.append(row)
+    return header, rows
+
+
+def _blocks(table) -> list[tuple[str, list[str], list[list[str]]]]:
+    out = []
+    for scene in table.scenes:
+        if isinstance(table, RefinementTable):
+            header, rows = _refinement_rows(table, scene)
+        else:
+            header, rows = _error_rows(table, scene)
+        out.append((f"Table {table.number} ({scene}): {table.title}", header, rows))
+    return out
+
+
+def _aligned(header: list[str], rows: list[list[str]]) -> str:
+    widths = [max(len(r[i]) for r in [header, *rows]) for i in range(len(header))]
+    lines = ["  ".join(h.rjust(w) for h, w in zip(header, widths, strict=True))]
+    lines.append("  ".join("-" * w for w in widths))
+    lines += ["  ".join(c.rjust(w) for c, w in zip(r, widths, strict=True)) for r in rows]
+    return "\n".join(lines)
+
+
+def _markdown(header: list[str], rows: list[list[str]]) -> str:
+    lines = ["| " + " | ".join(header) + " |", "|" + "|".join("---:" for _ in header) + "|"]
+    lines += ["| " + " | ".join(r) + " |" for r in rows]
+    return "\n".join(lines)
+
+
+def _stats_lines(results: PaperResults) -> list[str]:
+    lines = []
+    for s in results.scene_stats:
+        lines.append(
+            f"{s.scene}: {s.pixels} px, Cook-Torrance roughness {s.roughness:.3f} "
+            f"(peak specular {s.max_specular_ratio:.2f}x the largest Lambertian radiance), "
+            f"specular-corrupted observations {np.mean(s.specular_share):.1%} "
+            f"(per light set {', '.join(f'{v:.1%}' for v in s.specular_share)}), "
+            f"observations in shadow {np.mean(s.shadow_share):.1%}"
+        )
+    return lines
+
+
+def format_text(results: PaperResults) -> str:
+    """All tables as aligned plain text, with the scene statistics and the run's settings."""
+    c = results.config
+    parts = [
+        f"Paper experiments: {c.size}x{c.size} px, {c.light_sets} light sets of {c.n_lights} "
+        f"lights (zenith <= {c.max_zenith_deg:g} deg), seed {c.seed}; errors in degrees, "
+        "time in seconds per solve",
+        *_stats_lines(results),
+    ]
+    for table in results.tables:
+        for title, header, rows in _blocks(table):
+            parts.append("")
+            parts.append(title)
+            parts.append(_aligned(header, rows))
+        parts += [f"  note: {n}" for n in table.notes]
+    parts.append("")
+    parts.append(f"{results.seconds:.1f} s on {results.machine}")
+    return "\n".join(parts)
+
+
+def format_markdown(results: PaperResults) -> str:
+    """All tables as Markdown (the body of the "Paper experiments" section of docs/results.md)."""
+    c = results.config
+    parts = [
+        f"Command: `{c.command_line()}`  ",
+        f"Machine: {results.machine}  ",
+        f"Date: {results.date}; wall time {results.seconds:.0f} s  ",
+        f"Scenes: {c.size}x{c.size} px; {c.light_sets} light sets of {c.n_lights} lights "
+        f"(zenith <= {c.max_zenith_deg:g} deg), seed {c.seed}. Errors in degrees, time in seconds per solve.",
+        "",
+        *[f"- {line}" for line in _stats_lines(results)],
+    ]
+    for table in results.tables:
+        for title, header, rows in _blocks(table):
+            parts += ["", f"**{title}**", "", _markdown(header, rows)]
+        parts += ["", *[f"Note: {n}" for n in table.notes]]
+    return "\n".join(parts)
+
+
+def results_as_dict(results: PaperResults) -> dict:
+    """A JSON-ready dict of a run (tuple keys joined with '/')."""
+
+    def flat(d: dict) -> dict:
+        return {"/".join(str(k) for k in key): (asdict(v) if isinstance(v, Cell) else v) for key, v in d.items()}
+
+    tables = []
+    for t in results.tables:
+        if isinstance(t, RefinementTable):
+            tables.append(
+                {
+                    "number": t.number,
+                    "title": t.title,
+                    "normal_error": flat(t.normal_error),
+                    "light_error": flat(t.light_error),
+                    "seconds": flat(t.seconds),
+                }
+            )
+        else:
+            tables.append(
+                {"number": t.number, "title": t.title, "cells": flat(t.cells), "coverage": flat(t.coverage)}
+            )
+    return {
+        "config": asdict(results.config),
+        "scene_stats": [asdict(s) for s in results.scene_stats],
+        "tables": tables,
+        "seconds": results.seconds,
+        "machine": results.machine,
+        "date": results.date,
+    }
+
+
+# --------------------------------------------------------------------------------------------
+# Script entry point
+
+
+def parse_tables(text: str) -> tuple[int, ...]:
+    """Parse ``"1,3,4,5"`` into a tuple of table numbers."""
+    try:
+        numbers = tuple(int(t) for t in text.split(",") if t.strip())
+    except ValueError:
+        raise ValueError(f"--tables takes numbers separated by commas, got {text!r}") from None
+    bad = [n for n in numbers if n not in (1, 3, 4, 5)]
+    if bad or not numbers:
+        raise ValueError(f"--tables: the paper's tables are 1, 3, 4, 5 (got {text!r})")
+    return numbers
+
+
+def make_config(
+    *,
+    quick: bool = False,
+    size: int | None = None,
+    light_sets: int | None = None,
+    seed: int | None = None,
+    tables: tuple[int, ...] | None = None,
+) -> PaperConfig:
+    """The configuration for the command-line options (None = the default of the mode)."""
+    config = PaperConfig.quick() if quick else PaperConfig()
+    overrides = {
+        k: v
+        for k, v in {"size": size, "light_sets": light_sets, "seed": seed, "tables": tables}.items()
+        if v is not None
+    }
+    if overrides.get("size", config.size) < 8:
+        raise ValueError("--size must be at least 8 pixels")
+    if overrides.get("light_sets", config.light_sets) < 1:
+        raise ValueError("--light-sets must be at least 1")
+    return replace(config, **overrides)
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Run the paper's experiments from the command line; print the tables."""
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--quick", action="store_true", help="48x48 images, two light sets (CI)")
+    parser.add_argument("--size", type=int, default=None, help="image side in pixels")
+    parser.add_argument("--light-sets", type=int, default=None, help="random light sets to average")
+    parser.add_argument("--seed", type=int, default=None, help="seed of the light sets")
+    parser.add_argument("--tables", default=None, help="tables to run, e.g. 1,3,4,5")
+    parser.add_argument("--markdown", action="store_true", help="print Markdown instead of text")
+    parser.add_argument("--json", default=None, help="also write the results to this JSON file")
+    args = parser.parse_args(argv)
+    try:
+        config = make_config(
+            quick=args.quick,
+            size=args.size,
+            light_sets=args.light_sets,
+            seed=args.seed,
+            tables=parse_tables(args.tables) if args.tables else None,
+        )
+    except ValueError as exc:
+        parser.error(str(exc))
+    results = run_paper(config)
+    print(format_markdown(results) if args.markdown else format_text(results))
+    if args.json:
+        import json
+
+        with open(args.json, "w", encoding="utf-8") as fh:
+            json.dump(results_as_dict(results), fh, indent=1)
+    return 0
