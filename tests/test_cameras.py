@@ -320,3 +320,125 @@ def test_folder_camera_copy_mode_and_raw_exposure(tmp_path, rng):
         FolderCamera(watched, timeout_s=0.1, poll_s=0.02).capture(tmp_path / "again.dng")
     with pytest.raises(CameraError, match="does not exist"):
         FolderCamera(tmp_path / "nope")
+
+
+# --------------------------------------------------------------------------------------------
+# Gphoto2Camera against the API double
+# --------------------------------------------------------------------------------------------
+
+from gphoto2_double import GP_ERROR_IO_USB_CLAIM, Shot, make_gphoto2_double  # noqa: E402
+
+from ps_lab.capture.gphoto2_camera import Gphoto2Camera, parse_shutter_speed  # noqa: E402
+
+RIG_SETTINGS = {"imageformat": "RAW", "shutterspeed": "1/20", "iso": "100", "aperture": "8"}
+
+
+def test_gphoto2_applies_settings_and_downloads_the_raw(tmp_path, rng):
+    gp = make_gphoto2_double()
+    raw_bytes, jpeg_bytes = rng.bytes(5000), rng.bytes(800)
+    gp.rig.shots.append(Shot({"IMG_0001.JPG": jpeg_bytes, "IMG_0001.CR2": raw_bytes}, delay_events=2))
+    gp.rig.shots.append(Shot({"IMG_0002.CR2": raw_bytes[::-1]}))
+    with Gphoto2Camera(settings=RIG_SETTINGS, timeout_s=2.0, gp_module=gp) as camera:
+        config = gp.rig.config
+        assert config.get_child_by_name("imageformat").value == "RAW"
+        assert config.get_child_by_name("shutterspeed").value == "1/20"
+        assert config.get_child_by_name("iso").value == "100"
+        assert config.get_child_by_name("aperture").value == "8"
+        assert config.get_child_by_name("capturetarget").value == "Internal RAM"  # default
+        assert ("set_port_info", "usb:001,004") in gp.rig.calls
+        first = camera.capture(tmp_path / "0001.cr2", label="light 1")
+        second = camera.capture(tmp_path / "0002.cr2")
+    assert first.path.read_bytes() == raw_bytes  # the RAW, not the JPEG sibling
+    assert second.path.read_bytes() == raw_bytes[::-1]
+    assert first.exposure_s == pytest.approx(0.05)
+    assert first.started <= first.finished <= second.started
+    downloaded = [c[2] for c in gp.rig.calls if c[0] == "file_get"]
+    assert downloaded == ["IMG_0001.CR2", "IMG_0002.CR2"]
+    assert gp.rig.storage == {}  # RAW and JPEG deleted from the camera's RAM
+    assert gp.rig.calls[-1] == ("exit",)
+
+
+def test_gphoto2_explicit_port_and_keep_on_camera(tmp_path, rng):
+    gp = make_gphoto2_double()
+    gp.rig.shots.append(Shot({"DSC_0001.NEF": rng.bytes(100)}))
+    camera = Gphoto2Camera("usb:001,004", settings={"capturetarget": "Memory card"},
+                           keep_on_camera=True, gp_module=gp, timeout_s=1.0)
+    camera.capture(tmp_path / "a.nef")
+    camera.close()
+    assert len(gp.rig.storage) == 1
+    assert camera.settings["port"] == "usb:001,004"
+
+
+def test_gphoto2_timeout_when_no_raw_arrives(tmp_path):
+    gp = make_gphoto2_double()
+    gp.rig.shots.append(Shot({"IMG_0001.JPG": b"jpeg only"}))
+    camera = Gphoto2Camera(settings={}, timeout_s=0.05, gp_module=gp)
+    with pytest.raises(CameraError, match="no RAW file within"):
+        camera.capture(tmp_path / "x.cr2")
+    with pytest.raises(CameraError, match="no RAW file within"):  # nothing at all arrives
+        camera.capture(tmp_path / "y.cr2")
+    assert not (tmp_path / "x.cr2").exists()
+
+
+def test_gphoto2_ignores_leftover_files_from_an_earlier_shot(tmp_path, rng):
+    gp = make_gphoto2_double()
+    from gphoto2_double import GP_EVENT_FILE_ADDED, CameraFilePath
+
+    gp.rig.storage[("/", "OLD.CR2")] = b"stale"
+    gp.rig.leftover_events = [(GP_EVENT_FILE_ADDED, CameraFilePath("/", "OLD.CR2"))]
+    fresh = rng.bytes(300)
+    gp.rig.shots.append(Shot({"NEW.CR2": fresh}))
+    camera = Gphoto2Camera(settings={}, timeout_s=1.0, gp_module=gp)
+    assert camera.capture(tmp_path / "f.cr2").path.read_bytes() == fresh
+
+
+def test_gphoto2_clear_errors(tmp_path):
+    gp = make_gphoto2_double()
+    gp.rig.cameras = []
+    with pytest.raises(CameraError, match="no camera detected"):
+        Gphoto2Camera(settings={}, gp_module=gp)
+    gp = make_gphoto2_double()
+    with pytest.raises(CameraError, match="no port"):
+        Gphoto2Camera("usb:009,009", settings={}, gp_module=gp)
+    gp = make_gphoto2_double()
+    with pytest.raises(CameraError, match="no camera found"):
+        Gphoto2Camera("serial:/dev/ttyS0", settings={}, gp_module=gp)
+    gp = make_gphoto2_double()
+    gp.rig.init_error = GP_ERROR_IO_USB_CLAIM
+    with pytest.raises(CameraError, match="busy"):
+        Gphoto2Camera(settings={}, gp_module=gp)
+    gp = make_gphoto2_double()
+    with pytest.raises(CameraError, match="no setting 'whitebalance'"):
+        Gphoto2Camera(settings={"whitebalance": "Daylight"}, gp_module=gp)
+    assert gp.rig.calls[-1] == ("exit",)  # closed again after the failed configuration
+    gp = make_gphoto2_double()
+    with pytest.raises(CameraError, match="iso='64' is not one of"):
+        Gphoto2Camera(settings={"iso": "64"}, gp_module=gp)
+    gp = make_gphoto2_double()
+    camera = Gphoto2Camera(settings={"imageformat": "raw"}, gp_module=gp)  # case-insensitive
+    assert gp.rig.config.get_child_by_name("imageformat").value == "RAW"
+    gp.rig.trigger_error = -110
+    with pytest.raises(CameraError, match="gphoto2 error while capturing frame 0"):
+        camera.capture(tmp_path / "z.cr2")
+
+
+def test_gphoto2_missing_library_message(monkeypatch):
+    import builtins
+
+    real_import = builtins.__import__
+
+    def no_gphoto2(name, *args, **kwargs):
+        if name == "gphoto2":
+            raise ImportError("No module named 'gphoto2'")
+        return real_import(name, *args, **kwargs)
+
+    monkeypatch.setattr(builtins, "__import__", no_gphoto2)
+    with pytest.raises(CameraError, match=r"pip install 'ps-lab\[gphoto2\]'"):
+        Gphoto2Camera(settings={})
+
+
+@pytest.mark.parametrize("text, seconds", [("1/125", 1 / 125), ("0.5", 0.5), ("2", 2.0),
+                                           ("30s", 30.0), ("1/20s", 0.05), ('2"', 2.0), (0.1, 0.1),
+                                           ("bulb", None), ("", None), ("0", None)])
+def test_parse_shutter_speed(text, seconds):
+    assert parse_shutter_speed(text) == (pytest.approx(seconds) if seconds else None)
