@@ -107,8 +107,9 @@ def _prepare_tile(obs, usable, lights, a, b, dtype):
     scale = pixel_scale(y, w)
     _, ok = inverse6(w.astype(np.float64) @ outer6(lights), SOLVABLE_REL_DET)
     ok &= (scale > 0) & (w.sum(axis=1) >= 3)
-    y /= np.where(ok, scale, 1.0)[:, None]
     w &= ok[:, None]
+    y /= np.where(ok, scale, 1.0)[:, None]
+    y[~w] = 0.0  # dropped observations may hold NaN or garbage: weight 0 must not see it
     return y.astype(dtype), w.astype(dtype), scale, ok
 
 

@@ -1,0 +1,218 @@
+"""Round trips and oracle checks for ps_lab.reconstruct.solve (LS, L1, SBL, R-PCA)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from solver_oracles import solve_oracle
+
+from ps_lab.errors import DatasetError
+from ps_lab.reconstruct import (
+    METHODS,
+    SolverInputError,
+    angular_errors_deg,
+    error_summary,
+    estimate_noise,
+    solve,
+)
+
+ORACLE_PARAMS = ("max_iter", "tol", "delta", "outlier_threshold", "sigma_x2", "gamma_floor",
+                 "lam_sparse", "rho")
+
+
+def lights_upper(n, rng, max_zenith_deg=60.0):
+    try:
+        from ps_lab.capture.render import random_light_directions
+    except ImportError:  # renderer not there yet: same distribution inline
+        z = rng.uniform(np.cos(np.radians(max_zenith_deg)), 1.0, n)
+        phi = rng.uniform(0, 2 * np.pi, n)
+        r = np.sqrt(1 - z**2)
+        return np.stack([r * np.cos(phi), r * np.sin(phi), z], axis=1)
+    return random_light_directions(n, rng, max_zenith_deg=max_zenith_deg)
+
+
+def scene(kind, shape, lights, rng, *, specular=0.0):
+    """Observations (n, P) of the masked pixels, true normals (P, 3), albedo (P,)."""
+    try:
+        from ps_lab.capture.render import relief_surface, render, sphere_surface
+    except ImportError:
+        h, w = shape
+        yy, xx = np.mgrid[0:h, 0:w]
+        nx, ny = (xx - (w - 1) / 2) / (0.45 * w), -(yy - (h - 1) / 2) / (0.45 * h)
+        mask = nx**2 + ny**2 < 1
+        normals = np.stack([nx, ny, np.sqrt(np.clip(1 - nx**2 - ny**2, 0, None))], -1)[mask]
+        images = np.maximum(lights @ normals.T, 0.0)
+        return images, normals, np.ones(len(normals))
+    surface = sphere_surface(shape) if kind == "sphere" else relief_surface(shape, seed=3)
+    images = render(surface, lights, specular=specular, rng=rng)
+    albedo = surface.albedo if surface.albedo.ndim == 2 else surface.albedo.mean(axis=-1)
+    return images[:, surface.mask], surface.normals[surface.mask], albedo[surface.mask]
+
+
+def oracle_params(sol):
+    p = {k: v for k, v in sol.params.items() if k in ORACLE_PARAMS}
+    if "lambda" in sol.params:
+        p["lam"] = sol.params["lambda"]
+    return p
+
+
+@pytest.fixture(scope="module")
+def corrupted():
+    rng = np.random.default_rng(7)
+    lights = lights_upper(24, rng)
+    y, normals, _ = scene("relief", (28, 28), lights, rng, specular=0.3)
+    hit = rng.random(y.shape) < 0.1
+    y = y.copy()
+    y[hit] += rng.uniform(0.2, 1.0, hit.sum())
+    valid = rng.random(y.shape) > 0.08
+    return y, lights, valid, normals
+
+
+@pytest.mark.parametrize("method", METHODS)
+def test_vectorised_equals_per_pixel_oracle(corrupted, method):
+    y, lights, valid, _ = corrupted
+    sol = solve(y, lights, method=method, valid=valid, dtype="float64")
+    normals, albedo, outliers, iterations = solve_oracle(y, lights, method, valid, **oracle_params(sol))
+    assert np.abs(sol.normals - normals).max() < 1e-6
+    assert np.allclose(sol.albedo, albedo, rtol=1e-6, atol=1e-9)
+    assert np.mean(sol.iterations == iterations) > 0.99
+    assert np.mean(sol.outliers != outliers) < 1e-3
+    assert not sol.outliers[~valid].any()
+
+
+def test_float32_sbl_within_a_hundredth_degree_of_oracle(corrupted):
+    y, lights, valid, _ = corrupted
+    sol = solve(y, lights, method="sbl", valid=valid, dtype="float32")
+    normals, *_ = solve_oracle(y, lights, "sbl", valid, **oracle_params(sol))
+    assert angular_errors_deg(sol.normals, normals).max() <= 0.01
+
+
+def test_least_squares_exact_on_lambertian_data_with_shadows_dropped():
+    rng = np.random.default_rng(1)
+    lights = lights_upper(12, rng)
+    y, normals, albedo = scene("sphere", (32, 32), lights, rng)
+    y = y * 0.7
+    sol = solve(y, lights, method="ls", valid=y > 0)
+    solvable = (y > 0).sum(axis=0) >= 3
+    assert solvable.mean() > 0.9
+    assert np.abs(sol.normals[solvable] - normals[solvable]).max() < 1e-9
+    assert np.allclose(sol.albedo[solvable], 0.7 * albedo[solvable], rtol=1e-9)
+    assert not sol.normals[~solvable].any()
+
+
+def test_robust_methods_beat_least_squares_on_sparse_corruptions():
+    rng = np.random.default_rng(2)
+    lights = lights_upper(40, rng)
+    y, normals, _ = scene("relief", (40, 40), lights, rng, specular=0.2)
+    hit = rng.random(y.shape) < 0.1
+    y = y.copy()
+    y[hit] += rng.uniform(0.0, 1.0, hit.sum())
+    err = {m: error_summary(angular_errors_deg(solve(y, lights, method=m).normals, normals))
+           for m in METHODS}
+    assert err["sbl"]["mean"] < err["l1"]["mean"] < err["ls"]["mean"]
+    assert err["rpca"]["mean"] < err["ls"]["mean"]
+    assert err["sbl"]["median"] < 0.5 * err["ls"]["median"]
+    assert err["sbl"]["median"] < 1.0
+
+
+def test_sbl_flags_injected_corruptions_and_recovers_normals():
+    rng = np.random.default_rng(3)
+    lights = lights_upper(30, rng)
+    y, normals, _ = scene("sphere", (30, 30), lights, rng)
+    valid = y > 0
+    hit = (rng.random(y.shape) < 0.1) & valid
+    y = y.copy()
+    y[hit] += rng.uniform(0.5, 1.0, hit.sum())
+    sol = solve(y, lights, method="sbl", valid=valid)
+    assert sol.outliers[hit].mean() > 0.95
+    assert sol.outliers[valid & ~hit].mean() < 0.02
+    assert np.median(angular_errors_deg(sol.normals, normals)) < 0.05
+
+
+@pytest.mark.parametrize("method", ("ls", "l1", "sbl"))
+def test_dropped_observations_do_not_matter(method):
+    rng = np.random.default_rng(4)
+    lights = lights_upper(20, rng)
+    y, _, _ = scene("sphere", (20, 20), lights, rng)
+    valid = rng.random(y.shape) > 0.2
+    garbage = np.where(valid, y, rng.uniform(-5, 50, y.shape))
+    garbage[~valid & (rng.random(y.shape) < 0.3)] = np.nan
+    a = solve(y, lights, method=method, valid=valid, lam=1e-4) if method == "sbl" else \
+        solve(y, lights, method=method, valid=valid)
+    b = solve(garbage, lights, method=method, valid=valid, lam=1e-4) if method == "sbl" else \
+        solve(garbage, lights, method=method, valid=valid)
+    assert np.abs(a.normals - b.normals).max() < 1e-12
+
+
+@pytest.mark.parametrize("method", ("l1", "sbl"))
+def test_tiles_and_threads_give_the_single_tile_result(corrupted, method):
+    y, lights, valid, _ = corrupted
+    params = {"lam": 1e-4} if method == "sbl" else {}
+    ref = solve(y, lights, method=method, valid=valid, threads=1, tile_size=y.shape[1], **params)
+    for tile, threads in ((13, 1), (64, 2), (200, 3), (10_000, 4)):
+        sol = solve(y, lights, method=method, valid=valid, threads=threads, tile_size=tile, **params)
+        assert np.abs(sol.normals - ref.normals).max() < 1e-6
+        assert np.abs(sol.albedo - ref.albedo).max() < 1e-6 * ref.albedo.max()
+        assert np.mean(sol.iterations == ref.iterations) > 0.99
+
+
+def test_progress_reports_every_pixel_once(corrupted):
+    y, lights, valid, _ = corrupted
+    seen = []
+    solve(y, lights, method="sbl", valid=valid, tile_size=50, threads=2, progress=seen.append)
+    assert sum(seen) == y.shape[1]
+    assert len(seen) == -(-y.shape[1] // 50)
+
+
+def test_auto_lambda_follows_the_noise_level():
+    rng = np.random.default_rng(5)
+    lights = lights_upper(40, rng)
+    y, _, _ = scene("sphere", (40, 40), lights, rng)
+    sigmas = []
+    for rel in (0.005, 0.02):
+        noisy = y + rng.normal(0, rel * np.median(y[y > 0]), y.shape)
+        sigmas.append(estimate_noise(noisy, lights, valid=y > 0))
+        sol = solve(noisy, lights, method="sbl", valid=y > 0)
+        assert sol.params["lambda"] == pytest.approx(sol.params["noise_sigma"] ** 2)
+    # relative to each pixel's median observation, so roughly proportional to the noise
+    assert 2.5 < sigmas[1] / sigmas[0] < 6
+
+
+def test_solution_shapes_and_params(corrupted):
+    y, lights, valid, _ = corrupted
+    n, p = y.shape
+    for method in METHODS:
+        sol = solve(y, lights, method=method, valid=valid)
+        assert sol.normals.shape == (p, 3) and sol.albedo.shape == (p,)
+        assert sol.outliers.shape == (n, p) and sol.outliers.dtype == bool
+        assert sol.iterations.shape == (p,)
+        assert sol.params["method"] == method
+        lengths = np.linalg.norm(sol.normals, axis=1)
+        assert np.allclose(lengths[lengths > 0], 1.0)
+
+
+@pytest.mark.parametrize(
+    ("args", "kwargs", "match"),
+    [
+        ((np.ones((5, 4)), np.eye(3)), {}, "light_directions"),
+        ((np.ones((3, 4)), np.array([[0, 0, 1.0], [0, 0, 1], [0, 1, 0]])), {}, "span"),
+        ((np.ones((3, 4)), np.array([[np.nan, 0, 1.0], [1, 0, 0], [0, 1, 0]])), {}, "NaN"),
+        ((np.ones(4), np.eye(3)), {}, "observations"),
+        ((np.ones((3, 4)), np.eye(3)), {"method": "magic"}, "unknown method"),
+        ((np.ones((3, 4)), np.eye(3)), {"method": "ls", "lam": 1.0}, "no parameter"),
+        ((np.ones((3, 4)), np.eye(3)), {"valid": np.ones((3, 5), bool)}, "valid"),
+    ],
+)
+def test_bad_input_raises_one_clear_error(args, kwargs, match):
+    with pytest.raises(SolverInputError, match=match) as info:
+        solve(*args, **kwargs)
+    assert isinstance(info.value, DatasetError) and isinstance(info.value, ValueError)
+
+
+def test_metrics():
+    a = np.array([[0, 0, 1.0], [1, 0, 0], [0, 0, 2.0], [0, 0, 0]])
+    b = np.array([[0, 0, 1.0], [0, 1, 0], [0, np.sin(0.1), np.cos(0.1)], [0, 0, 1]])
+    e = angular_errors_deg(a, b)
+    assert np.allclose(e, [0.0, 90.0, np.degrees(0.1), 90.0])
+    s = error_summary(e)
+    assert s["max"] == pytest.approx(90.0) and s["median"] == pytest.approx(np.median(e))
