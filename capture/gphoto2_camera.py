@@ -34,7 +34,17 @@ log = logging.getLogger(__name__)
 CAMERA_RAW_SUFFIXES = (*RAW_SUFFIXES, ".crw", ".nrw", ".orf", ".rw2", ".raf", ".pef", ".srw", ".3fr")
 
 #: Settings applied when the rig file does not name them, if the camera has them.
-DEFAULT_SETTINGS = {"capturetarget": "Internal RAM"}
+DEFAULT_SETTINGS: dict[str, Any] = {"capturetarget": "Internal RAM", "imageformat": "RAW"}
+
+#: Other widget names cameras use for a setting (Nikon: ``f-number``, ``imagequality``).
+SETTING_ALIASES: dict[str, tuple[str, ...]] = {
+    "aperture": ("f-number", "fnumber"),
+    "imageformat": ("imagequality",),
+    "iso": ("isospeed",),
+}
+
+#: Settings whose choices are numbers: a value may match a choice numerically.
+_NUMERIC = {"shutterspeed", "aperture", "f-number", "fnumber", "iso", "isospeed"}
 
 _INSTALL_HINT = "python-gphoto2 is not installed: pip install 'ps-lab[gphoto2]'"
 
@@ -62,6 +72,39 @@ def parse_shutter_speed(value: object) -> float | None:
     return seconds if seconds > 0 else None
 
 
+def _number(name: str, value: object) -> float | None:
+    if name == "shutterspeed":
+        return parse_shutter_speed(value)
+    match = re.search(r"\d+(?:\.\d+)?", str(value))
+    return float(match.group()) if match else None
+
+
+def _match_choice(name: str, value: object, choices: list[str]) -> str | None:
+    """The camera's choice for ``value``: exact, else case-insensitive, else numeric (1 %)."""
+    text = str(value)
+    for same in (lambda c: c == text, lambda c: c.lower() == text.lower()):
+        found = next((c for c in choices if same(c)), None)
+        if found is not None:
+            return found
+    if name in ("imageformat", "imagequality") and text.lower() == "raw":
+        # "RAW" means the RAW-only choice: Canon "RAW", Nikon "NEF (Raw)"; never RAW + JPEG.
+        raw_only = [
+            c for c in choices
+            if ("raw" in c.lower() or "nef" in c.lower())
+            and not any(t in c.lower() for t in ("+", "jpeg", "jpg", "fine", "normal", "basic"))
+        ]
+        return raw_only[0] if raw_only else None
+    if name in _NUMERIC:
+        target = _number(name, value)
+        if target is None:
+            return None
+        for choice in choices:
+            number = _number(name, choice)
+            if number is not None and abs(number - target) <= 0.01 * target:
+                return choice
+    return None
+
+
 class Gphoto2Camera(Camera):
     """A USB-tethered camera through libgphoto2.
 
@@ -80,6 +123,9 @@ class Gphoto2Camera(Camera):
         How long to wait for the RAW file after triggering.
     keep_on_camera : bool
         Leave captured files on the camera instead of deleting them after download.
+    exposure_s, iso, aperture : float, optional
+        Shortcuts for the ``shutterspeed``, ``iso`` and ``aperture`` settings (numbers are
+        matched to the camera's choices numerically, e.g. 0.05 -> ``"1/20"``, 8 -> ``"f/8"``).
     gp_module : module, optional
         The ``gphoto2`` module (tests pass a double); imported lazily by default.
     """
@@ -93,11 +139,18 @@ class Gphoto2Camera(Camera):
         settings: Mapping[str, Any] | None = None,
         timeout_s: float = 30.0,
         keep_on_camera: bool = False,
+        exposure_s: float | None = None,
+        iso: int | None = None,
+        aperture: float | None = None,
         gp_module: Any = None,
     ) -> None:
         super().__init__(timeout_s=timeout_s)
         self.port = port
         self.camera_settings = dict(settings or {})
+        # Rig-file conveniences; an explicit entry in ``settings`` wins.
+        for name, value in (("shutterspeed", exposure_s), ("iso", iso), ("aperture", aperture)):
+            if value is not None:
+                self.camera_settings.setdefault(name, value)
         self.keep_on_camera = bool(keep_on_camera)
         self._gp = gp_module if gp_module is not None else _import_gphoto2()
         self._camera: Any = None
@@ -165,16 +218,21 @@ class Gphoto2Camera(Camera):
         wanted = {k: v for k, v in DEFAULT_SETTINGS.items() if k not in self.camera_settings}
         for name, value in {**wanted, **self.camera_settings}.items():
             explicit = name in self.camera_settings
-            try:
-                widget = config.get_child_by_name(name)
-            except error_type:
+            widget, widget_name = None, name
+            for candidate in (name, *SETTING_ALIASES.get(name, ())):
+                try:
+                    widget, widget_name = config.get_child_by_name(candidate), candidate
+                    break
+                except error_type:
+                    continue
+            if widget is None:
                 if explicit:
                     raise CameraError(
                         f"camera has no setting {name!r} (see `gphoto2 --list-config`)"
-                    ) from None
+                    )
                 continue
             try:
-                self._set_widget(widget, name, value)
+                self._set_widget(widget, widget_name, value)
             except CameraError:
                 if explicit:
                     raise
@@ -189,12 +247,9 @@ class Gphoto2Camera(Camera):
         kind = widget.get_type()
         if kind in (getattr(gp, "GP_WIDGET_RADIO", 5), getattr(gp, "GP_WIDGET_MENU", 6)):
             choices = [widget.get_choice(i) for i in range(widget.count_choices())]
-            text = str(value)
-            match = next((c for c in choices if c == text), None)
+            match = _match_choice(name, value, choices)
             if match is None:
-                match = next((c for c in choices if c.lower() == text.lower()), None)
-            if match is None:
-                raise CameraError(f"camera setting {name}={text!r} is not one of {choices}")
+                raise CameraError(f"camera setting {name}={str(value)!r} is not one of {choices}")
             widget.set_value(match)
         elif kind == getattr(gp, "GP_WIDGET_TOGGLE", 4):
             widget.set_value(int(bool(value)))

@@ -442,3 +442,31 @@ def test_gphoto2_missing_library_message(monkeypatch):
                                            ("bulb", None), ("", None), ("0", None)])
 def test_parse_shutter_speed(text, seconds):
     assert parse_shutter_speed(text) == (pytest.approx(seconds) if seconds else None)
+
+
+def test_gphoto2_numeric_shortcuts_and_nikon_names(tmp_path, rng):
+    from gphoto2_double import GP_WIDGET_RADIO, GP_WIDGET_WINDOW, Widget
+
+    gp = make_gphoto2_double()
+    Gphoto2Camera(exposure_s=0.05, iso=200, aperture=11, gp_module=gp).close()
+    config = gp.rig.config
+    assert config.get_child_by_name("shutterspeed").value == "1/20"
+    assert config.get_child_by_name("iso").value == "200"
+    assert config.get_child_by_name("aperture").value == "11"
+    assert config.get_child_by_name("imageformat").value == "RAW"  # default: RAW only
+
+    gp = make_gphoto2_double()
+    gp.rig.config = Widget("main", GP_WIDGET_WINDOW, children={
+        "f-number": Widget("f-number", GP_WIDGET_RADIO, "f/4", ["f/4", "f/5.6", "f/8"]),
+        "imagequality": Widget("imagequality", GP_WIDGET_RADIO, "JPEG Fine",
+                               ["JPEG Fine", "NEF+Fine", "NEF (Raw)"]),
+        "shutterspeed": Widget("shutterspeed", GP_WIDGET_RADIO, "1/60", ["1/60", "1/30", "0.5", "1"]),
+    })
+    camera = Gphoto2Camera(settings={"shutterspeed": "1/2"}, aperture=8.0, gp_module=gp)
+    assert gp.rig.config.get_child_by_name("f-number").value == "f/8"
+    assert gp.rig.config.get_child_by_name("imagequality").value == "NEF (Raw)"
+    assert gp.rig.config.get_child_by_name("shutterspeed").value == "0.5"
+    assert camera.exposure_s == 0.5
+    camera.close()
+    with pytest.raises(CameraError, match="shutterspeed='0.000125' is not one of"):
+        Gphoto2Camera(exposure_s=1 / 8000, gp_module=make_gphoto2_double())
