@@ -46,6 +46,8 @@ _VIEW = np.array([0.0, 0.0, 1.0])
 # Offset (pixel units of height) that a shadow ray must clear, so a surface does not shadow itself
 # through the linear interpolation of its own curved height field.
 _SHADOW_BIAS = 0.5
+# Standard deviation (pixels) of the Gaussian lens blur applied to chrome highlights.
+_HIGHLIGHT_PSF_SIGMA = 0.6
 # Schlick's reflectance at normal incidence (a dielectric); the Fresnel term is divided by it so
 # that ``specular`` sets the lobe's scale independently of the material.
 _FRESNEL_F0 = 0.04
@@ -504,6 +506,7 @@ def _chrome_geometry(
 
     Returns the box (row slice, column slice), the (bh, bw) share of each pixel covered by the sphere,
     and the reflected view vector components, each of shape (s*s, bh, bw); None if the box is empty.
+    (The highlights are rendered separately, on a finer grid: see :func:`_chrome_highlight`.)
     """
     h, w = shape
     if radius <= 0:
@@ -546,8 +549,9 @@ def render_chrome_sphere(
     A sub-pixel sample on the sphere reflects the view vector ``v = (0, 0, 1)`` into
     ``r = 2 (n.v) n - v``; it sees ``light_radiance`` where ``r`` falls inside a light's disc of angular
     radius ``light_angular_radius_deg`` (with a narrow linear ramp at the disc's edge) and ``ambient``
-    everywhere on the sphere. Each pixel averages an ``s x s`` grid of sub-pixel samples, so the outline
-    and the highlight are anti-aliased. The background is 0.
+    everywhere on the sphere. Each pixel averages an ``s x s`` grid of sub-pixel samples for the outline
+    and a finer grid for the highlight (one sub-sample spans at most a quarter of the disc radius), so
+    both are anti-aliased and the highlight centroid moves smoothly with the light. The background is 0.
 
     Parameters
     ----------
@@ -566,26 +570,76 @@ def render_chrome_sphere(
     ndarray of shape (n, H, W)
     """
     lights = _normalise_lights(light_directions)
+    if light_angular_radius_deg <= 0:
+        raise ValueError(f"light_angular_radius_deg must be positive, got {light_angular_radius_deg}")
     out = np.zeros((lights.shape[0], shape[0], shape[1]))
     geometry = _chrome_geometry(shape, center, radius, supersample)
     if geometry is None:
         return out
-    box, coverage, (rx, ry, rz) = geometry
-    s2 = rx.shape[0]
+    box, coverage, _ = geometry
+    out[:, box[0], box[1]] = ambient * coverage
     disc = np.deg2rad(light_angular_radius_deg)
-    edge = 0.25 * disc  # width of the linear ramp at the disc edge
-    cos_outer = np.cos(disc + 0.5 * edge)
     for i, light in enumerate(lights):
-        cos_angle = rx * light[0] + ry * light[1] + rz * light[2]  # (s2, bh, bw)
-        near = cos_angle > cos_outer
-        highlight = np.zeros_like(coverage)
-        if near.any():
-            angle = np.arccos(np.clip(cos_angle[near], -1.0, 1.0))
-            weight = np.zeros(cos_angle.shape)
-            weight[near] = np.clip((disc - angle) / edge + 0.5, 0.0, 1.0)
-            highlight = weight.sum(axis=0) / s2
-        out[(i, *box)] = ambient * coverage + light_radiance * highlight
+        highlight = _chrome_highlight(shape, center, radius, light, disc, supersample)
+        if highlight is not None:
+            (rows, cols), values = highlight
+            out[i, rows, cols] += light_radiance * values
     return out
+
+
+def _chrome_highlight(
+    shape: tuple[int, int],
+    center: tuple[float, float],
+    radius: float,
+    light: np.ndarray,
+    disc: float,
+    supersample: int,
+) -> tuple[tuple[slice, slice], np.ndarray] | None:
+    """Share of each pixel whose reflected view vector falls inside the light's disc.
+
+    The highlight is small (a fraction of a pixel on a small sphere), so it gets its own sub-pixel
+    grid, fine enough that one sub-sample spans at most a quarter of the disc's angular radius; the
+    disc edge is a linear ramp one sub-sample wide, so the highlight moves smoothly with the light.
+    The lens's point spread function (a Gaussian of ``_HIGHLIGHT_PSF_SIGMA`` pixels) is applied on
+    that grid before pixel integration: without it a sub-pixel highlight would land in one or two
+    pixels and its centroid would snap to pixel centres, as it would on a real sensor with no blur.
+    Returns the pixel box and its (bh, bw) values, or None when the highlight is off the sphere.
+    """
+    h, w = shape
+    half = light + _VIEW
+    half = half / np.linalg.norm(half)
+    if half[2] <= 1e-6:
+        return None
+    # The mirror point and the reflected vector's angular change per pixel there: a normal turns by
+    # 1/radius per pixel (1/(radius nz) radially), the reflection by twice that.
+    px = center[0] + radius * half[0]
+    py = center[1] - radius * half[1]
+    per_pixel = 2.0 / (radius * half[2])
+    fine = int(np.clip(np.ceil(4.0 * per_pixel / disc), supersample, 32))
+    # Inside the disc the normal stays within half the disc (plus the ramp) of the bisector; the
+    # orthographic projection moves the sphere point by at most radius times that angle.
+    reach = radius * (0.5 * disc + per_pixel / fine) + 2.0 + 3.0 * _HIGHLIGHT_PSF_SIGMA
+    x0, x1 = max(int(np.floor(px - reach)), 0), min(int(np.ceil(px + reach)) + 1, w)
+    y0, y1 = max(int(np.floor(py - reach)), 0), min(int(np.ceil(py + reach)) + 1, h)
+    if x0 >= x1 or y0 >= y1:
+        return None
+    offsets = _subpixel_offsets(fine)
+    xs = (np.arange(x0, x1)[:, None] + offsets[None, :]).ravel()  # (bw * fine,)
+    ys = (np.arange(y0, y1)[:, None] + offsets[None, :]).ravel()
+    dx = (xs[None, :] - center[0]) / radius
+    dy = -(ys[:, None] - center[1]) / radius
+    d2 = dx * dx + dy * dy
+    inside = d2 < 1.0
+    nz = np.sqrt(np.clip(1.0 - d2, 0.0, None))
+    # Reflected view vector r = 2 (n.v) n - v, v = (0, 0, 1).
+    cos_angle = 2.0 * nz * (dx * light[0] + dy * light[1] + nz * light[2]) - light[2]
+    angle = np.arccos(np.clip(cos_angle, -1.0, 1.0))
+    ramp = per_pixel / fine
+    weight = np.where(inside, np.clip((disc - angle) / ramp + 0.5, 0.0, 1.0), 0.0)
+    sigma = _HIGHLIGHT_PSF_SIGMA * fine
+    weight = cv2.GaussianBlur(weight, (0, 0), sigmaX=sigma, sigmaY=sigma, borderType=cv2.BORDER_CONSTANT)
+    values = weight.reshape(y1 - y0, fine, x1 - x0, fine).mean(axis=(1, 3))
+    return (slice(y0, y1), slice(x0, x1)), values
 
 
 @dataclass(frozen=True)
