@@ -203,6 +203,8 @@ def _default_render(scene: Any, light_directions: np.ndarray, light_intensities:
     # Imported here: the renderer is only needed when a rig file selects the simulated camera.
     from ps_lab.capture.render import render_scene
 
+    if len(light_directions) == 0:  # the dark frame: no light, no intensities to pass
+        return render_scene(scene, np.zeros((0, 3)))
     return render_scene(scene, light_directions, light_intensities)
 
 

@@ -188,6 +188,27 @@ def test_real_renderer_scene_round_trip(tmp_path):
     np.testing.assert_allclose(loaded.image[ok], expected[ok], atol=0.5 / (16383 - 512) + 1e-6)
 
 
+def test_driven_by_the_simulated_controller(tmp_path):
+    render = pytest.importorskip("ps_lab.capture.render")
+    sim_lights = pytest.importorskip("ps_lab.capture.sim_lights")
+    scene = render.Scene(width=24, height=16, objects=(
+        render.SceneObject("matte", (12.0, 8.0), 7.0, (0.9, 0.9, 0.9)),), background=0.01)
+    firmware = sim_lights.SimulatedFirmware(lights=4)
+    camera = SimulatedCamera(scene, LIGHTS, INTENSITIES, firmware.state, exposure_s=0.02,
+                             gain=100_000.0, read_noise_dn=0.0, shot_noise=False)
+    dark = load_raw(camera.capture(tmp_path / "dark.dng").path).image
+    assert firmware.handle_line("ON 3") == ["OK ON 3"]
+    lit = load_raw(camera.capture(tmp_path / "lit.dng").path).image
+    expected = render.render_scene(scene, LIGHTS[[2]], INTENSITIES[[2]]) * camera.linear_scale
+    np.testing.assert_allclose(lit, expected, atol=1e-4)
+    background = render.render_scene(scene, np.zeros((0, 3))) * camera.linear_scale
+    assert background.max() > 0
+    np.testing.assert_allclose(dark, background, atol=1e-4)
+    assert firmware.handle_line("OFF") == ["OK OFF"]
+    again = load_raw(camera.capture(tmp_path / "off.dng").path).image
+    np.testing.assert_array_equal(again, dark)
+
+
 def test_injected_faults(tmp_path, rng):
     scene, switch = make_scene(rng), Switch()
     switch.set(1)
