@@ -21,12 +21,14 @@ import cv2
 import numpy as np
 
 from ps_lab.capture._render_dataset import (
+    PNG16_PEAK,
     SimulationSettings,
     check_new_dataset_folder,
     write_simulated_dataset,
 )
 
 __all__ = [
+    "PNG16_PEAK",
     "Scene",
     "SceneObject",
     "SimulationSettings",
