@@ -39,10 +39,20 @@ OBJECT_KINDS = ("sphere", "relief", "chrome", "matte")
 #: File types a frame may have; RAW types are verified with ``load_raw``, the others with OpenCV.
 FILE_TYPES = ("dng", "cr2", "cr3", "nef", "arw", "tif", "tiff", "png")
 
-#: Settings that name *where* a device is plugged in rather than *what* it does: they may change
-#: between the sessions of one run (a re-plugged USB adapter gets a new name), so a resumed run
-#: ignores them when it compares rig snapshots.
-TRANSPORT_KEYS = (("controller", "port"), ("camera", "port"))
+#: Settings that cannot change what a frame contains: where a device is plugged in (a re-plugged
+#: USB adapter gets a new name), how long to wait and how often to retry, which faults a simulator
+#: injects, and where the rig file lives. A resumed run ignores them when it compares rig
+#: snapshots; every other setting must be unchanged.
+OPERATIONAL_KEYS = (
+    ("controller", "port"),
+    ("controller", "timeout_s"),
+    ("camera", "port"),
+    ("camera", "timeout_s"),
+    ("camera", "retries"),
+    ("faults",),
+    ("source",),
+    ("description",),
+)
 
 
 # --------------------------------------------------------------------------------------------
@@ -95,6 +105,7 @@ class CameraConfig:
     prompt: bool = False
     light_state_file: str | None = None
     pattern: str = "*"
+    settings: tuple[tuple[str, str | int | float], ...] = ()
     black_level: int = 512
     white_level: int = 16383
     gain: float = 200_000.0
@@ -211,6 +222,8 @@ class Rig:
             "aperture": cam.aperture,
             "file_type": cam.file_type,
         }
+        if cam.driver == "gphoto2" and cam.settings:
+            settings["settings"] = dict(cam.settings)
         if cam.driver == "simulated":
             settings.update(
                 black_level=cam.black_level,
@@ -225,12 +238,15 @@ class Rig:
 
 
 def comparable_snapshot(snapshot: Mapping[str, Any]) -> dict[str, Any]:
-    """Return ``snapshot`` without the keys a resumed run may change (ports, file path)."""
+    """Return ``snapshot`` without the :data:`OPERATIONAL_KEYS` a resumed run may change."""
     snap = _jsonable(dict(snapshot))
-    snap.pop("source", None)
-    for table, key in TRANSPORT_KEYS:
-        if isinstance(snap.get(table), dict):
-            snap[table] = {k: v for k, v in snap[table].items() if k != key}
+    for path in OPERATIONAL_KEYS:
+        *tables, key = path
+        node = snap
+        for table in tables:
+            node = node.get(table) if isinstance(node, dict) else None
+        if isinstance(node, dict):
+            node.pop(key, None)
     return snap
 
 
@@ -501,7 +517,7 @@ _CAMERA_KEYS = {
         "black_level", "white_level", "gain", "read_noise_dn", "shot_noise", "dn_per_electron", "seed",
         "light_state_file",
     },
-    "gphoto2": {"iso", "aperture", "port"},
+    "gphoto2": {"iso", "aperture", "port", "settings"},
     "folder": {"folder", "prompt", "pattern"},
 }
 
@@ -527,6 +543,7 @@ def _parse_camera(t: _Table) -> CameraConfig:
         black_level=t.int("black_level", 512, lo=0, hi=65534),
         white_level=t.int("white_level", 16383, lo=1, hi=65535),
         pattern=t.str("pattern", "*"),
+        settings=_gphoto2_settings(t),
         gain=t.float("gain", 200_000.0, lo=1e-6),
         read_noise_dn=t.float("read_noise_dn", 2.0, lo=0.0),
         shot_noise=t.bool("shot_noise", True),
@@ -537,6 +554,20 @@ def _parse_camera(t: _Table) -> CameraConfig:
         raise t.error("white_level", f"must exceed black_level ({cfg.black_level})")
     t.done()
     return cfg
+
+
+def _gphoto2_settings(t: _Table) -> tuple[tuple[str, str | int | float], ...]:
+    table = t.table("settings")
+    if table is None:
+        return ()
+    out = []
+    for key, value in sorted(table.data.items()):
+        if isinstance(value, bool) or not isinstance(value, str | int | float):
+            raise table.error(key, f"expected a string or a number, got {_kind(value)}")
+        table.used.add(key)
+        out.append((key, value))
+    table.done()
+    return tuple(out)
 
 
 def _parse_circle(t: _Table) -> Circle:
@@ -848,22 +879,6 @@ def _make_firmware(sim_lights: Any, rig: Rig) -> Any:
     )
 
 
-def _call_flexible(func: Callable[..., Any], *args: Any, **kwargs: Any) -> Any:
-    """Call ``func`` with the keyword arguments it accepts (drop ``None`` ones it lacks)."""
-    import inspect
-
-    try:
-        params = inspect.signature(func).parameters
-    except (TypeError, ValueError):
-        return func(*args, **kwargs)
-    accepts_any = any(p.kind is inspect.Parameter.VAR_KEYWORD for p in params.values())
-    usable = {k: v for k, v in kwargs.items() if accepts_any or k in params}
-    dropped = {k: v for k, v in kwargs.items() if k not in usable and v is not None}
-    if dropped:
-        log.debug("%s does not take %s", getattr(func, "__name__", func), sorted(dropped))
-    return func(*args, **{k: v for k, v in usable.items() if v is not None or k in params})
-
-
 def _check_port(port: str) -> None:
     """Turn the usual reasons a device port cannot be opened into one clear line."""
     if "://" in port:
@@ -876,21 +891,38 @@ def _check_port(port: str) -> None:
 def _make_controller(lights: Any, port: str, rig: Rig) -> Any:
     cfg = rig.controller
     try:
-        return _call_flexible(
-            lights.SerialLightController,
+        return lights.SerialLightController(
             port,
-            lights=cfg.lights,
+            cfg.lights,
             level=cfg.level,
             watchdog_ms=cfg.watchdog_ms,
-            timeout_s=cfg.timeout_s,
+            reply_timeout=cfg.timeout_s,
             baudrate=cfg.baudrate,
         )
     except PermissionError:
-        raise RigError(f"permission denied opening serial port {port} (add yourself to the dialout group)") from None
-    except PsLabError:
-        raise
+        raise RigError(_PERMISSION.format(port=port)) from None
     except OSError as exc:
         raise RigError(f"cannot open serial port {port}: {exc}") from None
+    except RigError as exc:
+        # Name the two everyday causes in the lab's words rather than in errno's.
+        text = str(exc)
+        if "exclusively lock" in text or "Errno 11" in text or "Device or resource busy" in text:
+            raise RigError(f"serial port {port} is busy: another program has it open (close it and retry)") from None
+        if "Errno 13" in text or "Permission denied" in text:
+            raise RigError(_PERMISSION.format(port=port)) from None
+        raise
+
+
+_PERMISSION = "permission denied opening serial port {port} (on Linux: add yourself to the 'dialout' group)"
+
+
+def _render_lit(scene: Any, light_directions: np.ndarray, light_intensities: np.ndarray) -> np.ndarray:
+    """Render ``scene`` under the lit lights; the dark frame (no light) passes no intensities."""
+    from ps_lab.capture.render import render_scene
+
+    if len(light_directions) == 0:
+        return render_scene(scene, np.zeros((0, 3)))
+    return render_scene(scene, light_directions, light_intensities)
 
 
 def _open_camera(
@@ -922,6 +954,7 @@ def _open_camera(
             seed=cfg.seed,
             timeout_s=cfg.timeout_s,
             faults=[{"kind": f.kind, "at": f.at} for f in rig.faults.camera],
+            render=_render_lit,
         )
     elif cfg.driver == "folder":
         assert cfg.folder is not None
@@ -935,13 +968,13 @@ def _open_camera(
     elif cfg.driver == "gphoto2":
         from ps_lab.capture import gphoto2_camera
 
-        camera = _call_flexible(
-            gphoto2_camera.Gphoto2Camera,
+        camera = gphoto2_camera.Gphoto2Camera(
+            cfg.port,
+            settings=dict(cfg.settings),
+            timeout_s=cfg.timeout_s,
             exposure_s=cfg.exposure_s,
             iso=cfg.iso,
             aperture=cfg.aperture,
-            port=cfg.port,
-            timeout_s=cfg.timeout_s,
         )
     else:  # pragma: no cover - parse_rig rejects other drivers
         raise CameraError(f"unknown camera driver {cfg.driver!r}")

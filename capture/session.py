@@ -1,0 +1,676 @@
+"""Capture sessions: one dark frame, then K frames per light, never losing or mixing up a frame.
+
+A run folder holds ``manifest.json`` and ``frames/``. The session guarantees, at every instant,
+even if the process is killed:
+
+* a frame file under its final name is complete: the camera writes it under a temporary name
+  (``frames/.partial-<name>``), the session checks that it reads, fsyncs it, renames it and
+  fsyncs the folder;
+* ``manifest.json`` lists exactly the complete frames: it is rewritten after every frame to a
+  temporary file that is fsynced and renamed over the old one (then the folder is fsynced).
+
+A file under a final name that the manifest does not list (the process died between the rename
+and the manifest update) and every temporary file are removed when the run is resumed; the
+frame is shot again. Frames of the simulated camera depend only on the frame index, so a
+resumed run is byte-identical to an uninterrupted one.
+
+Order of one frame (``kind = "light"``): switch the light on and wait for the controller's
+reply; wait ``settle_ms``; capture; check the file (RAW: :func:`~ps_lab.capture.raw.load_raw`
+reads it); switch the light off. A :class:`~ps_lab.errors.CameraError` (timeout, unreadable
+file) is retried ``[camera] retries`` times — light off, light on again, capture again; a
+controller error stops the run (the driver already retried what the protocol allows).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import hashlib
+import json
+import logging
+import os
+import re
+import signal
+import threading
+import time
+from collections.abc import Callable, Iterator, Sequence
+from dataclasses import dataclass, field
+from datetime import UTC, datetime
+from pathlib import Path
+from typing import Any, Protocol
+
+import numpy as np
+
+from ps_lab.capture.rig import (
+    OpenRig,
+    Rig,
+    build_simulation,
+    comparable_snapshot,
+    open_rig,
+    snapshot_differences,
+)
+from ps_lab.errors import CameraError, DatasetError, PsLabError, RigError
+
+log = logging.getLogger(__name__)
+
+MANIFEST_NAME = "manifest.json"
+RUN_FORMAT = "ps-lab-run"
+RUN_VERSION = 1
+FRAMES_DIR = "frames"
+SIMULATION_DIR = "simulation"
+PARTIAL_PREFIX = ".partial-"
+_FRAME_NAME = re.compile(r"^\d{4,}-(dark|L\d+-r\d+)\.\w+$")
+
+__all__ = [
+    "MANIFEST_NAME",
+    "CapturePlan",
+    "CaptureResult",
+    "CaptureSession",
+    "PlannedFrame",
+    "ProgressCallback",
+    "make_plan",
+    "read_manifest",
+    "write_json_atomic",
+]
+
+
+class ProgressCallback(Protocol):
+    """Called with ``(n, description=...)``: ``n`` frames done; ``description`` names the frame."""
+
+    def __call__(self, n: int = 1, description: str | None = None) -> None: ...  # noqa: D102
+
+
+# --------------------------------------------------------------------------------------------
+# Plan
+# --------------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class PlannedFrame:
+    """One frame of the plan: index in the manifest, what is lit, and its file name."""
+
+    index: int
+    kind: str  # "dark" | "light"
+    lights: tuple[int, ...]
+    repeat: int
+    file: str  # relative to the run folder
+
+    @property
+    def label(self) -> str:
+        """Human name of the frame, e.g. ``light 5 (repeat 1)`` or ``dark frame``."""
+        if self.kind == "dark":
+            return "dark frame"
+        lights = ",".join(str(i) for i in self.lights)
+        return f"light {lights}" + (f" (repeat {self.repeat})" if self.repeat else "")
+
+
+@dataclass(frozen=True)
+class CapturePlan:
+    """Which lights to shoot, how often, and the resulting frame list (dark frame first)."""
+
+    lights: tuple[int, ...]
+    repeat: int
+    n_lights: int
+    file_type: str
+    frames: tuple[PlannedFrame, ...] = field(repr=False, default=())
+
+    def as_dict(self) -> dict[str, Any]:
+        """Return the plan as stored in the manifest."""
+        return {"lights": list(self.lights), "repeat": self.repeat}
+
+
+def make_plan(n_lights: int, lights: Sequence[int] | None, repeat: int, file_type: str) -> CapturePlan:
+    """Build the frame list: frame 0 is the dark frame, then ``repeat`` frames per light.
+
+    Parameters
+    ----------
+    n_lights : int
+        Lights of the rig, numbered 1..n_lights.
+    lights : sequence of int or None
+        Lights to shoot, in this order; None = all.
+    repeat : int
+        Frames per light (averaged when the run is loaded).
+    file_type : str
+        File suffix of the frames, without the dot.
+    """
+    chosen = tuple(range(1, n_lights + 1)) if lights is None else tuple(int(i) for i in lights)
+    if not chosen:
+        raise RigError("no lights selected")
+    if len(set(chosen)) != len(chosen):
+        raise RigError("a light is selected twice")
+    bad = [i for i in chosen if not 1 <= i <= n_lights]
+    if bad:
+        raise RigError(f"light {bad[0]} is not on the rig (lights 1-{n_lights})")
+    if not 1 <= repeat <= 1000:
+        raise RigError(f"--repeat must be between 1 and 1000, got {repeat}")
+    width = max(2, len(str(n_lights)))
+    frames = [PlannedFrame(0, "dark", (), 0, f"{FRAMES_DIR}/0000-dark.{file_type}")]
+    for light in chosen:
+        for r in range(repeat):
+            i = len(frames)
+            frames.append(
+                PlannedFrame(i, "light", (light,), r, f"{FRAMES_DIR}/{i:04d}-L{light:0{width}d}-r{r}.{file_type}")
+            )
+    return CapturePlan(chosen, repeat, n_lights, file_type, tuple(frames))
+
+
+# --------------------------------------------------------------------------------------------
+# Files
+# --------------------------------------------------------------------------------------------
+
+
+def _fsync_dir(path: Path) -> None:
+    fd = os.open(path, os.O_RDONLY)
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
+
+
+def _fsync_file(path: Path) -> None:
+    fd = os.open(path, os.O_RDONLY)
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
+
+
+def write_bytes_atomic(path: Path, data: bytes) -> None:
+    """Write ``data`` to ``path`` so that ``path`` holds either the old or the new content."""
+    tmp = path.with_name(PARTIAL_PREFIX + path.name)
+    with open(tmp, "wb") as f:
+        f.write(data)
+        f.flush()
+        os.fsync(f.fileno())
+    os.replace(tmp, path)
+    _fsync_dir(path.parent)
+
+
+def write_json_atomic(path: Path, obj: Any) -> None:
+    """Write ``obj`` as JSON with :func:`write_bytes_atomic`."""
+    write_bytes_atomic(path, (json.dumps(obj, indent=1) + "\n").encode("utf-8"))
+
+
+def _sha256(path: Path) -> str:
+    digest = hashlib.sha256()
+    with open(path, "rb") as f:
+        for block in iter(lambda: f.read(1 << 20), b""):
+            digest.update(block)
+    return digest.hexdigest()
+
+
+def _iso(epoch_s: float) -> str:
+    return datetime.fromtimestamp(epoch_s, tz=UTC).isoformat(timespec="milliseconds")
+
+
+def read_manifest(run_dir: Path) -> dict[str, Any]:
+    """Read and check the manifest of a capture run.
+
+    Raises
+    ------
+    DatasetError
+        No manifest, not JSON, or not a ps-lab run manifest.
+    """
+    path = Path(run_dir) / MANIFEST_NAME
+    try:
+        manifest = json.loads(path.read_text(encoding="utf-8"))
+    except FileNotFoundError:
+        raise DatasetError(f"{run_dir} is not a capture run (no {MANIFEST_NAME})") from None
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise DatasetError(f"{path} is unreadable: {exc}") from None
+    if not isinstance(manifest, dict) or manifest.get("format") != RUN_FORMAT:
+        raise DatasetError(f"{path} is not a ps-lab run manifest")
+    if manifest.get("version") != RUN_VERSION:
+        raise DatasetError(f"{path}: run format version {manifest.get('version')} (this ps-lab reads {RUN_VERSION})")
+    for key in ("rig", "camera_settings", "plan", "frames"):
+        if key not in manifest:
+            raise DatasetError(f"{path}: missing {key!r}")
+    return manifest
+
+
+@contextlib.contextmanager
+def _sigint_deferred() -> Iterator[None]:
+    """Hold Ctrl-C while the lights are being switched off; deliver it afterwards."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    caught: list[Any] = []
+    previous = signal.signal(signal.SIGINT, lambda *args: caught.append(args))
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, previous)
+        if caught:
+            raise KeyboardInterrupt
+
+
+# --------------------------------------------------------------------------------------------
+# Controller / camera calls (one place that knows the method names of the drivers)
+# --------------------------------------------------------------------------------------------
+
+
+def _lights_on(controller: Any, lights: tuple[int, ...]) -> None:
+    controller.switch(lights[0] if len(lights) == 1 else lights)
+
+
+def _lights_off(controller: Any) -> None:
+    controller.all_off()
+
+
+def _lit(controller: Any) -> frozenset[int]:
+    return frozenset(controller.state().lit)
+
+
+def _capture(camera: Any, path: Path, frame: PlannedFrame) -> Any:
+    return camera.capture(path, frame_index=frame.index, label=frame.label)
+
+
+class _LightLost(CameraError):
+    """The controller no longer had the frame's lights lit after the exposure (watchdog, reset)."""
+
+
+def _verify_frame(path: Path, file_type: str) -> None:
+    """Raise :class:`CameraError` unless ``path`` is a readable image of its type."""
+    if not path.is_file() or path.stat().st_size == 0:
+        raise CameraError(f"the camera left no file at {path.name}")
+    if file_type in ("dng", "cr2", "cr3", "nef", "arw"):
+        from ps_lab.capture.raw import load_raw
+
+        try:
+            load_raw(path)
+        except PsLabError as exc:
+            raise CameraError(f"the frame does not read back: {exc}") from None
+    else:
+        import cv2
+
+        if cv2.imread(str(path), cv2.IMREAD_UNCHANGED) is None:
+            raise CameraError(f"the frame {path.name} does not read back as an image")
+
+
+# --------------------------------------------------------------------------------------------
+# Session
+# --------------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class CaptureResult:
+    """What a session did."""
+
+    run_dir: Path
+    frames_total: int
+    frames_captured: int  # in this session
+    frames_skipped: int  # already complete (resume)
+    retries: int  # camera re-shoots in this session
+    elapsed_s: float
+
+
+class CaptureSession:
+    """A capture into one run folder, new or resumed.
+
+    Construction checks the folder and (for ``resume``) the manifest without touching the
+    hardware; :meth:`run` opens the rig and shoots the remaining frames.
+
+    Parameters
+    ----------
+    rig : Rig
+        The validated rig (with command-line overrides applied).
+    run_dir : Path
+        The run folder: new, empty, or (with ``resume``) an existing run.
+    lights : sequence of int, optional
+        Lights to shoot (1-based). A resumed run keeps its plan: a different selection is refused.
+    repeat : int, optional
+        Frames per light (default 1; a resumed run keeps its own).
+    resume : bool
+        Continue the run described by ``run_dir/manifest.json``.
+    """
+
+    def __init__(
+        self,
+        rig: Rig,
+        run_dir: Path,
+        *,
+        lights: Sequence[int] | None = None,
+        repeat: int | None = None,
+        resume: bool = False,
+    ) -> None:
+        self.rig = rig
+        self.run_dir = Path(run_dir)
+        self.resume = resume
+        self.manifest: dict[str, Any] = {}
+        self.records: list[dict[str, Any]] = []
+        self.retries = 0
+        self.stopped_reason: str | None = None
+        self.opened: OpenRig | None = None  # the rig of the last run(), closed by then
+        if resume:
+            self._prepare_resume(lights, repeat)
+        else:
+            self._prepare_new(lights, repeat)
+
+    # -- preparation (no hardware) ----------------------------------------------------------
+
+    def _prepare_new(self, lights: Sequence[int] | None, repeat: int | None) -> None:
+        run = self.run_dir
+        if run.exists():
+            if not run.is_dir():
+                raise DatasetError(f"output {run} exists and is not a folder")
+            if (run / MANIFEST_NAME).exists():
+                raise DatasetError(f"{run} is already a capture run; add --resume to continue it or choose another --out")
+            if any(run.iterdir()):
+                raise DatasetError(f"output folder {run} exists and is not a ps-lab run (not empty, no {MANIFEST_NAME})")
+        self.plan = make_plan(self.rig.n_lights, lights, 1 if repeat is None else repeat, self.rig.camera.file_type)
+        self.manifest = self._new_manifest()
+
+    def _prepare_resume(self, lights: Sequence[int] | None, repeat: int | None) -> None:
+        run = self.run_dir
+        if not run.is_dir():
+            raise DatasetError(f"nothing to resume: {run} is not a folder")
+        manifest = read_manifest(run)
+        old_rig = manifest["rig"]
+        new_rig = self.rig.snapshot()
+        diffs = snapshot_differences(comparable_snapshot(old_rig), comparable_snapshot(new_rig))
+        if diffs:
+            raise RigError(
+                f"cannot resume {run}: the rig changed since the run started ({', '.join(diffs[:4])}"
+                + (", ..." if len(diffs) > 4 else "")
+                + ")"
+            )
+        diffs = snapshot_differences(manifest["camera_settings"], self.rig.camera_settings())
+        if diffs:
+            raise RigError(f"cannot resume {run}: camera settings changed ({', '.join(diffs)})")
+        plan_dict = manifest["plan"]
+        try:
+            old_lights = [int(i) for i in plan_dict["lights"]]
+            old_repeat = int(plan_dict["repeat"])
+        except (KeyError, TypeError, ValueError):
+            raise DatasetError(f"{run / MANIFEST_NAME}: malformed plan") from None
+        if lights is not None and list(lights) != old_lights:
+            raise RigError(f"cannot resume {run}: --lights differs from the run's plan ({_ranges(old_lights)})")
+        if repeat is not None and repeat != old_repeat:
+            raise RigError(f"cannot resume {run}: --repeat {repeat} differs from the run's plan ({old_repeat})")
+        self.plan = make_plan(self.rig.n_lights, old_lights, old_repeat, self.rig.camera.file_type)
+        frames = manifest["frames"]
+        if not isinstance(frames, list) or len(frames) > len(self.plan.frames):
+            raise DatasetError(f"{run / MANIFEST_NAME}: malformed frame list")
+        for record, planned in zip(frames, self.plan.frames, strict=False):
+            self._check_record(record, planned)
+        self.manifest = manifest
+        self.records = list(frames)
+
+    def _check_record(self, record: Any, planned: PlannedFrame) -> None:
+        run = self.run_dir
+        if (
+            not isinstance(record, dict)
+            or record.get("index") != planned.index
+            or record.get("file") != planned.file
+            or record.get("kind") != planned.kind
+            or list(record.get("lights", [])) != list(planned.lights)
+        ):
+            raise DatasetError(f"{run / MANIFEST_NAME}: frame {planned.index} does not match the plan")
+        path = run / planned.file
+        if not path.is_file():
+            raise DatasetError(f"cannot resume {run}: frame file {planned.file} listed in the manifest is missing")
+        if _sha256(path) != record.get("sha256"):
+            raise DatasetError(f"cannot resume {run}: frame file {planned.file} changed since it was captured")
+
+    def _new_manifest(self) -> dict[str, Any]:
+        from ps_lab import __version__
+
+        return {
+            "format": RUN_FORMAT,
+            "version": RUN_VERSION,
+            "ps_lab_version": __version__,
+            "created": _iso(time.time()),
+            "rig": self.rig.snapshot(),
+            "camera_settings": self.rig.camera_settings(),
+            "plan": self.plan.as_dict(),
+            "sessions": [],
+            "frames": [],
+        }
+
+    # -- state --------------------------------------------------------------------------------
+
+    @property
+    def remaining(self) -> tuple[PlannedFrame, ...]:
+        """Frames still to shoot, in order."""
+        return self.plan.frames[len(self.records) :]
+
+    @property
+    def complete(self) -> bool:
+        """Whether every planned frame is in the manifest."""
+        return not self.remaining
+
+    def status_line(self) -> str:
+        """One line: how many frames are saved and how to go on."""
+        done, total = len(self.records), len(self.plan.frames)
+        line = f"{done} of {total} frames saved in {self.run_dir}"
+        if done < total:
+            line += "; continue with --resume"
+        return line
+
+    def describe_plan(self) -> list[str]:
+        """Lines describing the plan (for ``--dry-run``)."""
+        n = len(self.plan.frames)
+        cam = self.rig.camera
+        lines = [
+            f"rig {self.rig.name}: controller {self.rig.controller.driver}"
+            + (f" on {self.rig.controller.port}" if self.rig.controller.port else "")
+            + f", {self.rig.n_lights} lights; camera {cam.driver}, exposure {cam.exposure_s:g} s, {cam.file_type}",
+            f"plan: dark frame + lights {_ranges(self.plan.lights)} x {self.plan.repeat} = {n} frames",
+        ]
+        if self.records:
+            lines.append(f"resume: {len(self.records)} frames complete, {len(self.remaining)} to shoot")
+        frames = self.remaining
+        for frame in frames[:3]:
+            lines.append(f"  {frame.index:4d}  {frame.label:<20s} -> {frame.file}")
+        if len(frames) > 4:
+            lines.append(f"  ... {len(frames) - 4} more")
+        if len(frames) > 3:
+            frame = frames[-1]
+            lines.append(f"  {frame.index:4d}  {frame.label:<20s} -> {frame.file}")
+        return lines
+
+    # -- running ----------------------------------------------------------------------------
+
+    def check(self) -> None:
+        """Open the rig (controller handshake, camera ready), switch everything off, close."""
+        with open_rig(self.rig) as opened:
+            _lights_off(opened.controller)
+            ready = getattr(opened.camera, "check", None)
+            if callable(ready):
+                ready()
+
+    def run(self, progress: ProgressCallback | None = None) -> CaptureResult:
+        """Shoot the remaining frames.
+
+        Parameters
+        ----------
+        progress : callable, optional
+            Called as ``progress(0, description=...)`` before and ``progress(1)`` after each frame.
+
+        Raises
+        ------
+        PsLabError
+            The run stopped: the lights are off, the manifest lists the complete frames, and the
+            message says which frame failed and how to continue.
+        KeyboardInterrupt
+            Ctrl-C: the same guarantees.
+        """
+        started = time.monotonic()
+        skipped = len(self.records)
+        captured = 0
+        report = progress or (lambda n=1, description=None: None)
+        if self.complete:
+            return CaptureResult(self.run_dir, len(self.plan.frames), 0, skipped, 0, 0.0)
+        self._prepare_folder()
+        try:
+            opened = open_rig(self.rig)
+        except PsLabError as exc:
+            raise type(exc)(f"{exc} ({self.status_line()})") from None
+        self.opened = opened
+        frame: PlannedFrame | None = None
+        try:
+            if opened.simulation is not None:
+                self._write_simulation(opened)
+            # Within session(), SIGTERM unwinds like Ctrl-C, so the lights go off either way.
+            with opened.controller.session():
+                _lights_off(opened.controller)
+                for frame in self.remaining:
+                    report(0, description=_bar_label(frame, self.plan))
+                    self._shoot(opened, frame)
+                    captured += 1
+                    report(1)
+            frame = None
+        except PsLabError as exc:
+            where = f"frame {frame.index} ({frame.label})" if frame is not None else "setup"
+            self.stopped_reason = f"{where}: {exc}"
+            raise type(exc)(f"capture stopped at {where}: {exc}; {self.status_line()}") from None
+        except OSError as exc:
+            where = f"frame {frame.index} ({frame.label})" if frame is not None else "setup"
+            raise DatasetError(f"capture stopped at {where}: cannot write the run: {exc}; {self.status_line()}") from None
+        finally:
+            with _sigint_deferred():
+                self._shutdown(opened)
+        return CaptureResult(
+            self.run_dir, len(self.plan.frames), captured, skipped, self.retries, time.monotonic() - started
+        )
+
+    def _prepare_folder(self) -> None:
+        run = self.run_dir
+        try:
+            (run / FRAMES_DIR).mkdir(parents=True, exist_ok=True)
+        except OSError as exc:
+            raise DatasetError(f"cannot create {run / FRAMES_DIR}: {exc.strerror or exc}") from None
+        listed = {Path(r["file"]).name for r in self.records}
+        for path in sorted((run / FRAMES_DIR).iterdir()):
+            if path.name in listed:
+                continue
+            if path.name.startswith(PARTIAL_PREFIX) or _FRAME_NAME.match(path.name):
+                # A temporary file, or a frame renamed before its manifest update: shot again.
+                log.info("removing incomplete frame file %s", path.name)
+                path.unlink()
+            else:
+                log.warning("leaving unknown file %s in %s", path.name, run / FRAMES_DIR)
+        stray = run / (PARTIAL_PREFIX + MANIFEST_NAME)
+        if stray.exists():
+            stray.unlink()
+        self.manifest.setdefault("sessions", []).append({"started": _iso(time.time()), "resumed": self.resume})
+        self.manifest["frames"] = self.records
+        write_json_atomic(run / MANIFEST_NAME, self.manifest)
+
+    def _write_simulation(self, opened: OpenRig) -> None:
+        """Write the simulator's ground truth (normals, mask, true lights in plan order)."""
+        import cv2
+
+        from ps_lab.capture.render import scene_ground_truth
+
+        sim = opened.simulation if opened.simulation is not None else build_simulation(self.rig)
+        folder = self.run_dir / SIMULATION_DIR
+        folder.mkdir(exist_ok=True)
+        truth = scene_ground_truth(sim.scene)
+        rows = [i - 1 for i in self.plan.lights]
+        buf = _npy_bytes(np.asarray(truth["normals"], dtype=np.float64))
+        write_bytes_atomic(folder / "normal_gt.npy", buf)
+        ok, png = cv2.imencode(".png", np.where(truth["mask"], 255, 0).astype(np.uint8))
+        if not ok:  # pragma: no cover - OpenCV always encodes a uint8 image
+            raise DatasetError("cannot encode the ground-truth mask")
+        write_bytes_atomic(folder / "mask.png", png.tobytes())
+        write_bytes_atomic(folder / "light_directions_true.txt", _table(sim.light_directions[rows]))
+        write_bytes_atomic(folder / "light_intensities_true.txt", _table(sim.light_intensities[rows]))
+
+    def _shoot(self, opened: OpenRig, frame: PlannedFrame) -> None:
+        controller, camera = opened.controller, opened.camera
+        final = self.run_dir / frame.file
+        temp = final.with_name(PARTIAL_PREFIX + final.name)
+        settle_s = self.rig.controller.settle_ms / 1000.0
+        attempts = 1 + self.rig.camera.retries
+        for attempt in range(1, attempts + 1):
+            temp.unlink(missing_ok=True)
+            try:
+                if frame.kind == "light":
+                    _lights_on(controller, frame.lights)
+                if settle_s:
+                    time.sleep(settle_s)
+                shot = _capture(camera, temp, frame)
+                # Was the light still on when the exposure ended? A watchdog that fired during a
+                # long exposure, or a board that reset, would otherwise leave a dark frame
+                # under a light's name.
+                lit = _lit(controller)
+                if lit != frozenset(frame.lights):
+                    shown = " ".join(map(str, sorted(lit))) or "none"
+                    raise _LightLost(f"after the exposure the controller reports lights {shown} lit")
+                produced = Path(shot.path)
+                if produced != temp:
+                    os.replace(produced, temp)
+                _verify_frame(temp, self.plan.file_type)
+                if frame.kind == "light":
+                    _lights_off(controller)
+                break
+            except (CameraError, DatasetError) as exc:
+                if frame.kind == "light":
+                    _lights_off(controller)  # a RigError here stops the run
+                if attempt == attempts:
+                    raise CameraError(f"{exc} (after {attempts} attempt{'s' if attempts > 1 else ''})") from None
+                self.retries += 1
+                log.warning("frame %d (%s): %s; shooting it again", frame.index, frame.label, exc)
+        _fsync_file(temp)
+        digest = _sha256(temp)
+        os.replace(temp, final)
+        _fsync_dir(final.parent)
+        record = {
+            "index": frame.index,
+            "kind": frame.kind,
+            "lights": list(frame.lights),
+            "repeat": frame.repeat,
+            "file": frame.file,
+            "exposure_s": float(shot.exposure_s),
+            "started": _iso(shot.started),
+            "finished": _iso(shot.finished),
+            "sha256": digest,
+        }
+        if attempt > 1:
+            record["attempts"] = attempt
+        self.records.append(record)
+        self.manifest["frames"] = self.records
+        write_json_atomic(self.run_dir / MANIFEST_NAME, self.manifest)
+
+    def _shutdown(self, opened: OpenRig) -> None:
+        try:
+            _lights_off(opened.controller)
+        except Exception as exc:  # the controller may be the thing that failed
+            log.info("could not switch the lights off before closing: %s", exc)
+        opened.close()
+
+
+def _bar_label(frame: PlannedFrame, plan: CapturePlan) -> str:
+    if frame.kind == "dark":
+        return "dark frame"
+    width = len(str(plan.n_lights))
+    text = f"light {frame.lights[0]:>{width}d}/{plan.n_lights}"
+    return text + (f" r{frame.repeat}" if plan.repeat > 1 else "")
+
+
+def _ranges(values: Sequence[int]) -> str:
+    """Format ``[1, 2, 3, 5]`` as ``1-3,5``."""
+    parts: list[str] = []
+    values = list(values)
+    i = 0
+    while i < len(values):
+        j = i
+        while j + 1 < len(values) and values[j + 1] == values[j] + 1:
+            j += 1
+        parts.append(str(values[i]) if i == j else f"{values[i]}-{values[j]}")
+        i = j + 1
+    return ",".join(parts)
+
+
+def _table(rows: np.ndarray) -> bytes:
+    return "".join(" ".join(f"{v:.9f}" for v in row) + "\n" for row in np.asarray(rows)).encode()
+
+
+def _npy_bytes(array: np.ndarray) -> bytes:
+    import io
+
+    buf = io.BytesIO()
+    np.save(buf, array)
+    return buf.getvalue()
+
+
