@@ -29,9 +29,9 @@ from types import TracebackType
 from typing import Any, Protocol
 
 import numpy as np
-
 from ps_lab.capture.dng import write_dng
 from ps_lab.capture.raw import RAW_SUFFIXES, read_exposure
+
 from ps_lab.errors import CameraError, PsLabError
 
 __all__ = [
@@ -59,6 +59,7 @@ class CapturedFrame:
         Exposure time in seconds (as set, or as read from the file).
     started, finished : float
         Epoch seconds around the capture (trigger to file on disk).
+
     """
 
     path: Path
@@ -74,6 +75,7 @@ class Camera(ABC):
     ----------
     timeout_s : float
         How long a capture may take before :class:`CameraError`.
+
     """
 
     #: Short driver name used in log lines and in :attr:`settings`.
@@ -88,7 +90,11 @@ class Camera(ABC):
 
     # -- public API -----------------------------------------------------------------------
     def capture(
-        self, path: str | os.PathLike[str], *, frame_index: int | None = None, label: str | None = None
+        self,
+        path: str | os.PathLike[str],
+        *,
+        frame_index: int | None = None,
+        label: str | None = None,
     ) -> CapturedFrame:
         """Shoot one frame into ``path``.
 
@@ -111,6 +117,7 @@ class Camera(ABC):
         CameraError
             When the camera is closed, the target folder is missing, the capture fails or times
             out, or no non-empty file arrived.
+
         """
         if self._closed:
             raise CameraError(f"{self.driver} camera is closed")
@@ -140,7 +147,9 @@ class Camera(ABC):
         if exposure is None:
             exposure = self._fallback_exposure(path)
         log.debug("%s camera: %s done in %.3f s", self.driver, label, finished - started)
-        return CapturedFrame(path=path, exposure_s=float(exposure), started=started, finished=finished)
+        return CapturedFrame(
+            path=path, exposure_s=float(exposure), started=started, finished=finished
+        )
 
     @property
     def settings(self) -> dict[str, Any]:
@@ -169,7 +178,7 @@ class Camera(ABC):
     def _do_capture(self, path: Path, frame_index: int, label: str) -> float | None:
         """Write the frame to ``path``; return its exposure in seconds if the driver knows it."""
 
-    def _do_close(self) -> None:
+    def _do_close(self) -> None:  # noqa: B027 - optional hook, most drivers hold nothing
         """Release driver resources."""
 
     def _fallback_exposure(self, path: Path) -> float:
@@ -199,7 +208,9 @@ class LightStateLike(Protocol):
 RenderFunction = Callable[[Any, np.ndarray, np.ndarray], np.ndarray]
 
 
-def _default_render(scene: Any, light_directions: np.ndarray, light_intensities: np.ndarray) -> np.ndarray:
+def _default_render(
+    scene: Any, light_directions: np.ndarray, light_intensities: np.ndarray
+) -> np.ndarray:
     # Imported here: the renderer is only needed when a rig file selects the simulated camera.
     from ps_lab.capture.render import render_scene
 
@@ -216,7 +227,9 @@ def _parse_faults(faults: Iterable[Mapping[str, Any]]) -> dict[int, str]:
         if kind not in FAULT_KINDS:
             raise CameraError(f"unknown camera fault kind {kind!r}; expected one of {FAULT_KINDS}")
         if isinstance(at, bool) or not isinstance(at, int) or at < 1:
-            raise CameraError(f"camera fault {kind!r} needs 'at' = a capture count >= 1, got {at!r}")
+            raise CameraError(
+                f"camera fault {kind!r} needs 'at' = a capture count >= 1, got {at!r}"
+            )
         extra = set(fault) - {"kind", "at"}
         if extra:
             raise CameraError(f"camera fault {kind!r}: unknown key(s) {sorted(extra)}")
@@ -272,6 +285,7 @@ class SimulatedCamera(Camera):
     render : callable, optional
         ``render(scene, directions (k, 3), intensities (k, 3)) -> (H, W, 3)``; defaults to
         :func:`ps_lab.capture.render.render_scene` (tests inject a stand-in).
+
     """
 
     driver = "simulated"
@@ -460,6 +474,7 @@ class FolderCamera(Camera):
         Copy instead of move (leaves the original in the watched folder).
     exposure_s : float, optional
         Nominal exposure; used when the file does not state one.
+
     """
 
     driver = "folder"

@@ -105,6 +105,7 @@ def write_dng(
     ------
     ValueError
         On a mosaic of the wrong dtype or shape, an unknown CFA, or inconsistent levels.
+
     """
     mosaic = np.asarray(mosaic)
     if mosaic.dtype != np.uint16:
@@ -123,9 +124,7 @@ def write_dng(
     if cfa not in CFA_PATTERNS:
         raise ValueError(f"unknown CFA {cfa!r}; expected one of {sorted(CFA_PATTERNS)}")
     blacks = (
-        [int(black_level)] * 4
-        if np.ndim(black_level) == 0
-        else [int(b) for b in black_level]  # type: ignore[union-attr]
+        [int(black_level)] * 4 if np.ndim(black_level) == 0 else [int(b) for b in black_level]  # type: ignore[union-attr]
     )
     if len(blacks) != 4:
         raise ValueError(f"black_level must be one value or four, got {len(blacks)}")

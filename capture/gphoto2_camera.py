@@ -24,6 +24,7 @@ from typing import Any
 
 from ps_lab.capture.cameras import Camera
 from ps_lab.capture.raw import RAW_SUFFIXES
+
 from ps_lab.errors import CameraError
 
 __all__ = ["CAMERA_RAW_SUFFIXES", "Gphoto2Camera", "parse_shutter_speed"]
@@ -31,7 +32,17 @@ __all__ = ["CAMERA_RAW_SUFFIXES", "Gphoto2Camera", "parse_shutter_speed"]
 log = logging.getLogger(__name__)
 
 #: File name suffixes treated as the RAW file of a capture (others, e.g. JPEG, are ignored).
-CAMERA_RAW_SUFFIXES = (*RAW_SUFFIXES, ".crw", ".nrw", ".orf", ".rw2", ".raf", ".pef", ".srw", ".3fr")
+CAMERA_RAW_SUFFIXES = (
+    *RAW_SUFFIXES,
+    ".crw",
+    ".nrw",
+    ".orf",
+    ".rw2",
+    ".raf",
+    ".pef",
+    ".srw",
+    ".3fr",
+)
 
 #: Settings applied when the rig file does not name them, if the camera has them.
 DEFAULT_SETTINGS: dict[str, Any] = {"capturetarget": "Internal RAM", "imageformat": "RAW"}
@@ -80,7 +91,7 @@ def _number(name: str, value: object) -> float | None:
 
 
 def _match_choice(name: str, value: object, choices: list[str]) -> str | None:
-    """The camera's choice for ``value``: exact, else case-insensitive, else numeric (1 %)."""
+    """Find the camera's choice for ``value``: exact, else case-insensitive, else numeric (1 %)."""
     text = str(value)
     for same in (lambda c: c == text, lambda c: c.lower() == text.lower()):
         found = next((c for c in choices if same(c)), None)
@@ -89,7 +100,8 @@ def _match_choice(name: str, value: object, choices: list[str]) -> str | None:
     if name in ("imageformat", "imagequality") and text.lower() == "raw":
         # "RAW" means the RAW-only choice: Canon "RAW", Nikon "NEF (Raw)"; never RAW + JPEG.
         raw_only = [
-            c for c in choices
+            c
+            for c in choices
             if ("raw" in c.lower() or "nef" in c.lower())
             and not any(t in c.lower() for t in ("+", "jpeg", "jpg", "fine", "normal", "basic"))
         ]
@@ -128,6 +140,7 @@ class Gphoto2Camera(Camera):
         matched to the camera's choices numerically, e.g. 0.05 -> ``"1/20"``, 8 -> ``"f/8"``).
     gp_module : module, optional
         The ``gphoto2`` module (tests pass a double); imported lazily by default.
+
     """
 
     driver = "gphoto2"
@@ -167,8 +180,13 @@ class Gphoto2Camera(Camera):
         gp = self._gp
         code = getattr(exc, "code", None)
         if code == getattr(gp, "GP_ERROR_MODEL_NOT_FOUND", -105):
-            return CameraError(f"no camera found by gphoto2 while {doing} (is it on and connected?)")
-        if code in (getattr(gp, "GP_ERROR_IO_USB_CLAIM", -53), getattr(gp, "GP_ERROR_IO_LOCK", -60)):
+            return CameraError(
+                f"no camera found by gphoto2 while {doing} (is it on and connected?)"
+            )
+        if code in (
+            getattr(gp, "GP_ERROR_IO_USB_CLAIM", -53),
+            getattr(gp, "GP_ERROR_IO_LOCK", -60),
+        ):
             return CameraError(
                 f"camera is busy while {doing}: another program holds it "
                 "(close photo importers, or `gio mount -u` it)"
@@ -188,8 +206,9 @@ class Gphoto2Camera(Camera):
                         "and not mounted by another program"
                     )
                 if len(detected) > 1:
-                    log.warning("gphoto2: %d cameras found; using the first: %s", len(detected),
-                                detected[0])
+                    log.warning(
+                        "gphoto2: %d cameras found; using the first: %s", len(detected), detected[0]
+                    )
                 self.model, port = detected[0][0], detected[0][1]
             camera = gp.Camera()
             ports = gp.PortInfoList()
@@ -261,8 +280,12 @@ class Gphoto2Camera(Camera):
 
     @property
     def settings(self) -> dict[str, Any]:  # noqa: D102 - documented on the base class
-        return {**super().settings, "port": self.port, "model": self.model,
-                "camera": dict(self.camera_settings)}
+        return {
+            **super().settings,
+            "port": self.port,
+            "model": self.model,
+            "camera": dict(self.camera_settings),
+        }
 
     @property
     def exposure_s(self) -> float | None:
@@ -301,8 +324,8 @@ class Gphoto2Camera(Camera):
                 remaining = deadline - time.monotonic()
                 if remaining <= 0:
                     raise CameraError(
-                        f"gphoto2: no RAW file within {self.timeout_s:g} s after triggering {label} "
-                        "(is the image format RAW?)"
+                        f"gphoto2: no RAW file within {self.timeout_s:g} s after triggering "
+                        f"{label} (is the image format RAW?)"
                     )
                 event_type, data = self._camera.wait_for_event(
                     max(1, int(min(remaining, 1.0) * 1000))

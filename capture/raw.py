@@ -61,6 +61,7 @@ class RawImage:
         White (saturation) level in raw units.
     exposure_s : float or None
         Exposure time stored in the file, if any.
+
     """
 
     image: np.ndarray
@@ -96,6 +97,7 @@ def load_raw(path: str | PathLike[str], *, demosaic: str = "half") -> RawImage:
         Naming the file, when it is missing, truncated, not a RAW file, or not a Bayer sensor.
     ValueError
         On an unknown ``demosaic`` mode.
+
     """
     if demosaic not in DEMOSAIC_MODES:
         raise ValueError(f"demosaic must be one of {DEMOSAIC_MODES}, got {demosaic!r}")
@@ -244,11 +246,15 @@ def _exposure_from_tiff(path: Path) -> float | None:
 def _bayer_offsets(colors: np.ndarray, path: Path) -> dict[int, tuple[int, int]]:
     """Map LibRaw colour index to its (row, col) in the 2x2 tile; reject non-Bayer layouts."""
     tile = colors[:2, :2]
-    if colors.shape[0] < 2 or colors.shape[1] < 2 or not np.array_equal(
-        np.tile(tile, (colors.shape[0] // 2 + 1, colors.shape[1] // 2 + 1))[
-            : colors.shape[0], : colors.shape[1]
-        ],
-        colors,
+    if (
+        colors.shape[0] < 2
+        or colors.shape[1] < 2
+        or not np.array_equal(
+            np.tile(tile, (colors.shape[0] // 2 + 1, colors.shape[1] // 2 + 1))[
+                : colors.shape[0], : colors.shape[1]
+            ],
+            colors,
+        )
     ):
         raise DatasetError(f"{path}: CFA is not a 2x2 Bayer pattern")
     found = sorted(tile.ravel().tolist())

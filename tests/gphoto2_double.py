@@ -99,35 +99,66 @@ class Widget:
         raise GPhoto2Error(GP_ERROR_BAD_PARAMETERS)
 
     def copy(self) -> Widget:
-        return Widget(self.name, self.kind, self.value, list(self.choices),
-                      {k: v.copy() for k, v in self.children.items()})
+        return Widget(
+            self.name,
+            self.kind,
+            self.value,
+            list(self.choices),
+            {k: v.copy() for k, v in self.children.items()},
+        )
 
 
 def canon_like_config() -> Widget:
     """A configuration tree shaped like a Canon EOS one (main/settings, main/capturesettings...)."""
     radio = GP_WIDGET_RADIO
-    settings = Widget("settings", GP_WIDGET_SECTION, children={
-        "capturetarget": Widget("capturetarget", radio, "Memory card", ["Internal RAM", "Memory card"]),
-    })
-    image = Widget("imgsettings", GP_WIDGET_SECTION, children={
-        "imageformat": Widget("imageformat", radio, "Large Fine JPEG",
-                              ["Large Fine JPEG", "RAW + Large Fine JPEG", "RAW"]),
-        "iso": Widget("iso", radio, "Auto", ["Auto", "100", "200", "400"]),
-    })
-    capture = Widget("capturesettings", GP_WIDGET_SECTION, children={
-        "shutterspeed": Widget("shutterspeed", radio, "1/60", ["bulb", "2", "1", "0.5", "1/20", "1/60"]),
-        "aperture": Widget("aperture", radio, "5.6", ["4", "5.6", "8", "11"]),
-        "eosremoterelease": Widget("eosremoterelease", GP_WIDGET_TEXT, "None"),
-        "mirrorlock": Widget("mirrorlock", GP_WIDGET_TOGGLE, 0),
-    })
-    return Widget("main", GP_WIDGET_WINDOW, children={
-        "settings": settings, "imgsettings": image, "capturesettings": capture,
-    })
+    settings = Widget(
+        "settings",
+        GP_WIDGET_SECTION,
+        children={
+            "capturetarget": Widget(
+                "capturetarget", radio, "Memory card", ["Internal RAM", "Memory card"]
+            ),
+        },
+    )
+    image = Widget(
+        "imgsettings",
+        GP_WIDGET_SECTION,
+        children={
+            "imageformat": Widget(
+                "imageformat",
+                radio,
+                "Large Fine JPEG",
+                ["Large Fine JPEG", "RAW + Large Fine JPEG", "RAW"],
+            ),
+            "iso": Widget("iso", radio, "Auto", ["Auto", "100", "200", "400"]),
+        },
+    )
+    capture = Widget(
+        "capturesettings",
+        GP_WIDGET_SECTION,
+        children={
+            "shutterspeed": Widget(
+                "shutterspeed", radio, "1/60", ["bulb", "2", "1", "0.5", "1/20", "1/60"]
+            ),
+            "aperture": Widget("aperture", radio, "5.6", ["4", "5.6", "8", "11"]),
+            "eosremoterelease": Widget("eosremoterelease", GP_WIDGET_TEXT, "None"),
+            "mirrorlock": Widget("mirrorlock", GP_WIDGET_TOGGLE, 0),
+        },
+    )
+    return Widget(
+        "main",
+        GP_WIDGET_WINDOW,
+        children={
+            "settings": settings,
+            "imgsettings": image,
+            "capturesettings": capture,
+        },
+    )
 
 
 @dataclass
 class Shot:
-    """What one trigger produces: files (name -> bytes) announced in order, then capture complete."""
+    """What one trigger produces: files (name -> bytes) announced in order, then completion."""
 
     files: dict[str, bytes]
     delay_events: int = 0  # GP_EVENT_TIMEOUT events before the first file
@@ -232,8 +263,11 @@ def make_gphoto2_double() -> types.SimpleNamespace:
                 return  # the camera never delivers: the driver must time out
             shot = rig.shots.popleft()
             rig.events.extend([(GP_EVENT_TIMEOUT, None)] * shot.delay_events)
-            folder = "/" if rig.config.get_child_by_name("capturetarget").value == "Internal RAM" \
+            folder = (
+                "/"
+                if rig.config.get_child_by_name("capturetarget").value == "Internal RAM"
                 else "/store_00020001/DCIM/100CANON"
+            )
             for name, data in shot.files.items():
                 rig.storage[(folder, name)] = data
                 rig.events.append((GP_EVENT_FILE_ADDED, CameraFilePath(folder, name)))

@@ -1,4 +1,4 @@
-"""Cameras: the simulated sensor round trip through real DNG files, faults, base class, folder camera."""
+"""Cameras: simulated sensor round trips through real DNG files, faults, folder and gphoto2."""
 
 from __future__ import annotations
 
@@ -9,9 +9,9 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-
 from ps_lab.capture.cameras import Camera, CapturedFrame, FolderCamera, SimulatedCamera
 from ps_lab.capture.raw import load_raw
+
 from ps_lab.errors import CameraError, DatasetError
 
 
@@ -40,7 +40,9 @@ class LambertScene:
     albedo: np.ndarray  # (H, W, 3)
 
 
-def lambert_render(scene: LambertScene, directions: np.ndarray, intensities: np.ndarray) -> np.ndarray:
+def lambert_render(
+    scene: LambertScene, directions: np.ndarray, intensities: np.ndarray
+) -> np.ndarray:
     """Local stand-in for render_scene: sum of Lambertian shading of the lit lights."""
     shading = np.clip(np.einsum("hwc,kc->khw", scene.normals, directions), 0, None)
     return np.einsum("khw,kc->hwc", shading, intensities) * scene.albedo
@@ -109,8 +111,9 @@ def test_doubling_exposure_doubles_values(tmp_path, rng):
     np.testing.assert_allclose(b.image[ok], 2 * a.image[ok], atol=1.5 / (16383 - 512))
     # With noise on, the mean over the image doubles within the noise.
     noisy_a = make_camera(scene, switch, gain=50_000.0, read_noise_dn=3.0, shot_noise=True)
-    noisy_b = make_camera(scene, switch, gain=50_000.0, read_noise_dn=3.0, shot_noise=True,
-                          exposure_s=0.08)
+    noisy_b = make_camera(
+        scene, switch, gain=50_000.0, read_noise_dn=3.0, shot_noise=True, exposure_s=0.08
+    )
     na = load_raw(noisy_a.capture(tmp_path / "na.dng", frame_index=5).path).image[ok].mean()
     nb = load_raw(noisy_b.capture(tmp_path / "nb.dng", frame_index=6).path).image[ok].mean()
     assert nb / na == pytest.approx(2.0, rel=2e-3)
@@ -121,9 +124,18 @@ def test_noise_model_statistics(tmp_path):
     flat = LambertScene(np.tile([0.0, 0.0, 1.0], (*shape, 1)), np.full((*shape, 3), 0.5))
     switch = Switch()
     switch.set(1)
-    camera = SimulatedCamera(flat, LIGHTS, None, switch, exposure_s=0.04, gain=200_000.0,
-                             read_noise_dn=4.0, shot_noise=True, dn_per_electron=0.5,
-                             render=lambert_render)
+    camera = SimulatedCamera(
+        flat,
+        LIGHTS,
+        None,
+        switch,
+        exposure_s=0.04,
+        gain=200_000.0,
+        read_noise_dn=4.0,
+        shot_noise=True,
+        dn_per_electron=0.5,
+        render=lambert_render,
+    )
     camera.capture(tmp_path / "flat.dng", frame_index=3)
     import rawpy
 
@@ -153,8 +165,13 @@ def test_renders_exactly_the_lit_lights_at_the_level(tmp_path, rng):
     scene, switch = make_scene(rng), Switch()
     camera = make_camera(scene, switch, gain=20_000.0)
     images = {}
-    for name, lit, level in [("one", (1,), 255), ("three", (3,), 255), ("both", (1, 3), 255),
-                             ("half", (1, 3), 128), ("dark", (), 255)]:
+    for name, lit, level in [
+        ("one", (1,), 255),
+        ("three", (3,), 255),
+        ("both", (1, 3), 255),
+        ("half", (1, 3), 128),
+        ("dark", (), 255),
+    ]:
         switch.set(*lit, level=level)
         images[name] = load_raw(camera.capture(tmp_path / f"{name}.dng").path).image
     tol = 2.0 / (16383 - 512)
@@ -169,13 +186,25 @@ def test_renders_exactly_the_lit_lights_at_the_level(tmp_path, rng):
 
 def test_real_renderer_scene_round_trip(tmp_path):
     render = pytest.importorskip("ps_lab.capture.render")
-    scene = render.Scene(width=32, height=24, objects=(
-        render.SceneObject("matte", (10.0, 12.0), 8.0, (0.8, 0.6, 0.4)),
-        render.SceneObject("chrome", (24.0, 12.0), 6.0),
-    ))
+    scene = render.Scene(
+        width=32,
+        height=24,
+        objects=(
+            render.SceneObject("matte", (10.0, 12.0), 8.0, (0.8, 0.6, 0.4)),
+            render.SceneObject("chrome", (24.0, 12.0), 6.0),
+        ),
+    )
     switch = Switch()
-    camera = SimulatedCamera(scene, LIGHTS, INTENSITIES, switch, exposure_s=0.02, gain=100_000.0,
-                             read_noise_dn=0.0, shot_noise=False)
+    camera = SimulatedCamera(
+        scene,
+        LIGHTS,
+        INTENSITIES,
+        switch,
+        exposure_s=0.02,
+        gain=100_000.0,
+        read_noise_dn=0.0,
+        shot_noise=False,
+    )
     switch.set(2)
     loaded = load_raw(camera.capture(tmp_path / "s.dng").path)
     radiance = render.render_scene(scene, LIGHTS[[1]], INTENSITIES[[1]])
@@ -191,11 +220,23 @@ def test_real_renderer_scene_round_trip(tmp_path):
 def test_driven_by_the_simulated_controller(tmp_path):
     render = pytest.importorskip("ps_lab.capture.render")
     sim_lights = pytest.importorskip("ps_lab.capture.sim_lights")
-    scene = render.Scene(width=24, height=16, objects=(
-        render.SceneObject("matte", (12.0, 8.0), 7.0, (0.9, 0.9, 0.9)),), background=0.01)
+    scene = render.Scene(
+        width=24,
+        height=16,
+        objects=(render.SceneObject("matte", (12.0, 8.0), 7.0, (0.9, 0.9, 0.9)),),
+        background=0.01,
+    )
     firmware = sim_lights.SimulatedFirmware(lights=4)
-    camera = SimulatedCamera(scene, LIGHTS, INTENSITIES, firmware.state, exposure_s=0.02,
-                             gain=100_000.0, read_noise_dn=0.0, shot_noise=False)
+    camera = SimulatedCamera(
+        scene,
+        LIGHTS,
+        INTENSITIES,
+        firmware.state,
+        exposure_s=0.02,
+        gain=100_000.0,
+        read_noise_dn=0.0,
+        shot_noise=False,
+    )
     dark = load_raw(camera.capture(tmp_path / "dark.dng").path).image
     assert firmware.handle_line("ON 3") == ["OK ON 3"]
     lit = load_raw(camera.capture(tmp_path / "lit.dng").path).image
@@ -212,8 +253,9 @@ def test_driven_by_the_simulated_controller(tmp_path):
 def test_injected_faults(tmp_path, rng):
     scene, switch = make_scene(rng), Switch()
     switch.set(1)
-    camera = make_camera(scene, switch, faults=[{"kind": "timeout", "at": 2},
-                                                {"kind": "truncated", "at": 3}])
+    camera = make_camera(
+        scene, switch, faults=[{"kind": "timeout", "at": 2}, {"kind": "truncated", "at": 3}]
+    )
     camera.capture(tmp_path / "1.dng")
     with pytest.raises(CameraError, match="timed out"):
         camera.capture(tmp_path / "2.dng")
@@ -225,8 +267,15 @@ def test_injected_faults(tmp_path, rng):
     assert camera.captures == 4
 
 
-@pytest.mark.parametrize("faults", [[{"kind": "explode", "at": 1}], [{"kind": "timeout", "at": 0}],
-                                    [{"kind": "timeout"}], [{"kind": "timeout", "at": 1, "x": 2}]])
+@pytest.mark.parametrize(
+    "faults",
+    [
+        [{"kind": "explode", "at": 1}],
+        [{"kind": "timeout", "at": 0}],
+        [{"kind": "timeout"}],
+        [{"kind": "timeout", "at": 1, "x": 2}],
+    ],
+)
 def test_bad_fault_config(rng, faults):
     with pytest.raises(CameraError, match="fault"):
         make_camera(make_scene(rng), Switch(), faults=faults)
@@ -293,7 +342,7 @@ def _drop_later(path: Path, data: bytes, delay: float, chunks: int = 3) -> threa
         time.sleep(delay)
         with open(path, "wb") as handle:
             for i in range(chunks):  # a slowly growing file, as tethering software writes it
-                handle.write(data[i * len(data) // chunks:(i + 1) * len(data) // chunks])
+                handle.write(data[i * len(data) // chunks : (i + 1) * len(data) // chunks])
                 handle.flush()
                 time.sleep(0.03)
 
@@ -309,8 +358,9 @@ def test_folder_camera_takes_the_next_new_stable_file(tmp_path, rng):
     (watched / "old.dng").write_bytes(b"old frame")
     data = rng.bytes(30000)
     prompts = []
-    camera = FolderCamera(watched, timeout_s=5.0, pattern="*.dng", prompt=prompts.append,
-                          poll_s=0.02, exposure_s=0.1)
+    camera = FolderCamera(
+        watched, timeout_s=5.0, pattern="*.dng", prompt=prompts.append, poll_s=0.02, exposure_s=0.1
+    )
     (watched / "sibling.jpg").write_bytes(b"jpeg")
     thread = _drop_later(watched / "IMG_0001.DNG", data, 0.1)
     frame = camera.capture(out / "0001.dng", label="light 3")
@@ -330,8 +380,13 @@ def test_folder_camera_copy_mode_and_raw_exposure(tmp_path, rng):
     watched.mkdir()
     camera = FolderCamera(watched, timeout_s=5.0, poll_s=0.02, copy=True)
     source = tmp_path / "src.dng"
-    write_dng(source, rng.integers(0, 4000, (32, 32)).astype(np.uint16), black_level=100,
-              white_level=4095, exposure_s=1 / 125)
+    write_dng(
+        source,
+        rng.integers(0, 4000, (32, 32)).astype(np.uint16),
+        black_level=100,
+        white_level=4095,
+        exposure_s=1 / 125,
+    )
     thread = _drop_later(watched / "shot.dng", source.read_bytes(), 0.05)
     frame = camera.capture(tmp_path / "frame.dng")
     thread.join()
@@ -348,7 +403,6 @@ def test_folder_camera_copy_mode_and_raw_exposure(tmp_path, rng):
 # --------------------------------------------------------------------------------------------
 
 from gphoto2_double import GP_ERROR_IO_USB_CLAIM, Shot, make_gphoto2_double  # noqa: E402
-
 from ps_lab.capture.gphoto2_camera import Gphoto2Camera, parse_shutter_speed  # noqa: E402
 
 RIG_SETTINGS = {"imageformat": "RAW", "shutterspeed": "1/20", "iso": "100", "aperture": "8"}
@@ -357,7 +411,9 @@ RIG_SETTINGS = {"imageformat": "RAW", "shutterspeed": "1/20", "iso": "100", "ape
 def test_gphoto2_applies_settings_and_downloads_the_raw(tmp_path, rng):
     gp = make_gphoto2_double()
     raw_bytes, jpeg_bytes = rng.bytes(5000), rng.bytes(800)
-    gp.rig.shots.append(Shot({"IMG_0001.JPG": jpeg_bytes, "IMG_0001.CR2": raw_bytes}, delay_events=2))
+    gp.rig.shots.append(
+        Shot({"IMG_0001.JPG": jpeg_bytes, "IMG_0001.CR2": raw_bytes}, delay_events=2)
+    )
     gp.rig.shots.append(Shot({"IMG_0002.CR2": raw_bytes[::-1]}))
     with Gphoto2Camera(settings=RIG_SETTINGS, timeout_s=2.0, gp_module=gp) as camera:
         config = gp.rig.config
@@ -382,8 +438,13 @@ def test_gphoto2_applies_settings_and_downloads_the_raw(tmp_path, rng):
 def test_gphoto2_explicit_port_and_keep_on_camera(tmp_path, rng):
     gp = make_gphoto2_double()
     gp.rig.shots.append(Shot({"DSC_0001.NEF": rng.bytes(100)}))
-    camera = Gphoto2Camera("usb:001,004", settings={"capturetarget": "Memory card"},
-                           keep_on_camera=True, gp_module=gp, timeout_s=1.0)
+    camera = Gphoto2Camera(
+        "usb:001,004",
+        settings={"capturetarget": "Memory card"},
+        keep_on_camera=True,
+        gp_module=gp,
+        timeout_s=1.0,
+    )
     camera.capture(tmp_path / "a.nef")
     camera.close()
     assert len(gp.rig.storage) == 1
@@ -458,9 +519,21 @@ def test_gphoto2_missing_library_message(monkeypatch):
         Gphoto2Camera(settings={})
 
 
-@pytest.mark.parametrize("text, seconds", [("1/125", 1 / 125), ("0.5", 0.5), ("2", 2.0),
-                                           ("30s", 30.0), ("1/20s", 0.05), ('2"', 2.0), (0.1, 0.1),
-                                           ("bulb", None), ("", None), ("0", None)])
+@pytest.mark.parametrize(
+    "text, seconds",
+    [
+        ("1/125", 1 / 125),
+        ("0.5", 0.5),
+        ("2", 2.0),
+        ("30s", 30.0),
+        ("1/20s", 0.05),
+        ('2"', 2.0),
+        (0.1, 0.1),
+        ("bulb", None),
+        ("", None),
+        ("0", None),
+    ],
+)
 def test_parse_shutter_speed(text, seconds):
     assert parse_shutter_speed(text) == (pytest.approx(seconds) if seconds else None)
 
@@ -477,12 +550,19 @@ def test_gphoto2_numeric_shortcuts_and_nikon_names(tmp_path, rng):
     assert config.get_child_by_name("imageformat").value == "RAW"  # default: RAW only
 
     gp = make_gphoto2_double()
-    gp.rig.config = Widget("main", GP_WIDGET_WINDOW, children={
-        "f-number": Widget("f-number", GP_WIDGET_RADIO, "f/4", ["f/4", "f/5.6", "f/8"]),
-        "imagequality": Widget("imagequality", GP_WIDGET_RADIO, "JPEG Fine",
-                               ["JPEG Fine", "NEF+Fine", "NEF (Raw)"]),
-        "shutterspeed": Widget("shutterspeed", GP_WIDGET_RADIO, "1/60", ["1/60", "1/30", "0.5", "1"]),
-    })
+    gp.rig.config = Widget(
+        "main",
+        GP_WIDGET_WINDOW,
+        children={
+            "f-number": Widget("f-number", GP_WIDGET_RADIO, "f/4", ["f/4", "f/5.6", "f/8"]),
+            "imagequality": Widget(
+                "imagequality", GP_WIDGET_RADIO, "JPEG Fine", ["JPEG Fine", "NEF+Fine", "NEF (Raw)"]
+            ),
+            "shutterspeed": Widget(
+                "shutterspeed", GP_WIDGET_RADIO, "1/60", ["1/60", "1/30", "0.5", "1"]
+            ),
+        },
+    )
     camera = Gphoto2Camera(settings={"shutterspeed": "1/2"}, aperture=8.0, gp_module=gp)
     assert gp.rig.config.get_child_by_name("f-number").value == "f/8"
     assert gp.rig.config.get_child_by_name("imagequality").value == "NEF (Raw)"

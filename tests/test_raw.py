@@ -5,9 +5,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import rawpy
-
 from ps_lab.capture.dng import CFA_PATTERNS, write_dng
 from ps_lab.capture.raw import RAW_SUFFIXES, load_raw
+
 from ps_lab.errors import DatasetError
 
 WHITE = 16383
@@ -102,7 +102,9 @@ def test_linear_demosaic_keeps_samples_and_interpolates_linearly(tmp_path, rng):
     # A uniform mosaic stays uniform (linear, no bias at the borders).
     flat = np.full((48, 64), 3000, np.uint16)
     write_dng(path, flat, black_level=500, white_level=WHITE)
-    np.testing.assert_allclose(load_raw(path, demosaic="linear").image, 2500 / (WHITE - 500), rtol=1e-6)
+    np.testing.assert_allclose(
+        load_raw(path, demosaic="linear").image, 2500 / (WHITE - 500), rtol=1e-6
+    )
 
 
 def test_exposure_absent_is_none(tmp_path, rng):
@@ -130,7 +132,9 @@ def test_truncated_dng_is_dataset_error(tmp_path, rng, keep):
         load_raw(bad)
 
 
-@pytest.mark.parametrize("content", [b"not a raw file at all\n" * 50, b"\x89PNG\r\n\x1a\n" + bytes(500)])
+@pytest.mark.parametrize(
+    "content", [b"not a raw file at all\n" * 50, b"\x89PNG\r\n\x1a\n" + bytes(500)]
+)
 @pytest.mark.parametrize("suffix", [".dng", ".cr2", ".NEF"])
 def test_non_raw_content_is_dataset_error(tmp_path, content, suffix):
     bad = tmp_path / f"frame{suffix}"
