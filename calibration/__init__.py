@@ -1,1 +1,50 @@
-"""ps_lab.calibration"""
+"""Light calibration from a chrome sphere (and intensities from a matte sphere).
+
+Pure functions on arrays; :func:`calibrate` runs the whole chain (sphere outline → highlights →
+mirror-law directions → matte-sphere intensities) and :func:`write_calibration` writes the
+DiLiGenT light tables, ``calibration.json`` and ``calibration.png``. See ``docs/calibration.md``.
+"""
+
+from ps_lab.calibration._calibrate import Calibration, calibrate, chrome_score, circle_residual
+from ps_lab.calibration._circle import (
+    Circle,
+    CircleFit,
+    circle_inside_image,
+    fit_circle,
+    hough_candidates,
+    refine_circle,
+    summary_image,
+)
+from ps_lab.calibration._geometry import highlights_from_light_directions, light_directions_from_highlights
+from ps_lab.calibration._highlight import Highlight, locate_highlight
+from ps_lab.calibration._intensity import fit_light_intensities
+from ps_lab.calibration._report import (
+    OUTPUT_FILES,
+    calibration_picture,
+    calibration_record,
+    write_calibration,
+    zenith_azimuth_deg,
+)
+
+__all__ = [
+    "OUTPUT_FILES",
+    "Calibration",
+    "Circle",
+    "CircleFit",
+    "Highlight",
+    "calibrate",
+    "calibration_picture",
+    "calibration_record",
+    "chrome_score",
+    "circle_inside_image",
+    "circle_residual",
+    "fit_circle",
+    "fit_light_intensities",
+    "highlights_from_light_directions",
+    "hough_candidates",
+    "light_directions_from_highlights",
+    "locate_highlight",
+    "refine_circle",
+    "summary_image",
+    "write_calibration",
+]

@@ -1,0 +1,365 @@
+"""Light calibration from a chrome sphere: outline, highlights, directions, intensities."""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from ps_lab.calibration._circle import (
+    Circle,
+    CircleFit,
+    _edge_points,
+    circle_inside_image,
+    hough_candidates,
+    luminance,
+    refine_circle,
+    summary_image,
+)
+from ps_lab.calibration._geometry import light_directions_from_highlights
+from ps_lab.calibration._highlight import Highlight, locate_highlight
+from ps_lab.calibration._intensity import fit_light_intensities
+from ps_lab.errors import CalibrationError
+
+
+@dataclass
+class Calibration:
+    """Result of :func:`calibrate`.
+
+    Attributes
+    ----------
+    circle : Circle
+        Chrome sphere outline ``(x, y, radius)`` in pixels.
+    residual : float
+        RMS distance (pixels) of the limb edge points from ``circle``; NaN if not measurable.
+    circle_source : str
+        ``"given"``, ``"rig"`` (nominal circle refined) or ``"auto"``.
+    highlights : ndarray of shape (n, 2)
+        Sub-pixel highlight positions ``(x, y)``.
+    light_directions : ndarray of shape (n, 3)
+        Unit vectors toward the lights, camera frame x right, y up, z toward the camera.
+    light_intensities : ndarray of shape (n, 3)
+        Relative intensity per light and colour channel (mean 1; all ones without a matte sphere).
+    warnings : list of str
+    matte_circle : Circle or None
+    source_radius_deg : ndarray of shape (n,)
+        Angular radius of each light estimated from its highlight's extent (0 when unresolved).
+    names : list of str
+        Frame names (light order).
+    preview : ndarray of shape (h, w) or None
+        Per-pixel maximum over frames of the sphere's surroundings (for the picture).
+    preview_origin : (int, int)
+        ``(x0, y0)`` of ``preview`` in the image.
+    """
+
+    circle: Circle
+    residual: float
+    circle_source: str
+    highlights: np.ndarray
+    light_directions: np.ndarray
+    light_intensities: np.ndarray
+    warnings: list[str] = field(default_factory=list)
+    matte_circle: Circle | None = None
+    source_radius_deg: np.ndarray | None = None
+    names: list[str] = field(default_factory=list)
+    preview: np.ndarray | None = None
+    preview_origin: tuple[int, int] = (0, 0)
+
+
+def _as_stack(images: np.ndarray) -> np.ndarray:
+    arr = np.asarray(images)
+    if arr.ndim == 3:
+        arr = arr[..., None]
+    if arr.ndim != 4 or arr.shape[-1] not in (1, 3):
+        raise CalibrationError(
+            f"calibration needs frames of shape (n, H, W) or (n, H, W, C) with C = 1 or 3, got {arr.shape}"
+        )
+    if arr.shape[0] < 1:
+        raise CalibrationError("no frames to calibrate")
+    return arr
+
+
+def _infer_saturated(luma_stack: np.ndarray) -> np.ndarray | None:
+    # Without a sensor mask, clipping shows as a plateau at the stack's maximum.
+    top = float(luma_stack.max())
+    if top <= 0:
+        return None
+    sat = luma_stack >= top * (1.0 - 1e-6)
+    return sat if sat.sum() > luma_stack.shape[0] else None
+
+
+def circle_residual(summary: np.ndarray, circle: Circle) -> float:
+    """RMS distance (px) of sub-pixel limb points from ``circle`` (NaN when no limb is visible)."""
+    pts, contrast = _edge_points(np.asarray(summary, dtype=np.float32), circle, half_width=4.0)
+    ok = np.isfinite(contrast)
+    if ok.sum() < 12:
+        return float("nan")
+    res = np.hypot(pts[ok, 0] - circle.x, pts[ok, 1] - circle.y) - circle.radius
+    med = np.median(res)
+    keep = np.abs(res - med) <= max(3 * 1.4826 * np.median(np.abs(res - med)), 0.05)
+    return float(np.sqrt(np.mean(res[keep] ** 2)))
+
+
+def chrome_score(luma: np.ndarray, circle: Circle, *, max_frames: int = 12) -> float:
+    """Share of frames in which the disc shows one small, strong highlight (chrome), 0..1.
+
+    A matte sphere's shading covers a large part of the disc; a chrome sphere's highlight a tiny one.
+
+    Parameters
+    ----------
+    luma : ndarray of shape (n, H, W)
+    circle : Circle
+    """
+    n, h, w = luma.shape
+    idx = np.linspace(0, n - 1, min(n, max_frames)).round().astype(int)
+    cx, cy, r = circle
+    x0, x1 = max(0, int(cx - r)), min(w, int(np.ceil(cx + r)) + 1)
+    y0, y1 = max(0, int(cy - r)), min(h, int(np.ceil(cy + r)) + 1)
+    if x1 - x0 < 3 or y1 - y0 < 3:
+        return 0.0
+    yy, xx = np.mgrid[y0:y1, x0:x1]
+    disc = np.hypot(xx - cx, yy - cy) <= 0.9 * r
+    if disc.sum() < 20:
+        return 0.0
+    good = 0
+    for k in idx:
+        v = luma[k, y0:y1, x0:x1][disc].astype(np.float64)
+        med = np.median(v)
+        sigma = 1.4826 * np.median(np.abs(v - med))
+        peak = v.max()
+        if peak - med <= max(10 * sigma, 1e-12):
+            continue
+        share = np.mean(v >= med + 0.5 * (peak - med))
+        good += share < 0.03
+    return good / len(idx)
+
+
+def _find_sphere(
+    summary: np.ndarray, luma: np.ndarray, roi: tuple[int, int, int, int] | None
+) -> tuple[CircleFit, float]:
+    h, w = summary.shape
+    ox, oy = 0, 0
+    sub = summary
+    if roi is not None:
+        x, y, rw, rh = roi
+        if rw < 8 or rh < 8 or x < 0 or y < 0 or x + rw > w or y + rh > h:
+            raise CalibrationError(f"--roi {x},{y},{rw},{rh} does not fit in the {w}x{h} image")
+        sub = summary[y: y + rh, x: x + rw]
+        ox, oy = x, y
+    candidates = hough_candidates(sub)
+    if not candidates:
+        raise CalibrationError(
+            "no chrome sphere found: no circular outline in the images (pass --sphere CX,CY,R or --roi)"
+        )
+    best: tuple[float, float, CircleFit] | None = None
+    for cand in candidates:
+        start = Circle(cand.x + ox, cand.y + oy, cand.radius)
+        try:
+            fit = refine_circle(summary, start)
+        except CalibrationError:
+            continue
+        score = chrome_score(luma, fit.circle)
+        if score < 0.5:
+            continue
+        key = (score, fit.coverage)
+        if best is None or key > best[:2]:
+            best = (*key, fit)
+    if best is None:
+        raise CalibrationError(
+            f"no chrome sphere found: {len(candidates)} circular outline(s) checked, none shows a "
+            "single small highlight in most frames (pass --sphere CX,CY,R or --roi)"
+        )
+    return best[2], best[0]
+
+
+def _frame_label(j: int, names: Sequence[str] | None) -> str:
+    if names is not None and j < len(names):
+        return f"light {j + 1} ({names[j]})"
+    return f"light {j + 1}"
+
+
+def calibrate(
+    images: np.ndarray,
+    *,
+    sphere: tuple[float, float, float] | None = None,
+    sphere_hint: tuple[float, float, float] | None = None,
+    roi: tuple[int, int, int, int] | None = None,
+    matte_sphere: tuple[float, float, float] | None = None,
+    matte_hint: tuple[float, float, float] | None = None,
+    saturated: np.ndarray | None = None,
+    safe_radius: float = 0.9,
+    focal_length_px: float | None = None,
+    principal_point: tuple[float, float] | None = None,
+    names: Sequence[str] | None = None,
+    progress: Callable[[int], None] | None = None,
+) -> Calibration:
+    """Calibrate light directions (and intensities) from a chrome sphere seen in every frame.
+
+    Parameters
+    ----------
+    images : ndarray of shape (n, H, W) or (n, H, W, C)
+        Linear frames, one per light (dark-subtracted), C = 1 or 3.
+    sphere : (cx, cy, r), optional
+        Chrome sphere circle in pixels, used as given (only its residual is measured).
+    sphere_hint : (cx, cy, r), optional
+        Nominal circle (e.g. from the rig file), refined to sub-pixel on the images.
+    roi : (x, y, w, h), optional
+        Restrict the automatic search to this rectangle.
+    matte_sphere, matte_hint : (cx, cy, r), optional
+        Matte sphere circle used as given / refined; with either, intensities are fitted.
+    saturated : ndarray of shape (n, H, W), bool, optional
+        Sensor clipping mask; inferred from a plateau at the maximum when omitted.
+    safe_radius : float
+        Highlights beyond this share of the radius are rejected.
+    focal_length_px : float, optional
+        Focal length / pixel pitch for the perspective correction (None: orthographic).
+    principal_point : (x, y), optional
+        Optical axis in pixels; default the image centre.
+    names : sequence of str, optional
+        Frame names for messages.
+    progress : callable, optional
+        Called with 1 after each frame's highlight.
+
+    Returns
+    -------
+    Calibration
+
+    Raises
+    ------
+    CalibrationError
+        No sphere found, sphere cut by the border, a frame without a usable highlight, all
+        frames saturated, a degenerate matte fit.
+    """
+    stack = _as_stack(images)
+    n, h, w, _ = stack.shape
+    if not np.all(np.isfinite(stack)):
+        stack = np.nan_to_num(stack, nan=0.0, posinf=0.0, neginf=0.0)
+    luma = luminance(stack)
+    if saturated is not None:
+        saturated = np.asarray(saturated, dtype=bool)
+        if saturated.shape != (n, h, w):
+            raise CalibrationError(f"saturation mask shape {saturated.shape} != frames {(n, h, w)}")
+    else:
+        saturated = _infer_saturated(luma)
+    summary = summary_image(luma)
+    warnings: list[str] = []
+
+    if sphere is not None:
+        circle = Circle(*map(float, sphere))
+        residual = circle_residual(summary, circle)
+        source = "given"
+    elif sphere_hint is not None:
+        hint = Circle(*map(float, sphere_hint))
+        fit = refine_circle(summary, hint, search_px=max(8.0, 0.15 * hint.radius))
+        circle, residual, source = fit.circle, fit.residual, "rig"
+        moved = np.hypot(circle.x - hint.x, circle.y - hint.y)
+        if moved > 0.1 * hint.radius or abs(circle.radius - hint.radius) > 0.1 * hint.radius:
+            warnings.append(
+                f"chrome sphere fitted at ({circle.x:.1f}, {circle.y:.1f}) r={circle.radius:.1f}, far "
+                f"from the rig's nominal ({hint.x:.1f}, {hint.y:.1f}) r={hint.radius:.1f}"
+            )
+    else:
+        fit, _ = _find_sphere(summary, luma, roi)
+        circle, residual, source = fit.circle, fit.residual, "auto"
+    if circle.radius <= 3:
+        raise CalibrationError(f"chrome sphere radius {circle.radius:.1f} px is too small")
+    if not circle_inside_image(circle, (h, w)):
+        raise CalibrationError(
+            f"chrome sphere at ({circle.x:.1f}, {circle.y:.1f}) r={circle.radius:.1f} is cut by the "
+            f"image border ({w}x{h}): move it fully into view"
+        )
+    if np.isfinite(residual) and residual > 0.5:
+        warnings.append(f"sphere outline residual {residual:.2f} px is large: check calibration.png")
+
+    found: list[Highlight | None] = []
+    problems: list[tuple[int, str]] = []
+    saturated_frames = 0
+    for j in range(n):
+        try:
+            found.append(
+                locate_highlight(
+                    luma[j], circle, saturated=None if saturated is None else saturated[j],
+                    safe_radius=safe_radius,
+                )
+            )
+        except CalibrationError as exc:
+            found.append(None)
+            problems.append((j, str(exc)))
+            saturated_frames += "saturated" in str(exc)
+        if progress is not None:
+            progress(1)
+    if saturated_frames == n:
+        raise CalibrationError(
+            f"all {n} frames are saturated over the chrome sphere: shorten the exposure or dim the lights"
+        )
+    contrasts = np.array([hl.contrast for hl in found if hl is not None])
+    if len(contrasts):
+        typical = float(np.median(contrasts))
+        for j, hl in enumerate(found):
+            if hl is not None and hl.contrast < 0.05 * typical:
+                found[j] = None
+                problems.append(
+                    (j, f"no highlight: its peak is {hl.contrast / typical:.1%} of the typical highlight "
+                        "(light off or blocked?)")
+                )
+    if problems:
+        problems.sort()
+        j, msg = problems[0]
+        more = f" (and {len(problems) - 1} more frame(s) failed)" if len(problems) > 1 else ""
+        raise CalibrationError(f"{_frame_label(j, names)}: {msg}{more}")
+
+    highlights = np.array([[hl.x, hl.y] for hl in found])  # type: ignore[union-attr]
+    for j, hl in enumerate(found):
+        assert hl is not None
+        if hl.second_blob is not None:
+            sx, sy, share = hl.second_blob
+            warnings.append(
+                f"{_frame_label(j, names)}: second bright spot at ({sx:.1f}, {sy:.1f}) with {share:.0%} "
+                "of the highlight's energy ignored (inter-reflection?)"
+            )
+    if focal_length_px is not None and principal_point is None:
+        principal_point = ((w - 1) / 2.0, (h - 1) / 2.0)
+    directions = light_directions_from_highlights(
+        highlights, circle, focal_length_px=focal_length_px, principal_point=principal_point
+    )
+
+    matte_circle = None
+    intensities = np.ones((n, 3))
+    if matte_sphere is not None or matte_hint is not None:
+        if matte_sphere is not None:
+            matte_circle = Circle(*map(float, matte_sphere))
+        else:
+            hint = Circle(*map(float, matte_hint))  # type: ignore[arg-type]
+            try:
+                matte_circle = refine_circle(summary, hint, search_px=max(8.0, 0.15 * hint.radius)).circle
+            except CalibrationError as exc:
+                warnings.append(f"matte sphere outline not refined ({exc}); using the rig's nominal circle")
+                matte_circle = hint
+        if not circle_inside_image(matte_circle, (h, w), margin=0.0):
+            raise CalibrationError(
+                f"matte sphere at ({matte_circle.x:.1f}, {matte_circle.y:.1f}) r={matte_circle.radius:.1f} "
+                "is cut by the image border"
+            )
+        intensities, extra = fit_light_intensities(stack, directions, matte_circle, saturated=saturated)
+        warnings.extend(extra)
+
+    pad = int(np.ceil(0.15 * circle.radius)) + 4
+    x0, x1 = max(0, int(circle.x - circle.radius) - pad), min(w, int(circle.x + circle.radius) + pad + 1)
+    y0, y1 = max(0, int(circle.y - circle.radius) - pad), min(h, int(circle.y + circle.radius) + pad + 1)
+    preview = luma[:, y0:y1, x0:x1].max(axis=0)
+
+    return Calibration(
+        circle=circle,
+        residual=float(residual),
+        circle_source=source,
+        highlights=highlights,
+        light_directions=directions,
+        light_intensities=intensities,
+        warnings=warnings,
+        matte_circle=matte_circle,
+        source_radius_deg=np.array([hl.source_radius_deg for hl in found]),  # type: ignore[union-attr]
+        names=list(names) if names is not None else [f"frame {j + 1}" for j in range(n)],
+        preview=preview,
+        preview_origin=(x0, y0),
+    )

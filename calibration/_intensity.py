@@ -1,0 +1,103 @@
+"""Relative light intensities from the shading of a matte (Lambertian) sphere."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from ps_lab.calibration._circle import Circle
+from ps_lab.errors import CalibrationError
+
+
+def sphere_normals(shape: tuple[int, int], circle: Circle, *, inner: float = 0.9) -> tuple[np.ndarray, np.ndarray]:
+    """Orthographic normals of a sphere inside ``inner`` of its radius.
+
+    Parameters
+    ----------
+    shape : (H, W)
+    circle : Circle
+    inner : float
+        Share of the radius to keep (the limb is steep, blurred and inter-reflecting).
+
+    Returns
+    -------
+    index : tuple of two ndarrays of shape (m,)
+        Row and column indices of the pixels used.
+    normals : ndarray of shape (m, 3)
+    """
+    h, w = shape
+    cx, cy, r = circle
+    yy, xx = np.mgrid[0:h, 0:w]
+    nx, ny = (xx - cx) / r, -(yy - cy) / r
+    keep = nx * nx + ny * ny <= inner * inner
+    rows, cols = np.nonzero(keep)
+    nx, ny = nx[keep], ny[keep]
+    nz = np.sqrt(np.clip(1.0 - nx * nx - ny * ny, 0.0, 1.0))
+    return (rows, cols), np.column_stack([nx, ny, nz])
+
+
+def fit_light_intensities(
+    images: np.ndarray, light_directions: np.ndarray, circle: Circle, *,
+    saturated: np.ndarray | None = None, min_shading: float = 0.15, min_pixels: int = 50,
+) -> tuple[np.ndarray, list[str]]:
+    """Relative intensity per light and channel from a matte sphere.
+
+    Model per light ``j`` and channel ``c``: ``I = e[j, c] * (n · l_j) + b[j, c]`` on the sphere
+    pixels with ``n · l_j >= min_shading`` (the offset ``b`` absorbs residual ambient light and
+    inter-reflections). The albedo of the target is absorbed in ``e``; assuming a grey target
+    the intensities are normalised by one global scale so that their mean over lights and
+    channels is 1, which keeps the colour balance of the lights.
+
+    Parameters
+    ----------
+    images : ndarray of shape (n, H, W, C)
+        Linear frames, C = 1 or 3.
+    light_directions : ndarray of shape (n, 3)
+    circle : Circle
+        The matte sphere's outline.
+    saturated : ndarray of shape (n, H, W), bool, optional
+        Clipped pixels, excluded from the fit.
+    min_shading : float
+        Smallest ``n · l`` used (attached shadows and the terminator are excluded).
+    min_pixels : int
+        A light with fewer usable pixels gets the mean intensity and a warning.
+
+    Returns
+    -------
+    intensities : ndarray of shape (n, 3)
+    warnings : list of str
+    """
+    n, h, w, c = images.shape
+    (rows, cols), normals = sphere_normals((h, w), circle)
+    if len(rows) < min_pixels:
+        raise CalibrationError(f"matte sphere r={circle.radius:.1f} px is too small to fit intensities")
+    out = np.full((n, c), np.nan)
+    warnings: list[str] = []
+    for j in range(n):
+        shading = normals @ np.asarray(light_directions[j], dtype=np.float64)
+        use = shading >= min_shading
+        if saturated is not None:
+            use &= ~saturated[j][rows, cols]
+        if use.sum() < min_pixels:
+            warnings.append(
+                f"light {j + 1}: only {int(use.sum())} usable matte-sphere pixels; "
+                "its intensity is set to the mean"
+            )
+            continue
+        s = shading[use]
+        a = np.column_stack([s, np.ones_like(s)])
+        vals = np.asarray(images[j][rows[use], cols[use]], dtype=np.float64)  # (m, C)
+        coef = np.linalg.lstsq(a, vals, rcond=None)[0]
+        out[j] = coef[0]
+    if not np.isfinite(out).any():
+        raise CalibrationError("matte sphere: no light gave a usable intensity fit")
+    if np.any(out[np.isfinite(out)] <= 0):
+        bad = sorted({j + 1 for j in np.nonzero(np.any(out <= 0, axis=1))[0]})
+        raise CalibrationError(
+            f"matte sphere: non-positive intensity fitted for light(s) {bad}: is the matte circle right?"
+        )
+    fill = np.nanmean(out, axis=0)
+    out = np.where(np.isfinite(out), out, fill[None, :])
+    out /= out.mean()
+    if c == 1:
+        out = np.repeat(out, 3, axis=1)
+    return out, warnings
