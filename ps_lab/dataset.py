@@ -20,6 +20,7 @@ import hashlib
 import json
 import logging
 import re
+from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -193,6 +194,31 @@ def load_frames(path: Path) -> Frames:
         ``images`` of shape (n, H, W, C) float32, ``saturated`` of shape (n, H, W).
     """
     plan = plan_frames(path)
+    images: np.ndarray | None = None
+    saturated: np.ndarray | None = None
+    n = len(plan.light_files)
+    for i, (frame, clipped) in enumerate(iter_frames(plan)):
+        if images is None:
+            images = np.empty((n, *frame.shape), dtype=np.float32)
+            saturated = np.empty((n, *frame.shape[:2]), dtype=bool)
+        images[i] = frame
+        saturated[i] = clipped
+    assert images is not None and saturated is not None
+    return Frames(
+        images=images, saturated=saturated, names=plan.names, root=plan.root, manifest=plan.manifest
+    )
+
+
+def iter_frames(plan: FramePlan) -> Iterator[tuple[np.ndarray, np.ndarray]]:
+    """Yield each light's frame in light order, one at a time (bounded memory).
+
+    Yields
+    ------
+    image : ndarray of shape (H, W, C), float32
+        Repeats averaged, dark frame subtracted, scaled to the first light frame's exposure.
+    saturated : ndarray of shape (H, W), bool
+        Saturated in any repeat.
+    """
     reference: Image | None = None
     reference_path: Path | None = None
 
@@ -209,11 +235,8 @@ def load_frames(path: Path) -> Frames:
     if plan.dark_files:
         dark, dark_exposure = _average_dark(plan, read_checked)
 
-    # A frame's exposure is the manifest's, else the file's own (RAW metadata); scaling happens only
-    # when every exposure is known.
-    n = len(plan.light_files)
-    images: np.ndarray | None = None
-    saturated: np.ndarray | None = None
+    # A frame's exposure is the manifest's, else the file's own (RAW metadata); frames are scaled
+    # only when both exposures are known.
     common_exposure: float | None = None
     for i, (files, exposures) in enumerate(zip(plan.light_files, plan.light_exposures, strict=True)):
         total: np.ndarray | None = None
@@ -221,26 +244,20 @@ def load_frames(path: Path) -> Frames:
         for file, exposure in zip(files, exposures, strict=True):
             image = read_checked(file)
             exposure = exposure if exposure is not None else image.exposure_s
+            if i == 0 and common_exposure is None:
+                common_exposure = exposure
             data = image.data
             if dark is not None:
-                ratio = _ratio(exposure, dark_exposure)
-                data = data - dark * np.float32(ratio)
-            if common_exposure is None and i == 0:
-                common_exposure = exposure
-            data = data * np.float32(_ratio(common_exposure, exposure))
+                data = data - dark * np.float32(_ratio(exposure, dark_exposure))
+            gain = _ratio(common_exposure, exposure)
+            if gain != 1.0:
+                data = data * np.float32(gain)
             total = data if total is None else total + data
             clipped = image.saturated if clipped is None else clipped | image.saturated
         assert total is not None and clipped is not None
-        if images is None:
-            h, w, c = total.shape
-            images = np.empty((n, h, w, c), dtype=np.float32)
-            saturated = np.empty((n, h, w), dtype=bool)
-        images[i] = total / np.float32(len(files))
-        saturated[i] = clipped
-    assert images is not None and saturated is not None
-    return Frames(
-        images=images, saturated=saturated, names=plan.names, root=plan.root, manifest=plan.manifest
-    )
+        if len(files) > 1:
+            total = total / np.float32(len(files))
+        yield total, clipped
 
 
 def load_dataset(
@@ -283,23 +300,37 @@ def load_dataset(
                 f"run {root} is not calibrated: run `ps-lab calibrate {root}` first"
             )
         raise DatasetError(f"{root}: no {LIGHT_DIRECTIONS} (one row 'x y z' per image)")
-    frames = load_frames(root)
-    n, height, width = frames.images.shape[:3]
+    plan = plan_frames(root)
+    n = len(plan.light_files)
     light_directions = read_light_directions(directions_file, n)
     intensities_file = root / LIGHT_INTENSITIES
     if intensities_file.is_file():
         light_intensities = read_light_intensities(intensities_file, n)
     else:
         light_intensities = np.ones((n, 3))
-    mask = _find_mask(root, (height, width))
-    normal_gt = _find_normal_gt(root, (height, width))
+    mask_file = _find_file(root, MASK)
+    mask = read_mask(mask_file) if mask_file is not None else None
 
-    images = np.empty((n, height, width), dtype=np.float32)
-    for i in range(n):
-        images[i] = combine_channels(frames.images[i], light_intensities[i], channel)
-    valid = ~frames.saturated
-    if shadow_threshold is not None:
-        valid &= images > np.float32(shadow_threshold)
+    images: np.ndarray | None = None
+    valid: np.ndarray | None = None
+    for i, (frame, clipped) in enumerate(iter_frames(plan)):
+        if images is None:
+            images = np.empty((n, *frame.shape[:2]), dtype=np.float32)
+            valid = np.empty((n, *frame.shape[:2]), dtype=bool)
+        images[i] = combine_channels(frame, light_intensities[i], channel)
+        np.logical_not(clipped, out=valid[i])
+        if shadow_threshold is not None:
+            valid[i] &= images[i] > np.float32(shadow_threshold)
+    assert images is not None and valid is not None
+    height, width = images.shape[1:]
+    if mask is None:
+        mask = np.ones((height, width), dtype=bool)
+    elif mask.shape != (height, width):
+        raise DatasetError(
+            f"{mask_file}: mask size {mask.shape[1]}x{mask.shape[0]} differs from the image size "
+            f"{width}x{height}"
+        )
+    normal_gt = _find_normal_gt(root, (height, width))
     return Dataset(
         images=images,
         valid=valid,
@@ -307,7 +338,7 @@ def load_dataset(
         light_intensities=light_intensities,
         mask=mask,
         normal_gt=normal_gt,
-        names=frames.names,
+        names=plan.names,
         root=root,
     )
 
@@ -638,11 +669,12 @@ def read_mask(path: Path, shape: tuple[int, int] | None = None) -> np.ndarray:
     return mask
 
 
-def _find_mask(root: Path, shape: tuple[int, int]) -> np.ndarray:
-    for candidate in (root / MASK, root / SIMULATION / MASK):
+def _find_file(root: Path, name: str) -> Path | None:
+    """``root/name``, else ``root/simulation/name`` (simulator ground truth), else None."""
+    for candidate in (root / name, root / SIMULATION / name):
         if candidate.is_file():
-            return read_mask(candidate, shape)
-    return np.ones(shape, dtype=bool)
+            return candidate
+    return None
 
 
 def read_normal_gt(path: Path, shape: tuple[int, int] | None = None) -> np.ndarray:

@@ -254,8 +254,10 @@ def _to_linear(array: np.ndarray, path: Path) -> Image:
         array = array.astype(np.uint8)
     if np.issubdtype(array.dtype, np.integer):
         top = np.iinfo(array.dtype).max
-        saturated = np.any(array >= top, axis=2)
-        data = (array.astype(np.float32) / np.float32(top)).astype(np.float32)
+        saturated = array[:, :, 0] >= top
+        for k in range(1, array.shape[2]):
+            saturated |= array[:, :, k] >= top
+        data = np.multiply(array, np.float32(1.0 / top), dtype=np.float32)
     elif np.issubdtype(array.dtype, np.floating):
         data = array.astype(np.float32)
         bad = ~np.isfinite(data)
