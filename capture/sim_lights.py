@@ -216,6 +216,9 @@ class ManualClock:
             self._ms += int(milliseconds)
 
 
+_WORD_SEPARATOR = re.compile(r"[ \t]+")
+
+
 def _parse_number(token: str) -> int | None:
     # Decimal digits only (no sign, no spaces); saturates like the C++ core.
     if not token or not all("0" <= ch <= "9" for ch in token):
@@ -383,8 +386,9 @@ class SimulatedFirmware:
         self._watchdog_fired = False
         if len(line) > MAX_LINE:
             return "ERR 2 bad argument"
-        tokens = line.split()
-        name, args = tokens[0].upper(), tokens[1:]
+        # Only spaces and tabs separate words, and only ASCII letters fold case, as in the C++ core.
+        tokens = _WORD_SEPARATOR.split(line.strip(" \t"))
+        name, args = (tokens[0].upper() if tokens[0].isascii() else tokens[0]), tokens[1:]
         if name in ("ID", "OFF", "STATE"):
             if args:
                 return "ERR 2 bad argument"
@@ -596,10 +600,12 @@ class LineAssembler:
 
     def feed(self, data: bytes) -> list[str]:
         """Add received bytes; return the complete lines (without ``\\n``)."""
-        self._buffer += data
+        # Carriage returns are ignored wherever they are; a line is cut at MAX_LINE + 1
+        # characters, which is enough to know it is too long.
+        self._buffer += data.replace(b"\r", b"")
         *lines, rest = self._buffer.split(b"\n")
-        self._buffer = bytearray(rest[: MAX_LINE + 2])  # still "too long" when it ends
-        return [line[: MAX_LINE + 2].decode("latin-1") for line in lines]
+        self._buffer = bytearray(rest[: MAX_LINE + 1])
+        return [line[: MAX_LINE + 1].decode("latin-1") for line in lines]
 
 
 class PtyServer:
