@@ -5,7 +5,13 @@ mirror-law directions → matte-sphere intensities) and :func:`write_calibration
 DiLiGenT light tables, ``calibration.json`` and ``calibration.png``. See ``docs/calibration.md``.
 """
 
-from ps_lab.calibration._calibrate import Calibration, calibrate, chrome_score, circle_residual
+from ps_lab.calibration._calibrate import (
+    Calibration,
+    calibrate,
+    chrome_score,
+    circle_residual,
+    rig_circles,
+)
 from ps_lab.calibration._circle import (
     Circle,
     CircleFit,
@@ -45,6 +51,7 @@ __all__ = [
     "light_directions_from_highlights",
     "locate_highlight",
     "refine_circle",
+    "rig_circles",
     "summary_image",
     "write_calibration",
 ]

@@ -363,3 +363,39 @@ def calibrate(
         preview=preview,
         preview_origin=(x0, y0),
     )
+
+
+def _circle_from_record(record: object, what: str) -> Circle | None:
+    if record is None:
+        return None
+    try:
+        (x, y), r = record["center"], record["radius"]  # type: ignore[index]
+        circle = Circle(float(x), float(y), float(r))
+    except (KeyError, TypeError, ValueError):
+        raise CalibrationError(
+            f"manifest rig snapshot: calibration.{what} must be {{center = [x, y], radius = r}}, got {record!r}"
+        ) from None
+    if not all(np.isfinite(circle)) or circle.radius <= 0:
+        raise CalibrationError(f"manifest rig snapshot: calibration.{what} is not a valid circle: {record!r}")
+    return circle
+
+
+def rig_circles(manifest: dict | None) -> tuple[Circle | None, Circle | None]:
+    """Nominal chrome and matte sphere circles from a capture run's rig snapshot.
+
+    Parameters
+    ----------
+    manifest : dict or None
+        Parsed ``manifest.json`` (``manifest["rig"]["calibration"]["chrome_sphere"]`` etc.).
+
+    Returns
+    -------
+    chrome, matte : Circle or None
+    """
+    if not manifest:
+        return None, None
+    cal = (manifest.get("rig") or {}).get("calibration") or {}
+    if not isinstance(cal, dict):
+        return None, None
+    return (_circle_from_record(cal.get("chrome_sphere"), "chrome_sphere"),
+            _circle_from_record(cal.get("matte_sphere"), "matte_sphere"))

@@ -1,7 +1,105 @@
-"""`ps-lab calibrate` (not yet wired)."""
+"""`ps-lab calibrate`: light directions (and intensities) from a chrome sphere in every frame."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Annotated
 
 import typer
 
+from ps_lab._cli_util import lab_command, progress_bar
+from ps_lab.errors import CalibrationError
+
+
+def _numbers(text: str | None, option: str, names: str) -> tuple[float, ...] | None:
+    if text is None:
+        return None
+    parts = [p.strip() for p in text.split(",")]
+    try:
+        values = tuple(float(p) for p in parts)
+    except ValueError:
+        values = ()
+    if len(values) != len(names.split(",")):
+        raise CalibrationError(f"{option} expects {names} (comma-separated numbers), got {text!r}")
+    return values
+
+
+@lab_command
+def calibrate(
+    data: Annotated[
+        Path, typer.Argument(help="Capture run or image folder (one frame per light).", show_default=False)
+    ],
+    sphere: Annotated[
+        str | None,
+        typer.Option(help="Chrome sphere circle CX,CY,R in pixels (x = column, y = row), used as given."),
+    ] = None,
+    roi: Annotated[
+        str | None, typer.Option(help="Search the sphere only in X,Y,W,H (pixels).")
+    ] = None,
+    matte: Annotated[
+        str | None,
+        typer.Option(help="Matte (Lambertian) sphere CX,CY,R for light intensities (default: rig file)."),
+    ] = None,
+    out: Annotated[
+        Path | None, typer.Option(help="Output folder (default: DATA, so reconstruct picks the lights up).")
+    ] = None,
+    focal_length: Annotated[
+        float | None, typer.Option(help="Lens focal length in mm, for the perspective correction.")
+    ] = None,
+    pixel_pitch: Annotated[
+        float | None,
+        typer.Option(help="Pixel pitch of the loaded image in micrometres (2x the sensor's for half-size RAW)."),
+    ] = None,
+    safe_radius: Annotated[
+        float, typer.Option(min=0.1, max=0.99, help="Reject highlights beyond this share of the sphere radius.")
+    ] = 0.9,
+) -> None:
+    """Find the chrome sphere and its highlight in every frame; write light_directions.txt,
+    light_intensities.txt, calibration.json and calibration.png.
+    """
+    from ps_lab.calibration import calibrate as run_calibration
+    from ps_lab.calibration import rig_circles, write_calibration
+    from ps_lab.dataset import load_frames
+
+    sphere_c = _numbers(sphere, "--sphere", "CX,CY,R")
+    matte_c = _numbers(matte, "--matte", "CX,CY,R")
+    roi_v = _numbers(roi, "--roi", "X,Y,W,H")
+    if (focal_length is None) != (pixel_pitch is None):
+        raise CalibrationError("--focal-length and --pixel-pitch go together (perspective correction)")
+    focal_px = None if focal_length is None else focal_length / (pixel_pitch * 1e-3)  # type: ignore[operator]
+
+    frames = load_frames(data)
+    rig_chrome, rig_matte = rig_circles(frames.manifest)
+    n = frames.images.shape[0]
+    with progress_bar(n, "highlights") as advance:
+        result = run_calibration(
+            frames.images,
+            sphere=sphere_c,
+            sphere_hint=None if sphere_c is not None or roi_v is not None else rig_chrome,
+            roi=None if roi_v is None else tuple(int(round(v)) for v in roi_v),
+            matte_sphere=matte_c,
+            matte_hint=None if matte_c is not None else rig_matte,
+            saturated=frames.saturated,
+            safe_radius=safe_radius,
+            focal_length_px=focal_px,
+            names=frames.names,
+            progress=advance,
+        )
+    paths = write_calibration(result, out if out is not None else frames.root)
+    c = result.circle
+    residual = "n/a" if result.residual != result.residual else f"{result.residual:.3f} px"
+    typer.echo(
+        f"chrome sphere ({c.x:.2f}, {c.y:.2f}) r={c.radius:.2f} px [{result.circle_source}], "
+        f"outline residual {residual}"
+    )
+    intensities = "matte sphere" if result.matte_circle is not None else "all ones (no matte target)"
+    typer.echo(f"{n} lights calibrated; intensities: {intensities}")
+    for warning in result.warnings:
+        typer.secho(f"warning: {warning}", fg=typer.colors.YELLOW, err=True)
+    for path in paths.values():
+        typer.echo(f"wrote {path}")
+
 
 def register(app: typer.Typer) -> None:
-    """Add this module's command(s) to app."""
+    """Add ``calibrate`` to the app."""
+    app.command()(calibrate)
