@@ -808,7 +808,7 @@ class OpenRig:
             try:
                 closer()
             except Exception as exc:  # keep closing the rest; report the first failure
-                log.warning("while closing the rig: %s", exc)
+                log.info("while closing the rig: %s", exc)
                 first_error = first_error or exc
         if first_error is not None and not isinstance(first_error, PsLabError):
             log.debug("close error", exc_info=first_error)

@@ -1,0 +1,339 @@
+"""Capture sessions on a tiny simulated rig, through the pty path of the light controller.
+
+Every run here opens the simulated firmware on a real pseudo-terminal and drives it with the
+serial driver through the OS serial layer. Faults of the controller and the camera are injected
+at seeded random points; each run completes or stops cleanly, and after ``resume`` the frame
+files are byte-identical to an uninterrupted run.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+import zlib
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from ps_lab.capture.raw import load_raw
+from ps_lab.capture.render import render_scene
+from ps_lab.capture.rig import build_simulation, load_rig
+from ps_lab.capture.session import MANIFEST_NAME, PARTIAL_PREFIX, CaptureSession, make_plan, read_manifest
+from ps_lab.errors import CameraError, DatasetError, PsLabError, RigError
+
+N_LIGHTS = 8
+N_FRAMES = N_LIGHTS + 1
+# Commands the controller receives in a clean session: handshake ID, WATCHDOG, LEVEL, OFF; the
+# session's OFF; STATE after the dark frame; ON, STATE, OFF per light.
+N_COMMANDS = 4 + 1 + 1 + 3 * N_LIGHTS
+
+TINY_RIG = """
+name = "tiny"
+[controller]
+driver = "simulated"
+lights = {lights}
+watchdog_ms = 1500
+timeout_s = 0.1
+settle_ms = {settle_ms}
+
+[camera]
+driver = "simulated"
+exposure_s = 0.05
+timeout_s = 0.1
+retries = {retries}
+seed = 11
+
+[calibration.chrome_sphere]
+center = [16.0, 16.0]
+radius = 12.0
+
+[scene]
+width = 64
+height = 48
+
+[scene.lights]
+seed = 3
+max_zenith_deg = 50.0
+intensity_spread = 0.1
+
+[[scene.objects]]
+kind = "chrome"
+center = [16.0, 16.0]
+radius = 12.0
+
+[[scene.objects]]
+kind = "sphere"
+center = [44.0, 26.0]
+radius = 18.0
+albedo = [0.7, 0.6, 0.5]
+{faults}
+"""
+
+
+def write_rig(
+    folder: Path, *, faults: str = "", retries: int = 1, settle_ms: int = 0, lights: int = N_LIGHTS, name="rig.toml"
+) -> Path:
+    path = folder / name
+    path.write_text(TINY_RIG.format(faults=faults, retries=retries, settle_ms=settle_ms, lights=lights))
+    return path
+
+
+def frame_hashes(run: Path) -> dict[str, str]:
+    return {p.name: hashlib.sha256(p.read_bytes()).hexdigest() for p in sorted((run / "frames").iterdir())}
+
+
+def assert_consistent(run: Path) -> dict:
+    """The manifest lists only complete frames, in plan order, with matching checksums."""
+    manifest = read_manifest(run)
+    plan = make_plan(N_LIGHTS, manifest["plan"]["lights"], manifest["plan"]["repeat"], "dng")
+    for record, planned in zip(manifest["frames"], plan.frames, strict=False):
+        assert record["file"] == planned.file and record["index"] == planned.index
+        data = (run / record["file"]).read_bytes()
+        assert hashlib.sha256(data).hexdigest() == record["sha256"]
+        load_raw(run / record["file"])
+    return manifest
+
+
+def wait_safe(firmware, timeout_s: float = 4.0) -> bool:
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        if firmware.ended_safely():
+            return True
+        time.sleep(0.05)
+    return firmware.ended_safely()
+
+
+@pytest.fixture(scope="module")
+def reference(tmp_path_factory: pytest.TempPathFactory) -> dict[str, str]:
+    """Frame hashes of an uninterrupted clean run."""
+    folder = tmp_path_factory.mktemp("reference")
+    rig = load_rig(write_rig(folder))
+    run = folder / "run"
+    result = CaptureSession(rig, run).run()
+    assert result.frames_captured == N_FRAMES and result.retries == 0
+    return frame_hashes(run)
+
+
+def test_clean_capture_writes_every_frame_under_the_right_light(tmp_path: Path, reference: dict) -> None:
+    rig = load_rig(write_rig(tmp_path))
+    run = tmp_path / "run"
+    seen: list[tuple[int, str | None]] = []
+    session = CaptureSession(rig, run)
+    result = session.run(progress=lambda n=1, description=None: seen.append((n, description)))
+    assert result.frames_total == N_FRAMES and result.frames_captured == N_FRAMES
+    assert sum(n for n, _ in seen) == N_FRAMES
+    assert any(d is not None and f"light {N_LIGHTS}/{N_LIGHTS}" in d for _, d in seen)
+    # Seeded: a second run is byte-identical.
+    assert frame_hashes(run) == reference
+    assert session.opened is not None and session.opened.firmware.ended_safely()
+
+    manifest = assert_consistent(run)
+    assert manifest["format"] == "ps-lab-run" and manifest["version"] == 1
+    assert manifest["plan"] == {"lights": list(range(1, N_LIGHTS + 1)), "repeat": 1}
+    assert manifest["rig"]["calibration"]["chrome_sphere"] == {"center": [16.0, 16.0], "radius": 12.0}
+    kinds = [r["kind"] for r in manifest["frames"]]
+    assert kinds == ["dark"] + ["light"] * N_LIGHTS
+    assert [r["lights"] for r in manifest["frames"][1:]] == [[i] for i in range(1, N_LIGHTS + 1)]
+    assert all(r["exposure_s"] == rig.camera.exposure_s for r in manifest["frames"])
+    assert not any(p.name.startswith(PARTIAL_PREFIX) for p in run.rglob("*"))
+
+    # Ground truth of the simulator, at the loaded resolution, lights in plan order.
+    sim = build_simulation(rig)
+    normals = np.load(run / "simulation" / "normal_gt.npy")
+    assert normals.shape == (48, 64, 3)
+    np.testing.assert_allclose(np.loadtxt(run / "simulation" / "light_directions_true.txt"), sim.light_directions, atol=1e-8)
+    np.testing.assert_allclose(np.loadtxt(run / "simulation" / "light_intensities_true.txt"), sim.light_intensities, atol=1e-8)
+    assert (run / "simulation" / "mask.png").stat().st_size > 0
+
+    # No mix-up: the dark-subtracted frame of light i looks like light i's rendering, not another's.
+    dark = load_raw(run / manifest["frames"][0]["file"]).image.astype(np.float64)
+    renders = [
+        render_scene(sim.scene, sim.light_directions[i : i + 1], sim.light_intensities[i : i + 1]) for i in range(N_LIGHTS)
+    ]
+    for record in manifest["frames"][1:]:
+        image = load_raw(run / record["file"]).image.astype(np.float64) - dark
+        scores = [np.corrcoef(image.ravel(), r.ravel())[0, 1] for r in renders]
+        assert int(np.argmax(scores)) == record["lights"][0] - 1
+
+
+def test_lights_subset_and_repeats(tmp_path: Path) -> None:
+    rig = load_rig(write_rig(tmp_path))
+    run = tmp_path / "run"
+    CaptureSession(rig, run, lights=[2, 5], repeat=2).run()
+    manifest = read_manifest(run)
+    assert manifest["plan"] == {"lights": [2, 5], "repeat": 2}
+    files = [r["file"] for r in manifest["frames"]]
+    assert files == [
+        "frames/0000-dark.dng",
+        "frames/0001-L02-r0.dng",
+        "frames/0002-L02-r1.dng",
+        "frames/0003-L05-r0.dng",
+        "frames/0004-L05-r1.dng",
+    ]
+    # Repeats differ only by their noise (the seed follows the frame index).
+    a, b = (load_raw(run / f).image for f in files[1:3])
+    assert not np.array_equal(a, b)
+    assert abs(float(a.mean()) - float(b.mean())) < 0.01 * float(a.mean())
+    np.testing.assert_allclose(np.loadtxt(run / "simulation" / "light_directions_true.txt"),
+                               build_simulation(rig).light_directions[[1, 4]], atol=1e-8)
+
+
+FAULTS = [
+    ("controller", "drop", 1),
+    ("controller", "garble", 1),
+    ("controller", "delay", 1),
+    ("controller", "reboot", 1),
+    ("controller", "silence", 1),
+    ("camera", "timeout", 1),
+    ("camera", "truncated", 1),
+    ("camera", "timeout", 0),
+    ("camera", "truncated", 0),
+]
+
+
+@pytest.mark.parametrize(("device", "kind", "retries"), FAULTS)
+def test_fault_at_a_random_point_then_resume_is_byte_identical(
+    tmp_path: Path, reference: dict, device: str, kind: str, retries: int
+) -> None:
+    rng = np.random.default_rng(zlib.crc32(f"{device}-{kind}-{retries}".encode()))
+    if device == "controller":
+        at = int(rng.integers(1, N_COMMANDS + 1))
+    else:
+        at = int(rng.integers(1, N_FRAMES + 1))
+    faults = f'[faults]\n{device} = [{{ kind = "{kind}", at = {at} }}]\n'
+    rig = load_rig(write_rig(tmp_path, faults=faults, retries=retries, name="faulty.toml"))
+    run = tmp_path / "run"
+    session = CaptureSession(rig, run)
+    recoverable = kind in ("drop", "garble", "delay", "reboot") or (device == "camera" and retries > 0)
+    try:
+        result = session.run()
+        stopped = None
+    except PsLabError as exc:
+        stopped = exc
+    assert session.opened is not None
+    if recoverable:
+        assert stopped is None, f"{kind}@{at} should be recovered from: {stopped}"
+        assert result.frames_captured == N_FRAMES
+        if device == "camera" and at <= N_FRAMES:
+            assert result.retries == 1
+        assert session.opened.firmware.ended_safely()
+    else:
+        assert stopped is not None
+        message = str(stopped)
+        assert "\n" not in message and "continue with --resume" in message
+        assert isinstance(stopped, CameraError if device == "camera" else RigError)
+        # Stopped cleanly: lights off (by OFF or the watchdog), manifest lists only complete frames.
+        assert wait_safe(session.opened.firmware)
+        manifest = assert_consistent(run)
+        assert len(manifest["frames"]) < N_FRAMES
+        # The hung controller is power-cycled (the fault is gone); the run resumes from its manifest.
+        clean = load_rig(write_rig(tmp_path, retries=retries, name="clean.toml"))
+        resumed = CaptureSession(clean, run, resume=True)
+        assert len(resumed.remaining) == N_FRAMES - len(manifest["frames"])
+        result = resumed.run()
+        assert result.frames_skipped == len(manifest["frames"])
+    assert_consistent(run)
+    assert frame_hashes(run) == reference
+
+
+def test_resume_cleans_up_what_a_crash_leaves(tmp_path: Path, reference: dict) -> None:
+    rig = load_rig(write_rig(tmp_path))
+    run = tmp_path / "run"
+    CaptureSession(rig, run, lights=None).run()
+    manifest = read_manifest(run)
+    # Pretend the process died after renaming frame 5 but before the manifest listed it, and
+    # while it was writing frame 6 and the manifest.
+    manifest["frames"] = manifest["frames"][:5]
+    (run / MANIFEST_NAME).write_text(json.dumps(manifest))
+    (run / "frames" / "0005-L05-r0.dng").write_bytes(b"stale frame from a crashed session")
+    (run / "frames" / (PARTIAL_PREFIX + "0006-L06-r0.dng")).write_bytes(b"half a frame")
+    (run / (PARTIAL_PREFIX + MANIFEST_NAME)).write_text("{")
+    for name in ("0006-L06-r0.dng", "0007-L07-r0.dng", "0008-L08-r0.dng"):
+        (run / "frames" / name).unlink()
+    session = CaptureSession(rig, run, resume=True)
+    assert [f.index for f in session.remaining] == [5, 6, 7, 8]
+    result = session.run()
+    assert result.frames_captured == 4 and result.frames_skipped == 5
+    assert frame_hashes(run) == reference
+    assert not (run / (PARTIAL_PREFIX + MANIFEST_NAME)).exists()
+    assert len(read_manifest(run)["sessions"]) == 2
+
+
+def test_resume_refuses_changes(tmp_path: Path) -> None:
+    rig = load_rig(write_rig(tmp_path))
+    run = tmp_path / "run"
+    CaptureSession(rig, run, lights=[1, 2, 3]).run()
+    changed_text = (tmp_path / "rig.toml").read_text().replace("exposure_s = 0.05", "exposure_s = 0.1")
+    (tmp_path / "changed.toml").write_text(changed_text)
+    changed = load_rig(tmp_path / "changed.toml")
+    with pytest.raises(RigError, match=r"camera\.exposure_s"):
+        CaptureSession(changed, run, resume=True)
+    with pytest.raises(RigError, match="--lights differs"):
+        CaptureSession(rig, run, lights=[1, 2], resume=True)
+    with pytest.raises(RigError, match="--repeat 2 differs"):
+        CaptureSession(rig, run, repeat=2, resume=True)
+    # A different port, timeout or fault list is not a different rig.
+    relaxed = (tmp_path / "rig.toml").read_text().replace("timeout_s = 0.1", "timeout_s = 0.2")
+    (tmp_path / "relaxed.toml").write_text(relaxed)
+    assert CaptureSession(load_rig(tmp_path / "relaxed.toml"), run, resume=True).complete
+    # A frame file that changed after it was captured cannot be resumed over.
+    frame = run / "frames" / "0002-L02-r0.dng"
+    frame.write_bytes(frame.read_bytes()[:-1] + b"\0")
+    with pytest.raises(DatasetError, match="changed since it was captured"):
+        CaptureSession(rig, run, resume=True)
+    frame.unlink()
+    with pytest.raises(DatasetError, match="is missing"):
+        CaptureSession(rig, run, resume=True)
+
+
+def test_sigkill_at_a_random_frame_then_resume(tmp_path: Path, reference: dict) -> None:
+    # settle_ms slows each light frame down so that the kill lands mid-run.
+    rig_path = write_rig(tmp_path, settle_ms=60)
+    run = tmp_path / "run"
+    k = int(np.random.default_rng(2012).integers(1, N_FRAMES - 1))
+    env = dict(os.environ, PYTHONUNBUFFERED="1")
+    process = subprocess.Popen(
+        [sys.executable, "-m", "ps_lab", "capture", "--rig", str(rig_path), "--out", str(run), "-q"],
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+        env=env,
+    )
+    try:
+        deadline = time.monotonic() + 60
+        frames = 0
+        while time.monotonic() < deadline and process.poll() is None:
+            try:
+                frames = len(json.loads((run / MANIFEST_NAME).read_text())["frames"])
+            except (FileNotFoundError, json.JSONDecodeError):
+                frames = 0
+            if frames >= k:
+                break
+            time.sleep(0.002)
+        assert process.poll() is None, "the capture finished before it could be killed"
+        os.kill(process.pid, signal.SIGKILL)
+    finally:
+        process.wait(timeout=30)
+    assert process.returncode == -signal.SIGKILL
+    manifest = assert_consistent(run)
+    assert k <= len(manifest["frames"]) < N_FRAMES
+    result = CaptureSession(load_rig(rig_path), run, resume=True).run()
+    assert result.frames_skipped == len(manifest["frames"])
+    assert frame_hashes(run) == reference
+
+
+def test_failed_setup_leaves_a_resumable_run(tmp_path: Path, reference: dict) -> None:
+    # The controller hangs on its first command: nothing is shot, but the folder is a run.
+    faults = '[faults]\ncontroller = [{ kind = "silence", at = 1 }]\n'
+    rig = load_rig(write_rig(tmp_path, faults=faults, name="hung.toml"))
+    run = tmp_path / "run"
+    with pytest.raises(RigError, match="0 of 9 frames saved"):
+        CaptureSession(rig, run).run()
+    assert read_manifest(run)["frames"] == []
+    CaptureSession(load_rig(write_rig(tmp_path)), run, resume=True).run()
+    assert frame_hashes(run) == reference
