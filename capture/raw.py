@@ -27,7 +27,10 @@ The mosaic then becomes an RGB image without any non-linear step:
 
 from __future__ import annotations
 
+import logging
 import math
+from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass
 from os import PathLike
 from pathlib import Path
@@ -197,13 +200,29 @@ def _libraw_message(exc: Exception) -> str:
     return text.decode(errors="replace") if isinstance(text, bytes) else str(text)
 
 
+@contextmanager
+def _quiet_tifffile() -> Iterator[None]:
+    """Silence tifffile's log while probing a file that may be broken or not TIFF at all.
+
+    The probe's verdict is reported as one clear error (or ignored); tifffile's own warnings
+    would add stray lines to the CLI's one-line error.
+    """
+    logger = logging.getLogger("tifffile")
+    previous = logger.level
+    logger.setLevel(logging.CRITICAL + 1)
+    try:
+        yield
+    finally:
+        logger.setLevel(previous)
+
+
 def _check_tiff_not_truncated(path: Path) -> None:
     """Fail early (and quietly: LibRaw prints to stderr) when image data runs past the file end."""
     import tifffile
 
     size = path.stat().st_size
     try:
-        with tifffile.TiffFile(path) as tif:
+        with _quiet_tifffile(), tifffile.TiffFile(path) as tif:
             for page in tif.pages:
                 offsets = getattr(page, "dataoffsets", ()) or ()
                 counts = getattr(page, "databytecounts", ()) or ()
@@ -224,7 +243,7 @@ def _exposure_from_tiff(path: Path) -> float | None:
     import tifffile
 
     try:
-        with tifffile.TiffFile(path) as tif:
+        with _quiet_tifffile(), tifffile.TiffFile(path) as tif:
             page = tif.pages.first
             tag = page.tags.get(33434)
             value = tag.value if tag is not None else None
