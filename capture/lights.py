@@ -224,7 +224,12 @@ class LightController(ABC):
             raise RigError("the light controller is closed")
 
     def _validate_lights(self, lights: int | Iterable[int]) -> frozenset[int]:
-        items = [lights] if isinstance(lights, numbers.Integral) else list(lights)
+        if isinstance(lights, numbers.Integral):
+            items = [lights]
+        elif isinstance(lights, Iterable) and not isinstance(lights, str | bytes):
+            items = list(lights)
+        else:
+            raise RigError(f"lights are numbered 1-{self._count}; {lights!r} is not a light number or a set")
         chosen = set()
         for light in items:
             if isinstance(light, bool) or not isinstance(light, numbers.Integral):
