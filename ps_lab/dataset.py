@@ -2,16 +2,18 @@
 
 Two kinds of folder are datasets:
 
-- an **image folder** (DiLiGenT layout): one image per light, ordered by ``filenames.txt`` when present,
-  else by file name (numbers compared numerically); ``light_directions.txt``; optional
-  ``light_intensities.txt``, ``mask.png``, ``normal_gt.npy`` or ``Normal_gt.mat``, and ``dark.<ext>``;
-- a **capture run** written by ``ps-lab capture`` (a folder with ``manifest.json``): frames come from
-  the manifest, repeats are averaged, the dark frame is subtracted, exposures are equalised, and the
-  lights come from ``light_directions.txt`` / ``light_intensities.txt`` written by ``ps-lab calibrate``.
+- an **image folder** (DiLiGenT layout): one image per light, ordered by ``filenames.txt`` when
+  present, else by file name (numbers compared numerically); ``light_directions.txt``; optional
+  ``light_intensities.txt``, ``mask.png``, ``normal_gt.npy`` or ``Normal_gt.mat``, ``dark.<ext>``;
+- a **capture run** written by ``ps-lab capture`` (a folder with ``manifest.json``): frames come
+  from the manifest, repeats are averaged, the dark frame is subtracted, exposures are equalised,
+  and the lights come from ``light_directions.txt`` / ``light_intensities.txt`` written by
+  ``ps-lab calibrate``.
 
-:func:`load_frames` returns the linear frames (what calibration reads); :func:`load_dataset` adds the
-lights, mask and ground truth and reduces colour to one observation per light and pixel (what the
-solvers read). Every problem raises :class:`~ps_lab.errors.DatasetError` with one line naming the file.
+:func:`load_frames` returns the linear frames (what calibration reads); :func:`load_dataset` adds
+the lights, mask and ground truth and reduces colour to one observation per light and pixel (what
+the solvers read). Every problem raises :class:`~ps_lab.errors.DatasetError` with one line naming
+the file.
 """
 
 from __future__ import annotations
@@ -40,7 +42,7 @@ LIGHT_INTENSITIES = "light_intensities.txt"
 MASK = "mask.png"
 SIMULATION = "simulation"
 
-# Files in an image folder that are never light frames (outputs, calibration pictures, ground truth).
+# Files in an image folder that are never light frames (outputs, calibration pictures, truth).
 _NOT_FRAMES = {
     "mask.png",
     "normal.png",
@@ -71,6 +73,7 @@ class Frames:
         The dataset folder.
     manifest : dict or None
         The parsed ``manifest.json`` of a capture run, else None.
+
     """
 
     images: np.ndarray
@@ -102,6 +105,7 @@ class Dataset:
         Frame file name per light.
     root : Path
         The dataset folder.
+
     """
 
     images: np.ndarray
@@ -129,6 +133,7 @@ class FramePlan:
     dark_exposures : list of float or None
     root : Path
     manifest : dict or None
+
     """
 
     light_files: list[list[Path]]
@@ -145,7 +150,7 @@ class FramePlan:
 
 
 def is_capture_run(path: Path) -> bool:
-    """True if ``path`` is a capture-run folder (it holds ``manifest.json``)."""
+    """Tell whether ``path`` is a capture-run folder (it holds ``manifest.json``)."""
     return (Path(path) / MANIFEST).is_file()
 
 
@@ -165,6 +170,7 @@ def plan_frames(path: Path) -> FramePlan:
     ------
     DatasetError
         Missing folder, no images, unreadable ``filenames.txt`` or ``manifest.json``, missing files.
+
     """
     root = Path(path)
     if not root.exists():
@@ -192,6 +198,7 @@ def load_frames(path: Path) -> Frames:
     -------
     Frames
         ``images`` of shape (n, H, W, C) float32, ``saturated`` of shape (n, H, W).
+
     """
     plan = plan_frames(path)
     images: np.ndarray | None = None
@@ -218,6 +225,7 @@ def iter_frames(plan: FramePlan) -> Iterator[tuple[np.ndarray, np.ndarray]]:
         Repeats averaged, dark frame subtracted, scaled to the first light frame's exposure.
     saturated : ndarray of shape (H, W), bool
         Saturated in any repeat.
+
     """
     reference: Image | None = None
     reference_path: Path | None = None
@@ -238,7 +246,9 @@ def iter_frames(plan: FramePlan) -> Iterator[tuple[np.ndarray, np.ndarray]]:
     # A frame's exposure is the manifest's, else the file's own (RAW metadata); frames are scaled
     # only when both exposures are known.
     common_exposure: float | None = None
-    for i, (files, exposures) in enumerate(zip(plan.light_files, plan.light_exposures, strict=True)):
+    for i, (files, exposures) in enumerate(
+        zip(plan.light_files, plan.light_exposures, strict=True)
+    ):
         total: np.ndarray | None = None
         clipped: np.ndarray | None = None
         for file, exposure in zip(files, exposures, strict=True):
@@ -267,7 +277,8 @@ def load_dataset(
 
     Colour rule: each channel is divided by the light's intensity for that channel, then the
     channels are combined: ``channel="mean"`` averages them, ``"r"``/``"g"``/``"b"`` keeps one. A
-    grey image is divided by the selected channel's intensity (the mean of the three for ``"mean"``).
+    grey image is divided by the selected channel's intensity (the mean of the three for
+    ``"mean"``).
 
     Parameters
     ----------
@@ -287,6 +298,7 @@ def load_dataset(
     ------
     DatasetError
         Any problem with the folder, with one line naming the file and the problem.
+
     """
     if channel not in CHANNELS:
         raise DatasetError(f"unknown channel {channel!r} (choose one of {', '.join(CHANNELS)})")
@@ -296,9 +308,7 @@ def load_dataset(
     directions_file = root / LIGHT_DIRECTIONS
     if root.is_dir() and not directions_file.is_file():
         if run:
-            raise DatasetError(
-                f"run {root} is not calibrated: run `ps-lab calibrate {root}` first"
-            )
+            raise DatasetError(f"run {root} is not calibrated: run `ps-lab calibrate {root}` first")
         raise DatasetError(f"{root}: no {LIGHT_DIRECTIONS} (one row 'x y z' per image)")
     plan = plan_frames(root)
     n = len(plan.light_files)
@@ -353,10 +363,12 @@ def combine_channels(image: np.ndarray, intensity: np.ndarray, channel: str = "m
     intensity : ndarray of shape (3,)
         The light's RGB intensity.
     channel : {"mean", "r", "g", "b"}
+        Average the divided channels, or keep one.
 
     Returns
     -------
     ndarray of shape (H, W), float32
+
     """
     intensity = np.asarray(intensity, dtype=np.float64)
     pick = {"r": 0, "g": 1, "b": 2}
@@ -378,12 +390,14 @@ def read_light_directions(path: Path, count: int | None = None) -> np.ndarray:
     Parameters
     ----------
     path : Path
+        The text file.
     count : int or None
         Expected number of rows (the number of images).
 
     Returns
     -------
     ndarray of shape (n, 3), float64, unit rows
+
     """
     rows = _read_table(path, (3,))
     if count is not None and len(rows) != count:
@@ -411,6 +425,7 @@ def read_light_intensities(path: Path, count: int | None = None) -> np.ndarray:
     Returns
     -------
     ndarray of shape (n, 3), float64, positive
+
     """
     rows = _read_table(path, (1, 3))
     if count is not None and len(rows) != count:
@@ -446,14 +461,18 @@ def _read_table(path: Path, widths: tuple[int, ...]) -> np.ndarray:
         try:
             values = [float(field) for field in fields]
         except ValueError:
-            raise DatasetError(f"{path}: line {number}: not a row of numbers: {line.strip()!r}") from None
+            raise DatasetError(
+                f"{path}: line {number}: not a row of numbers: {line.strip()!r}"
+            ) from None
         if len(values) not in widths:
             expected = " or ".join(str(w) for w in widths)
             raise DatasetError(
                 f"{path}: line {number}: expected {expected} numbers, got {len(values)}"
             )
         if width is not None and len(values) != width:
-            raise DatasetError(f"{path}: line {number}: {len(values)} numbers, earlier rows have {width}")
+            raise DatasetError(
+                f"{path}: line {number}: {len(values)} numbers, earlier rows have {width}"
+            )
         width = len(values)
         if not all(np.isfinite(values)):
             raise DatasetError(f"{path}: line {number}: value is NaN or infinite")
@@ -505,9 +524,7 @@ def _plan_image_folder(root: Path) -> FramePlan:
             raise DatasetError(
                 f"{root}: no images found (supported: {' '.join(SUPPORTED_SUFFIXES)})"
             )
-    darks = [
-        p for p in sorted(root.iterdir()) if p.stem.lower() == _DARK_STEM and is_supported(p)
-    ]
+    darks = [p for p in sorted(root.iterdir()) if p.stem.lower() == _DARK_STEM and is_supported(p)]
     if len(darks) > 1:
         raise DatasetError(f"{root}: more than one dark frame ({', '.join(p.name for p in darks)})")
     return FramePlan(
@@ -579,7 +596,9 @@ def _plan_run(root: Path) -> FramePlan:
         try:
             value = float(value)
         except (TypeError, ValueError):
-            raise DatasetError(f"{manifest_file}: bad exposure_s {value!r} for {record['file']}") from None
+            raise DatasetError(
+                f"{manifest_file}: bad exposure_s {value!r} for {record['file']}"
+            ) from None
         if not np.isfinite(value) or value <= 0:
             raise DatasetError(f"{manifest_file}: exposure_s must be positive for {record['file']}")
         return value
@@ -650,6 +669,7 @@ def read_mask(path: Path, shape: tuple[int, int] | None = None) -> np.ndarray:
     Returns
     -------
     ndarray of shape (H, W), bool
+
     """
     try:
         raw = path.read_bytes()
@@ -683,6 +703,7 @@ def read_normal_gt(path: Path, shape: tuple[int, int] | None = None) -> np.ndarr
     Returns
     -------
     ndarray of shape (H, W, 3), float64
+
     """
     if path.suffix.lower() == ".mat":
         import scipy.io

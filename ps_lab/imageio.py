@@ -5,10 +5,11 @@ Every reader returns an :class:`Image`: linear values as float32 ``(H, W, C)`` w
 
 - 8/16-bit PNG and TIFF (and integer ``.npy``): value / type maximum, so 65535 → 1.0; a pixel is
   saturated where any channel equals the type maximum.
-- 32-bit float TIFF, PFM and float ``.npy``: values as stored; never saturated. Non-finite values are
-  set to 0 and marked saturated, so the solvers drop them.
+- 32-bit float TIFF, PFM and float ``.npy``: values as stored; never saturated. Non-finite values
+  are set to 0 and marked saturated, so the solvers drop them.
 - camera RAW (``.dng .cr2 .cr3 .nef .arw``): :func:`ps_lab.capture.raw.load_raw` — linear,
-  (raw − black) / (white − black), 2×2 binned; saturated where the raw value reached the white level.
+  (raw − black) / (white − black), 2×2 binned; saturated where the raw value reached the white
+  level.
 
 Every failure raises :class:`~ps_lab.errors.DatasetError` with one line that names the file. Readers
 work on one file at a time so that callers can stream large captures.
@@ -48,6 +49,7 @@ class Image:
         True where the sensor clipped (any channel) or the value is not finite.
     exposure_s : float or None
         Exposure time stored in the file (RAW only), else None.
+
     """
 
     data: np.ndarray
@@ -61,7 +63,7 @@ class Image:
 
 
 def is_supported(path: Path) -> bool:
-    """True if ``path`` has a suffix one of the readers handles (case-insensitive)."""
+    """Tell whether ``path`` has a suffix one of the readers handles (case-insensitive)."""
     return Path(path).suffix.lower() in SUPPORTED_SUFFIXES
 
 
@@ -82,6 +84,7 @@ def read_image(path: Path) -> Image:
     ------
     DatasetError
         The file is missing, of an unsupported type, unreadable or corrupt (message names the file).
+
     """
     path = Path(path)
     suffix = path.suffix.lower()
@@ -107,8 +110,8 @@ def read_image(path: Path) -> Image:
 def read_pfm(path: Path) -> np.ndarray:
     """Read a Portable Float Map.
 
-    The header is ``PF`` (RGB) or ``Pf`` (grey), then width and height, then a scale whose sign gives
-    the byte order (negative = little-endian); rows are stored bottom to top.
+    The header is ``PF`` (RGB) or ``Pf`` (grey), then width and height, then a scale whose sign
+    gives the byte order (negative = little-endian); rows are stored bottom to top.
 
     Parameters
     ----------
@@ -119,6 +122,7 @@ def read_pfm(path: Path) -> np.ndarray:
     -------
     ndarray of shape (H, W, 3) or (H, W), float32
         Rows top to bottom, native byte order.
+
     """
     path = Path(path)
     try:
@@ -141,9 +145,7 @@ def read_pfm(path: Path) -> np.ndarray:
     count = width * height * channels
     body = raw[match.end() :]
     if len(body) < count * 4:
-        raise DatasetError(
-            f"{path}: PFM file is truncated ({len(body)} of {count * 4} data bytes)"
-        )
+        raise DatasetError(f"{path}: PFM file is truncated ({len(body)} of {count * 4} data bytes)")
     data = np.frombuffer(body, dtype=dtype, count=count).astype(np.float32)
     shape = (height, width, channels) if channels == 3 else (height, width)
     return np.ascontiguousarray(data.reshape(shape)[::-1])
@@ -158,6 +160,7 @@ def write_pfm(path: Path, image: np.ndarray) -> None:
         Output file.
     image : ndarray of shape (H, W), (H, W, 1) or (H, W, 3)
         Values to store as float32.
+
     """
     array = np.asarray(image, dtype="<f4")
     if array.ndim == 3 and array.shape[2] == 1:
@@ -229,7 +232,9 @@ def _read_raw(path: Path) -> Image:
     data = np.asarray(raw.image, dtype=np.float32)
     if data.ndim == 2:
         data = data[:, :, None]
-    return Image(data=data, saturated=np.asarray(raw.saturated, dtype=bool), exposure_s=raw.exposure_s)
+    return Image(
+        data=data, saturated=np.asarray(raw.saturated, dtype=bool), exposure_s=raw.exposure_s
+    )
 
 
 def _bgr_to_rgb(array: np.ndarray) -> np.ndarray:

@@ -1,8 +1,8 @@
 """Writing the results of a reconstruction: normal and albedo maps, pictures and metrics.
 
-Everything is written into a hidden temporary sibling of the output folder, which replaces the output
-folder only once every file is complete (:func:`staged_folder`): a failed or interrupted run leaves no
-partial output, and an earlier result stays untouched until the new one is ready.
+Everything is written into a hidden temporary sibling of the output folder, which replaces the
+output folder only once every file is complete (:func:`staged_folder`): a failed or interrupted run
+leaves no partial output, and an earlier result stays untouched until the new one is ready.
 
 Files (see ``docs/datasets.md``): ``normals.npy``, ``normal.png``, ``albedo.npy``, ``albedo.png``,
 ``corruption.png``, ``metrics.json``, and the refined ``light_directions.txt`` /
@@ -53,6 +53,7 @@ class ResultMaps:
         Share (0..1) of a pixel's usable observations that the method treated as outliers.
     solved : ndarray of shape (H, W), bool
         Mask pixels that received a normal.
+
     """
 
     normals: np.ndarray
@@ -76,6 +77,7 @@ def solution_maps(solution: Any, mask: np.ndarray, valid: np.ndarray | None = No
     Returns
     -------
     ResultMaps
+
     """
     height, width = mask.shape
     normals = np.zeros((height, width, 3), dtype=np.float32)
@@ -104,6 +106,7 @@ def normal_picture(normals: np.ndarray, mask: np.ndarray) -> np.ndarray:
     Returns
     -------
     ndarray of shape (H, W, 3), uint8, RGB
+
     """
     rgb = np.clip(np.rint((normals.astype(np.float64) + 1.0) * 127.5), 0, 255).astype(np.uint8)
     rgb[~mask] = 0
@@ -116,6 +119,7 @@ def albedo_picture(albedo: np.ndarray, mask: np.ndarray) -> np.ndarray:
     Returns
     -------
     ndarray of shape (H, W), uint8
+
     """
     inside = albedo[mask]
     top = float(np.percentile(inside, 99)) if inside.size else 0.0
@@ -176,6 +180,7 @@ def normal_errors(maps: ResultMaps, dataset: Dataset) -> np.ndarray | None:
     Returns
     -------
     ndarray of shape (k,) or None
+
     """
     if dataset.normal_gt is None:
         return None
@@ -201,6 +206,7 @@ def build_metrics(
     dict
         method, parameters, pixels, lights, ``solve_seconds``, iteration statistics, outlier share,
         and ``angular_error_deg`` (mean/median/p90/max) when the dataset has ground truth.
+
     """
     params = dict(getattr(solution, "params", {}) or {})
     valid = dataset.valid[:, dataset.mask]
@@ -326,6 +332,7 @@ def write_results(
     -------
     dict
         The metrics written to ``metrics.json``.
+
     """
     folder = Path(folder)
     mask = dataset.mask
@@ -367,6 +374,7 @@ def reconstruct_to_folder(
     out : Path
         Output folder: absent, empty or an earlier result (it is replaced only on success).
     method : {"ls", "l1", "sbl", "rpca"}
+        Solver (:func:`ps_lab.reconstruct.solve`).
     threads : int or None
         Worker threads of the solver (default all cores).
     refine_lights : int
@@ -383,6 +391,7 @@ def reconstruct_to_folder(
     -------
     dict
         The metrics written to ``metrics.json`` (``out`` added under ``"out"``).
+
     """
     from ps_lab import reconstruct
 
@@ -396,7 +405,9 @@ def reconstruct_to_folder(
         if refine_lights > 0:
             refine = getattr(reconstruct, "refine_lights", None)
             if refine is None:
-                raise OutputError("light refinement (--refine-lights) is not available in this build")
+                raise OutputError(
+                    "light refinement (--refine-lights) is not available in this build"
+                )
             options: dict[str, Any] = {}
             accepted = inspect.signature(refine).parameters
             if "threads" in accepted:

@@ -102,7 +102,9 @@ def test_npy_float_and_integer(tmp_path, rng):
     np.testing.assert_array_equal(read_image(tmp_path / "a.npy").data, values)
     counts = rng.integers(0, 65536, (4, 5), dtype=np.uint16)
     np.save(tmp_path / "b.npy", counts)
-    np.testing.assert_allclose(read_image(tmp_path / "b.npy").data[..., 0], counts / 65535.0, rtol=1e-6)
+    np.testing.assert_allclose(
+        read_image(tmp_path / "b.npy").data[..., 0], counts / 65535.0, rtol=1e-6
+    )
 
 
 @pytest.mark.parametrize(
@@ -131,7 +133,9 @@ def test_truncated_png_raises(tmp_path, rng):
         read_image(tmp_path / "t.png")
 
 
-def write_test_dng(path: Path, scene: np.ndarray, *, black: int = 512, white: int = 16383, exposure_s=None):
+def write_test_dng(
+    path: Path, scene: np.ndarray, *, black: int = 512, white: int = 16383, exposure_s=None
+):
     """A DNG whose 2x2 RGGB blocks all sample the (H, W, 3) linear scene (values in 0..1)."""
     from ps_lab.capture.dng import write_dng
 
@@ -183,8 +187,15 @@ def make_diligent(folder: Path, rng: np.random.Generator, n: int = 12, shape=(32
     mask = (np.linalg.norm(normals, axis=2) > 0).astype(np.uint8) * 255
     cv2.imwrite(str(folder / "mask.png"), mask)
     scipy.io.savemat(folder / "Normal_gt.mat", {"Normal_gt": normals})
-    return {"lights": lights, "intensities": intensities, "albedo": albedo, "normals": normals,
-            "shading": shading, "order": order, "names": names}
+    return {
+        "lights": lights,
+        "intensities": intensities,
+        "albedo": albedo,
+        "normals": normals,
+        "shading": shading,
+        "order": order,
+        "names": names,
+    }
 
 
 def test_diligent_folder_loads_without_conversion(tmp_path, rng):
@@ -215,9 +226,15 @@ def test_colour_channel_rule(tmp_path, rng):
     np.savetxt(folder / "light_directions.txt", lights)
     np.savetxt(folder / "light_intensities.txt", intensities)
     divided = frames / intensities[:, None, None, :]
-    for channel, expected in [("r", divided[..., 0]), ("g", divided[..., 1]), ("b", divided[..., 2]),
-                              ("mean", divided.mean(axis=-1))]:
-        np.testing.assert_allclose(load_dataset(folder, channel=channel).images, expected, rtol=1e-5)
+    for channel, expected in [
+        ("r", divided[..., 0]),
+        ("g", divided[..., 1]),
+        ("b", divided[..., 2]),
+        ("mean", divided.mean(axis=-1)),
+    ]:
+        np.testing.assert_allclose(
+            load_dataset(folder, channel=channel).images, expected, rtol=1e-5
+        )
     with pytest.raises(DatasetError, match="channel"):
         load_dataset(folder, channel="x")
 
@@ -265,7 +282,9 @@ def test_non_unit_light_rows_are_normalised_with_a_warning(tmp_path, rng, caplog
     with caplog.at_level(logging.WARNING, logger="ps_lab"):
         result = read_light_directions(tmp_path / "light_directions.txt", 4)
     np.testing.assert_allclose(result, lights, atol=1e-9)
-    assert any("not unit length" in r.getMessage() and "2, 4" in r.getMessage() for r in caplog.records)
+    assert any(
+        "not unit length" in r.getMessage() and "2, 4" in r.getMessage() for r in caplog.records
+    )
 
 
 def test_dark_frame_in_image_folder_is_subtracted(tmp_path, rng):
@@ -285,8 +304,15 @@ def test_dark_frame_in_image_folder_is_subtracted(tmp_path, rng):
 # --- capture runs ----------------------------------------------------------------------------
 
 
-def make_run(run: Path, rng: np.random.Generator, *, n: int = 4, repeat: int = 2, shape=(6, 5),
-             writer: str = "png") -> dict:
+def make_run(
+    run: Path,
+    rng: np.random.Generator,
+    *,
+    n: int = 4,
+    repeat: int = 2,
+    shape=(6, 5),
+    writer: str = "png",
+) -> dict:
     """A capture run by hand: dark frame, `repeat` frames per light at varying exposures."""
     (run / "frames").mkdir(parents=True)
     h, w = shape
@@ -307,9 +333,19 @@ def make_run(run: Path, rng: np.random.Generator, *, n: int = 4, repeat: int = 2
             name = f"frames/{stem}.dng"
             stored = write_test_dng(run / name, linear, exposure_s=exposure)
         digest = hashlib.sha256((run / name).read_bytes()).hexdigest()
-        records.append({"index": index, "kind": kind, "lights": lights, "repeat": rep, "file": name,
-                        "exposure_s": exposure, "started": "2026-01-01T00:00:00",
-                        "finished": "2026-01-01T00:00:01", "sha256": digest})
+        records.append(
+            {
+                "index": index,
+                "kind": kind,
+                "lights": lights,
+                "repeat": rep,
+                "file": name,
+                "exposure_s": exposure,
+                "started": "2026-01-01T00:00:00",
+                "finished": "2026-01-01T00:00:01",
+                "sha256": digest,
+            }
+        )
         return stored
 
     dark_exposure = 0.5
@@ -321,14 +357,21 @@ def make_run(run: Path, rng: np.random.Generator, *, n: int = 4, repeat: int = 2
         for rep in range(repeat):
             exposure = 1.0 if rep == 0 else 2.0 if light % 2 else 1.5
             common = common or exposure
-            stored = add("light", [light], rep, exposure,
-                         (radiance[light - 1] + dark_rate) * exposure)
+            stored = add(
+                "light", [light], rep, exposure, (radiance[light - 1] + dark_rate) * exposure
+            )
             saturated[light - 1] |= np.any(stored >= 1.0, axis=-1)
             corrected = (stored - dark_stored * exposure / dark_exposure) * common / exposure
             expected[light - 1] += corrected / repeat
-    manifest = {"format": "ps-lab-run", "version": 1, "ps_lab_version": "0.1.0", "rig": {},
-                "camera_settings": {}, "plan": {"lights": list(range(1, n + 1)), "repeat": repeat},
-                "frames": records}
+    manifest = {
+        "format": "ps-lab-run",
+        "version": 1,
+        "ps_lab_version": "0.1.0",
+        "rig": {},
+        "camera_settings": {},
+        "plan": {"lights": list(range(1, n + 1)), "repeat": repeat},
+        "frames": records,
+    }
     (run / "manifest.json").write_text(json.dumps(manifest))
     return {"expected": expected, "saturated": saturated, "radiance": radiance, "n": n}
 
@@ -349,7 +392,9 @@ def test_capture_run_frames_dark_exposure_repeats(tmp_path, rng):
 def test_capture_run_dataset_needs_calibration_then_loads(tmp_path, rng):
     run = tmp_path / "run"
     truth = make_run(run, rng)
-    with pytest.raises(DatasetError, match=r"is not calibrated: run `ps-lab calibrate .*run` first"):
+    with pytest.raises(
+        DatasetError, match=r"is not calibrated: run `ps-lab calibrate .*run` first"
+    ):
         load_dataset(run)
     n = truth["n"]
     np.savetxt(run / "light_directions.txt", upper_lights(n, rng))

@@ -30,8 +30,15 @@ def tree(root: Path) -> dict[str, int]:
     return {str(p.relative_to(root)): p.stat().st_size for p in root.rglob("*")}
 
 
-def write_dataset(folder: Path, *, seed: int = 0, specular: float = 0.0, colour: bool = False,
-                  shape=SHAPE, n: int = N_LIGHTS) -> dict:
+def write_dataset(
+    folder: Path,
+    *,
+    seed: int = 0,
+    specular: float = 0.0,
+    colour: bool = False,
+    shape=SHAPE,
+    n: int = N_LIGHTS,
+) -> dict:
     """A rendered sphere saved as 16-bit PNGs with lights, mask and ground truth."""
     rng = np.random.default_rng(seed)
     folder.mkdir(parents=True)
@@ -102,7 +109,7 @@ def test_rpca_writes_every_output(tmp_path):
     result = invoke(tmp_path / "sphere", "--method", "rpca", "--shadow-threshold", "1e-3")
     assert result.exit_code == 0, result.output
     metrics = check_outputs(tmp_path / "sphere" / "recon" / "rpca", truth)
-    # R-PCA treats attached shadows as sparse errors, which they are not with 16 lights: loose bound.
+    # R-PCA models attached shadows as sparse errors; with 16 lights they are not: loose bound.
     assert metrics["angular_error_deg"]["median"] < 10.0
 
 
@@ -111,7 +118,9 @@ def test_sbl_beats_ls_on_speculars(tmp_path):
     errors = {}
     for method in ("ls", "sbl"):
         out = tmp_path / method
-        result = invoke(tmp_path / "glossy", "--method", method, "--out", out, "--shadow-threshold", "1e-3")
+        result = invoke(
+            tmp_path / "glossy", "--method", method, "--out", out, "--shadow-threshold", "1e-3"
+        )
         assert result.exit_code == 0, result.output
         errors[method] = json.loads((out / "metrics.json").read_text())["angular_error_deg"]["mean"]
     assert errors["sbl"] < errors["ls"]
@@ -122,8 +131,17 @@ def test_colour_channels_and_rerun_replaces(tmp_path):
     out = tmp_path / "result"
     albedo = {}
     for channel in ("r", "b", "mean"):
-        result = invoke(tmp_path / "colour", "--method", "ls", "--channel", channel, "--out", out,
-                        "--shadow-threshold", "1e-3")
+        result = invoke(
+            tmp_path / "colour",
+            "--method",
+            "ls",
+            "--channel",
+            channel,
+            "--out",
+            out,
+            "--shadow-threshold",
+            "1e-3",
+        )
         assert result.exit_code == 0, result.output
         assert json.loads((out / "metrics.json").read_text())["channel"] == channel
         mask = cv2.imread(str(tmp_path / "colour" / "mask.png"), cv2.IMREAD_UNCHANGED) > 0
@@ -160,7 +178,9 @@ def test_failed_rerun_keeps_the_previous_result(tmp_path, monkeypatch):
     write_dataset(tmp_path / "d")
     assert invoke(tmp_path / "d", "--method", "ls").exit_code == 0
     before = tree(tmp_path)
-    monkeypatch.setattr(solvers, "solve", lambda *a, **k: (_ for _ in ()).throw(DatasetError("boom")))
+    monkeypatch.setattr(
+        solvers, "solve", lambda *a, **k: (_ for _ in ()).throw(DatasetError("boom"))
+    )
     assert invoke(tmp_path / "d", "--method", "ls").exit_code == 2
     assert tree(tmp_path) == before
 
@@ -170,15 +190,26 @@ def test_refine_lights_writes_refined_lights(tmp_path):
         pytest.skip("ps_lab.reconstruct.refine_lights not available yet")
     truth = write_dataset(tmp_path / "d")
     out = tmp_path / "refined"
-    result = invoke(tmp_path / "d", "--method", "ls", "--out", out, "--refine-lights", "1",
-                    "--shadow-threshold", "1e-3")
+    result = invoke(
+        tmp_path / "d",
+        "--method",
+        "ls",
+        "--out",
+        out,
+        "--refine-lights",
+        "1",
+        "--shadow-threshold",
+        "1e-3",
+    )
     assert result.exit_code == 0, result.output
     directions = np.loadtxt(out / "light_directions.txt")
     intensities = np.loadtxt(out / "light_intensities.txt")
     assert directions.shape == (N_LIGHTS, 3) and intensities.shape == (N_LIGHTS, 3)
     np.testing.assert_allclose(np.linalg.norm(directions, axis=1), 1.0, atol=1e-6)
     # Exact lights and clean data: refinement keeps them (a global rotation aside).
-    assert np.degrees(np.arccos(np.clip(np.sum(directions * truth["lights"], 1), -1, 1))).max() < 1.0
+    assert (
+        np.degrees(np.arccos(np.clip(np.sum(directions * truth["lights"], 1), -1, 1))).max() < 1.0
+    )
     assert json.loads((out / "metrics.json").read_text())["refinement"]["iterations"] == 1
 
 
@@ -196,7 +227,9 @@ def test_dng_folder_matches_float_images(tmp_path):
     for i, image in enumerate(images):
         counts = np.rint(black + image * (white - black)).astype(np.uint16)
         mosaic = np.repeat(np.repeat(counts, 2, axis=0), 2, axis=1)  # each 2x2 block: one pixel
-        dng.write_dng(tmp_path / "dng" / f"{i:03d}.dng", mosaic, black_level=black, white_level=white)
+        dng.write_dng(
+            tmp_path / "dng" / f"{i:03d}.dng", mosaic, black_level=black, white_level=white
+        )
         np.save(tmp_path / "npy" / f"{i:03d}.npy", image.astype(np.float32))
     normals = {}
     for folder in ("dng", "npy"):
@@ -239,8 +272,12 @@ def _break(kind: str, root: Path) -> tuple[Path, str]:
     if kind == "truncated raw":
         dng = pytest.importorskip("ps_lab.capture.dng")
         (folder / "002.png").unlink()
-        dng.write_dng(folder / "002.dng", np.full((24, 24), 2000, np.uint16), black_level=512,
-                      white_level=16383)
+        dng.write_dng(
+            folder / "002.dng",
+            np.full((24, 24), 2000, np.uint16),
+            black_level=512,
+            white_level=16383,
+        )
         data = (folder / "002.dng").read_bytes()
         (folder / "002.dng").write_bytes(data[: len(data) // 2])
         return folder, "002.dng"
@@ -278,16 +315,27 @@ def _break(kind: str, root: Path) -> tuple[Path, str]:
         np.savetxt(folder / "light_intensities.txt", values)
         return folder, "light_intensities.txt"
     if kind == "filenames lists missing file":
-        (folder / "filenames.txt").write_text("000.png\n001.png\n999.png\n003.png\n004.png\n005.png\n")
+        (folder / "filenames.txt").write_text(
+            "000.png\n001.png\n999.png\n003.png\n004.png\n005.png\n"
+        )
         return folder, "999.png"
     if kind == "ground truth shape":
         np.save(folder / "normal_gt.npy", np.zeros((12, 12)))
         return folder, "normal_gt.npy"
     if kind == "uncalibrated run":
         (folder / "light_directions.txt").unlink()
-        (folder / "manifest.json").write_text(json.dumps(
-            {"format": "ps-lab-run", "version": 1, "plan": {"lights": [1]},
-             "frames": [{"index": 0, "kind": "light", "lights": [1], "repeat": 0, "file": "000.png"}]}))
+        (folder / "manifest.json").write_text(
+            json.dumps(
+                {
+                    "format": "ps-lab-run",
+                    "version": 1,
+                    "plan": {"lights": [1]},
+                    "frames": [
+                        {"index": 0, "kind": "light", "lights": [1], "repeat": 0, "file": "000.png"}
+                    ],
+                }
+            )
+        )
         return folder, "ps-lab calibrate"
     if kind == "corrupt manifest":
         (folder / "manifest.json").write_text("{not json")
@@ -296,11 +344,26 @@ def _break(kind: str, root: Path) -> tuple[Path, str]:
 
 
 BAD_INPUTS = [
-    "missing folder", "no images", "no light directions", "corrupt image", "truncated image",
-    "corrupt raw", "truncated raw", "count mismatch", "different sizes", "nan light", "zero light",
-    "empty mask", "mask size", "intensities not numbers", "intensities count",
-    "intensities negative", "filenames lists missing file", "ground truth shape",
-    "uncalibrated run", "corrupt manifest",
+    "missing folder",
+    "no images",
+    "no light directions",
+    "corrupt image",
+    "truncated image",
+    "corrupt raw",
+    "truncated raw",
+    "count mismatch",
+    "different sizes",
+    "nan light",
+    "zero light",
+    "empty mask",
+    "mask size",
+    "intensities not numbers",
+    "intensities count",
+    "intensities negative",
+    "filenames lists missing file",
+    "ground truth shape",
+    "uncalibrated run",
+    "corrupt manifest",
 ]
 
 

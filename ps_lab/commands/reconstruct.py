@@ -11,7 +11,7 @@ import typer
 from ps_lab._cli_util import lab_command, progress_bar
 
 
-class Method(str, Enum):
+class Method(str, Enum):  # noqa: UP042 - typer needs str-valued choices
     """Solver choices (see ``ps_lab.reconstruct.METHODS``)."""
 
     ls = "ls"
@@ -20,7 +20,7 @@ class Method(str, Enum):
     rpca = "rpca"
 
 
-class Channel(str, Enum):
+class Channel(str, Enum):  # noqa: UP042
     """How colour observations become one value per light and pixel."""
 
     mean = "mean"
@@ -32,7 +32,8 @@ class Channel(str, Enum):
 @lab_command
 def reconstruct(
     dataset: Annotated[
-        Path, typer.Argument(help="Image folder (DiLiGenT layout) or capture run.", show_default=False)
+        Path,
+        typer.Argument(help="Image folder (DiLiGenT layout) or capture run.", show_default=False),
     ],
     method: Annotated[
         Method, typer.Option(help="Solver: ls (Woodham), l1 (IRLS), sbl (robust, default), rpca.")
@@ -49,7 +50,8 @@ def reconstruct(
         Channel, typer.Option(help="Colour rule: mean of the channels, or one of r, g, b.")
     ] = Channel.mean,
     threads: Annotated[
-        int | None, typer.Option(min=1, help="Solver threads [default: all cores].", show_default=False)
+        int | None,
+        typer.Option(min=1, help="Solver threads [default: all cores].", show_default=False),
     ] = None,
     refine_lights: Annotated[
         int, typer.Option(min=0, help="Iterations of light refinement (0 = none).")
