@@ -123,15 +123,11 @@ def load_raw(path: str | PathLike[str], *, demosaic: str = "half") -> RawImage:
     white_f = float(white)
     if not np.all(white_f > blacks):
         raise DatasetError(f"{path}: white level {white_f} not above black levels {blacks}")
-    pixel_black = blacks[colors].astype(np.float32)
-    scale = (white_f - pixel_black).astype(np.float32)
-    normalised = (raw.astype(np.float32) - pixel_black) / scale
-    clipped = raw >= white
-
+    tile = _bayer_tile(colors, path)
     if demosaic == "half":
-        image, saturated = _bin_half(normalised, clipped, colors, path)
+        image, saturated = _bin_half(raw, tile, blacks, white)
     else:
-        image, saturated = _demosaic_linear(normalised, clipped, colors, path)
+        image, saturated = _demosaic_linear(raw, tile, blacks, white)
     black_rgb = np.array(
         [blacks[_RED], 0.5 * (blacks[_GREEN] + blacks[_GREEN2]), blacks[_BLUE]], dtype=np.float64
     )
@@ -262,73 +258,80 @@ def _exposure_from_tiff(path: Path) -> float | None:
     return result if math.isfinite(result) and result > 0 else None
 
 
-def _bayer_offsets(colors: np.ndarray, path: Path) -> dict[int, tuple[int, int]]:
-    """Map LibRaw colour index to its (row, col) in the 2x2 tile; reject non-Bayer layouts."""
-    tile = colors[:2, :2]
-    if (
-        colors.shape[0] < 2
-        or colors.shape[1] < 2
-        or not np.array_equal(
-            np.tile(tile, (colors.shape[0] // 2 + 1, colors.shape[1] // 2 + 1))[
-                : colors.shape[0], : colors.shape[1]
-            ],
-            colors,
-        )
-    ):
-        raise DatasetError(f"{path}: CFA is not a 2x2 Bayer pattern")
+def _bayer_tile(colors: np.ndarray, path: Path) -> np.ndarray:
+    """Return the 2x2 tile of LibRaw colour indices (second green as 3); reject non-Bayer CFAs."""
+    height, width = colors.shape
+    tile = np.array(colors[:2, :2], dtype=np.intp)
+    for r in range(2):
+        for c in range(2):
+            if not np.all(colors[r::2, c::2] == tile[r, c]):
+                raise DatasetError(f"{path}: CFA is not a 2x2 Bayer pattern")
     found = sorted(tile.ravel().tolist())
     if found not in ([_RED, _GREEN, _GREEN, _BLUE], [_RED, _GREEN, _BLUE, _GREEN2]):
         raise DatasetError(f"{path}: CFA is not an RGB Bayer pattern (tile {tile.tolist()})")
-    offsets: dict[int, tuple[int, int]] = {}
+    return tile
+
+
+def _normalised_plane(
+    raw: np.ndarray, r: int, c: int, black: float, white: int, height: int, width: int
+) -> tuple[np.ndarray, np.ndarray]:
+    """One CFA position's samples as (raw - black) / (white - black) in float32, and clipping."""
+    samples = raw[r:height:2, c:width:2]
+    values = (samples.astype(np.float32) - np.float32(black)) / np.float32(white - black)
+    return values, samples >= white
+
+
+def _positions(tile: np.ndarray) -> dict[str, list[tuple[int, int]]]:
+    positions: dict[str, list[tuple[int, int]]] = {"r": [], "g": [], "b": []}
     for r in range(2):
         for c in range(2):
-            index = int(tile[r, c])
-            # Some files report both greens as 1; the second one becomes index 3.
-            if index == _GREEN and _GREEN in offsets:
-                index = _GREEN2
-            offsets[index] = (r, c)
-    return offsets
+            key = {_RED: "r", _BLUE: "b"}.get(int(tile[r, c]), "g")
+            positions[key].append((r, c))
+    return positions
 
 
 def _bin_half(
-    normalised: np.ndarray, clipped: np.ndarray, colors: np.ndarray, path: Path
+    raw: np.ndarray, tile: np.ndarray, blacks: np.ndarray, white: int
 ) -> tuple[np.ndarray, np.ndarray]:
-    offsets = _bayer_offsets(colors, path)
-    height = normalised.shape[0] // 2 * 2
-    width = normalised.shape[1] // 2 * 2
-
-    def plane(index: int) -> np.ndarray:
-        r, c = offsets[index]
-        return normalised[r:height:2, c:width:2]
-
-    image = np.stack(
-        [
-            plane(_RED),
-            np.float32(0.5) * (plane(_GREEN) + plane(_GREEN2)),
-            plane(_BLUE),
-        ],
-        axis=-1,
-    ).astype(np.float32, copy=False)
-    blocks = clipped[:height, :width]
-    saturated = blocks[0::2, 0::2] | blocks[0::2, 1::2] | blocks[1::2, 0::2] | blocks[1::2, 1::2]
-    return np.ascontiguousarray(image), saturated
+    height, width = raw.shape[0] // 2 * 2, raw.shape[1] // 2 * 2
+    image = np.empty((height // 2, width // 2, 3), dtype=np.float32)
+    saturated = np.zeros((height // 2, width // 2), dtype=bool)
+    for channel, key in enumerate("rgb"):
+        total = None
+        members = _positions(tile)[key]
+        for r, c in members:
+            values, clipped = _normalised_plane(raw, r, c, blacks[tile[r, c]], white, height, width)
+            total = values if total is None else total + values
+            saturated |= clipped
+        assert total is not None
+        image[..., channel] = total if len(members) == 1 else total * np.float32(0.5)
+    return image, saturated
 
 
 def _demosaic_linear(
-    normalised: np.ndarray, clipped: np.ndarray, colors: np.ndarray, path: Path
+    raw: np.ndarray, tile: np.ndarray, blacks: np.ndarray, white: int
 ) -> tuple[np.ndarray, np.ndarray]:
-    from scipy.ndimage import convolve, maximum_filter
+    import cv2
 
-    _bayer_offsets(colors, path)
-    kernel = np.array([[1.0, 2.0, 1.0], [2.0, 4.0, 2.0], [1.0, 2.0, 1.0]], dtype=np.float64)
-    values = normalised.astype(np.float64)
-    channels = []
-    for members in ((_RED,), (_GREEN, _GREEN2), (_BLUE,)):
-        sampled = np.isin(colors, members)
-        weights = convolve(sampled.astype(np.float64), kernel, mode="constant", cval=0.0)
-        sums = convolve(np.where(sampled, values, 0.0), kernel, mode="constant", cval=0.0)
-        channel = np.where(sampled, values, sums / np.maximum(weights, 1e-12))
-        channels.append(channel)
-    image = np.stack(channels, axis=-1).astype(np.float32)
-    saturated = maximum_filter(clipped, size=3, mode="constant", cval=False)
-    return image, saturated
+    height, width = raw.shape
+    kernel = np.array([[1.0, 2.0, 1.0], [2.0, 4.0, 2.0], [1.0, 2.0, 1.0]], dtype=np.float32)
+    image = np.empty((height, width, 3), dtype=np.float32)
+    clipped = np.zeros((height, width), dtype=np.uint8)
+    for channel, key in enumerate("rgb"):
+        values = np.zeros((height, width), dtype=np.float32)
+        sampled = np.zeros((height, width), dtype=np.float32)
+        for r, c in _positions(tile)[key]:
+            plane, plane_clipped = _normalised_plane(
+                raw, r, c, blacks[tile[r, c]], white, height, width
+            )
+            values[r::2, c::2] = plane
+            sampled[r::2, c::2] = 1.0
+            clipped[r::2, c::2] |= plane_clipped
+        # Normalised convolution with zero padding: the weighted mean of the available samples.
+        sums = cv2.filter2D(values, -1, kernel, borderType=cv2.BORDER_CONSTANT)
+        weights = cv2.filter2D(sampled, -1, kernel, borderType=cv2.BORDER_CONSTANT)
+        image[..., channel] = np.where(sampled > 0, values, sums / np.maximum(weights, 1e-12))
+    saturated = cv2.dilate(
+        clipped, np.ones((3, 3), np.uint8), borderType=cv2.BORDER_CONSTANT, borderValue=0
+    )
+    return image, saturated.astype(bool)
