@@ -11,7 +11,6 @@ Files (see ``docs/datasets.md``): ``normals.npy``, ``normal.png``, ``albedo.npy`
 
 from __future__ import annotations
 
-import inspect
 import json
 import logging
 import os
@@ -403,25 +402,21 @@ def reconstruct_to_folder(
     with staged_folder(out) as stage:
         started = time.perf_counter()
         if refine_lights > 0:
-            refine = getattr(reconstruct, "refine_lights", None)
-            if refine is None:
-                raise OutputError(
-                    "light refinement (--refine-lights) is not available in this build"
-                )
-            options: dict[str, Any] = {}
-            accepted = inspect.signature(refine).parameters
-            if "threads" in accepted:
-                options["threads"] = threads
-            if "progress" in accepted:
-                options["progress"] = progress
-            result = refine(
+            truth = None
+            if dataset.normal_gt is not None:
+                truth = dataset.normal_gt[dataset.mask]
+                if not np.all(np.linalg.norm(truth, axis=1) > 0.5):
+                    truth = None  # pixels without ground truth would read as 90-degree errors
+            result = reconstruct.refine_lights(
                 observations,
                 dataset.light_directions,
                 method=method,
                 iterations=refine_lights,
                 fixed_intensities=fixed_intensities,
                 valid=valid,
-                **options,
+                normal_gt=truth,
+                threads=threads,
+                progress=progress,
             )
             solution = result.solution
             refined_directions = np.asarray(result.light_directions, dtype=np.float64)
@@ -429,8 +424,13 @@ def reconstruct_to_folder(
             # relative intensity multiplies them.
             scale = np.asarray(result.light_intensities, dtype=np.float64).reshape(-1, 1)
             refined_intensities = dataset.light_intensities * scale
-            for step in result.history:
-                log.info("light refinement: %s", step)
+            for step in result.history[1:]:
+                log.info(
+                    "light refinement iteration %d: mean direction change %.3f deg (max %.3f)",
+                    step["iteration"],
+                    step.get("mean_direction_change_deg", float("nan")),
+                    step.get("max_direction_change_deg", float("nan")),
+                )
             extra["refinement"] = {"iterations": refine_lights, "history": list(result.history)}
         else:
             solution = reconstruct.solve(

@@ -90,11 +90,14 @@ def reconstruct(
             f"normal error vs ground truth: mean {errors['mean']:.2f} deg, "
             f"median {errors['median']:.2f} deg, p90 {errors['p90']:.2f} deg"
         )
-    history = metrics.get("refinement", {}).get("history") or []
-    if history:
-        change = history[-1].get("mean_direction_change_deg")
-        if change is not None:
-            typer.echo(f"light refinement: last mean direction change {change:.3f} deg")
+    for step in metrics.get("refinement", {}).get("history", [])[1:]:
+        line = (
+            f"light refinement {step['iteration']}: mean direction change "
+            f"{step['mean_direction_change_deg']:.3f} deg"
+        )
+        if step.get("normal_error_deg") is not None:
+            line += f", mean normal error {step['normal_error_deg']:.2f} deg"
+        typer.echo(line)
     typer.echo(f"results: {out}")
 
 
