@@ -59,7 +59,7 @@ class LightState:
 
 log = logging.getLogger(__name__)
 
-_ID_REPLY = re.compile(r"^(?:ID|READY) (\S+) (\d+) (\d+)$")
+_ID_REPLY = re.compile(r"^(?:ID|READY) ([!-~]+) ([0-9]+) ([0-9]+)$")
 _STATE_REPLY = re.compile(r"^STATE (?:NONE|\d+(?: \d+)*)$")
 
 
@@ -485,6 +485,18 @@ class SerialLightController(LightController):
                     f"no ps-lab light controller answers at {self.port_name} "
                     f"(is it the right port, flashed with rigs/firmware?): {exc}"
                 ) from None
-        self._check_identity(identity)
+        # A garbled identity and a different controller look alike in one reply: believe a wrong
+        # identity only when the controller says it twice.
+        for attempt in range(self._retries + 1):
+            try:
+                self._check_identity(identity)
+                break
+            except RigError:
+                if attempt == self._retries:
+                    raise
+                again = self._exchange("ID")
+                if again.split()[1:] == identity.split()[1:]:
+                    raise
+                identity = again
         self._configure()
         self._exchange("OFF")

@@ -362,9 +362,10 @@ class SimulatedFirmware:
                 self._log("ignored", line)
                 return Reply([])
             self.command_count += 1
-            fault = self._fault_for(self.command_count)
-            if fault is not None:
-                self._log("fault", f"{fault} at command {self.command_count}: {line}")
+            chosen = self._fault_for(self.command_count)
+            fault = None if chosen is None else chosen.kind
+            if chosen is not None:
+                self._log("fault", f"{chosen} at command {self.command_count}: {line}")
             if fault == "silence":
                 self.hung = True
                 self._log("ignored", line)
@@ -441,7 +442,7 @@ class SimulatedFirmware:
             for listener in self._listeners:
                 listener(state)
 
-    def _fault_for(self, count: int) -> str | None:
+    def _fault_for(self, count: int) -> Fault | None:
         chosen = None
         for fault in self.faults:
             if fault.at is not None:
@@ -449,7 +450,7 @@ class SimulatedFirmware:
             else:
                 hit = self._rng.random() < fault.probability  # draw for every fault: reproducible
             if hit and chosen is None:
-                chosen = fault.kind
+                chosen = fault
         return chosen
 
     def _garble(self, reply: str) -> str:
