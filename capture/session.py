@@ -500,14 +500,17 @@ class CaptureSession:
         report = progress or (lambda n=1, description=None: None)
         if self.complete:
             return CaptureResult(self.run_dir, len(self.plan.frames), 0, skipped, 0, 0.0)
-        self._prepare_folder()
+        # The rig is opened first: a wrong port or a dead controller writes nothing.
         try:
             opened = open_rig(self.rig)
         except PsLabError as exc:
-            raise type(exc)(f"{exc} ({self.status_line()})") from None
+            if not self.records:
+                raise
+            raise type(exc)(f"{exc}; {self.status_line()}") from None
         self.opened = opened
         frame: PlannedFrame | None = None
         try:
+            self._prepare_folder()
             if opened.simulation is not None:
                 self._write_simulation(opened)
             # Within session(), SIGTERM unwinds like Ctrl-C, so the lights go off either way.

@@ -327,12 +327,21 @@ def test_sigkill_at_a_random_frame_then_resume(tmp_path: Path, reference: dict) 
     assert frame_hashes(run) == reference
 
 
-def test_failed_setup_leaves_a_resumable_run(tmp_path: Path, reference: dict) -> None:
-    # The controller hangs on its first command: nothing is shot, but the folder is a run.
+def test_failed_setup_writes_nothing(tmp_path: Path) -> None:
+    # The controller hangs on its first command: the rig does not open, no run folder appears.
     faults = '[faults]\ncontroller = [{ kind = "silence", at = 1 }]\n'
     rig = load_rig(write_rig(tmp_path, faults=faults, name="hung.toml"))
     run = tmp_path / "run"
-    with pytest.raises(RigError, match="0 of 9 frames saved"):
+    with pytest.raises(RigError, match="no ps-lab light controller answers"):
+        CaptureSession(rig, run).run()
+    assert not run.exists()
+
+
+def test_stop_at_the_first_frame_leaves_a_resumable_run(tmp_path: Path, reference: dict) -> None:
+    faults = '[faults]\ncamera = [{ kind = "timeout", at = 1 }]\n'
+    rig = load_rig(write_rig(tmp_path, faults=faults, retries=0, name="slow.toml"))
+    run = tmp_path / "run"
+    with pytest.raises(CameraError, match="frame 0 \\(dark frame\\).*0 of 9 frames saved"):
         CaptureSession(rig, run).run()
     assert read_manifest(run)["frames"] == []
     CaptureSession(load_rig(write_rig(tmp_path)), run, resume=True).run()
