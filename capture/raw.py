@@ -186,6 +186,10 @@ def _read_with_rawpy(
         raise DatasetError(f"{path}: corrupt RAW file ({_libraw_message(exc)})") from None
     except OSError as exc:
         raise DatasetError(f"{path}: cannot read ({exc.strerror or exc})") from None
+    except (RuntimeError, ValueError) as exc:  # e.g. "RAW image is not flat" (LinearRaw DNG)
+        raise DatasetError(
+            f"{path}: unsupported RAW layout ({exc}); need a Bayer CFA mosaic"
+        ) from None
     if num_colors != 3 or blacks.shape != (4,):
         raise DatasetError(f"{path}: unsupported sensor ({num_colors} colours); need a Bayer CFA")
     return raw, colors, blacks, white, shutter

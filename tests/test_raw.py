@@ -162,3 +162,20 @@ def test_write_dng_rejects_bad_input(tmp_path, kwargs, mosaic):
     args = {"black_level": 512, "white_level": WHITE, **kwargs}
     with pytest.raises(ValueError):
         write_dng(tmp_path / "x.dng", mosaic, **args)
+
+
+def test_linear_raw_dng_is_rejected_clearly(tmp_path, rng):
+    import tifffile
+
+    rgb = rng.integers(0, 4000, (32, 32, 3)).astype(np.uint16)
+    identity = tuple(x for v in (1, 0, 0, 0, 1, 0, 0, 0, 1) for x in (v * 10000, 10000))
+    tags = [
+        (50706, "B", 4, (1, 4, 0, 0), True),
+        (50708, "s", 0, "demosaiced", True),
+        (50717, "I", 1, (4095,), True),
+        (50721, "2i", 9, identity, True),
+    ]
+    path = tmp_path / "linear.dng"
+    tifffile.imwrite(path, rgb, photometric=34892, metadata=None, extratags=tags)
+    with pytest.raises(DatasetError, match="linear.dng: unsupported RAW layout"):
+        load_raw(path)
