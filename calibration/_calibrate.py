@@ -332,7 +332,10 @@ def calibrate(
         else:
             hint = Circle(*map(float, matte_hint))  # type: ignore[arg-type]
             try:
-                matte_circle = refine_circle(summary, hint, search_px=max(8.0, 0.15 * hint.radius)).circle
+                # A matte sphere's limb is dim in the median (grazing shading); the maximum over
+                # frames shows it as a step.
+                bright = luma[np.linspace(0, n - 1, min(n, 24)).round().astype(int)].max(axis=0)
+                matte_circle = refine_circle(bright, hint, search_px=max(8.0, 0.15 * hint.radius)).circle
             except CalibrationError as exc:
                 warnings.append(f"matte sphere outline not refined ({exc}); using the rig's nominal circle")
                 matte_circle = hint

@@ -67,13 +67,16 @@ def light_directions_from_highlights(
             d = np.column_stack([x - px, -(y - py), np.full(np.shape(x), -f)])
             return d / np.linalg.norm(d, axis=1, keepdims=True)
 
+        # Unit sphere at distance D on the ray through the circle centre (angular radius atan(r/f)).
+        # Written with the perpendicular offset of the centre from each ray, which stays accurate
+        # for long focal lengths (no difference of two ~D-sized numbers).
         distance = 1.0 / np.sin(np.arctan(r / f))
-        centre = distance * ray(np.array([cx]), np.array([cy]))[0]
+        c_hat = ray(np.array([cx]), np.array([cy]))[0]
         d = ray(hl[:, 0], hl[:, 1])
-        dc = d @ centre
-        disc = np.clip(dc * dc - distance * distance + 1.0, 0.0, None)
-        t = dc - np.sqrt(disc)
-        normals = t[:, None] * d - centre
+        along = d @ c_hat
+        perp = distance * (c_hat[None, :] - along[:, None] * d)  # centre minus its foot on the ray
+        s = np.sqrt(np.clip(1.0 - np.sum(perp * perp, axis=1), 0.0, None))
+        normals = -perp - s[:, None] * d
         normals /= np.linalg.norm(normals, axis=1, keepdims=True)
         view = -d
     ndotv = np.sum(normals * view, axis=1, keepdims=True)
