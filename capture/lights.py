@@ -9,7 +9,7 @@ import signal
 import threading
 import time
 from abc import ABC, abstractmethod
-from collections.abc import Iterable, Iterator
+from collections.abc import Callable, Iterable, Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
 from typing import Any
@@ -26,6 +26,7 @@ __all__ = [
     "LightController",
     "LightState",
     "SerialLightController",
+    "walk_lights",
 ]
 
 PROTOCOL_NAME = "ps-lab-lights"
@@ -451,7 +452,7 @@ class SerialLightController(LightController):
             )
         if count != self._count:
             raise RigError(
-                f"light controller at {self.port_name} has {count} lights but the rig file lists {self._count}"
+                f"light controller at {self.port_name} has {count} lights, expected {self._count} (rig file or --lights)"
             )
 
     def _configure(self) -> None:
@@ -500,3 +501,38 @@ class SerialLightController(LightController):
                 identity = again
         self._configure()
         self._exchange("OFF")
+
+
+def walk_lights(
+    controller: LightController,
+    *,
+    dwell_s: float = 0.0,
+    progress: Callable[[int], None] | None = None,
+) -> None:
+    """Light each light alone, check that the controller reports exactly it, then switch off.
+
+    Parameters
+    ----------
+    controller : LightController
+    dwell_s : float
+        Seconds each light stays on (time for a person to look at the rig).
+    progress : callable, optional
+        Called with 1 after each light.
+
+    Raises
+    ------
+    RigError
+        When the controller reports other lights than the one switched on.
+    """
+    for light in range(1, controller.count + 1):
+        controller.switch(light)
+        reported = controller.state().lit
+        if reported != {light}:
+            controller.all_off()
+            shown = " ".join(map(str, sorted(reported))) or "none"
+            raise RigError(f"switched on light {light} but the controller reports lights {shown}")
+        if dwell_s > 0:
+            time.sleep(dwell_s)
+        if progress is not None:
+            progress(1)
+    controller.all_off()

@@ -56,6 +56,7 @@ __all__ = [
     "firmware_from_url",
     "parse_faults",
     "register_firmware",
+    "serve_simulator",
     "state_file_reader",
     "write_state_file",
 ]
@@ -721,3 +722,40 @@ class PtyServer:
         except BaseException as exc:  # surfaced by serve_forever
             self._error = exc
             log.exception("simulated light controller failed")
+
+
+def serve_simulator(
+    *,
+    lights: int = 24,
+    faults: Any = (),
+    seed: int = 0,
+    delay_s: float = 1.0,
+    state_file: Path | str | None = None,
+    on_ready: Callable[[PtyServer], None] | None = None,
+) -> None:
+    """Serve a simulated controller on a pty until Ctrl-C or SIGTERM, then stop cleanly.
+
+    ``on_ready(server)`` is called once the device path exists (to print it). The state file, if
+    any, is removed at the end, so a reader learns that the simulator is gone.
+    """
+    import signal
+
+    server = PtyServer(lights=lights, faults=faults, seed=seed, delay_s=delay_s, state_file=state_file)
+
+    def interrupt(signum: int, frame: object) -> None:
+        raise KeyboardInterrupt
+
+    previous = signal.signal(signal.SIGTERM, interrupt) if threading.current_thread() is threading.main_thread() else None
+    try:
+        with server:
+            if on_ready is not None:
+                on_ready(server)
+            try:
+                server.serve_forever()
+            except KeyboardInterrupt:
+                log.info("simulated light controller stopped")
+    finally:
+        if previous is not None:
+            signal.signal(signal.SIGTERM, previous)
+        if state_file is not None:
+            Path(state_file).unlink(missing_ok=True)

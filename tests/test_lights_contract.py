@@ -233,7 +233,7 @@ def test_context_in_another_thread_leaves_signal_handlers_alone(backend):
 # A wrong identity could be line noise: the driver believes it when the controller says it twice.
 @exchanges(handshake_=False, close=False, *[(b"ID\n", b"ID ps-lab-lights 1 24\n")] * 2)
 def test_light_count_must_match_the_rig(backend):
-    with pytest.raises(RigError, match="24 lights but the rig file lists 12"):
+    with pytest.raises(RigError, match=r"has 24 lights, expected 12"):
         backend.open(lights=12)
     if backend.firmware is not None:
         assert backend.firmware.commands() == ["ID", "ID"]

@@ -264,3 +264,59 @@ def test_url_options_reach_the_firmware():
     with pytest.raises(serial.SerialException, match="has 6 lights"):
         serial.serial_for_url(f"pslabsim://{name}?lights=8")
     port.close()
+
+
+# -- command line -------------------------------------------------------------------------------
+
+
+def test_serve_sim_serves_a_pty_until_sigterm(tmp_path):
+    import os
+    import select
+    import signal
+    import subprocess
+    import sys
+
+    from ps_lab.capture.sim_lights import state_file_reader
+
+    state_file = tmp_path / "lights.json"
+    process = subprocess.Popen(
+        [sys.executable, "-m", "ps_lab", "rig", "serve-sim", "--lights", "4", "--state-file", str(state_file),
+         "--fault", "garble@5"],
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+    )
+    try:
+        ready, _, _ = select.select([process.stdout], [], [], 30)
+        assert ready, "serve-sim printed no device path"
+        path = process.stdout.readline().strip()
+        assert path.startswith("/dev/") and os.path.exists(path)
+        read_state = state_file_reader(state_file)
+        with SerialLightController(path, 4, **FAST) as controller:
+            controller.switch(2)  # command 5: garbled reply, retried
+            assert read_state() == LightState(frozenset({2}), 255)
+        assert read_state().lit == frozenset()
+    finally:
+        process.send_signal(signal.SIGTERM)
+        _, err = process.communicate(timeout=30)
+    assert process.returncode == 0, err
+    assert not state_file.exists()
+    with pytest.raises(RigError, match="serve-sim"):
+        read_state()
+
+
+def test_rig_check_walks_every_light_and_reports_errors_in_one_line():
+    from typer.testing import CliRunner
+
+    from ps_lab.cli import app
+
+    name = f"check-{next(_names)}"
+    firmware = SimulatedFirmware(5, clock=ManualClock())
+    register_firmware(name, firmware)
+    result = CliRunner().invoke(app, ["rig", "check", "--port", f"pslabsim://{name}", "--lights", "5"])
+    assert result.exit_code == 0, result.output
+    assert "5 lights switched one by one" in result.output
+    assert [c for c in firmware.commands() if c.startswith("ON")] == [f"ON {i}" for i in range(1, 6)]
+    assert firmware.ended_safely()
+
+    result = CliRunner().invoke(app, ["rig", "check", "--port", f"pslabsim://{name}", "--lights", "6"])
+    assert result.exit_code == 2
+    assert "has 5 lights, expected 6" in result.output
