@@ -250,7 +250,9 @@ def comparable_snapshot(snapshot: Mapping[str, Any]) -> dict[str, Any]:
     return snap
 
 
-def snapshot_differences(old: Mapping[str, Any], new: Mapping[str, Any], prefix: str = "") -> list[str]:
+def snapshot_differences(
+    old: Mapping[str, Any], new: Mapping[str, Any], prefix: str = ""
+) -> list[str]:
     """List the dotted keys whose values differ between two JSON-like dicts."""
     diffs: list[str] = []
     for key in sorted(set(old) | set(new)):
@@ -309,7 +311,9 @@ class _Table:
                 raise self.error(key, f"unknown value {value!r} (choose from {', '.join(choices)})")
         return value
 
-    def int(self, key: str, default: Any = None, *, required: bool = False, lo=None, hi=None) -> Any:
+    def int(
+        self, key: str, default: Any = None, *, required: bool = False, lo=None, hi=None
+    ) -> Any:
         value = self._get(key, default, required)
         if key in self.data:
             if isinstance(value, bool) or not isinstance(value, int):
@@ -317,7 +321,9 @@ class _Table:
             self._range(key, value, lo, hi)
         return value
 
-    def float(self, key: str, default: Any = None, *, required: bool = False, lo=None, hi=None) -> Any:
+    def float(
+        self, key: str, default: Any = None, *, required: bool = False, lo=None, hi=None
+    ) -> Any:
         value = self._get(key, default, required)
         if key in self.data:
             if isinstance(value, bool) or not isinstance(value, int | float):
@@ -364,7 +370,10 @@ class _Table:
     def done(self) -> None:
         unknown = sorted(set(self.data) - self.used)
         if unknown:
-            raise self.error(unknown[0], "unknown key" + (f" (also: {', '.join(unknown[1:])})" if unknown[1:] else ""))
+            raise self.error(
+                unknown[0],
+                "unknown key" + (f" (also: {', '.join(unknown[1:])})" if unknown[1:] else ""),
+            )
 
     def _range(self, key: str, value: float, lo: float | None, hi: float | None) -> None:
         if lo is not None and value < lo:
@@ -409,6 +418,7 @@ def load_rig(path: str | Path) -> Rig:
     ------
     RigError
         The file is missing, not TOML, or has an unknown key or a value of the wrong type.
+
     """
     path = Path(path)
     try:
@@ -452,18 +462,31 @@ def parse_rig(data: Mapping[str, Any], *, origin: str = "<rig>", source: Path | 
     if camera.driver == "simulated" and scene is None:
         raise RigError(f"{origin}: the simulated camera needs a [scene] table")
     if camera.driver != "simulated" and scene is not None:
-        raise RigError(f"{origin}: [scene] only applies to a simulated camera (camera driver is {camera.driver!r})")
+        raise RigError(
+            f"{origin}: [scene] only applies to a simulated camera "
+            f"(camera driver is {camera.driver!r})"
+        )
     if camera.driver == "simulated" and camera.file_type != "dng":
         raise RigError(f"{origin}: [camera] file_type: the simulated camera writes 'dng' files")
-    if camera.driver == "simulated" and controller.driver == "serial" and camera.light_state_file is None:
+    if (
+        camera.driver == "simulated"
+        and controller.driver == "serial"
+        and camera.light_state_file is None
+    ):
         raise RigError(
-            f"{origin}: [camera] light_state_file: required when a simulated camera works with a serial "
+            f"{origin}: [camera] light_state_file: required when a simulated camera works with a "
+            "serial "
             "controller (the state file written by `ps-lab rig serve-sim --state-file`)"
         )
     if faults.controller and controller.driver != "simulated":
-        raise RigError(f"{origin}: [faults] controller: faults can only be injected into a simulated controller")
+        raise RigError(
+            f"{origin}: [faults] controller: faults can only be injected into a simulated "
+            "controller"
+        )
     if faults.camera and camera.driver != "simulated":
-        raise RigError(f"{origin}: [faults] camera: faults can only be injected into a simulated camera")
+        raise RigError(
+            f"{origin}: [faults] camera: faults can only be injected into a simulated camera"
+        )
     return Rig(
         name=name,
         description=description,
@@ -514,7 +537,13 @@ def _unit_vectors(t: _Table, key: str, count: int) -> tuple[tuple[float, float, 
 
 _CAMERA_KEYS = {
     "simulated": {
-        "black_level", "white_level", "gain", "read_noise_dn", "shot_noise", "dn_per_electron", "seed",
+        "black_level",
+        "white_level",
+        "gain",
+        "read_noise_dn",
+        "shot_noise",
+        "dn_per_electron",
+        "seed",
         "light_state_file",
     },
     "gphoto2": {"iso", "aperture", "port", "settings"},
@@ -525,7 +554,9 @@ _CAMERA_KEYS = {
 def _parse_camera(t: _Table) -> CameraConfig:
     driver = t.str("driver", required=True, choices=CAMERA_DRIVERS)
     for key in t.data:
-        other = {k for d, keys in _CAMERA_KEYS.items() if d != driver for k in keys} - _CAMERA_KEYS[driver]
+        other = {k for d, keys in _CAMERA_KEYS.items() if d != driver for k in keys} - _CAMERA_KEYS[
+            driver
+        ]
         if key in other:
             raise t.error(key, f"does not apply to the {driver!r} camera")
     cfg = CameraConfig(
@@ -605,8 +636,15 @@ def _parse_scene(t: _Table, n_lights: int) -> SceneConfig:
         )
         ot.done()
         cx, cy = obj.center
-        if cx - obj.radius < -0.5 or cy - obj.radius < -0.5 or cx + obj.radius > width - 0.5 or cy + obj.radius > height - 0.5:
-            raise ot.error("center", f"the {obj.kind} object does not fit in the {width}x{height} image")
+        if (
+            cx - obj.radius < -0.5
+            or cy - obj.radius < -0.5
+            or cx + obj.radius > width - 0.5
+            or cy + obj.radius > height - 0.5
+        ):
+            raise ot.error(
+                "center", f"the {obj.kind} object does not fit in the {width}x{height} image"
+            )
         objects.append(obj)
     if not objects:
         raise t.error("objects", "a scene needs at least one object")
@@ -624,11 +662,15 @@ def _parse_scene(t: _Table, n_lights: int) -> SceneConfig:
         )
         lt.done()
     t.done()
-    return SceneConfig(width=width, height=height, objects=tuple(objects), lights=lights, background=background)
+    return SceneConfig(
+        width=width, height=height, objects=tuple(objects), lights=lights, background=background
+    )
 
 
 def _parse_faults(t: _Table) -> FaultsConfig:
-    def faults(key: str, kinds: tuple[str, ...], unit: str, random_allowed: bool) -> tuple[Fault, ...]:
+    def faults(
+        key: str, kinds: tuple[str, ...], unit: str, random_allowed: bool
+    ) -> tuple[Fault, ...]:
         out = []
         for ft in t.tables(key):
             kind = ft.str("kind", required=True, choices=kinds)
@@ -660,7 +702,10 @@ def apply_overrides(rig: Rig, *, port: str | None = None, exposure_s: float | No
     controller, camera = rig.controller, rig.camera
     if port is not None:
         if controller.driver != "serial":
-            raise RigError(f"--port applies to a serial controller; this rig's controller is {controller.driver!r}")
+            raise RigError(
+                "--port applies to a serial controller; "
+                f"this rig's controller is {controller.driver!r}"
+            )
         controller = dataclasses.replace(controller, port=port)
     if exposure_s is not None:
         if not (math.isfinite(exposure_s) and exposure_s > 0):
@@ -676,6 +721,7 @@ def parse_light_selection(text: str, n_lights: int) -> tuple[int, ...]:
     ------
     RigError
         Bad syntax, an empty selection, or a light outside ``1..n_lights``.
+
     """
     chosen: set[int] = set()
     for part in text.split(","):
@@ -689,7 +735,9 @@ def parse_light_selection(text: str, n_lights: int) -> tuple[int, ...]:
             else:
                 first = last = int(part)
         except ValueError:
-            raise RigError(f"--lights {text!r}: {part!r} is not a number or a range like 1-24") from None
+            raise RigError(
+                f"--lights {text!r}: {part!r} is not a number or a range like 1-24"
+            ) from None
         if first > last:
             raise RigError(f"--lights {text!r}: range {part!r} runs backwards")
         if first < 1 or last > n_lights:
@@ -830,6 +878,7 @@ def open_rig(
     ------
     RigError, CameraError
         With a one-line reason (port missing, busy, permission denied, no handshake, ...).
+
     """
     opened = OpenRig(rig)
     try:
@@ -870,12 +919,17 @@ def _open_controller(rig: Rig, opened: OpenRig) -> Callable[[], Any] | None:
 
 def _make_firmware(sim_lights: Any, rig: Rig) -> Any:
     faults = [
-        {"kind": f.kind, "at": f.at} if f.at is not None else {"kind": f.kind, "probability": f.probability}
+        {"kind": f.kind, "at": f.at}
+        if f.at is not None
+        else {"kind": f.kind, "probability": f.probability}
         for f in rig.faults.controller
     ]
     # A delayed reply arrives well after the driver has given up on it.
     return sim_lights.SimulatedFirmware(
-        rig.n_lights, faults=faults, seed=rig.faults.seed, delay_s=max(0.2, 3.0 * rig.controller.timeout_s)
+        rig.n_lights,
+        faults=faults,
+        seed=rig.faults.seed,
+        delay_s=max(0.2, 3.0 * rig.controller.timeout_s),
     )
 
 
@@ -907,16 +961,22 @@ def _make_controller(lights: Any, port: str, rig: Rig) -> Any:
         # Name the two everyday causes in the lab's words rather than in errno's.
         text = str(exc)
         if "exclusively lock" in text or "Errno 11" in text or "Device or resource busy" in text:
-            raise RigError(f"serial port {port} is busy: another program has it open (close it and retry)") from None
+            raise RigError(
+                f"serial port {port} is busy: another program has it open (close it and retry)"
+            ) from None
         if "Errno 13" in text or "Permission denied" in text:
             raise RigError(_PERMISSION.format(port=port)) from None
         raise
 
 
-_PERMISSION = "permission denied opening serial port {port} (on Linux: add yourself to the 'dialout' group)"
+_PERMISSION = (
+    "permission denied opening serial port {port} (on Linux: add yourself to the 'dialout' group)"
+)
 
 
-def _render_lit(scene: Any, light_directions: np.ndarray, light_intensities: np.ndarray) -> np.ndarray:
+def _render_lit(
+    scene: Any, light_directions: np.ndarray, light_intensities: np.ndarray
+) -> np.ndarray:
     """Render ``scene`` under the lit lights; the dark frame (no light) passes no intensities."""
     from ps_lab.capture.render import render_scene
 
@@ -926,7 +986,10 @@ def _render_lit(scene: Any, light_directions: np.ndarray, light_intensities: np.
 
 
 def _open_camera(
-    rig: Rig, opened: OpenRig, light_state: Callable[[], Any] | None, prompt: Callable[[str], Any] | None
+    rig: Rig,
+    opened: OpenRig,
+    light_state: Callable[[], Any] | None,
+    prompt: Callable[[str], Any] | None,
 ) -> None:
     from ps_lab.capture import cameras
 

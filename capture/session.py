@@ -32,14 +32,13 @@ import re
 import signal
 import threading
 import time
-from collections.abc import Callable, Iterator, Sequence
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, field
 from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any, Protocol
 
 import numpy as np
-
 from ps_lab.capture.rig import (
     OpenRig,
     Rig,
@@ -48,6 +47,7 @@ from ps_lab.capture.rig import (
     open_rig,
     snapshot_differences,
 )
+
 from ps_lab.errors import CameraError, DatasetError, PsLabError, RigError
 
 log = logging.getLogger(__name__)
@@ -118,7 +118,9 @@ class CapturePlan:
         return {"lights": list(self.lights), "repeat": self.repeat}
 
 
-def make_plan(n_lights: int, lights: Sequence[int] | None, repeat: int, file_type: str) -> CapturePlan:
+def make_plan(
+    n_lights: int, lights: Sequence[int] | None, repeat: int, file_type: str
+) -> CapturePlan:
     """Build the frame list: frame 0 is the dark frame, then ``repeat`` frames per light.
 
     Parameters
@@ -131,6 +133,7 @@ def make_plan(n_lights: int, lights: Sequence[int] | None, repeat: int, file_typ
         Frames per light (averaged when the run is loaded).
     file_type : str
         File suffix of the frames, without the dot.
+
     """
     chosen = tuple(range(1, n_lights + 1)) if lights is None else tuple(int(i) for i in lights)
     if not chosen:
@@ -148,7 +151,13 @@ def make_plan(n_lights: int, lights: Sequence[int] | None, repeat: int, file_typ
         for r in range(repeat):
             i = len(frames)
             frames.append(
-                PlannedFrame(i, "light", (light,), r, f"{FRAMES_DIR}/{i:04d}-L{light:0{width}d}-r{r}.{file_type}")
+                PlannedFrame(
+                    i,
+                    "light",
+                    (light,),
+                    r,
+                    f"{FRAMES_DIR}/{i:04d}-L{light:0{width}d}-r{r}.{file_type}",
+                )
             )
     return CapturePlan(chosen, repeat, n_lights, file_type, tuple(frames))
 
@@ -209,6 +218,7 @@ def read_manifest(run_dir: Path) -> dict[str, Any]:
     ------
     DatasetError
         No manifest, not JSON, or not a ps-lab run manifest.
+
     """
     path = Path(run_dir) / MANIFEST_NAME
     try:
@@ -220,7 +230,10 @@ def read_manifest(run_dir: Path) -> dict[str, Any]:
     if not isinstance(manifest, dict) or manifest.get("format") != RUN_FORMAT:
         raise DatasetError(f"{path} is not a ps-lab run manifest")
     if manifest.get("version") != RUN_VERSION:
-        raise DatasetError(f"{path}: run format version {manifest.get('version')} (this ps-lab reads {RUN_VERSION})")
+        raise DatasetError(
+            f"{path}: run format version {manifest.get('version')} "
+            f"(this ps-lab reads {RUN_VERSION})"
+        )
     for key in ("rig", "camera_settings", "plan", "frames"):
         if key not in manifest:
             raise DatasetError(f"{path}: missing {key!r}")
@@ -321,6 +334,7 @@ class CaptureSession:
         Frames per light (default 1; a resumed run keeps its own).
     resume : bool
         Continue the run described by ``run_dir/manifest.json``.
+
     """
 
     def __init__(
@@ -353,10 +367,18 @@ class CaptureSession:
             if not run.is_dir():
                 raise DatasetError(f"output {run} exists and is not a folder")
             if (run / MANIFEST_NAME).exists():
-                raise DatasetError(f"{run} is already a capture run; add --resume to continue it or choose another --out")
+                raise DatasetError(
+                    f"{run} is already a capture run; "
+                    "add --resume to continue it or choose another --out"
+                )
             if any(run.iterdir()):
-                raise DatasetError(f"output folder {run} exists and is not a ps-lab run (not empty, no {MANIFEST_NAME})")
-        self.plan = make_plan(self.rig.n_lights, lights, 1 if repeat is None else repeat, self.rig.camera.file_type)
+                raise DatasetError(
+                    f"output folder {run} exists and is not a ps-lab run "
+                    f"(not empty, no {MANIFEST_NAME})"
+                )
+        self.plan = make_plan(
+            self.rig.n_lights, lights, 1 if repeat is None else repeat, self.rig.camera.file_type
+        )
         self.manifest = self._new_manifest()
 
     def _prepare_resume(self, lights: Sequence[int] | None, repeat: int | None) -> None:
@@ -369,9 +391,8 @@ class CaptureSession:
         diffs = snapshot_differences(comparable_snapshot(old_rig), comparable_snapshot(new_rig))
         if diffs:
             raise RigError(
-                f"cannot resume {run}: the rig changed since the run started ({', '.join(diffs[:4])}"
-                + (", ..." if len(diffs) > 4 else "")
-                + ")"
+                f"cannot resume {run}: the rig changed since the run started "
+                f"({', '.join(diffs[:4])}" + (", ..." if len(diffs) > 4 else "") + ")"
             )
         diffs = snapshot_differences(manifest["camera_settings"], self.rig.camera_settings())
         if diffs:
@@ -383,9 +404,13 @@ class CaptureSession:
         except (KeyError, TypeError, ValueError):
             raise DatasetError(f"{run / MANIFEST_NAME}: malformed plan") from None
         if lights is not None and list(lights) != old_lights:
-            raise RigError(f"cannot resume {run}: --lights differs from the run's plan ({_ranges(old_lights)})")
+            raise RigError(
+                f"cannot resume {run}: --lights differs from the run's plan ({_ranges(old_lights)})"
+            )
         if repeat is not None and repeat != old_repeat:
-            raise RigError(f"cannot resume {run}: --repeat {repeat} differs from the run's plan ({old_repeat})")
+            raise RigError(
+                f"cannot resume {run}: --repeat {repeat} differs from the run's plan ({old_repeat})"
+            )
         self.plan = make_plan(self.rig.n_lights, old_lights, old_repeat, self.rig.camera.file_type)
         frames = manifest["frames"]
         if not isinstance(frames, list) or len(frames) > len(self.plan.frames):
@@ -404,12 +429,18 @@ class CaptureSession:
             or record.get("kind") != planned.kind
             or list(record.get("lights", [])) != list(planned.lights)
         ):
-            raise DatasetError(f"{run / MANIFEST_NAME}: frame {planned.index} does not match the plan")
+            raise DatasetError(
+                f"{run / MANIFEST_NAME}: frame {planned.index} does not match the plan"
+            )
         path = run / planned.file
         if not path.is_file():
-            raise DatasetError(f"cannot resume {run}: frame file {planned.file} listed in the manifest is missing")
+            raise DatasetError(
+                f"cannot resume {run}: frame file {planned.file} listed in the manifest is missing"
+            )
         if _sha256(path) != record.get("sha256"):
-            raise DatasetError(f"cannot resume {run}: frame file {planned.file} changed since it was captured")
+            raise DatasetError(
+                f"cannot resume {run}: frame file {planned.file} changed since it was captured"
+            )
 
     def _new_manifest(self) -> dict[str, Any]:
         from ps_lab import __version__
@@ -453,11 +484,15 @@ class CaptureSession:
         lines = [
             f"rig {self.rig.name}: controller {self.rig.controller.driver}"
             + (f" on {self.rig.controller.port}" if self.rig.controller.port else "")
-            + f", {self.rig.n_lights} lights; camera {cam.driver}, exposure {cam.exposure_s:g} s, {cam.file_type}",
-            f"plan: dark frame + lights {_ranges(self.plan.lights)} x {self.plan.repeat} = {n} frames",
+            + f", {self.rig.n_lights} lights; camera {cam.driver}, "
+            + f"exposure {cam.exposure_s:g} s, {cam.file_type}",
+            f"plan: dark frame + lights {_ranges(self.plan.lights)} x {self.plan.repeat} "
+            f"= {n} frames",
         ]
         if self.records:
-            lines.append(f"resume: {len(self.records)} frames complete, {len(self.remaining)} to shoot")
+            lines.append(
+                f"resume: {len(self.records)} frames complete, {len(self.remaining)} to shoot"
+            )
         frames = self.remaining
         for frame in frames[:3]:
             lines.append(f"  {frame.index:4d}  {frame.label:<20s} -> {frame.file}")
@@ -493,6 +528,7 @@ class CaptureSession:
             message says which frame failed and how to continue.
         KeyboardInterrupt
             Ctrl-C: the same guarantees.
+
         """
         started = time.monotonic()
         skipped = len(self.records)
@@ -528,12 +564,19 @@ class CaptureSession:
             raise type(exc)(f"capture stopped at {where}: {exc}; {self.status_line()}") from None
         except OSError as exc:
             where = f"frame {frame.index} ({frame.label})" if frame is not None else "setup"
-            raise DatasetError(f"capture stopped at {where}: cannot write the run: {exc}; {self.status_line()}") from None
+            raise DatasetError(
+                f"capture stopped at {where}: cannot write the run: {exc}; {self.status_line()}"
+            ) from None
         finally:
             with _sigint_deferred():
                 self._shutdown(opened)
         return CaptureResult(
-            self.run_dir, len(self.plan.frames), captured, skipped, self.retries, time.monotonic() - started
+            self.run_dir,
+            len(self.plan.frames),
+            captured,
+            skipped,
+            self.retries,
+            time.monotonic() - started,
         )
 
     def _prepare_folder(self) -> None:
@@ -555,14 +598,15 @@ class CaptureSession:
         stray = run / (PARTIAL_PREFIX + MANIFEST_NAME)
         if stray.exists():
             stray.unlink()
-        self.manifest.setdefault("sessions", []).append({"started": _iso(time.time()), "resumed": self.resume})
+        self.manifest.setdefault("sessions", []).append(
+            {"started": _iso(time.time()), "resumed": self.resume}
+        )
         self.manifest["frames"] = self.records
         write_json_atomic(run / MANIFEST_NAME, self.manifest)
 
     def _write_simulation(self, opened: OpenRig) -> None:
         """Write the simulator's ground truth (normals, mask, true lights in plan order)."""
         import cv2
-
         from ps_lab.capture.render import scene_ground_truth
 
         sim = opened.simulation if opened.simulation is not None else build_simulation(self.rig)
@@ -577,7 +621,9 @@ class CaptureSession:
             raise DatasetError("cannot encode the ground-truth mask")
         write_bytes_atomic(folder / "mask.png", png.tobytes())
         write_bytes_atomic(folder / "light_directions_true.txt", _table(sim.light_directions[rows]))
-        write_bytes_atomic(folder / "light_intensities_true.txt", _table(sim.light_intensities[rows]))
+        write_bytes_atomic(
+            folder / "light_intensities_true.txt", _table(sim.light_intensities[rows])
+        )
 
     def _shoot(self, opened: OpenRig, frame: PlannedFrame) -> None:
         controller, camera = opened.controller, opened.camera
@@ -599,7 +645,9 @@ class CaptureSession:
                 lit = _lit(controller)
                 if lit != frozenset(frame.lights):
                     shown = " ".join(map(str, sorted(lit))) or "none"
-                    raise _LightLost(f"after the exposure the controller reports lights {shown} lit")
+                    raise _LightLost(
+                        f"after the exposure the controller reports lights {shown} lit"
+                    )
                 produced = Path(shot.path)
                 if produced != temp:
                     os.replace(produced, temp)
@@ -611,7 +659,9 @@ class CaptureSession:
                 if frame.kind == "light":
                     _lights_off(controller)  # a RigError here stops the run
                 if attempt == attempts:
-                    raise CameraError(f"{exc} (after {attempts} attempt{'s' if attempts > 1 else ''})") from None
+                    raise CameraError(
+                        f"{exc} (after {attempts} attempt{'s' if attempts > 1 else ''})"
+                    ) from None
                 self.retries += 1
                 log.warning("frame %d (%s): %s; shooting it again", frame.index, frame.label, exc)
         _fsync_file(temp)
@@ -673,5 +723,3 @@ def _npy_bytes(array: np.ndarray) -> bytes:
     buf = io.BytesIO()
     np.save(buf, array)
     return buf.getvalue()
-
-

@@ -73,19 +73,27 @@ def test_capture_dry_run_resume_and_nothing_to_do(tmp_path: Path) -> None:
 def test_capture_overrides_and_resume_refusal(tmp_path: Path) -> None:
     rig = write_rig(tmp_path)
     run = tmp_path / "run"
-    result = capture("--rig", str(rig), "--out", str(run), "--lights", "2", "--repeat", "2", "--exposure", "0.02")
+    result = capture(
+        "--rig", str(rig), "--out", str(run), "--lights", "2", "--repeat", "2", "--exposure", "0.02"
+    )
     assert result.exit_code == 0, result.output
     manifest = json.loads((run / "manifest.json").read_text())
     assert manifest["camera_settings"]["exposure_s"] == 0.02
     assert all(r["exposure_s"] == 0.02 for r in manifest["frames"])
     assert [r["repeat"] for r in manifest["frames"]] == [0, 0, 1]
     # Same rig but the file's exposure: the settings changed, so resume refuses.
-    assert_one_line_error(capture("--rig", str(rig), "--out", str(run), "--resume"), "camera.exposure_s")
     assert_one_line_error(
-        capture("--rig", str(rig), "--out", str(run), "--resume", "--exposure", "0.02", "--lights", "3"),
+        capture("--rig", str(rig), "--out", str(run), "--resume"), "camera.exposure_s"
+    )
+    assert_one_line_error(
+        capture(
+            "--rig", str(rig), "--out", str(run), "--resume", "--exposure", "0.02", "--lights", "3"
+        ),
         "--lights differs",
     )
-    assert_one_line_error(capture("--rig", str(rig), "--out", str(run), "--port", "/dev/null"), "--port applies")
+    assert_one_line_error(
+        capture("--rig", str(rig), "--out", str(run), "--port", "/dev/null"), "--port applies"
+    )
 
 
 def test_capture_stops_with_one_line_and_resumes(tmp_path: Path) -> None:
@@ -104,17 +112,26 @@ def test_capture_stops_with_one_line_and_resumes(tmp_path: Path) -> None:
 
 def test_bad_rig_files(tmp_path: Path) -> None:
     out = str(tmp_path / "run")
-    assert_one_line_error(capture("--rig", str(tmp_path / "missing.toml"), "--out", out), "does not exist")
+    assert_one_line_error(
+        capture("--rig", str(tmp_path / "missing.toml"), "--out", out), "does not exist"
+    )
     bad = tmp_path / "bad.toml"
     bad.write_text("[controller\n")
     assert_one_line_error(capture("--rig", str(bad), "--out", out), "not valid TOML")
     unknown = tmp_path / "unknown.toml"
-    unknown.write_text(write_rig(tmp_path).read_text().replace('driver = "simulated"', 'driver = "bluetooth"', 1))
-    assert_one_line_error(capture("--rig", str(unknown), "--out", out), "[controller] driver: unknown value 'bluetooth'")
+    unknown.write_text(
+        write_rig(tmp_path).read_text().replace('driver = "simulated"', 'driver = "bluetooth"', 1)
+    )
+    assert_one_line_error(
+        capture("--rig", str(unknown), "--out", out),
+        "[controller] driver: unknown value 'bluetooth'",
+    )
     typo = tmp_path / "typo.toml"
     typo.write_text(write_rig(tmp_path).read_text().replace("exposure_s", "exposure", 1))
     assert_one_line_error(capture("--rig", str(typo), "--out", out), "exposure")
-    assert_one_line_error(capture("--rig", str(write_rig(tmp_path)), "--out", out, "--lights", "0-3"), "--lights")
+    assert_one_line_error(
+        capture("--rig", str(write_rig(tmp_path)), "--out", out, "--lights", "0-3"), "--lights"
+    )
     assert not (tmp_path / "run").exists()
 
 
@@ -123,8 +140,12 @@ def test_output_folder_that_is_not_a_run(tmp_path: Path) -> None:
     other = tmp_path / "photos"
     other.mkdir()
     (other / "holiday.jpg").write_bytes(b"jpeg")
-    assert_one_line_error(capture("--rig", rig, "--out", str(other)), "exists and is not a ps-lab run")
-    assert_one_line_error(capture("--rig", rig, "--out", str(other), "--resume"), "not a capture run")
+    assert_one_line_error(
+        capture("--rig", rig, "--out", str(other)), "exists and is not a ps-lab run"
+    )
+    assert_one_line_error(
+        capture("--rig", rig, "--out", str(other), "--resume"), "not a capture run"
+    )
     a_file = tmp_path / "file.txt"
     a_file.write_text("x")
     assert_one_line_error(capture("--rig", rig, "--out", str(a_file)), "is not a folder")
@@ -153,7 +174,9 @@ def test_port_busy(tmp_path: Path) -> None:
     path = os.ttyname(slave)
     try:
         with serial.Serial(path, exclusive=True):  # another program holds the port
-            result = capture("--rig", str(serial_rig(tmp_path, path)), "--out", str(tmp_path / "run"))
+            result = capture(
+                "--rig", str(serial_rig(tmp_path, path)), "--out", str(tmp_path / "run")
+            )
         assert_one_line_error(result, "is busy")
     finally:
         os.close(master)
@@ -181,7 +204,9 @@ def test_permission_denied_simulated(tmp_path: Path, monkeypatch: pytest.MonkeyP
     assert_one_line_error(result, "permission denied")
 
 
-@pytest.mark.skipif(os.geteuid() == 0, reason="root ignores file modes; see test_permission_denied_simulated")
+@pytest.mark.skipif(
+    os.geteuid() == 0, reason="root ignores file modes; see test_permission_denied_simulated"
+)
 def test_permission_denied_by_file_mode(tmp_path: Path) -> None:
     port = tmp_path / "ttyFAKE"
     port.write_text("")
@@ -194,7 +219,9 @@ def test_no_controller_answers(tmp_path: Path) -> None:
     # A serial device with nothing behind it (the other end of a pty nobody serves).
     master, slave = os.openpty()
     try:
-        result = capture("--rig", str(serial_rig(tmp_path, os.ttyname(slave))), "--out", str(tmp_path / "run"))
+        result = capture(
+            "--rig", str(serial_rig(tmp_path, os.ttyname(slave))), "--out", str(tmp_path / "run")
+        )
     finally:
         os.close(master)
         os.close(slave)

@@ -8,7 +8,6 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-
 from ps_lab.capture.rig import (
     apply_overrides,
     build_simulation,
@@ -18,6 +17,7 @@ from ps_lab.capture.rig import (
     parse_light_selection,
     snapshot_differences,
 )
+
 from ps_lab.errors import RigError
 
 RIGS = Path(__file__).resolve().parents[1] / "rigs"
@@ -69,7 +69,10 @@ def test_simulated_rig_meets_the_demo_requirements() -> None:
     assert circle is not None
     assert circle.center == chrome[0].center and circle.radius == chrome[0].radius
     snap = rig.snapshot()
-    assert snap["calibration"]["chrome_sphere"] == {"center": list(circle.center), "radius": circle.radius}
+    assert snap["calibration"]["chrome_sphere"] == {
+        "center": list(circle.center),
+        "radius": circle.radius,
+    }
 
 
 def test_faulty_rig_injects_every_fault_kind_it_names() -> None:
@@ -85,8 +88,12 @@ def test_faulty_rig_injects_every_fault_kind_it_names() -> None:
         ('bogus = 1\n[controller]\ndriver = "simulated"\nlights = 4\n', "bogus"),
     ],
 )
-def test_unknown_keys_are_errors_naming_the_key_and_file(tmp_path: Path, patch: str, key: str) -> None:
-    text = MINIMAL.replace('name = "tiny"\n[controller]\ndriver = "simulated"\nlights = 4\n', "name = 'tiny'\n" + patch)
+def test_unknown_keys_are_errors_naming_the_key_and_file(
+    tmp_path: Path, patch: str, key: str
+) -> None:
+    text = MINIMAL.replace(
+        'name = "tiny"\n[controller]\ndriver = "simulated"\nlights = 4\n', "name = 'tiny'\n" + patch
+    )
     path = write(tmp_path, text)
     with pytest.raises(RigError, match=key) as info:
         load_rig(path)
@@ -108,17 +115,35 @@ def test_unknown_key_in_scene_object_and_fault(tmp_path: Path) -> None:
     [
         ("lights = 4", 'lights = "4"', r"\[controller\] lights: expected an integer, got a string"),
         ("lights = 4", "lights = 4.0", r"lights: expected an integer"),
-        ("exposure_s = 0.05", "exposure_s = true", r"\[camera\] exposure_s: expected a number, got a boolean"),
+        (
+            "exposure_s = 0.05",
+            "exposure_s = true",
+            r"\[camera\] exposure_s: expected a number, got a boolean",
+        ),
         ("exposure_s = 0.05", "exposure_s = -1.0", r"exposure_s: must be >="),
-        ("center = [32.0, 24.0]", "center = [32.0, 24.0, 1.0]", r"center: expected a list of 2 numbers"),
-        ('driver = "simulated"\nlights', 'driver = "usb"\nlights', r"\[controller\] driver: unknown value 'usb'"),
-        ('driver = "simulated"\nexposure_s', 'driver = "webcam"\nexposure_s', r"\[camera\] driver: unknown value"),
+        (
+            "center = [32.0, 24.0]",
+            "center = [32.0, 24.0, 1.0]",
+            r"center: expected a list of 2 numbers",
+        ),
+        (
+            'driver = "simulated"\nlights',
+            'driver = "usb"\nlights',
+            r"\[controller\] driver: unknown value 'usb'",
+        ),
+        (
+            'driver = "simulated"\nexposure_s',
+            'driver = "webcam"\nexposure_s',
+            r"\[camera\] driver: unknown value",
+        ),
         ("exposure_s = 0.05", "", r"\[camera\] exposure_s: missing"),
         ('kind = "sphere"', 'kind = "cube"', r"kind: unknown value 'cube'"),
         ("radius = 20.0", "radius = 40.0", r"does not fit"),
     ],
 )
-def test_wrong_values_are_errors_naming_the_key(tmp_path: Path, old: str, new: str, message: str) -> None:
+def test_wrong_values_are_errors_naming_the_key(
+    tmp_path: Path, old: str, new: str, message: str
+) -> None:
     assert old in MINIMAL
     path = write(tmp_path, MINIMAL.replace(old, new, 1))
     with pytest.raises(RigError, match=message):
@@ -143,7 +168,9 @@ def test_cross_checks(tmp_path: Path) -> None:
     with_port = serial.replace("lights = 4", 'lights = 4\nport = "/dev/ttyACM0"')
     with pytest.raises(RigError, match="light_state_file"):
         load_rig(write(tmp_path, with_port))
-    faulty = with_port.replace("exposure_s = 0.05", 'exposure_s = 0.05\nlight_state_file = "s.json"')
+    faulty = with_port.replace(
+        "exposure_s = 0.05", 'exposure_s = 0.05\nlight_state_file = "s.json"'
+    )
     faulty += "[[faults.controller]]\nkind = 'drop'\nat = 3\n"
     with pytest.raises(RigError, match="simulated controller"):
         load_rig(write(tmp_path, faulty))
@@ -164,7 +191,9 @@ def test_overrides(tmp_path: Path) -> None:
     assert changed.controller.port == "/dev/ttyUSB3" and changed.camera.exposure_s == 0.25
     assert rig.controller.port == "/dev/ttyACM0"  # frozen: the original is untouched
     # The port is a transport detail: a resumed run may use another one; the exposure is not.
-    diffs = snapshot_differences(comparable_snapshot(rig.snapshot()), comparable_snapshot(changed.snapshot()))
+    diffs = snapshot_differences(
+        comparable_snapshot(rig.snapshot()), comparable_snapshot(changed.snapshot())
+    )
     assert diffs == ["camera.exposure_s"]
     with pytest.raises(RigError, match="--exposure"):
         apply_overrides(rig, exposure_s=-1.0)
@@ -184,7 +213,8 @@ def test_light_selection() -> None:
 
 def test_simulation_is_seeded_and_follows_the_layout(tmp_path: Path) -> None:
     text = MINIMAL + (
-        "[scene.lights]\nseed = 5\nmax_zenith_deg = 40.0\nintensity_spread = 0.2\nnominal_error_deg = 3.0\n"
+        "[scene.lights]\nseed = 5\nmax_zenith_deg = 40.0\nintensity_spread = 0.2\n"
+        "nominal_error_deg = 3.0\n"
     )
     rig = load_rig(write(tmp_path, text))
     a, b = build_simulation(rig), build_simulation(rig)

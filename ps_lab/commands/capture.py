@@ -13,25 +13,35 @@ from ps_lab._cli_util import EXIT_INTERRUPTED, fail, lab_command, progress_bar
 @lab_command
 def capture(
     rig: Annotated[Path, typer.Option("--rig", help="Rig file (TOML), e.g. rigs/simulated.toml.")],
-    out: Annotated[Path, typer.Option("--out", help="Run folder to create (or to continue with --resume).")],
+    out: Annotated[
+        Path, typer.Option("--out", help="Run folder to create (or to continue with --resume).")
+    ],
     lights: Annotated[
         str | None,
         typer.Option("--lights", help="Lights to shoot, e.g. 1-24 or 1,3,5-9 (default: all)."),
     ] = None,
     repeat: Annotated[
-        int | None, typer.Option("--repeat", min=1, help="Frames per light, averaged when loaded (default 1).")
+        int | None,
+        typer.Option("--repeat", min=1, help="Frames per light, averaged when loaded (default 1)."),
     ] = None,
     resume: Annotated[
         bool, typer.Option("--resume", help="Continue the run in --out from its manifest.")
     ] = False,
     dry_run: Annotated[
-        bool, typer.Option("--dry-run", help="Check the rig (handshake, camera ready) and print the plan.")
+        bool,
+        typer.Option(
+            "--dry-run", help="Check the rig (handshake, camera ready) and print the plan."
+        ),
     ] = False,
     port: Annotated[
-        str | None, typer.Option("--port", help="Serial port of the light controller (overrides the rig file).")
+        str | None,
+        typer.Option(
+            "--port", help="Serial port of the light controller (overrides the rig file)."
+        ),
     ] = None,
     exposure: Annotated[
-        float | None, typer.Option("--exposure", help="Exposure time in seconds (overrides the rig file).")
+        float | None,
+        typer.Option("--exposure", help="Exposure time in seconds (overrides the rig file)."),
     ] = None,
     quiet: Annotated[bool, typer.Option("--quiet", "-q", help="No progress bar.")] = False,
 ) -> None:
