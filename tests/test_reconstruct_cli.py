@@ -252,6 +252,12 @@ def _break(kind: str, root: Path) -> tuple[Path, str]:
     if kind == "missing folder":
         return root / "nope", "nope"
     write_dataset(folder, n=6, shape=(12, 12))
+    if kind == "not a folder":
+        (root / "file.png").write_bytes(b"x")
+        return root / "file.png", "file.png"
+    if kind == "empty light file":
+        (folder / "light_directions.txt").write_text("# no rows\n")
+        return folder, "light_directions.txt"
     if kind == "no images":
         for p in folder.glob("*.png"):
             if p.name != "mask.png":
@@ -347,6 +353,8 @@ def _break(kind: str, root: Path) -> tuple[Path, str]:
 
 BAD_INPUTS = [
     "missing folder",
+    "not a folder",
+    "empty light file",
     "no images",
     "no light directions",
     "corrupt image",
