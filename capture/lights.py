@@ -415,12 +415,18 @@ class SerialLightController(LightController):
                         self._exchange("ON " + " ".join(str(i) for i in sorted(self._wanted)))
                     attempts -= 1
                     continue
-                if reply is not None and reply.startswith("ERR ") and reply[4:5].isdigit():
-                    raise RigError(f"light controller at {self.port_name} refused {command!r}: {reply}")
                 if reply is not None and self._reply_matches(command, reply):
                     self._reboots = 0
                     return reply
                 received.append("nothing" if reply is None else repr(reply))
+                # A validated command is refused only if the line was corrupted on its way (an
+                # ERR then is spurious, and the command idempotent) or the controller is wrong.
+                refused = reply is not None and reply.startswith("ERR ") and reply[4:5].isdigit()
+                if attempts > self._retries and refused:
+                    raise RigError(
+                        f"light controller at {self.port_name} refused {command!r} "
+                        f"{attempts} times: {reply}"
+                    )
                 if attempts > self._retries:
                     raise RigError(
                         f"light controller at {self.port_name}: no valid reply to {command!r} after "

@@ -180,13 +180,22 @@ def test_boot_announcement_answers_the_handshake():
         SerialLightController(port, 8, **FAST).close()
 
 
-def test_error_reply_is_not_retried_and_switches_off():
-    script = handshake(8) + [(b"ON 3\n", b"ERR 3 light out of range\n"), (b"OFF\n", b"OK OFF\n")] + CLOSE
+def test_error_reply_is_retried_then_raised_and_switches_off():
+    refused = (b"ON 3\n", b"ERR 3 light out of range\n")
+    script = handshake(8) + [refused] * 4 + [(b"OFF\n", b"OK OFF\n")] + CLOSE
     with expected_protocol(script) as port:
         controller = SerialLightController(port, 8, **FAST)
-        with pytest.raises(RigError, match="refused 'ON 3': ERR 3 light out of range"):
+        with pytest.raises(RigError, match="refused 'ON 3' 4 times: ERR 3 light out of range"):
             controller.switch(3)
         controller.close()
+
+
+def test_spurious_error_from_a_corrupted_command_is_retried():
+    # "OFF" with one flipped bit arrives as "OGF": the controller answers ERR 1.
+    script = handshake(8) + [(b"OFF\n", b"ERR 1 unknown command\n"), (b"OFF\n", b"OK OFF\n")] + CLOSE
+    with expected_protocol(script) as port:
+        with SerialLightController(port, 8, **FAST) as controller:
+            controller.all_off()
 
 
 @pytest.mark.parametrize(
