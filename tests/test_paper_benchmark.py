@@ -40,10 +40,17 @@ def _assert_orderings(results: bp.PaperResults) -> None:
     )
 
 
+# Methods that flag corrupted observations, so that the light re-fit can leave them out. LS flags
+# none: its re-fit uses the shadows and speculars too, and refinement is not expected to help it
+# (the paper refines with SBL); its rows are printed but not asserted.
+ROBUST = ("l1", "sbl", "rpca")
+
+
 def _assert_refinement_never_worse(results: bp.PaperResults) -> None:
     (table,) = [t for t in results.tables if isinstance(t, bp.RefinementTable)]
+    assert "sbl" in table.methods
     for scene in table.scenes:
-        for method in table.methods:
+        for method in (m for m in table.methods if m in ROBUST):
             before = table.normal_error[(scene, 0, method)]
             assert before > 0
             for k in table.iterations[1:]:
@@ -94,7 +101,7 @@ def test_tables_print_as_text_and_markdown(quick_results: bp.PaperResults) -> No
         ):
             header_cells = cells
         assert cells == header_cells
-    assert "ps-lab bench paper --size 48 --light-sets 2 --seed 0" in markdown
+    assert "ps-lab bench paper --quick --size 48 --light-sets 2 --seed 0" in markdown
     data = bp.results_as_dict(quick_results)
     assert data["tables"][0]["cells"]["sphere/40/sbl"]["mean"] == pytest.approx(
         quick_results.tables[0].cell("sphere", 40, "sbl").mean

@@ -21,13 +21,13 @@ bench_app = typer.Typer(
 @lab_command
 def paper(
     quick: Annotated[
-        bool, typer.Option("--quick", help="Reduced run for CI: 48x48 images, two light sets.")
+        bool, typer.Option("--quick", help="Reduced run for CI: 48x48 images, two light sets, no R-PCA.")
     ] = False,
     size: Annotated[
-        int | None, typer.Option(min=8, help="Image width and height in pixels (default 128).")
+        int | None, typer.Option(min=8, help="Image width and height in pixels (default 96; 48 with --quick).")
     ] = None,
     light_sets: Annotated[
-        int | None, typer.Option(min=1, help="Random light sets to average (default 5).")
+        int | None, typer.Option(min=1, help="Random light sets to average (default 5; 2 with --quick).")
     ] = None,
     seed: Annotated[int | None, typer.Option(help="Seed of the light sets (default 0).")] = None,
     tables: Annotated[
