@@ -947,6 +947,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--tables", default=None, help="tables to run, e.g. 1,3,4,5")
     parser.add_argument("--markdown", action="store_true", help="print Markdown instead of text")
     parser.add_argument("--json", default=None, help="also write the results to this JSON file")
+    parser.add_argument(
+        "--markdown-file", default=None, help="also write the Markdown tables to this file"
+    )
     args = parser.parse_args(argv)
     try:
         config = make_config(
@@ -960,6 +963,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         parser.error(str(exc))
     results = run_paper(config)
     print(format_markdown(results) if args.markdown else format_text(results))
+    if args.markdown_file:
+        with open(args.markdown_file, "w", encoding="utf-8") as fh:
+            fh.write(format_markdown(results) + "\n")
     if args.json:
         import json
 
