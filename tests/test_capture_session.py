@@ -331,12 +331,8 @@ def test_resume_refuses_changes(tmp_path: Path) -> None:
         CaptureSession(rig, run, resume=True)
 
 
-def test_sigkill_at_a_random_frame_then_resume(tmp_path: Path, reference: dict) -> None:
-    # settle_ms slows each light frame down so that the kill lands mid-run.
-    rig_path = write_rig(tmp_path, settle_ms=60)
-    run = tmp_path / "run"
-    k = int(np.random.default_rng(2012).integers(1, N_FRAMES - 1))
-    env = dict(os.environ, PYTHONUNBUFFERED="1")
+def signal_capture_at_frame(rig_path: Path, run: Path, k: int, signum: int) -> tuple[int, str]:
+    """Run ``ps-lab capture`` in a subprocess; send ``signum`` once the manifest lists k frames."""
     process = subprocess.Popen(
         [
             sys.executable,
@@ -350,12 +346,11 @@ def test_sigkill_at_a_random_frame_then_resume(tmp_path: Path, reference: dict) 
             "-q",
         ],
         stdout=subprocess.DEVNULL,
-        stderr=subprocess.DEVNULL,
-        env=env,
+        stderr=subprocess.PIPE,
+        text=True,
     )
     try:
         deadline = time.monotonic() + 60
-        frames = 0
         while time.monotonic() < deadline and process.poll() is None:
             try:
                 frames = len(json.loads((run / MANIFEST_NAME).read_text())["frames"])
@@ -364,15 +359,45 @@ def test_sigkill_at_a_random_frame_then_resume(tmp_path: Path, reference: dict) 
             if frames >= k:
                 break
             time.sleep(0.002)
-        assert process.poll() is None, "the capture finished before it could be killed"
-        os.kill(process.pid, signal.SIGKILL)
+        assert process.poll() is None, "the capture finished before the signal"
+        os.kill(process.pid, signum)
+        _, stderr = process.communicate(timeout=30)
     finally:
-        process.wait(timeout=30)
-    assert process.returncode == -signal.SIGKILL
+        if process.poll() is None:
+            process.kill()
+            process.wait()
+    return process.returncode, stderr
+
+
+def test_sigkill_at_a_random_frame_then_resume(tmp_path: Path, reference: dict) -> None:
+    # settle_ms slows each light frame down so that the kill lands mid-run.
+    rig_path = write_rig(tmp_path, settle_ms=60)
+    run = tmp_path / "run"
+    k = int(np.random.default_rng(2012).integers(1, N_FRAMES - 1))
+    returncode, _ = signal_capture_at_frame(rig_path, run, k, signal.SIGKILL)
+    assert returncode == -signal.SIGKILL
     manifest = assert_consistent(run)
     assert k <= len(manifest["frames"]) < N_FRAMES
     result = CaptureSession(load_rig(rig_path), run, resume=True).run()
     assert result.frames_skipped == len(manifest["frames"])
+    assert frame_hashes(run) == reference
+
+
+@pytest.mark.parametrize("signum", [signal.SIGINT, signal.SIGTERM])
+def test_ctrl_c_or_sigterm_stops_cleanly_then_resume(
+    tmp_path: Path, reference: dict, signum
+) -> None:
+    rig_path = write_rig(tmp_path, settle_ms=60)
+    run = tmp_path / "run"
+    k = int(np.random.default_rng(int(signum)).integers(1, N_FRAMES - 1))
+    returncode, stderr = signal_capture_at_frame(rig_path, run, k, signum)
+    assert returncode == 130, stderr
+    errors = [line for line in stderr.splitlines() if line.startswith("error:")]
+    assert len(errors) == 1 and "interrupted; lights off" in errors[0], stderr
+    assert "Traceback" not in stderr
+    manifest = assert_consistent(run)
+    assert f"{len(manifest['frames'])} of {N_FRAMES} frames saved" in errors[0]
+    CaptureSession(load_rig(rig_path), run, resume=True).run()
     assert frame_hashes(run) == reference
 
 
