@@ -37,6 +37,7 @@ class SerialLink:
     -----
     ``lock`` serialises whole exchanges (the driver holds it from send to reply); it is
     re-entrant so a re-handshake can run inside an exchange.
+
     """
 
     def __init__(self, port: Any, name: str) -> None:
@@ -50,7 +51,7 @@ class SerialLink:
             raise self._lost(exc) from exc
 
     def send(self, line: str) -> None:
-        """Write ``line`` plus ``\\n``."""
+        """Write ``line`` and a line feed."""
         log.debug("%s -> %s", self.name, line)
         try:
             self.port.write(line.encode("ascii") + b"\n")
@@ -58,7 +59,7 @@ class SerialLink:
             raise self._lost(exc) from exc
 
     def read_line(self, timeout: float) -> str | None:
-        """Return the next reply line (without terminator), or None if none ends within ``timeout`` s.
+        """Return the next reply line (no terminator), or None if none ends within ``timeout`` s.
 
         Bytes that are not ASCII (line noise) are decoded as U+FFFD, so they never match a reply.
         """
@@ -72,7 +73,9 @@ class SerialLink:
                 log.debug("%s <- %s", self.name, line)
                 return line
             if len(self._received) > MAX_REPLY:
-                log.debug("%s <- (noise, %d bytes without a line end)", self.name, len(self._received))
+                log.debug(
+                    "%s <- (noise, %d bytes without a line end)", self.name, len(self._received)
+                )
                 self._received.clear()
             if time.monotonic() >= deadline:
                 if self._received:

@@ -1,4 +1,4 @@
-"""Light controllers: the abstract base and the serial driver for protocol v1 (docs/rig-protocol.md)."""
+"""Light controllers: the abstract base and the protocol-v1 serial driver (docs/rig-protocol.md)."""
 
 from __future__ import annotations
 
@@ -15,8 +15,8 @@ from dataclasses import dataclass
 from typing import Any
 
 import serial
-
 from ps_lab.capture._serial_link import POLL_S, SerialLink
+
 from ps_lab.errors import RigError
 
 __all__ = [
@@ -52,6 +52,7 @@ class LightState:
         Lit lights, numbered 1..N.
     level : int
         PWM brightness of lit lights, 0-255.
+
     """
 
     lit: frozenset[int]
@@ -110,6 +111,7 @@ class LightController(ABC):
     ----------
     count : int
         Number of lights.
+
     """
 
     def __init__(self, count: int) -> None:
@@ -149,7 +151,11 @@ class LightController(ABC):
 
     def set_level(self, level: int) -> None:
         """Set the PWM brightness (0-255) of lit lights."""
-        if isinstance(level, bool) or not isinstance(level, numbers.Integral) or not 0 <= level <= MAX_LEVEL:
+        if (
+            isinstance(level, bool)
+            or not isinstance(level, numbers.Integral)
+            or not 0 <= level <= MAX_LEVEL
+        ):
             raise RigError(f"light level must be 0-{MAX_LEVEL}, not {level!r}")
         self._check_open()
         log.info("light level %d", level)
@@ -167,6 +173,7 @@ class LightController(ABC):
         ------
         RigError
             If switching off could not be confirmed (the port is closed all the same).
+
         """
         if self._closed:
             return
@@ -200,7 +207,9 @@ class LightController(ABC):
         self._interrupt_guard.__enter__()
         return self
 
-    def __exit__(self, exc_type: type[BaseException] | None, exc: BaseException | None, tb: object) -> None:
+    def __exit__(
+        self, exc_type: type[BaseException] | None, exc: BaseException | None, tb: object
+    ) -> None:
         guard = getattr(self, "_interrupt_guard", None)
         if guard is not None:
             self._interrupt_guard = None
@@ -210,7 +219,9 @@ class LightController(ABC):
             return
         try:
             self.close()
-        except Exception as close_error:  # the original exception matters more; keep both in the log
+        except (
+            Exception
+        ) as close_error:  # the original exception matters more; keep both in the log
             log.error("while handling %s: %s", exc_type.__name__, close_error)
 
     def _off_quietly(self) -> None:
@@ -230,13 +241,19 @@ class LightController(ABC):
         elif isinstance(lights, Iterable) and not isinstance(lights, str | bytes):
             items = list(lights)
         else:
-            raise RigError(f"lights are numbered 1-{self._count}; {lights!r} is not a light number or a set")
+            raise RigError(
+                f"lights are numbered 1-{self._count}; {lights!r} is not a light number or a set"
+            )
         chosen = set()
         for light in items:
             if isinstance(light, bool) or not isinstance(light, numbers.Integral):
-                raise RigError(f"lights are numbered 1-{self._count}; {light!r} is not a light number")
+                raise RigError(
+                    f"lights are numbered 1-{self._count}; {light!r} is not a light number"
+                )
             if not 1 <= light <= self._count:
-                raise RigError(f"light {light} is out of range: this rig has lights 1-{self._count}")
+                raise RigError(
+                    f"light {light} is out of range: this rig has lights 1-{self._count}"
+                )
             chosen.add(int(light))
         return frozenset(chosen)
 
@@ -291,6 +308,7 @@ class SerialLightController(LightController):
     RigError
         The port cannot be opened, nothing answers, or it is not a protocol-v1 controller with
         ``lights`` lights.
+
     """
 
     #: Reboots tolerated within one exchange (each costs a re-handshake).
@@ -311,7 +329,11 @@ class SerialLightController(LightController):
         super().__init__(lights)
         if isinstance(level, bool) or not isinstance(level, int) or not 0 <= level <= MAX_LEVEL:
             raise RigError(f"light level must be 0-{MAX_LEVEL}, not {level!r}")
-        if isinstance(watchdog_ms, bool) or not isinstance(watchdog_ms, int) or not 0 <= watchdog_ms <= 3_600_000:
+        if (
+            isinstance(watchdog_ms, bool)
+            or not isinstance(watchdog_ms, int)
+            or not 0 <= watchdog_ms <= 3_600_000
+        ):
             raise RigError(f"watchdog must be 0-3600000 ms, not {watchdog_ms!r}")
         if reply_timeout <= 0 or retries < 0 or boot_timeout < 0:
             raise RigError("reply_timeout must be > 0, retries and boot_timeout >= 0")
@@ -325,11 +347,15 @@ class SerialLightController(LightController):
         if isinstance(port, str):
             name = port
             try:
-                port = serial.serial_for_url(port, baudrate=baudrate, timeout=POLL_S, exclusive=True)
+                port = serial.serial_for_url(
+                    port, baudrate=baudrate, timeout=POLL_S, exclusive=True
+                )
             except (serial.SerialException, OSError, ValueError) as exc:
                 raise RigError(f"cannot open light controller port {name}: {exc}") from None
         else:
-            name = str(getattr(port, "portstr", None) or getattr(port, "port", None) or type(port).__name__)
+            name = str(
+                getattr(port, "portstr", None) or getattr(port, "port", None) or type(port).__name__
+            )
         self.port_name = name
         self._link = SerialLink(port, name)
         try:
@@ -345,7 +371,10 @@ class SerialLightController(LightController):
     def _do_switch(self, lights: frozenset[int]) -> None:
         command = "ON " + " ".join(str(i) for i in sorted(lights))
         if len(command) > MAX_LINE:
-            raise RigError(f"cannot light {len(lights)} lights at once: the command exceeds {MAX_LINE} characters")
+            raise RigError(
+                f"cannot light {len(lights)} lights at once: the command exceeds {MAX_LINE} "
+                "characters"
+            )
         self._wanted = lights
         self._command(command)
 
@@ -385,12 +414,14 @@ class SerialLightController(LightController):
                 self._link.send("OFF")
                 reply = self._link.read_line(self._reply_timeout)
                 if reply != "OK OFF":
-                    log.warning("%s: OFF after a failure not confirmed (received %r)", self.port_name, reply)
+                    log.warning(
+                        "%s: OFF after a failure not confirmed (received %r)", self.port_name, reply
+                    )
             except RigError as exc:
                 log.warning("%s: OFF after a failure failed: %s", self.port_name, exc)
 
     def _exchange(self, command: str) -> str:
-        """Send ``command``, return its checked reply; retry lost/garbled replies; survive reboots."""
+        """Send ``command``, return its checked reply; retry bad replies, survive reboots."""
         with self._link.lock:
             received: list[str] = []
             attempts = 0
@@ -408,7 +439,9 @@ class SerialLightController(LightController):
                             f"light controller at {self.port_name} keeps rebooting "
                             f"({self._reboots} times while sending {command!r})"
                         )
-                    log.warning("%s: controller rebooted (%r); handshaking again", self.port_name, reply)
+                    log.warning(
+                        "%s: controller rebooted (%r); handshaking again", self.port_name, reply
+                    )
                     self._check_identity(reply)
                     self._configure()
                     if self._wanted and command.split()[0] not in ("ON", "OFF"):
@@ -429,7 +462,8 @@ class SerialLightController(LightController):
                     )
                 if attempts > self._retries:
                     raise RigError(
-                        f"light controller at {self.port_name}: no valid reply to {command!r} after "
+                        f"light controller at {self.port_name}: no valid reply to {command!r} "
+                        f"after "
                         f"{attempts} attempts (received: {', '.join(received)})"
                     )
                 log.info("%s: retrying %r (received %s)", self.port_name, command, received[-1])
@@ -450,7 +484,9 @@ class SerialLightController(LightController):
             raise RigError(f"{self.port_name} is not a ps-lab light controller (it said {reply!r})")
         name, version, count = match.group(1), int(match.group(2)), int(match.group(3))
         if name != PROTOCOL_NAME:
-            raise RigError(f"{self.port_name} is not a ps-lab light controller (it says it is {name!r})")
+            raise RigError(
+                f"{self.port_name} is not a ps-lab light controller (it says it is {name!r})"
+            )
         if version != PROTOCOL_VERSION:
             raise RigError(
                 f"light controller at {self.port_name} speaks protocol version {version}; "
@@ -458,7 +494,8 @@ class SerialLightController(LightController):
             )
         if count != self._count:
             raise RigError(
-                f"light controller at {self.port_name} has {count} lights, expected {self._count} (rig file or --lights)"
+                f"light controller at {self.port_name} has {count} lights, expected {self._count} "
+                "(rig file or --lights)"
             )
 
     def _configure(self) -> None:
@@ -520,6 +557,7 @@ def walk_lights(
     Parameters
     ----------
     controller : LightController
+        An open controller.
     dwell_s : float
         Seconds each light stays on (time for a person to look at the rig).
     progress : callable, optional
@@ -529,6 +567,7 @@ def walk_lights(
     ------
     RigError
         When the controller reports other lights than the one switched on.
+
     """
     for light in range(1, controller.count + 1):
         controller.switch(light)

@@ -13,9 +13,15 @@ from __future__ import annotations
 import threading
 import time
 
+from ps_lab.capture.sim_lights import (
+    LineAssembler,
+    Reply,
+    SimulatedFirmware,
+    _Outbox,
+    firmware_from_url,
+)
 from serial.serialutil import PortNotOpenError, SerialBase, SerialException, SerialTimeoutException
 
-from ps_lab.capture.sim_lights import LineAssembler, Reply, SimulatedFirmware, _Outbox, firmware_from_url
 from ps_lab.errors import RigError
 
 
@@ -89,7 +95,9 @@ class Serial(SerialBase):
         while True:
             with self._lock:
                 self._pump()
-                if len(self._received) >= size or (deadline is not None and time.monotonic() >= deadline):
+                if len(self._received) >= size or (
+                    deadline is not None and time.monotonic() >= deadline
+                ):
                     data = bytes(self._received[:size])
                     del self._received[:size]
                     return data
@@ -109,7 +117,7 @@ class Serial(SerialBase):
         return len(data)
 
     def reset_input_buffer(self) -> None:
-        """Discard received bytes that were not read yet (replies still in flight stay in flight)."""
+        """Discard received bytes not yet read (replies still in flight stay in flight)."""
         if not self.is_open:
             raise PortNotOpenError()
         with self._lock:
@@ -127,7 +135,7 @@ class Serial(SerialBase):
         return 0
 
     def flush(self) -> None:
-        """Writes are delivered immediately."""
+        """Do nothing: writes are delivered immediately."""
 
     def _update_break_state(self) -> None:
         pass

@@ -41,6 +41,7 @@ from ps_lab.capture.lights import (
     PROTOCOL_VERSION,
     LightState,
 )
+
 from ps_lab.errors import RigError
 
 __all__ = [
@@ -92,6 +93,7 @@ class Fault:
         Fire at this 1-based command count (the N-th command line the controller receives).
     probability : float
         Otherwise, fire at each command with this probability (seeded generator).
+
     """
 
     kind: str
@@ -100,14 +102,26 @@ class Fault:
 
     def __post_init__(self) -> None:
         if self.kind not in FAULT_KINDS:
-            raise RigError(f"unknown fault kind {self.kind!r}; choose from {', '.join(FAULT_KINDS)}")
+            raise RigError(
+                f"unknown fault kind {self.kind!r}; choose from {', '.join(FAULT_KINDS)}"
+            )
         if self.at is None and not 0.0 < self.probability <= 1.0:
-            raise RigError(f"fault {self.kind!r} needs 'at' (command number) or 'probability' in (0, 1]")
-        if self.at is not None and (isinstance(self.at, bool) or not isinstance(self.at, int) or self.at < 1):
-            raise RigError(f"fault {self.kind!r}: 'at' must be a command number >= 1, got {self.at!r}")
+            raise RigError(
+                f"fault {self.kind!r} needs 'at' (command number) or 'probability' in (0, 1]"
+            )
+        if self.at is not None and (
+            isinstance(self.at, bool) or not isinstance(self.at, int) or self.at < 1
+        ):
+            raise RigError(
+                f"fault {self.kind!r}: 'at' must be a command number >= 1, got {self.at!r}"
+            )
 
     def __str__(self) -> str:
-        return f"{self.kind}@{self.at}" if self.at is not None else f"{self.kind}@p{self.probability:g}"
+        return (
+            f"{self.kind}@{self.at}"
+            if self.at is not None
+            else f"{self.kind}@p{self.probability:g}"
+        )
 
 
 _FAULT_TEXT = re.compile(r"^\s*([a-z]+)\s*@\s*(p?)([0-9.eE+-]+)\s*$")
@@ -126,6 +140,7 @@ def parse_faults(spec: Any) -> tuple[Fault, ...]:
     Returns
     -------
     tuple of Fault
+
     """
     if spec is None or spec == "":
         return ()
@@ -136,7 +151,10 @@ def parse_faults(spec: Any) -> tuple[Fault, ...]:
         for item in filter(None, (part.strip() for part in spec.split(","))):
             match = _FAULT_TEXT.match(item)
             if match is None:
-                raise RigError(f"cannot read fault {item!r}: write KIND@N or KIND@pP (e.g. garble@7, drop@p0.1)")
+                raise RigError(
+                    f"cannot read fault {item!r}: write KIND@N or KIND@pP "
+                    "(e.g. garble@7, drop@p0.1)"
+                )
             kind, is_probability, number = match.groups()
             try:
                 if is_probability:
@@ -149,7 +167,10 @@ def parse_faults(spec: Any) -> tuple[Fault, ...]:
     if isinstance(spec, Mapping):
         unknown = set(spec) - {"kind", "at", "probability"}
         if unknown:
-            raise RigError(f"unknown key {sorted(unknown)[0]!r} in fault {dict(spec)!r} (kind, at, probability)")
+            raise RigError(
+                f"unknown key {sorted(unknown)[0]!r} in fault {dict(spec)!r} "
+                "(kind, at, probability)"
+            )
         if "kind" not in spec:
             raise RigError(f"fault {dict(spec)!r} has no 'kind'")
         probability = spec.get("probability", 0.0)
@@ -171,6 +192,7 @@ class Reply:
         Reply lines without terminator (characters 0-255; a garbled reply may hold non-ASCII).
     delay_s : float
         Seconds after which the transport delivers them.
+
     """
 
     lines: list[str]
@@ -202,6 +224,7 @@ class ManualClock:
         self._lock = threading.Lock()
 
     def __call__(self) -> float:
+        """Return the time in seconds."""
         with self._lock:
             return self._ms / 1000.0
 
@@ -239,7 +262,7 @@ class SimulatedFirmware:
     seed : int
         Seeds probabilistic faults and the bits a garbled reply flips.
     delay_s : float
-        How late a ``delay`` fault delivers its reply (seconds; choose it past the driver's timeout).
+        How late a ``delay`` fault delivers its reply (seconds; longer than the driver's timeout).
     clock : callable returning seconds
         Drives the watchdog (default :func:`time.monotonic`; :class:`ManualClock` in tests).
 
@@ -247,6 +270,7 @@ class SimulatedFirmware:
     -----
     Thread-safe. :meth:`handle_line` is the pure protocol (fault injection applied, delays not);
     transports call :meth:`respond`, which also says how late to deliver the reply.
+
     """
 
     def __init__(
@@ -301,7 +325,7 @@ class SimulatedFirmware:
         return [entry.text for entry in self.log if entry.kind == "command"]
 
     def ended_safely(self) -> bool:
-        """Whether nothing is lit and the last thing the controller did was an ``OFF`` or its watchdog.
+        """Return whether nothing is lit and the last event was an ``OFF`` or the watchdog.
 
         This is the safety property every driver path must leave behind.
         """
@@ -523,7 +547,8 @@ def firmware_from_url(url: str) -> tuple[str, SimulatedFirmware]:
         if existing is not None:
             if lights is not None and lights != existing.lights:
                 raise RigError(
-                    f"simulated controller {name!r} has {existing.lights} lights, the URL asks for {lights}"
+                    f"simulated controller {name!r} has {existing.lights} lights, "
+                    f"the URL asks for {lights}"
                 )
             return name, existing
         firmware = SimulatedFirmware(
@@ -563,7 +588,9 @@ def state_file_reader(path: Path | str) -> Callable[[], LightState]:
             lit = frozenset(int(i) for i in data["lit"])
             level = int(data["level"])
         except FileNotFoundError:
-            raise RigError(f"light state file {path} does not exist: is `ps-lab rig serve-sim` running?") from None
+            raise RigError(
+                f"light state file {path} does not exist: is `ps-lab rig serve-sim` running?"
+            ) from None
         except (OSError, ValueError, KeyError, TypeError) as exc:
             raise RigError(f"cannot read light state file {path}: {exc}") from None
         return LightState(lit, level)
@@ -595,13 +622,13 @@ class _Outbox:
 
 
 class LineAssembler:
-    """Split a byte stream into lines for the firmware (bounded: an endless line cannot eat memory)."""
+    """Split a byte stream into lines for the firmware (bounded: endless lines eat no memory)."""
 
     def __init__(self) -> None:
         self._buffer = bytearray()
 
     def feed(self, data: bytes) -> list[str]:
-        """Add received bytes; return the complete lines (without ``\\n``)."""
+        """Add received bytes; return the complete lines (without line feeds)."""
         # Carriage returns are ignored wherever they are; a line is cut at MAX_LINE + 1
         # characters, which is enough to know it is too long.
         self._buffer += data.replace(b"\r", b"")
@@ -616,7 +643,8 @@ class PtyServer:
     Parameters
     ----------
     firmware : SimulatedFirmware, optional
-        The controller to serve (default: a new one from ``lights``, ``faults``, ``seed``, ``delay_s``).
+        The controller to serve (default: a new one from ``lights``, ``faults``, ``seed``,
+        ``delay_s``).
     state_file : path, optional
         Publish the light state there (atomically) on every change, for a camera in another process.
 
@@ -624,6 +652,7 @@ class PtyServer:
     --------
     >>> with PtyServer(lights=24) as server:          # doctest: +SKIP
     ...     controller = SerialLightController(server.path, lights=24)
+
     """
 
     def __init__(
@@ -636,8 +665,10 @@ class PtyServer:
         delay_s: float = 1.0,
         state_file: Path | str | None = None,
     ) -> None:
-        self.firmware = firmware if firmware is not None else SimulatedFirmware(
-            lights, faults=faults, seed=seed, delay_s=delay_s
+        self.firmware = (
+            firmware
+            if firmware is not None
+            else SimulatedFirmware(lights, faults=faults, seed=seed, delay_s=delay_s)
         )
         self.state_file = Path(state_file) if state_file is not None else None
         self.path: str | None = None
@@ -662,7 +693,9 @@ class PtyServer:
         self._stop.clear()
         outbox = _Outbox()
         outbox.add(Reply([self.firmware.reboot()]))
-        self._thread = threading.Thread(target=self._serve, args=(outbox,), name="ps-lab-pty-sim", daemon=True)
+        self._thread = threading.Thread(
+            target=self._serve, args=(outbox,), name="ps-lab-pty-sim", daemon=True
+        )
         self._thread.start()
         log.info("simulated light controller (%d lights) on %s", self.firmware.lights, self.path)
         return self
@@ -740,12 +773,18 @@ def serve_simulator(
     """
     import signal
 
-    server = PtyServer(lights=lights, faults=faults, seed=seed, delay_s=delay_s, state_file=state_file)
+    server = PtyServer(
+        lights=lights, faults=faults, seed=seed, delay_s=delay_s, state_file=state_file
+    )
 
     def interrupt(signum: int, frame: object) -> None:
         raise KeyboardInterrupt
 
-    previous = signal.signal(signal.SIGTERM, interrupt) if threading.current_thread() is threading.main_thread() else None
+    previous = (
+        signal.signal(signal.SIGTERM, interrupt)
+        if threading.current_thread() is threading.main_thread()
+        else None
+    )
     try:
         with server:
             if on_ready is not None:

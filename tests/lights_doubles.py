@@ -1,4 +1,4 @@
-"""Test double for the light controller's transport: replay exact byte exchanges (PyMeasure's pattern).
+"""Test double for the light controller's port: replay exact byte exchanges (PyMeasure's way).
 
 ``expected_protocol([(b"ON 3\\n", b"OK ON 3\\n"), ...])`` yields a pyserial-like port. Each write
 must continue the next expected request exactly; when a request is complete its reply becomes
@@ -18,7 +18,9 @@ import pytest
 LIGHTS = 24
 
 
-def handshake(lights: int = LIGHTS, *, watchdog_ms: int = 10000, level: int = 255) -> list[tuple[bytes, bytes]]:
+def handshake(
+    lights: int = LIGHTS, *, watchdog_ms: int = 10000, level: int = 255
+) -> list[tuple[bytes, bytes]]:
     """The exchanges SerialLightController makes on open, answered by a healthy controller."""
     return [
         (b"ID\n", f"ID ps-lab-lights 1 {lights}\n".encode()),

@@ -9,7 +9,6 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import pytest
-
 from ps_lab.capture.sim_lights import LineAssembler, ManualClock, SimulatedFirmware
 
 FIRMWARE = Path(__file__).resolve().parents[1] / "rigs" / "firmware"
@@ -78,7 +77,9 @@ def run_python_simulator(vectors: list[Vector]) -> list[str]:
             ]
         expected = [] if vector.reply is None else [vector.reply]
         if replies != expected:
-            failures.append(f"line {vector.line}: sent {vector.command!r}, expected {expected}, got {replies}")
+            failures.append(
+                f"line {vector.line}: sent {vector.command!r}, expected {expected}, got {replies}"
+            )
     return failures
 
 
@@ -114,9 +115,22 @@ def host_runner(tmp_path_factory) -> Path:
         pytest.skip("g++ is not installed: cannot build the firmware core for the host")
     binary = tmp_path_factory.mktemp("firmware") / "host_test"
     build = subprocess.run(
-        [compiler, "-std=c++11", "-Wall", "-Wextra", "-Werror", "-pedantic", f"-I{CORE}",
-         str(CORE / "protocol_core.cpp"), str(FIRMWARE / "host" / "host_test.cpp"), "-o", str(binary)],
-        capture_output=True, text=True, timeout=120,
+        [
+            compiler,
+            "-std=c++11",
+            "-Wall",
+            "-Wextra",
+            "-Werror",
+            "-pedantic",
+            f"-I{CORE}",
+            str(CORE / "protocol_core.cpp"),
+            str(FIRMWARE / "host" / "host_test.cpp"),
+            "-o",
+            str(binary),
+        ],
+        capture_output=True,
+        text=True,
+        timeout=120,
     )
     assert build.returncode == 0, build.stderr
     return binary

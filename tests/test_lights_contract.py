@@ -16,9 +16,9 @@ import threading
 
 import pytest
 from lights_doubles import CLOSE, LIGHTS, ExpectedProtocolPort, expected_protocol, handshake
-
 from ps_lab.capture.lights import LightState, SerialLightController
 from ps_lab.capture.sim_lights import ManualClock, PtyServer, SimulatedFirmware, firmware_for
+
 from ps_lab.errors import RigError
 
 TIMEOUT = dict(reply_timeout=0.2, boot_timeout=0.2, retries=2)
@@ -29,7 +29,9 @@ def exchanges(*pairs: tuple[bytes, bytes], handshake_: bool = True, close: bool 
     """Declare the bytes a test exchanges (enforced by the double, answered by the simulators)."""
 
     def mark(test):
-        test.exchanges = (handshake() if handshake_ else []) + list(pairs) + (CLOSE if close else [])
+        test.exchanges = (
+            (handshake() if handshake_ else []) + list(pairs) + (CLOSE if close else [])
+        )
         return test
 
     return mark
@@ -231,7 +233,7 @@ def test_context_in_another_thread_leaves_signal_handlers_alone(backend):
 
 
 # A wrong identity could be line noise: the driver believes it when the controller says it twice.
-@exchanges(handshake_=False, close=False, *[(b"ID\n", b"ID ps-lab-lights 1 24\n")] * 2)
+@exchanges(*[(b"ID\n", b"ID ps-lab-lights 1 24\n")] * 2, handshake_=False, close=False)
 def test_light_count_must_match_the_rig(backend):
     with pytest.raises(RigError, match=r"has 24 lights, expected 12"):
         backend.open(lights=12)

@@ -12,7 +12,6 @@ import itertools
 import pytest
 import serial
 from lights_doubles import CLOSE, expected_protocol, handshake
-
 from ps_lab.capture.lights import LightState, SerialLightController
 from ps_lab.capture.sim_lights import (
     Fault,
@@ -24,6 +23,7 @@ from ps_lab.capture.sim_lights import (
     parse_faults,
     register_firmware,
 )
+
 from ps_lab.errors import RigError
 
 FIRST = 5  # number of the first command after the handshake
@@ -34,7 +34,9 @@ _names = itertools.count()
 def open_sim(faults, *, lights=8, delay_s=0.3, seed=0, **options):
     """A controller on a fresh in-process simulator with a manual watchdog clock."""
     name = f"faults-{next(_names)}"
-    firmware = SimulatedFirmware(lights, faults=faults, seed=seed, delay_s=delay_s, clock=ManualClock())
+    firmware = SimulatedFirmware(
+        lights, faults=faults, seed=seed, delay_s=delay_s, clock=ManualClock()
+    )
     register_firmware(name, firmware)
     return SerialLightController(f"pslabsim://{name}", lights, **{**FAST, **options}), firmware
 
@@ -79,7 +81,9 @@ def test_reboot_while_lit_restores_the_lit_lights_and_level():
 
 def test_controller_that_stops_answering_raises_and_its_watchdog_switches_off():
     controller, firmware = open_sim("silence@6", watchdog_ms=2000)
-    with pytest.raises(RigError, match=r"no valid reply to 'ON 4' after 4 attempts \(received: nothing"):
+    with pytest.raises(
+        RigError, match=r"no valid reply to 'ON 4' after 4 attempts \(received: nothing"
+    ):
         with controller:
             controller.switch(3)
             controller.switch(4)
@@ -99,7 +103,9 @@ def test_persistent_fault_raises_after_bounded_retries_then_switches_off(kind):
         controller.switch(5)
     message = str(info.value)
     assert "'ON 5'" in message and "after 4 attempts" in message
-    assert "nothing" in message if kind in ("drop", "delay") else "'" in message.split("received:")[1]
+    assert (
+        "nothing" in message if kind in ("drop", "delay") else "'" in message.split("received:")[1]
+    )
     # The emergency OFF right after the failure is the last command the controller executed.
     assert firmware.commands()[-1] == "OFF"
     assert firmware.ended_safely()
@@ -129,7 +135,9 @@ def test_probabilistic_faults_are_survived_and_reproducible():
 
 
 def test_faults_over_the_pty():
-    firmware = SimulatedFirmware(8, faults=[{"kind": "garble", "at": 1}, {"kind": "reboot", "at": 6}])
+    firmware = SimulatedFirmware(
+        8, faults=[{"kind": "garble", "at": 1}, {"kind": "reboot", "at": 6}]
+    )
     with PtyServer(firmware) as server:
         with SerialLightController(server.path, 8, **FAST) as controller:
             controller.switch(1)
@@ -162,12 +170,16 @@ def test_lost_reply_is_resent_byte_for_byte():
 
 
 def test_stale_reply_is_rejected_and_the_command_resent():
-    script = handshake(8) + [
-        (b"ON 3\n", b""),
-        (b"ON 3\n", b"OK ON 3\n"),
-        (b"ON 4\n", b"OK ON 3\n"),  # the late reply to the first ON 3 arrives now
-        (b"ON 4\n", b"OK ON 4\n"),
-    ] + CLOSE
+    script = (
+        handshake(8)
+        + [
+            (b"ON 3\n", b""),
+            (b"ON 3\n", b"OK ON 3\n"),
+            (b"ON 4\n", b"OK ON 3\n"),  # the late reply to the first ON 3 arrives now
+            (b"ON 4\n", b"OK ON 4\n"),
+        ]
+        + CLOSE
+    )
     with expected_protocol(script) as port:
         with SerialLightController(port, 8, **FAST) as controller:
             controller.switch(3)
@@ -192,7 +204,9 @@ def test_error_reply_is_retried_then_raised_and_switches_off():
 
 def test_spurious_error_from_a_corrupted_command_is_retried():
     # "OFF" with one flipped bit arrives as "OGF": the controller answers ERR 1.
-    script = handshake(8) + [(b"OFF\n", b"ERR 1 unknown command\n"), (b"OFF\n", b"OK OFF\n")] + CLOSE
+    script = (
+        handshake(8) + [(b"OFF\n", b"ERR 1 unknown command\n"), (b"OFF\n", b"OK OFF\n")] + CLOSE
+    )
     with expected_protocol(script) as port:
         with SerialLightController(port, 8, **FAST) as controller:
             controller.all_off()
@@ -232,7 +246,9 @@ def test_double_fails_on_unexpected_bytes():
 
 
 def test_missing_port_is_a_rig_error():
-    with pytest.raises(RigError, match="cannot open light controller port /dev/ps-lab-no-such-port"):
+    with pytest.raises(
+        RigError, match="cannot open light controller port /dev/ps-lab-no-such-port"
+    ):
         SerialLightController("/dev/ps-lab-no-such-port", 8, **FAST)
 
 
@@ -246,7 +262,10 @@ def test_busy_port_is_a_rig_error():
 def test_fault_specifications_in_every_form():
     expected = (Fault("garble", at=7), Fault("drop", probability=0.25))
     assert parse_faults("garble@7, drop@p0.25") == expected
-    assert parse_faults([{"kind": "garble", "at": 7}, {"kind": "drop", "probability": 0.25}]) == expected
+    assert (
+        parse_faults([{"kind": "garble", "at": 7}, {"kind": "drop", "probability": 0.25}])
+        == expected
+    )
     assert parse_faults([Fault("garble", at=7), "drop@p0.25"]) == expected
     assert parse_faults(None) == parse_faults("") == ()
     for bad, message in [
@@ -262,8 +281,14 @@ def test_fault_specifications_in_every_form():
 
 
 def test_url_options_reach_the_firmware():
-    name, firmware = firmware_from_url("pslabsim://?lights=6&faults=drop@5&seed=3&delay=0.5&clock=manual")
-    assert firmware.lights == 6 and firmware.faults == (Fault("drop", at=5),) and firmware.delay_s == 0.5
+    name, firmware = firmware_from_url(
+        "pslabsim://?lights=6&faults=drop@5&seed=3&delay=0.5&clock=manual"
+    )
+    assert (
+        firmware.lights == 6
+        and firmware.faults == (Fault("drop", at=5),)
+        and firmware.delay_s == 0.5
+    )
     assert isinstance(firmware.clock, ManualClock)
     assert firmware_for(name) is firmware
     with pytest.raises(RigError, match="unknown option 'colour'"):
@@ -289,9 +314,22 @@ def test_serve_sim_serves_a_pty_until_sigterm(tmp_path):
 
     state_file = tmp_path / "lights.json"
     process = subprocess.Popen(
-        [sys.executable, "-m", "ps_lab", "rig", "serve-sim", "--lights", "4", "--state-file", str(state_file),
-         "--fault", "garble@5"],
-        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+        [
+            sys.executable,
+            "-m",
+            "ps_lab",
+            "rig",
+            "serve-sim",
+            "--lights",
+            "4",
+            "--state-file",
+            str(state_file),
+            "--fault",
+            "garble@5",
+        ],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
     )
     try:
         ready, _, _ = select.select([process.stdout], [], [], 30)
@@ -320,12 +358,18 @@ def test_rig_check_walks_every_light_and_reports_errors_in_one_line():
     name = f"check-{next(_names)}"
     firmware = SimulatedFirmware(5, clock=ManualClock())
     register_firmware(name, firmware)
-    result = CliRunner().invoke(app, ["rig", "check", "--port", f"pslabsim://{name}", "--lights", "5"])
+    result = CliRunner().invoke(
+        app, ["rig", "check", "--port", f"pslabsim://{name}", "--lights", "5"]
+    )
     assert result.exit_code == 0, result.output
     assert "5 lights switched one by one" in result.output
-    assert [c for c in firmware.commands() if c.startswith("ON")] == [f"ON {i}" for i in range(1, 6)]
+    assert [c for c in firmware.commands() if c.startswith("ON")] == [
+        f"ON {i}" for i in range(1, 6)
+    ]
     assert firmware.ended_safely()
 
-    result = CliRunner().invoke(app, ["rig", "check", "--port", f"pslabsim://{name}", "--lights", "6"])
+    result = CliRunner().invoke(
+        app, ["rig", "check", "--port", f"pslabsim://{name}", "--lights", "6"]
+    )
     assert result.exit_code == 2
     assert "has 5 lights, expected 6" in result.output

@@ -1,4 +1,6 @@
-"""Opt-in tests on a real light controller: ``pytest tests/test_lights_with_device.py --rig-port /dev/ttyACM0``.
+"""Opt-in tests on a real light controller.
+
+Run ``pytest tests/test_lights_with_device.py --rig-port /dev/ttyACM0``.
 
 Set ``PS_LAB_RIG_LIGHTS`` when the board has other than 12 lights (the sketch's default pin table).
 """
@@ -8,8 +10,8 @@ from __future__ import annotations
 import os
 
 import pytest
-
 from ps_lab.capture.lights import LightState, SerialLightController, walk_lights
+
 from ps_lab.errors import RigError
 
 

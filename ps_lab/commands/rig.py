@@ -21,17 +21,22 @@ def serve_sim(
     lights: Annotated[int, typer.Option(min=1, max=255, help="Number of simulated lights.")] = 24,
     state_file: Annotated[
         Path | None,
-        typer.Option(help="Publish the lit lights here as JSON on every change (for a simulated camera)."),
+        typer.Option(
+            help="Publish the lit lights here as JSON on every change (for a simulated camera)."
+        ),
     ] = None,
     fault: Annotated[
         list[str] | None,
         typer.Option(
-            help="Inject a fault: KIND@N at the N-th command, or KIND@pP with probability P per command; "
+            help="Inject a fault: KIND@N at the N-th command, or KIND@pP with probability P "
+            "per command; "
             "KIND is drop, garble, delay, reboot or silence. Repeatable."
         ),
     ] = None,
     seed: Annotated[int, typer.Option(help="Seed of probabilistic faults and garbling.")] = 0,
-    delay: Annotated[float, typer.Option(min=0.0, help="Seconds a 'delay' fault holds a reply back.")] = 1.0,
+    delay: Annotated[
+        float, typer.Option(min=0.0, help="Seconds a 'delay' fault holds a reply back.")
+    ] = 1.0,
 ) -> None:
     """Print the device path of a simulated controller (protocol v1) and serve until Ctrl-C."""
     from ps_lab.capture.sim_lights import parse_faults, serve_simulator
@@ -48,26 +53,41 @@ def serve_sim(
             err=True,
         )
 
-    serve_simulator(lights=lights, faults=faults, seed=seed, delay_s=delay, state_file=state_file, on_ready=announce)
+    serve_simulator(
+        lights=lights,
+        faults=faults,
+        seed=seed,
+        delay_s=delay,
+        state_file=state_file,
+        on_ready=announce,
+    )
 
 
 @rig_app.command("check")
 @lab_command
 def check(
     port: Annotated[
-        str, typer.Option(help="Serial port or URL: /dev/ttyACM0, /dev/pts/N, socket://host:port, pslabsim://...")
+        str,
+        typer.Option(
+            help="Serial port or URL: /dev/ttyACM0, /dev/pts/N, socket://host:port, pslabsim://..."
+        ),
     ],
     lights: Annotated[int, typer.Option(min=1, help="Number of lights the rig has.")],
-    dwell: Annotated[float, typer.Option(min=0.0, help="Seconds each light stays on, to watch the rig.")] = 0.0,
+    dwell: Annotated[
+        float, typer.Option(min=0.0, help="Seconds each light stays on, to watch the rig.")
+    ] = 0.0,
     timeout: Annotated[float, typer.Option(min=0.01, help="Seconds to wait for each reply.")] = 0.5,
 ) -> None:
-    """Handshake with a light controller, light each light alone and check the controller's report."""
+    """Handshake with a light controller, light each light alone, check what it reports."""
     from ps_lab.capture.lights import SerialLightController, walk_lights
 
     with SerialLightController(port, lights, reply_timeout=timeout) as controller:
         with progress_bar(lights, "lights") as advance:
             walk_lights(controller, dwell_s=dwell, progress=advance)
-    typer.echo(f"{port}: protocol v1 controller, {lights} lights switched one by one and reported correctly")
+    typer.echo(
+        f"{port}: protocol v1 controller, {lights} lights switched one by one and "
+        "reported correctly"
+    )
 
 
 def register(app: typer.Typer) -> None:
