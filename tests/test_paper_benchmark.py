@@ -56,7 +56,8 @@ def _assert_refinement_never_worse(results: bp.PaperResults) -> None:
             for k in table.iterations[1:]:
                 after = table.normal_error[(scene, k, method)]
                 assert after <= before, (
-                    f"Table 5 {scene} {method}: {k} iterations {after:.3f} deg > unrefined {before:.3f} deg"
+                    f"Table 5 {scene} {method}: {k} iterations {after:.3f} deg "
+                    f"> unrefined {before:.3f} deg"
                 )
 
 

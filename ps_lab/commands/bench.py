@@ -21,20 +21,24 @@ bench_app = typer.Typer(
 @lab_command
 def paper(
     quick: Annotated[
-        bool, typer.Option("--quick", help="Reduced run for CI: 48x48 images, two light sets, no R-PCA.")
+        bool,
+        typer.Option("--quick", help="Reduced run for CI: 48x48 images, two light sets, no R-PCA."),
     ] = False,
     size: Annotated[
-        int | None, typer.Option(min=8, help="Image width and height in pixels (default 96; 48 with --quick).")
+        int | None,
+        typer.Option(min=8, help="Image width and height in pixels (default 96; 48 with --quick)."),
     ] = None,
     light_sets: Annotated[
-        int | None, typer.Option(min=1, help="Random light sets to average (default 5; 2 with --quick).")
+        int | None,
+        typer.Option(min=1, help="Random light sets to average (default 5; 2 with --quick)."),
     ] = None,
     seed: Annotated[int | None, typer.Option(help="Seed of the light sets (default 0).")] = None,
     tables: Annotated[
         str | None, typer.Option(help="Tables to run, comma-separated from 1,3,4,5 (default all).")
     ] = None,
     markdown: Annotated[
-        bool, typer.Option("--markdown", help="Print Markdown (for docs/results.md) instead of text.")
+        bool,
+        typer.Option("--markdown", help="Print Markdown (for docs/results.md) instead of text."),
     ] = False,
     json_out: Annotated[
         Path | None, typer.Option("--json", help="Also write all numbers to this JSON file.")
