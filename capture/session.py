@@ -32,7 +32,7 @@ import re
 import signal
 import threading
 import time
-from collections.abc import Iterator, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass, field
 from datetime import UTC, datetime
 from pathlib import Path
@@ -269,6 +269,13 @@ def _lights_off(controller: Any) -> None:
     controller.all_off()
 
 
+def _reboots_seen(controller: Any) -> int:
+    # A driver that re-handshakes after a reboot restores the lit lights before STATE answers,
+    # so only its count of reboots tells that the exposure may have run in the dark. Drivers
+    # without the counter (see docs/capture.md) are checked by STATE alone.
+    return int(getattr(controller, "reboots_seen", 0))
+
+
 def _lit(controller: Any) -> frozenset[int]:
     return frozenset(controller.state().lit)
 
@@ -345,8 +352,10 @@ class CaptureSession:
         lights: Sequence[int] | None = None,
         repeat: int | None = None,
         resume: bool = False,
+        prompt: Callable[[str], Any] | None = None,
     ) -> None:
         self.rig = rig
+        self.prompt = prompt
         self.run_dir = Path(run_dir)
         self.resume = resume
         self.manifest: dict[str, Any] = {}
@@ -507,7 +516,7 @@ class CaptureSession:
 
     def check(self) -> None:
         """Open the rig (controller handshake, camera ready), switch everything off, close."""
-        with open_rig(self.rig) as opened:
+        with open_rig(self.rig, prompt=self.prompt) as opened:
             _lights_off(opened.controller)
             ready = getattr(opened.camera, "check", None)
             if callable(ready):
@@ -538,7 +547,7 @@ class CaptureSession:
             return CaptureResult(self.run_dir, len(self.plan.frames), 0, skipped, 0, 0.0)
         # The rig is opened first: a wrong port or a dead controller writes nothing.
         try:
-            opened = open_rig(self.rig)
+            opened = open_rig(self.rig, prompt=self.prompt)
         except PsLabError as exc:
             if not self.records:
                 raise
@@ -638,6 +647,7 @@ class CaptureSession:
                     _lights_on(controller, frame.lights)
                 if settle_s:
                     time.sleep(settle_s)
+                boots = _reboots_seen(controller)
                 shot = _capture(camera, temp, frame)
                 # Was the light still on when the exposure ended? A watchdog that fired during a
                 # long exposure, or a board that reset, would otherwise leave a dark frame
@@ -648,6 +658,8 @@ class CaptureSession:
                     raise _LightLost(
                         f"after the exposure the controller reports lights {shown} lit"
                     )
+                if _reboots_seen(controller) != boots:
+                    raise _LightLost("the controller rebooted during the exposure")
                 produced = Path(shot.path)
                 if produced != temp:
                     os.replace(produced, temp)

@@ -420,3 +420,54 @@ def test_stop_at_the_first_frame_leaves_a_resumable_run(tmp_path: Path, referenc
     assert read_manifest(run)["frames"] == []
     CaptureSession(load_rig(write_rig(tmp_path)), run, resume=True).run()
     assert frame_hashes(run) == reference
+
+
+def test_folder_camera_with_serial_url_controller(tmp_path: Path) -> None:
+    """A real-rig path: serial driver on a pyserial URL, frames dropped into a watched folder."""
+    from ps_lab.capture.dng import write_dng
+
+    tether = tmp_path / "tether"
+    tether.mkdir()
+    rig_path = tmp_path / "folder.toml"
+    rig_path.write_text(
+        f"""
+[controller]
+driver = "serial"
+port = "pslabsim://folder-test?lights=3"
+lights = 3
+timeout_s = 0.2
+[camera]
+driver = "folder"
+folder = "{tether}"
+pattern = "*.dng"
+prompt = true
+exposure_s = 0.01
+file_type = "dng"
+timeout_s = 10.0
+"""
+    )
+    rng = np.random.default_rng(5)
+    shots: list[str] = []
+
+    def operator(message: str) -> None:
+        # The operator presses the shutter: a DNG appears in the watched folder (hidden first).
+        shots.append(message)
+        mosaic = rng.integers(600, 4000, size=(32, 48)).astype(np.uint16)
+        hidden = tether / f".shot{len(shots)}.dng"
+        write_dng(hidden, mosaic, black_level=512, white_level=16383, exposure_s=0.01)
+        hidden.rename(tether / f"IMG_{len(shots):04d}.dng")
+
+    run = tmp_path / "run"
+    result = CaptureSession(load_rig(rig_path), run, prompt=operator).run()
+    assert result.frames_captured == 4
+    assert shots[0] == "press the shutter for dark frame" and shots[-1].endswith("light 3")
+    manifest = read_manifest(run)
+    assert [r["file"] for r in manifest["frames"]] == [
+        "frames/0000-dark.dng",
+        "frames/0001-L01-r0.dng",
+        "frames/0002-L02-r0.dng",
+        "frames/0003-L03-r0.dng",
+    ]
+    assert all(r["exposure_s"] == pytest.approx(0.01) for r in manifest["frames"])
+    assert not (run / "simulation").exists()
+    assert not list(tether.iterdir())  # every shot was moved into the run

@@ -51,7 +51,14 @@ def capture(
 
     rig_config = apply_overrides(load_rig(rig), port=port, exposure_s=exposure)
     selection = parse_light_selection(lights, rig_config.n_lights) if lights is not None else None
-    session = CaptureSession(rig_config, out, lights=selection, repeat=repeat, resume=resume)
+    session = CaptureSession(
+        rig_config,
+        out,
+        lights=selection,
+        repeat=repeat,
+        resume=resume,
+        prompt=lambda message: typer.secho(f">>> {message}", fg=typer.colors.YELLOW, err=True),
+    )
     if dry_run:
         for line in session.describe_plan():
             typer.echo(line)
