@@ -48,6 +48,9 @@ _VIEW = np.array([0.0, 0.0, 1.0])
 # Offset (pixel units of height) that a shadow ray must clear, so a surface does not shadow itself
 # through the linear interpolation of its own curved height field.
 _SHADOW_BIAS = 0.5
+# Height margin (pixels) of the fast shadow sweep, which interpolates between neighbouring rays;
+# rays within it are marched exactly.
+_SHADOW_SLACK = 1.0
 # Standard deviation (pixels) of the Gaussian lens blur applied to chrome highlights.
 _HIGHLIGHT_PSF_SIGMA = 0.6
 # Schlick's reflectance at normal incidence (a dielectric); the Fresnel term is divided by it so
@@ -272,25 +275,90 @@ def relief_surface(
     return Surface(normals=normals, mask=mask, height=height, albedo=_albedo_array(albedo, shape, mask))
 
 
-def _bilinear_on_object(
-    height: np.ndarray, mask: np.ndarray, x: np.ndarray, y: np.ndarray
-) -> np.ndarray:
-    """Exact bilinear samples of ``height`` at float64 positions.
+class _HeightSampler:
+    """Exact bilinear samples of a height field at float64 positions (column x, row y).
 
-    A sample whose four neighbouring pixels are not all on the object is ``-inf`` (it blocks nothing):
-    interpolating across the silhouette would smear the object's rim height into empty space.
+    A sample whose four neighbouring pixels are not all on the object is ``-inf`` (it blocks
+    nothing): interpolating across the silhouette would smear the object's rim height into empty
+    space and shadow the rim itself.
     """
+
+    def __init__(self, height: np.ndarray, mask: np.ndarray) -> None:
+        self.rows, self.cols = height.shape
+        self.flat = np.ascontiguousarray(height, dtype=np.float64).ravel()
+        cell = np.zeros(height.shape, dtype=bool)  # cell (r, c) spans pixels r..r+1, c..c+1
+        cell[:-1, :-1] = mask[:-1, :-1] & mask[:-1, 1:] & mask[1:, :-1] & mask[1:, 1:]
+        self.cell_on_object = cell.ravel()
+
+    def __call__(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+        x0 = np.floor(x)
+        y0 = np.floor(y)
+        fx = x - x0
+        fy = y - y0
+        # Cells outside the array are off the object; clip only to index safely.
+        index = np.clip(y0, 0, self.rows - 1).astype(np.intp) * self.cols
+        index += np.clip(x0, 0, self.cols - 1).astype(np.intp)
+        on_object = self.cell_on_object[index]
+        on_object &= (x0 >= 0) & (y0 >= 0) & (x0 < self.cols - 1) & (y0 < self.rows - 1)
+        index = np.where(on_object, index, 0)
+        flat, w = self.flat, self.cols
+        h00, h01 = flat[index], flat[index + 1]
+        h10, h11 = flat[index + w], flat[index + w + 1]
+        value = h00 + fx * (h01 - h00) + fy * ((h10 - h00) + fx * (h11 - h10 - h01 + h00))
+        return np.where(on_object, value, -np.inf)
+
+
+def _terrain_ahead(
+    height: np.ndarray, step: tuple[float, float], rise: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """Highest ``G = h - rise u`` ahead of every pixel along the light, from one sweep.
+
+    Returns ``ahead`` and ``G``-offset ``rise * u``, both (H, W): pixel ``p`` may be shadowed only if
+    ``ahead[p] > h(p) + bias - rise u(p)`` (up to the interpolation margin ``_SHADOW_SLACK``).
+
+    Along a ray ``q = p + t d`` the test ``h(q) > h(p) + bias + t rise`` reads ``G(q) > G(p) + bias``
+    with ``G = h - rise u`` and ``u`` the coordinate along ``d``. The height field is resampled on a
+    grid rotated so that ``d`` runs along its rows; a reverse running maximum of ``G`` along each
+    row gives, for every pixel at once, the highest ``G`` ahead (from 2 pixels on). Rotating that
+    back interpolates between neighbouring rows, so comparisons keep a margin
+    (``_SHADOW_SLACK``); the caller marches the candidates exactly.
+    """
+    step_x, step_y = step
     h, w = height.shape
-    x0 = np.floor(x).astype(np.intp)
-    y0 = np.floor(y).astype(np.intp)
-    inside = (x0 >= 0) & (y0 >= 0) & (x0 < w - 1) & (y0 < h - 1)
-    out = np.full(x.shape, -np.inf)
-    x0, y0, fx, fy = x0[inside], y0[inside], x[inside] - x0[inside], y[inside] - y0[inside]
-    corners = mask[y0, x0] & mask[y0, x0 + 1] & mask[y0 + 1, x0] & mask[y0 + 1, x0 + 1]
-    top = height[y0, x0] * (1.0 - fx) + height[y0, x0 + 1] * fx
-    bottom = height[y0 + 1, x0] * (1.0 - fx) + height[y0 + 1, x0 + 1] * fx
-    out[inside] = np.where(corners, top * (1.0 - fy) + bottom * fy, -np.inf)
-    return out
+    cx, cy = (w - 1) / 2.0, (h - 1) / 2.0
+    half = int(np.ceil(0.5 * np.hypot(h, w))) + 2
+    size = 2 * half + 1
+    # Rotated grid (column u', row v'): original x = cx + (u'-half) dx - (v'-half) dy, etc.
+    to_original = np.array(
+        [
+            [step_x, -step_y, cx - half * step_x + half * step_y],
+            [step_y, step_x, cy - half * step_y - half * step_x],
+        ]
+    )
+    flags = cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP
+    rotated = cv2.warpAffine(
+        height.astype(np.float32), to_original, (size, size), flags=flags,
+        borderMode=cv2.BORDER_CONSTANT, borderValue=0.0,
+    ).astype(np.float64)
+    along = np.arange(size, dtype=np.float64)
+    g_rot = rotated - rise * along[None, :]
+    ahead = np.maximum.accumulate(g_rot[:, ::-1], axis=1)[:, ::-1]
+    ahead = np.concatenate([ahead[:, 2:], np.full((size, 2), -1e9)], axis=1)
+    # Back to the original grid: u' = (x - cx) dx + (y - cy) dy + half, v' = -(x - cx) dy + ...
+    to_rotated = np.array(
+        [
+            [step_x, step_y, half - cx * step_x - cy * step_y],
+            [-step_y, step_x, half + cx * step_y - cy * step_x],
+        ]
+    )
+    ahead_here = cv2.warpAffine(
+        ahead.astype(np.float32), to_rotated, (w, h), flags=flags,
+        borderMode=cv2.BORDER_CONSTANT, borderValue=-1e9,
+    )
+    cols = np.arange(w, dtype=np.float64)[None, :]
+    rows = np.arange(h, dtype=np.float64)[:, None]
+    u_here = (cols - cx) * step_x + (rows - cy) * step_y + half
+    return ahead_here, rise * u_here
 
 
 def _cast_shadow(
@@ -317,10 +385,12 @@ def _cast_shadow(
     Notes
     -----
     The ray advances one pixel per step along the light's image-plane direction and rises by
-    ``l_z / |l_xy|`` per step; it stops once it is above the highest point. Each step samples the
-    whole height field at once with ``cv2.remap`` (fast, but its bilinear weights are quantised to
-    1/32 pixel, which matters on the steep rim of a sphere), and every pixel that this sample says is
-    blocked is confirmed with an exact float64 bilinear sample.
+    ``l_z / |l_xy|`` per step; a sample is the bilinear interpolation of the four surrounding
+    pixels (none of them off the object), and a ray stops once it is above the highest point or
+    leaves the array. Marching every pixel would cost ``O(H W)`` per step, so a running-maximum
+    sweep (:func:`_terrain_ahead`) first discards the rays that clearly clear the terrain, only
+    the remaining ones are marched (vectorised over pixels), and each stops as soon as the sweep
+    says the terrain ahead of it stays below it.
     """
     shadow = np.zeros(height.shape, dtype=bool)
     horizontal = float(np.hypot(light[0], light[1]))
@@ -330,29 +400,45 @@ def _cast_shadow(
     step_x = light[0] / horizontal
     step_y = -light[1] / horizontal  # y up -> rows down
     h, w = height.shape
-    src = height.astype(np.float32)
-    cols, rows = np.meshgrid(np.arange(w, dtype=np.float32), np.arange(h, dtype=np.float32))
     ray0 = height + _SHADOW_BIAS
-    top = float(height.max())
-    max_steps = int(np.ceil(np.hypot(h, w)))
-    n_steps = int(np.ceil((top - float(ray0[lit].min())) / rise)) if rise > 0 else max_steps
-    n_steps = min(max(n_steps, 0), max_steps)
-    for t in range(1, n_steps + 1):
-        sample = cv2.remap(
-            src,
-            cols + np.float32(t * step_x),
-            rows + np.float32(t * step_y),
-            interpolation=cv2.INTER_LINEAR,
-            borderMode=cv2.BORDER_CONSTANT,
-            borderValue=0.0,
+    sample = _HeightSampler(height, mask)
+    ahead, rise_u = _terrain_ahead(height, (step_x, step_y), rise)
+    g_start = ray0 - rise_u  # the ray from p is blocked at q iff G(q) > g_start[p]
+    candidate = lit & (ahead > g_start - _SHADOW_SLACK)
+    # The sweep skips the first two pixels of each ray: check those for every other lit pixel,
+    # first with cv2.remap (fast, bilinear weights quantised to 1/32 pixel), then exactly.
+    rows, cols = np.mgrid[0:h, 0:w].astype(np.float32)
+    src = height.astype(np.float32)
+    for t in (1, 2):
+        quick = cv2.remap(
+            src, cols + np.float32(t * step_x), rows + np.float32(t * step_y),
+            interpolation=cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0.0,
         )
-        ray = ray0 + t * rise
-        candidate = lit & ~shadow & (sample > ray)
-        if candidate.any():
-            ys, xs = np.nonzero(candidate)
-            exact = _bilinear_on_object(height, mask, xs + t * step_x, ys + t * step_y)
-            blocked = exact > ray[ys, xs]
-            shadow[ys[blocked], xs[blocked]] = True
+        ys, xs = np.nonzero(lit & ~candidate & (quick > ray0 + t * rise - _SHADOW_SLACK))
+        shadow[ys, xs] |= sample(xs + t * step_x, ys + t * step_y) > ray0[ys, xs] + t * rise
+    ys, xs = np.nonzero(candidate)
+    # Steps worth taking: until the ray is above the highest point or has left the array.
+    z0 = ray0[ys, xs]
+    g0 = g_start[ys, xs]
+    last = (float(height.max()) - z0) / max(rise, 1e-12)
+    if step_x:
+        last = np.minimum(last, np.where(step_x > 0, (w - 1 - xs) / step_x, xs / -step_x))
+    if step_y:
+        last = np.minimum(last, np.where(step_y > 0, (h - 1 - ys) / step_y, ys / -step_y))
+    t = 1
+    keep = last >= t
+    ys, xs, z0, g0, last = ys[keep], xs[keep], z0[keep], g0[keep], last[keep]
+    while ys.size:
+        x, y = xs + t * step_x, ys + t * step_y
+        blocked = sample(x, y) > z0 + t * rise
+        shadow[ys[blocked], xs[blocked]] = True
+        # Once the sweep says nothing ahead of the ray's position rises to it (2 pixels on),
+        # four more exact steps finish the ray (the sweep is read at the nearest pixel).
+        clear = ahead[np.rint(y).astype(np.intp), np.rint(x).astype(np.intp)] < g0 - 3 * _SHADOW_SLACK
+        last = np.where(clear, np.minimum(last, t + 4), last)
+        t += 1
+        keep = ~blocked & (last >= t)
+        ys, xs, z0, g0, last = ys[keep], xs[keep], z0[keep], g0[keep], last[keep]
     return shadow
 
 
