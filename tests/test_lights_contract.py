@@ -21,7 +21,9 @@ from ps_lab.capture.sim_lights import ManualClock, PtyServer, SimulatedFirmware,
 
 from ps_lab.errors import RigError
 
-TIMEOUT = dict(reply_timeout=0.2, boot_timeout=0.2, retries=2)
+# No timeout expires in these tests (no faults), so a generous one costs nothing and keeps the pty
+# backend robust on a busy machine.
+TIMEOUT = dict(reply_timeout=1.0, boot_timeout=1.0, retries=2)
 _names = itertools.count()
 
 

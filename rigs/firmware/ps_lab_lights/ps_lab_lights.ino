@@ -5,7 +5,18 @@
 // To drive a shift register or a MOSFET board instead of direct pins, change drive_light()
 // (see ../README.md).
 #include <Arduino.h>
-#ifdef __AVR__
+
+// The AVR hardware watchdog resets a hung sketch after 2 s (a reset switches every output off).
+// Boards with an old bootloader (some Nano clones, not the Uno's optiboot) loop on a watchdog
+// reset: build them with -DPS_LAB_HARDWARE_WATCHDOG=0 (make PS_LAB_DEFINES=...).
+#ifndef PS_LAB_HARDWARE_WATCHDOG
+#define PS_LAB_HARDWARE_WATCHDOG 1
+#endif
+#if PS_LAB_HARDWARE_WATCHDOG && !defined(__AVR__)
+#undef PS_LAB_HARDWARE_WATCHDOG
+#define PS_LAB_HARDWARE_WATCHDOG 0
+#endif
+#if PS_LAB_HARDWARE_WATCHDOG
 #include <avr/wdt.h>
 #endif
 
@@ -43,8 +54,7 @@ static void send_reply(size_t length) {
 }
 
 void setup() {
-#ifdef __AVR__
-  // A hung sketch is reset by the hardware watchdog; a reset switches every output off.
+#if PS_LAB_HARDWARE_WATCHDOG
   wdt_disable();
 #endif
   for (uint8_t i = 0; i < kLightCount; ++i) {
@@ -53,13 +63,13 @@ void setup() {
   }
   Serial.begin(115200);
   send_reply(controller.boot(millis(), reply, sizeof(reply)));
-#ifdef __AVR__
+#if PS_LAB_HARDWARE_WATCHDOG
   wdt_enable(WDTO_2S);
 #endif
 }
 
 void loop() {
-#ifdef __AVR__
+#if PS_LAB_HARDWARE_WATCHDOG
   wdt_reset();
 #endif
   controller.poll(millis());
