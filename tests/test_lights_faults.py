@@ -376,3 +376,36 @@ def test_rig_check_walks_every_light_and_reports_errors_in_one_line():
     )
     assert result.exit_code == 2
     assert "has 5 lights, expected 6" in result.output
+
+
+def test_socket_url_reaches_a_controller_over_tcp():
+    # A controller behind a TCP serial bridge (ser2net and the like): pyserial's socket:// URL.
+    import socket
+    import threading
+
+    from ps_lab.capture.sim_lights import LineAssembler
+
+    firmware = SimulatedFirmware(8, faults="drop@5", clock=ManualClock())
+    listener = socket.create_server(("127.0.0.1", 0))
+    host, port = listener.getsockname()
+
+    def bridge():
+        connection, _ = listener.accept()
+        assembler = LineAssembler()
+        with connection:
+            while data := connection.recv(4096):
+                for line in assembler.feed(data):
+                    for reply in firmware.handle_line(line):
+                        connection.sendall(reply.encode("latin-1") + b"\n")
+
+    thread = threading.Thread(target=bridge, daemon=True)
+    thread.start()
+    try:
+        with SerialLightController(f"socket://{host}:{port}", 8, **PTY) as controller:
+            controller.switch(7)  # command 5: reply dropped, retried
+            assert controller.state().lit == {7}
+    finally:
+        listener.close()
+        thread.join(timeout=5)
+    assert firmware.commands()[4:6] == ["ON 7", "ON 7"]
+    assert firmware.ended_safely()
