@@ -12,7 +12,7 @@ from ps_lab.calibration._circle import (
     CircleFit,
     _edge_points,
     circle_inside_image,
-    hough_candidates,
+    circle_candidates,
     luminance,
     refine_circle,
     summary_image,
@@ -147,7 +147,7 @@ def _find_sphere(
             raise CalibrationError(f"--roi {x},{y},{rw},{rh} does not fit in the {w}x{h} image")
         sub = summary[y: y + rh, x: x + rw]
         ox, oy = x, y
-    candidates = hough_candidates(sub)
+    candidates = circle_candidates(sub)
     if not candidates:
         raise CalibrationError(
             "no chrome sphere found: no circular outline in the images (pass --sphere CX,CY,R or --roi)"
@@ -158,6 +158,10 @@ def _find_sphere(
         try:
             fit = refine_circle(summary, start)
         except CalibrationError:
+            continue
+        # The limb of the real sphere is seen nearly all round; a spurious circle (noise, a
+        # circle through the highlights) collects edge points on a small part of its outline.
+        if fit.coverage < 0.5:
             continue
         score = chrome_score(luma, fit.circle)
         if score < 0.5:

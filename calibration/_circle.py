@@ -103,11 +103,15 @@ def _to_uint8(image: np.ndarray) -> np.ndarray:
     return np.round(255 * mapped).astype(np.uint8)
 
 
-def hough_candidates(
+def circle_candidates(
     summary: np.ndarray, *, min_radius: float = 8.0, max_radius: float | None = None,
     max_candidates: int = 12,
 ) -> list[Circle]:
-    """Coarse circle candidates from OpenCV's gradient Hough transform.
+    """Coarse circle candidates: round bright blobs, then OpenCV's gradient Hough transform.
+
+    The blob candidates (Otsu threshold of the tone-mapped summary, round connected components)
+    catch a dim sphere on a noisy background, where noise edges outvote it in the Hough
+    accumulator; Hough candidates catch spheres that touch other objects.
 
     Parameters
     ----------
@@ -115,32 +119,44 @@ def hough_candidates(
         Summary image (any scale; tone-mapped to 8 bit here).
     min_radius, max_radius : float
         Radius range in pixels (``max_radius`` default: half the smaller image side).
+    max_candidates : int
+        At most this many Hough candidates.
 
     Returns
     -------
     list of Circle
-        Strongest first; empty when none was found.
+        Blob candidates first, then Hough candidates strongest first; empty when none was found.
     """
     h, w = summary.shape
     scale = min(1.0, 1200.0 / max(h, w))
     img8 = _to_uint8(summary)
     if scale < 1.0:
         img8 = cv2.resize(img8, (round(w * scale), round(h * scale)), interpolation=cv2.INTER_AREA)
-    img8 = cv2.GaussianBlur(img8, (0, 0), 1.5)
+    img8 = cv2.GaussianBlur(cv2.medianBlur(img8, 5), (0, 0), 1.5)
     if max_radius is None:
         max_radius = min(h, w) / 2.0
     lo = max(3, int(min_radius * scale))
     hi = max(lo + 2, int(np.ceil(max_radius * scale)))
+
+    def to_image(x: float, y: float, r: float) -> Circle:
+        return Circle(float((x + 0.5) / scale - 0.5), float((y + 0.5) / scale - 0.5), float(r / scale))
+
+    found: list[Circle] = []
+    _, binary = cv2.threshold(img8, 0, 255, cv2.THRESH_BINARY + cv2.THRESH_OTSU)
+    count, _, stats, centroids = cv2.connectedComponentsWithStats(binary, connectivity=8)
+    for i in range(1, count):
+        area = stats[i, cv2.CC_STAT_AREA]
+        bw, bh = stats[i, cv2.CC_STAT_WIDTH], stats[i, cv2.CC_STAT_HEIGHT]
+        r = np.sqrt(area / np.pi)
+        # Round: fills its bounding square like a disc does (pi/4), and is not elongated.
+        if lo <= r <= hi and 0.6 < area / (bw * bh) < 0.95 and 0.8 < bw / bh < 1.25:
+            found.append(to_image(centroids[i][0], centroids[i][1], r))
     circles = cv2.HoughCircles(
         img8, cv2.HOUGH_GRADIENT, dp=1, minDist=max(4.0, lo), param1=60, param2=25,
         minRadius=lo, maxRadius=hi,
     )
-    if circles is None:
-        return []
-    found = [
-        Circle(float((c[0] + 0.5) / scale - 0.5), float((c[1] + 0.5) / scale - 0.5), float(c[2] / scale))
-        for c in circles[0][:max_candidates]
-    ]
+    if circles is not None:
+        found.extend(to_image(c[0], c[1], c[2]) for c in circles[0][:max_candidates])
     return found
 
 
