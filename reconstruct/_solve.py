@@ -17,13 +17,11 @@ from ._solution import METHODS, Solution, SolverInputError
 DEFAULTS: dict[str, dict] = {
     "ls": {},
     "l1": {"max_iter": 100, "tol": 1e-6, "delta": 1e-6, "outlier_threshold": None},
-    "sbl": {"lam": None, "sigma_x2": 1e6, "max_iter": 100, "tol": 1e-6, "gamma_floor": 1e-10,
+    "sbl": {"lam": None, "sigma_x2": 1e6, "max_iter": 100, "tol": 1e-4, "gamma_floor": 1e-10,
             "outlier_threshold": None},
     "rpca": {"lam_sparse": None, "max_iter": 500, "tol": 1e-7, "rho": 1.5, "outlier_threshold": None},
 }
-COMMON = ("dtype",)
 DEFAULT_TILE_SIZE = 4096
-DEFAULT_DTYPE = "float64"
 # Noise level floor (relative to the pixel scale): the paper's lambda for noise-free data.
 LAMBDA_FLOOR = 1e-6
 # Smallest outlier threshold (relative to the pixel scale).
@@ -92,20 +90,17 @@ def _check_inputs(observations, light_directions, valid):
 def _method_params(method: str, given: dict) -> dict:
     if method not in METHODS:
         raise SolverInputError(f"unknown method {method!r}; choose one of {', '.join(METHODS)}")
-    allowed = set(DEFAULTS[method]) | set(COMMON)
+    allowed = set(DEFAULTS[method])
     unknown = sorted(set(given) - allowed)
     if unknown:
         raise SolverInputError(f"method {method!r} has no parameter(s) {', '.join(unknown)}; "
                                f"it takes {', '.join(sorted(allowed))}")
     params = dict(DEFAULTS[method])
-    params["dtype"] = DEFAULT_DTYPE
     params.update(given)
-    if np.dtype(params["dtype"]) not in (np.dtype(np.float32), np.dtype(np.float64)):
-        raise SolverInputError(f"dtype must be float32 or float64, got {params['dtype']}")
     return params
 
 
-def _prepare_tile(obs, usable, lights, a, b, dtype):
+def _prepare_tile(obs, usable, lights, a, b):
     """Pixel-major scaled observations of pixels a:b and the solvable-pixel mask."""
     y = np.array(obs[:, a:b].T, dtype=np.float64, order="C")  # a copy: scaled in place below
     w = np.ascontiguousarray(usable[:, a:b].T)
@@ -115,7 +110,7 @@ def _prepare_tile(obs, usable, lights, a, b, dtype):
     w &= ok[:, None]
     y /= np.where(ok, scale, 1.0)[:, None]
     y[~w] = 0.0  # dropped observations may hold NaN or garbage: weight 0 must not see it
-    return y.astype(dtype), w.astype(dtype), scale, ok
+    return y, w.astype(np.float64), scale, ok
 
 
 def estimate_noise(observations, light_directions, valid=None, *, max_pixels: int = NOISE_SAMPLE_PIXELS) -> float:
@@ -143,7 +138,7 @@ def estimate_noise(observations, light_directions, valid=None, *, max_pixels: in
 def _noise_level(obs, lights, usable, max_pixels=NOISE_SAMPLE_PIXELS):
     n, p = obs.shape
     take = np.unique(np.linspace(0, p - 1, min(p, max_pixels)).round().astype(np.int64)) if p else np.zeros(0, np.int64)
-    y, w, _, ok = _prepare_tile(obs[:, take], usable[:, take], lights, 0, take.size, np.float64)
+    y, w, _, ok = _prepare_tile(obs[:, take], usable[:, take], lights, 0, take.size)
     y, w = y[ok], w[ok]
     if y.shape[0] == 0:
         return 0.0
@@ -192,11 +187,11 @@ def solve(
         Called as ``progress(k)`` with the number of pixels just finished (increments summing
         to P).
     **method_params
-        ``dtype`` ("float64" or "float32") and the method's parameters, all in units of the
-        pixel's robust scale (median of its usable observations):
+        The method's parameters, all in units of the pixel's robust scale (median of its usable
+        observations):
 
         - ``sbl``: ``lam`` (noise variance; default estimated from the data), ``sigma_x2`` (1e6),
-          ``max_iter`` (100), ``tol`` (1e-6), ``gamma_floor`` (1e-10), ``outlier_threshold``;
+          ``max_iter`` (100), ``tol`` (1e-4), ``gamma_floor`` (1e-10), ``outlier_threshold``;
         - ``l1``: ``max_iter`` (100), ``tol`` (1e-6), ``delta`` (1e-6), ``outlier_threshold``;
         - ``rpca``: ``lam_sparse`` (1/sqrt(max(n, P))), ``max_iter`` (500), ``tol`` (1e-7),
           ``rho`` (1.5), ``outlier_threshold``.
@@ -215,8 +210,7 @@ def solve(
     obs, lights, usable = _check_inputs(observations, light_directions, valid)
     params = _method_params(method, method_params)
     n, p = obs.shape
-    dtype = np.dtype(params["dtype"])
-    used: dict = {"method": method, "dtype": dtype.name}
+    used: dict = {"method": method}
 
     if method != "ls":
         noise = None
@@ -231,7 +225,7 @@ def solve(
                 noise = _noise_level(obs, lights, usable)
             params["outlier_threshold"] = max(3.0 * noise, MIN_OUTLIER_THRESHOLD)
         used["noise_sigma"] = float(noise)
-    used.update({k: v for k, v in params.items() if k not in ("dtype", "lam")})
+    used.update({k: v for k, v in params.items() if k != "lam"})
 
     if method == "rpca":
         from ._rpca import solve_rpca
@@ -243,10 +237,9 @@ def solve(
     outliers = np.zeros((n, p), bool)
     iterations = np.zeros(p, np.int64)
     kernel = {"ls": _kernels.ls_tile, "l1": _kernels.l1_tile, "sbl": _kernels.sbl_tile}[method]
-    kernel_params = {k: v for k, v in params.items() if k != "dtype"}
+    kernel_params = dict(params)
     if method == "ls":
         kernel_params = {"outlier_threshold": np.inf}
-    lights_t = lights.astype(dtype)
     tile = int(tile_size) if tile_size else DEFAULT_TILE_SIZE
     if tile < 1:
         raise SolverInputError(f"tile_size must be positive, got {tile_size}")
@@ -257,8 +250,8 @@ def solve(
 
     def run_tile(a: int) -> int:
         b = min(a + tile, p)
-        y, w, scale, ok = _prepare_tile(obs, usable, lights, a, b, dtype)
-        res = kernel(y, w, lights_t, **kernel_params)
+        y, w, scale, ok = _prepare_tile(obs, usable, lights, a, b)
+        res = kernel(y, w, lights, **kernel_params)
         x = res.x.astype(np.float64) * scale[:, None]
         length = np.linalg.norm(x, axis=1)
         good = ok & (length > 0) & np.isfinite(length)

@@ -43,7 +43,7 @@ def l1_pixel(y, a, *, max_iter=100, tol=1e-6, delta=1e-6, outlier_threshold=0.05
     return x, np.abs(y - a @ x) > outlier_threshold, it
 
 
-def sbl_pixel(y, a, *, lam, sigma_x2=1e6, max_iter=100, tol=1e-6, gamma_floor=1e-10,
+def sbl_pixel(y, a, *, lam, sigma_x2=1e6, max_iter=100, tol=1e-4, gamma_floor=1e-10,
               outlier_threshold=0.05):
     n = y.size
     gamma = np.ones(n)

@@ -71,20 +71,13 @@ def corrupted():
 @pytest.mark.parametrize("method", METHODS)
 def test_vectorised_equals_per_pixel_oracle(corrupted, method):
     y, lights, valid, _ = corrupted
-    sol = solve(y, lights, method=method, valid=valid, dtype="float64")
+    sol = solve(y, lights, method=method, valid=valid)
     normals, albedo, outliers, iterations = solve_oracle(y, lights, method, valid, **oracle_params(sol))
     assert np.abs(sol.normals - normals).max() < 1e-6
     assert np.allclose(sol.albedo, albedo, rtol=1e-6, atol=1e-9)
     assert np.mean(sol.iterations == iterations) > 0.99
     assert np.mean(sol.outliers != outliers) < 1e-3
     assert not sol.outliers[~valid].any()
-
-
-def test_float32_sbl_within_a_hundredth_degree_of_oracle(corrupted):
-    y, lights, valid, _ = corrupted
-    sol = solve(y, lights, method="sbl", valid=valid, dtype="float32")
-    normals, *_ = solve_oracle(y, lights, "sbl", valid, **oracle_params(sol))
-    assert angular_errors_deg(sol.normals, normals).max() <= 0.01
 
 
 def test_least_squares_exact_on_lambertian_data_with_shadows_dropped():
