@@ -803,8 +803,8 @@ def nominal_directions(rig: Rig, simulation: Simulation | None = None) -> np.nda
     """Return the rig's nominal light directions (N, 3), if it has any.
 
     For a simulated rig without ``[controller] directions``, the nominal directions are the true
-    ones turned by ``[scene.lights] nominal_error_deg`` in a seeded random direction: what a lab
-    would know from measuring its rig with a ruler.
+    ones turned by ``[scene.lights] nominal_error_deg`` (when > 0) in a seeded random direction:
+    what a lab would know from measuring its rig with a ruler.
     """
     if rig.controller.directions is not None:
         return np.asarray(rig.controller.directions, dtype=np.float64)
@@ -813,7 +813,7 @@ def nominal_directions(rig: Rig, simulation: Simulation | None = None) -> np.nda
     true = simulation.light_directions
     err = math.radians(rig.scene.lights.nominal_error_deg)
     if err == 0.0:
-        return true.copy()
+        return None
     rng = np.random.default_rng([rig.scene.lights.seed, 2])
     axis = np.cross(true, rng.normal(size=true.shape))
     axis /= np.linalg.norm(axis, axis=1, keepdims=True)

@@ -44,6 +44,7 @@ from ps_lab.capture.rig import (
     Rig,
     build_simulation,
     comparable_snapshot,
+    nominal_directions,
     open_rig,
     snapshot_differences,
 )
@@ -58,6 +59,7 @@ RUN_VERSION = 1
 FRAMES_DIR = "frames"
 SIMULATION_DIR = "simulation"
 PARTIAL_PREFIX = ".partial-"
+NOMINAL_DIRECTIONS = "light_directions_nominal.txt"
 _FRAME_NAME = re.compile(r"^\d{4,}-(dark|L\d+-r\d+)\.\w+$")
 
 __all__ = [
@@ -292,9 +294,9 @@ def _verify_frame(path: Path, file_type: str) -> None:
     """Raise :class:`CameraError` unless ``path`` is a readable image of its type."""
     if not path.is_file() or path.stat().st_size == 0:
         raise CameraError(f"the camera left no file at {path.name}")
-    if file_type in ("dng", "cr2", "cr3", "nef", "arw"):
-        from ps_lab.capture.raw import load_raw
+    from ps_lab.capture.raw import is_raw_file, load_raw
 
+    if is_raw_file(path):
         try:
             load_raw(path)
         except PsLabError as exc:
@@ -558,6 +560,7 @@ class CaptureSession:
             self._prepare_folder()
             if opened.simulation is not None:
                 self._write_simulation(opened)
+            self._write_nominal_directions(opened)
             # Within session(), SIGTERM unwinds like Ctrl-C, so the lights go off either way.
             with opened.controller.session():
                 _lights_off(opened.controller)
@@ -633,6 +636,13 @@ class CaptureSession:
         write_bytes_atomic(
             folder / "light_intensities_true.txt", _table(sim.light_intensities[rows])
         )
+
+    def _write_nominal_directions(self, opened: OpenRig) -> None:
+        """Write ``light_directions_nominal.txt`` (plan order) when the rig knows them."""
+        nominal = nominal_directions(self.rig, opened.simulation)
+        if nominal is not None:
+            rows = [i - 1 for i in self.plan.lights]
+            write_bytes_atomic(self.run_dir / NOMINAL_DIRECTIONS, _table(nominal[rows]))
 
     def _shoot(self, opened: OpenRig, frame: PlannedFrame) -> None:
         controller, camera = opened.controller, opened.camera

@@ -180,6 +180,7 @@ def test_clean_capture_writes_every_frame_under_the_right_light(
         atol=1e-8,
     )
     assert (run / "simulation" / "mask.png").stat().st_size > 0
+    assert not (run / "light_directions_nominal.txt").exists()  # the tiny rig has none
 
     # No mix-up: the dark-subtracted frame of light i looks like light i's rendering, not another's.
     dark = load_raw(run / manifest["frames"][0]["file"]).image.astype(np.float64)
@@ -471,3 +472,29 @@ timeout_s = 10.0
     assert all(r["exposure_s"] == pytest.approx(0.01) for r in manifest["frames"])
     assert not (run / "simulation").exists()
     assert not list(tether.iterdir())  # every shot was moved into the run
+
+
+def test_simulator_in_another_process_via_state_file(tmp_path: Path, reference: dict) -> None:
+    """`ps-lab rig serve-sim --state-file F` + a serial rig whose simulated camera reads F."""
+    from ps_lab.capture.sim_lights import PtyServer
+
+    state_file = tmp_path / "state.json"
+    text = write_rig(tmp_path).read_text()
+    text = text.replace(
+        'driver = "simulated"\nlights', 'driver = "serial"\nport = "{port}"\nlights', 1
+    )
+    text = text.replace("seed = 11", f'seed = 11\nlight_state_file = "{state_file}"')
+    text = text.replace("intensity_spread = 0.1", "intensity_spread = 0.1\nnominal_error_deg = 2.0")
+    with PtyServer(lights=N_LIGHTS, state_file=state_file) as server:
+        rig_path = tmp_path / "serial.toml"
+        rig_path.write_text(text.replace("{port}", str(server.path)))
+        rig = load_rig(rig_path)
+        run = tmp_path / "run"
+        CaptureSession(rig, run).run()
+        assert server.firmware.ended_safely()
+    # The same scene, sensor and seeds as the in-process rig: the same bytes.
+    assert frame_hashes(run) == reference
+    nominal = np.loadtxt(run / "light_directions_nominal.txt")
+    true = np.loadtxt(run / "simulation" / "light_directions_true.txt")
+    angles = np.degrees(np.arccos(np.clip(np.sum(nominal * true, axis=1), -1, 1)))
+    np.testing.assert_allclose(angles, 2.0, atol=1e-4)
