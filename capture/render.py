@@ -535,30 +535,33 @@ def render(
     else:
         intensities = np.asarray(light_intensities, dtype=np.float64).reshape(n, -1)
         if intensities.shape[1] not in (1, 3):
-            raise ValueError(f"light_intensities must be (n,), (n, 1) or (n, 3); got {intensities.shape}")
+            raise ValueError(
+                f"light_intensities must be (n,), (n, 1) or (n, 3); got {intensities.shape}"
+            )
     albedo = np.asarray(surface.albedo, dtype=np.float64)
     colour = albedo.ndim == 3 or intensities.shape[1] == 3
-    mask = surface.mask
-    h, w = mask.shape
-    normals = surface.normals[mask]  # (P, 3)
-    albedo_p = albedo[mask].reshape(normals.shape[0], -1)  # (P, 1) or (P, 3)
+    h, w = surface.mask.shape
+    # Work in the object's bounding box (shadows fall within the object).
+    rows = np.flatnonzero(surface.mask.any(axis=1))
+    cols = np.flatnonzero(surface.mask.any(axis=0))
+    if rows.size == 0:
+        rows = cols = np.array([0])
+    box = (slice(rows[0], rows[-1] + 1), slice(cols[0], cols[-1] + 1))
+    mask = surface.mask[box]
+    normals = surface.normals[box][mask]  # (P, 3)
+    albedo_p = albedo[box][mask].reshape(normals.shape[0], -1)  # (P, 1) or (P, 3)
+    height = np.asarray(surface.height, dtype=np.float64)[box]
+    cast_shadows = cast_shadows and normals.shape[0] > 0
 
     shading = np.zeros((n, normals.shape[0]))  # Lambertian cosine, 0 in attached/cast shadow
     spec = np.zeros((n, normals.shape[0]))
-    if cast_shadows and normals.shape[0]:
-        # Shadows fall within the object: march over its bounding box only.
-        rows = np.flatnonzero(mask.any(axis=1))
-        cols = np.flatnonzero(mask.any(axis=0))
-        box = (slice(rows[0], rows[-1] + 1), slice(cols[0], cols[-1] + 1))
-        box_mask = mask[box]
-        box_height = np.asarray(surface.height, dtype=np.float64)[box]
     for i, light in enumerate(lights):
         n_dot_l = normals @ light
         lit = n_dot_l > 0
-        if cast_shadows and normals.shape[0]:
-            lit_map = np.zeros(box_mask.shape, dtype=bool)
-            lit_map[box_mask] = lit
-            lit &= ~_cast_shadow(box_height, box_mask, lit_map, light)[box_mask]
+        if cast_shadows:
+            lit_map = np.zeros(mask.shape, dtype=bool)
+            lit_map[mask] = lit
+            lit &= ~_cast_shadow(height, mask, lit_map, light)[mask]
         shading[i] = np.where(lit, n_dot_l, 0.0)
         if specular > 0:
             spec[i] = np.where(lit, specular * _cook_torrance(normals, light, n_dot_l, roughness), 0.0)
@@ -576,7 +579,7 @@ def render(
         flat = radiance.reshape(total, radiance.shape[2])
         flat[chosen] += noise
     out = np.zeros((n, h, w, radiance.shape[2]))
-    out[:, mask] = radiance
+    out[:, box[0], box[1]][:, mask] = radiance
     return out if colour else out[..., 0]
 
 
@@ -587,6 +590,7 @@ def _subpixel_offsets(supersample: int) -> np.ndarray:
     return (np.arange(s) + 0.5) / s - 0.5
 
 
+@functools.lru_cache(maxsize=8)
 def _chrome_geometry(
     shape: tuple[int, int], center: tuple[float, float], radius: float, supersample: int
 ) -> tuple[tuple[slice, slice], np.ndarray, tuple[np.ndarray, ...]] | None:
@@ -595,6 +599,8 @@ def _chrome_geometry(
     Returns the box (row slice, column slice), the (bh, bw) share of each pixel covered by the sphere,
     and the reflected view vector components, each of shape (s*s, bh, bw); None if the box is empty.
     (The highlights are rendered separately, on a finer grid: see :func:`_chrome_highlight`.)
+    Cached: the simulated camera renders the same sphere for every frame; callers must not modify
+    the returned arrays.
     """
     h, w = shape
     if radius <= 0:
@@ -661,7 +667,10 @@ def render_chrome_sphere(
     if light_angular_radius_deg <= 0:
         raise ValueError(f"light_angular_radius_deg must be positive, got {light_angular_radius_deg}")
     out = np.zeros((lights.shape[0], shape[0], shape[1]))
-    geometry = _chrome_geometry(shape, center, radius, supersample)
+    geometry = _chrome_geometry(
+        (int(shape[0]), int(shape[1])), (float(center[0]), float(center[1])), float(radius),
+        int(supersample),
+    )
     if geometry is None:
         return out
     box, coverage, _ = geometry
@@ -777,7 +786,8 @@ class Scene:
 _KINDS = ("sphere", "relief", "chrome", "matte")
 
 
-def _build_surfaces(scene: Scene) -> tuple[Surface | None, ...]:
+def _build_surfaces(scene: Scene) -> tuple[tuple[Surface | None, np.ndarray], ...]:
+    """Per object: its surface (None for chrome) and its (H, W) coverage."""
     shape = (scene.height, scene.width)
     surfaces: list[Surface | None] = []
     for obj in scene.objects:
@@ -794,13 +804,16 @@ def _build_surfaces(scene: Scene) -> tuple[Surface | None, ...]:
             )
         else:
             surfaces.append(None)
-    return tuple(surfaces)
+    return tuple(
+        (surface, _object_alpha(scene, obj, surface))
+        for obj, surface in zip(scene.objects, surfaces, strict=True)
+    )
 
 
 _cached_surfaces = functools.lru_cache(maxsize=8)(_build_surfaces)
 
 
-def _scene_surfaces(scene: Scene) -> tuple[Surface | None, ...]:
+def _scene_surfaces(scene: Scene) -> tuple[tuple[Surface | None, np.ndarray], ...]:
     # The simulated camera renders the same scene once per frame: build its surfaces once.
     try:
         return _cached_surfaces(scene)
@@ -813,7 +826,10 @@ def _object_alpha(scene: Scene, obj: SceneObject, surface: Surface | None) -> np
     if surface is not None:
         return surface.mask.astype(np.float64)
     alpha = np.zeros((scene.height, scene.width))
-    geometry = _chrome_geometry((scene.height, scene.width), obj.center, obj.radius, 4)
+    geometry = _chrome_geometry(
+        (scene.height, scene.width), (float(obj.center[0]), float(obj.center[1])),
+        float(obj.radius), 4,
+    )
     if geometry is not None:
         box, coverage, _ = geometry
         alpha[box] = coverage
@@ -850,8 +866,7 @@ def render_scene(
             np.asarray(light_intensities, dtype=np.float64).reshape(k, -1), (k, 3)
         )
     frame = np.full((h, w, 3), float(scene.background))
-    for obj, surface in zip(scene.objects, _scene_surfaces(scene), strict=True):
-        alpha = _object_alpha(scene, obj, surface)
+    for obj, (surface, alpha) in zip(scene.objects, _scene_surfaces(scene), strict=True):
         # "Over" compositing: linear in the object's radiance, so frames add up light by light.
         frame *= 1.0 - alpha[..., None]
         if k == 0:
@@ -861,7 +876,15 @@ def render_scene(
             frame += np.einsum("khw,kc->hwc", grey, intensities) * np.asarray(obj.albedo)
         else:
             spec = obj.specular if obj.kind != "matte" else 0.0
-            images = render(surface, lights, intensities, specular=spec, roughness=obj.roughness)
+            # A sphere is convex: only a relief can shadow itself.
+            images = render(
+                surface,
+                lights,
+                intensities,
+                cast_shadows=obj.kind == "relief",
+                specular=spec,
+                roughness=obj.roughness,
+            )
             frame += images.sum(axis=0)
     return frame
 
@@ -880,8 +903,8 @@ def scene_ground_truth(scene: Scene) -> dict:
     mask = np.zeros((h, w), dtype=bool)
     chrome: list[tuple[float, float, float]] = []
     matte: list[tuple[float, float, float]] = []
-    for obj, surface in zip(scene.objects, _scene_surfaces(scene), strict=True):
-        obj_mask = _object_alpha(scene, obj, surface) > 0.5
+    for obj, (surface, alpha) in zip(scene.objects, _scene_surfaces(scene), strict=True):
+        obj_mask = alpha > 0.5
         # A later object hides what is behind it.
         normals[obj_mask] = 0.0
         mask &= ~obj_mask
