@@ -1,6 +1,6 @@
 """The simulated light controller: protocol v1 "firmware" in Python, with fault injection.
 
-The simulator is a real implementation a rig file can choose (``driver = "simulated"``); it is
+The simulator is a real implementation that a rig file can choose instead of hardware; it is
 exposed three ways:
 
 - in-process, as the pyserial URL ``pslabsim://NAME?lights=24&faults=garble@7&seed=1`` (the
