@@ -343,6 +343,9 @@ class CaptureSession:
         Frames per light (default 1; a resumed run keeps its own).
     resume : bool
         Continue the run described by ``run_dir/manifest.json``.
+    prompt : callable, optional
+        Shows the operator a message such as ``"press the shutter for light 3"`` (folder camera
+        with ``prompt = true``).
 
     """
 
@@ -553,7 +556,7 @@ class CaptureSession:
         except PsLabError as exc:
             if not self.records:
                 raise
-            raise type(exc)(f"{exc}; {self.status_line()}") from None
+            raise _reworded(exc, f"{exc}; {self.status_line()}") from None
         self.opened = opened
         frame: PlannedFrame | None = None
         try:
@@ -573,7 +576,8 @@ class CaptureSession:
         except PsLabError as exc:
             where = f"frame {frame.index} ({frame.label})" if frame is not None else "setup"
             self.stopped_reason = f"{where}: {exc}"
-            raise type(exc)(f"capture stopped at {where}: {exc}; {self.status_line()}") from None
+            message = f"capture stopped at {where}: {exc}; {self.status_line()}"
+            raise _reworded(exc, message) from None
         except OSError as exc:
             where = f"frame {frame.index} ({frame.label})" if frame is not None else "setup"
             raise DatasetError(
@@ -711,6 +715,17 @@ class CaptureSession:
         # Closing the controller switches the lights off (and, if it does not answer any more,
         # its watchdog will); closing never raises.
         opened.close()
+
+
+def _reworded(exc: PsLabError, message: str) -> PsLabError:
+    """Return an error of the same family as ``exc`` with ``message`` (exit code stays 2)."""
+    for cls in type(exc).__mro__:
+        if issubclass(cls, PsLabError):
+            try:
+                return cls(message)
+            except TypeError:  # a subclass with its own constructor
+                continue
+    return PsLabError(message)
 
 
 def _bar_label(frame: PlannedFrame, plan: CapturePlan) -> str:
