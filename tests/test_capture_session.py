@@ -181,6 +181,12 @@ def test_clean_capture_writes_every_frame_under_the_right_light(
     )
     assert (run / "simulation" / "mask.png").stat().st_size > 0
     assert not (run / "light_directions_nominal.txt").exists()  # the tiny rig has none
+    # The run is a dataset: the shared loader takes frames, dark frame and exposures from it.
+    from ps_lab.dataset import load_frames
+
+    frames = load_frames(run)
+    assert frames.images.shape == (N_LIGHTS, 48, 64, 3)
+    assert frames.manifest is not None and frames.manifest["plan"]["repeat"] == 1
 
     # No mix-up: the dark-subtracted frame of light i looks like light i's rendering, not another's.
     dark = load_raw(run / manifest["frames"][0]["file"]).image.astype(np.float64)
