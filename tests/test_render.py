@@ -150,6 +150,38 @@ def test_oblique_light_casts_shadows_where_attached_test_says_lit():
     np.testing.assert_allclose(image[facing & ~cast], (surface.normals @ light * surface.albedo)[facing & ~cast])
 
 
+def _ray_excess(surface: Surface, row: int, col: int, light: np.ndarray) -> float:
+    """Slow reference: how far the terrain rises above the ray (quarter-pixel steps, t >= 1)."""
+    horizontal = np.hypot(light[0], light[1])
+    t = np.arange(1.0, 400.0, 0.25)
+    rows = row - t * light[1] / horizontal
+    cols = col + t * light[0] / horizontal
+    heights = map_coordinates(surface.height, [rows, cols], order=1, cval=0.0)
+    on_object = map_coordinates(surface.mask.astype(float), [rows, cols], order=1, cval=0.0) > 0.999
+    ray = surface.height[row, col] + 0.5 + t * light[2] / horizontal
+    return float(np.max(np.where(on_object, heights - ray, -np.inf)))
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_cast_shadows_agree_with_a_brute_force_march(seed):
+    # The fast path (sweep + partial march) must find every clearly blocked ray and no clear one.
+    rng = np.random.default_rng(seed)
+    surface = relief_surface((100, 120), seed=seed)
+    lights = random_light_directions(4, rng, max_zenith_deg=70.0)
+    images = render(surface, lights)
+    blocked_seen = 0
+    for light, image in zip(lights, images, strict=True):
+        facing = surface.mask & (surface.normals @ light > 0)
+        rows, cols = np.nonzero(facing)
+        pick = rng.choice(rows.size, size=150, replace=False)
+        excess = np.array([_ray_excess(surface, rows[i], cols[i], light) for i in pick])
+        shadowed = image[rows[pick], cols[pick]] == 0.0
+        assert np.all(shadowed[excess > 0.3])
+        assert not np.any(shadowed[excess < -0.3])
+        blocked_seen += int(np.sum(excess > 0.3))
+    assert blocked_seen > 10
+
+
 def test_specular_adds_positive_energy_near_the_mirror_direction():
     surface = sphere_surface((101, 101))
     light = np.array([0.3, 0.2, 0.9])
