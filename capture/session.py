@@ -560,7 +560,7 @@ class CaptureSession:
         self.opened = opened
         frame: PlannedFrame | None = None
         try:
-            self._prepare_folder()
+            self._prepare_folder(opened)
             if opened.simulation is not None:
                 self._write_simulation(opened)
             self._write_nominal_directions(opened)
@@ -595,7 +595,7 @@ class CaptureSession:
             time.monotonic() - started,
         )
 
-    def _prepare_folder(self) -> None:
+    def _prepare_folder(self, opened: OpenRig) -> None:
         run = self.run_dir
         try:
             (run / FRAMES_DIR).mkdir(parents=True, exist_ok=True)
@@ -615,7 +615,12 @@ class CaptureSession:
         if stray.exists():
             stray.unlink()
         self.manifest.setdefault("sessions", []).append(
-            {"started": _iso(time.time()), "resumed": self.resume}
+            {
+                "started": _iso(time.time()),
+                "resumed": self.resume,
+                "controller_port": getattr(opened.controller, "port_name", None),
+                "camera": _json_safe(getattr(opened.camera, "settings", {})),
+            }
         )
         self.manifest["frames"] = self.records
         write_json_atomic(run / MANIFEST_NAME, self.manifest)
@@ -715,6 +720,10 @@ class CaptureSession:
         # Closing the controller switches the lights off (and, if it does not answer any more,
         # its watchdog will); closing never raises.
         opened.close()
+
+
+def _json_safe(value: Any) -> Any:
+    return json.loads(json.dumps(value, default=str))
 
 
 def _reworded(exc: PsLabError, message: str) -> PsLabError:
