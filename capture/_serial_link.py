@@ -88,17 +88,25 @@ class SerialLink:
                 raise self._lost(exc) from exc
             self._received += chunk
 
-    def drain(self) -> None:
-        """Discard everything received but not yet read (stale or garbled replies)."""
+    def drain(self) -> list[str]:
+        """Discard the complete lines received but not read; return them (stale or noise).
+
+        A partial line at the end is kept: it may be the start of a line still arriving (a
+        ``READY`` from a board that just reset), and cutting it would hide that line.
+        """
         try:
-            self.port.reset_input_buffer()
-            waiting = self.port.in_waiting
-            stale = bytes(self._received) + (self.port.read(waiting) if waiting else b"")
+            while (waiting := self.port.in_waiting) > 0:
+                self._received += self.port.read(min(waiting, 4096))
         except Exception as exc:
             raise self._lost(exc) from exc
-        self._received.clear()
-        if stale:
-            log.debug("%s drained %r", self.name, stale)
+        end = self._received.rfind(b"\n")
+        if end < 0:
+            return []
+        stale = bytes(self._received[: end + 1])
+        del self._received[: end + 1]
+        log.debug("%s drained %r", self.name, stale)
+        lines = stale.replace(b"\r", b"").decode("ascii", errors="replace").split("\n")
+        return lines[:-1]
 
     def close(self) -> None:
         """Close the port (errors while closing are logged, not raised)."""

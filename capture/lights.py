@@ -343,7 +343,8 @@ class SerialLightController(LightController):
         self._retries = int(retries)
         self._boot_timeout = float(boot_timeout)
         self._wanted: frozenset[int] = frozenset()
-        self._reboots = 0
+        self._reboots = 0  # in a row, within the current exchange
+        self._reboots_seen = 0
         if isinstance(port, str):
             name = port
             try:
@@ -365,6 +366,15 @@ class SerialLightController(LightController):
             self._closed = True
             self._link.close()
             raise
+
+    @property
+    def reboots_seen(self) -> int:
+        """How many times the controller rebooted since it was opened (each was recovered).
+
+        The driver restores the lit lights after a reboot, so ``state()`` cannot tell that an
+        exposure ran in the dark; compare this count before and after the exposure.
+        """
+        return self._reboots_seen
 
     # -- hooks -------------------------------------------------------------------------------
 
@@ -427,25 +437,16 @@ class SerialLightController(LightController):
             attempts = 0
             while True:
                 attempts += 1
-                self._link.drain()
+                # A READY among stale input: the board reset since the last exchange (power
+                # glitch, hardware watchdog) and forgot the level, the watchdog and what was lit.
+                ready = [line for line in self._link.drain() if line.startswith("READY ")]
+                if ready:
+                    self._recover_from_reboot(ready[-1], command)
                 self._link.send(command)
                 reply = self._link.read_line(self._reply_timeout)
                 if reply is not None and reply.startswith("READY "):
-                    # The board reset (power glitch, watchdog, or opened port): it forgot
-                    # everything. Handshake again, restore what was lit, then re-send.
-                    self._reboots += 1
-                    if self._reboots > self.MAX_REBOOTS:
-                        raise RigError(
-                            f"light controller at {self.port_name} keeps rebooting "
-                            f"({self._reboots} times while sending {command!r})"
-                        )
-                    log.warning(
-                        "%s: controller rebooted (%r); handshaking again", self.port_name, reply
-                    )
-                    self._check_identity(reply)
-                    self._configure()
-                    if self._wanted and command.split()[0] not in ("ON", "OFF"):
-                        self._exchange("ON " + " ".join(str(i) for i in sorted(self._wanted)))
+                    # The board reset instead of answering; re-send after recovering.
+                    self._recover_from_reboot(reply, command)
                     attempts -= 1
                     continue
                 if reply is not None and self._reply_matches(command, reply):
@@ -467,6 +468,21 @@ class SerialLightController(LightController):
                         f"{attempts} attempts (received: {', '.join(received)})"
                     )
                 log.info("%s: retrying %r (received %s)", self.port_name, command, received[-1])
+
+    def _recover_from_reboot(self, ready_line: str, command: str) -> None:
+        """Handshake again after a ``READY`` and restore the level, watchdog and lit lights."""
+        self._reboots += 1
+        self._reboots_seen += 1
+        if self._reboots > self.MAX_REBOOTS:
+            raise RigError(
+                f"light controller at {self.port_name} keeps rebooting "
+                f"({self._reboots} times while sending {command!r})"
+            )
+        log.warning("%s: controller rebooted (%r); handshaking again", self.port_name, ready_line)
+        self._check_identity(ready_line)
+        self._configure()
+        if self._wanted and command.split()[0] not in ("ON", "OFF"):
+            self._exchange("ON " + " ".join(str(i) for i in sorted(self._wanted)))
 
     def _reply_matches(self, command: str, reply: str) -> bool:
         name = command.split()[0]

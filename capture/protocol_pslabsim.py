@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import threading
 import time
+from collections.abc import Callable
 
 from ps_lab.capture.sim_lights import (
     LineAssembler,
@@ -37,6 +38,7 @@ class Serial(SerialBase):
         self._received = bytearray()
         self._outbox = _Outbox()
         self._assembler = LineAssembler()
+        self._detach: Callable[[], None] | None = None
         super().__init__(*args, **kwargs)
 
     # -- opening -----------------------------------------------------------------------------
@@ -54,6 +56,7 @@ class Serial(SerialBase):
         self.is_open = True
         assert self.firmware is not None
         self._outbox.add(Reply([self.firmware.reboot()]))
+        self._detach = self.firmware.add_output(self._unsolicited)
 
     def from_url(self, url: str) -> None:
         """Read the URL's options (see ``firmware_from_url``)."""
@@ -64,7 +67,14 @@ class Serial(SerialBase):
 
     def close(self) -> None:
         """Detach; the simulated controller keeps its state (a real board stays powered)."""
+        if self._detach is not None:
+            self._detach()
+            self._detach = None
         self.is_open = False
+
+    def _unsolicited(self, line: str) -> None:
+        with self._lock:
+            self._outbox.add(Reply([line]))
 
     def _reconfigure_port(self) -> None:
         # Baud rate, parity, etc. mean nothing in-process.

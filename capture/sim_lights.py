@@ -21,6 +21,7 @@ import itertools
 import json
 import logging
 import os
+import queue
 import random
 import re
 import select
@@ -295,6 +296,7 @@ class SimulatedFirmware:
         self._rng = random.Random(seed)
         self._lock = threading.RLock()
         self._listeners: list[Callable[[LightState], None]] = []
+        self._outputs: list[Callable[[str], None]] = []
         self._lit: frozenset[int] = frozenset()
         self._level = MAX_LEVEL
         self._watchdog_ms = DEFAULT_WATCHDOG_MS
@@ -357,6 +359,28 @@ class SimulatedFirmware:
             self._log("boot", self.ready_line())
             self._set(frozenset(), MAX_LEVEL)
             return self.ready_line()
+
+    def add_output(self, sink: Callable[[str], None]) -> Callable[[], None]:
+        """Attach a transport for unsolicited lines (a ``READY`` after :meth:`power_cycle`).
+
+        Returns the function that detaches it.
+        """
+        with self._lock:
+            self._outputs.append(sink)
+
+        def remove() -> None:
+            with self._lock:
+                if sink in self._outputs:
+                    self._outputs.remove(sink)
+
+        return remove
+
+    def power_cycle(self) -> None:
+        """Reset between commands, as a brown-out would, and announce ``READY`` unasked."""
+        with self._lock:
+            line = self.reboot()
+            for sink in list(self._outputs):
+                sink(line)
 
     def poll(self) -> bool:
         """Let the watchdog act; return True if it switched the lights off just now."""
@@ -677,6 +701,8 @@ class PtyServer:
         self._thread: threading.Thread | None = None
         self._stop = threading.Event()
         self._error: BaseException | None = None
+        self._unsolicited: queue.SimpleQueue[str] = queue.SimpleQueue()
+        self._detach: Callable[[], None] | None = None
 
     def start(self) -> PtyServer:
         """Open the pty pair, announce READY and serve in a background thread; return self."""
@@ -693,6 +719,7 @@ class PtyServer:
         self._stop.clear()
         outbox = _Outbox()
         outbox.add(Reply([self.firmware.reboot()]))
+        self._detach = self.firmware.add_output(self._unsolicited.put)
         self._thread = threading.Thread(
             target=self._serve, args=(outbox,), name="ps-lab-pty-sim", daemon=True
         )
@@ -703,6 +730,9 @@ class PtyServer:
     def stop(self) -> None:
         """Stop serving and close the pty pair (idempotent)."""
         self._stop.set()
+        if self._detach is not None:
+            self._detach()
+            self._detach = None
         if self._thread is not None:
             self._thread.join(timeout=5.0)
             self._thread = None
@@ -749,6 +779,8 @@ class PtyServer:
                     for line in assembler.feed(data):
                         outbox.add(self.firmware.respond(line))
                 self.firmware.poll()
+                while not self._unsolicited.empty():
+                    outbox.add(Reply([self._unsolicited.get()]))
                 data = outbox.due()
                 if data:
                     os.write(master, data)

@@ -8,6 +8,7 @@ Commands are counted from 1 since the simulated controller was created; opening 
 from __future__ import annotations
 
 import itertools
+import time
 
 import pytest
 import serial
@@ -409,3 +410,55 @@ def test_socket_url_reaches_a_controller_over_tcp():
         thread.join(timeout=5)
     assert firmware.commands()[4:6] == ["ON 7", "ON 7"]
     assert firmware.ended_safely()
+
+
+@pytest.mark.parametrize("transport", ["url", "pty"])
+def test_reboot_between_commands_is_noticed_and_recovered(transport):
+    # A brown-out during an exposure: the board resets with no command in flight. The READY it
+    # sends waits in the input; the next exchange must notice it, restore level and lights, and
+    # count the reboot so that a capture session can tell the exposure may have run dark.
+    firmware = SimulatedFirmware(8, clock=ManualClock())
+    if transport == "url":
+        name = f"brownout-{next(_names)}"
+        register_firmware(name, firmware)
+        controller, server = SerialLightController(f"pslabsim://{name}", 8, **PTY), None
+    else:
+        server = PtyServer(firmware).start()
+        controller = SerialLightController(server.path, 8, level=90, **PTY)
+    try:
+        controller.set_level(90)
+        controller.switch(3)
+        firmware.power_cycle()
+        assert firmware.state() == LightState(frozenset(), 255)
+        deadline = time.monotonic() + 5
+        # Over the pty the READY crosses a thread: until it arrives, STATE honestly says NONE.
+        while controller.state().lit != {3} and time.monotonic() < deadline:
+            pass
+        assert controller.reboots_seen == 1
+        assert controller.state().lit == {3}
+        assert firmware.state() == LightState(frozenset({3}), 90)
+        controller.close()
+        assert firmware.ended_safely()
+    finally:
+        if server is not None:
+            server.stop()
+
+
+def test_reboot_between_commands_on_the_byte_level():
+    script = (
+        handshake(8)
+        + [
+            (b"ON 3\n", b"OK ON 3\nREADY ps-lab-lights 1 8\n"),  # the board resets after replying
+            (b"WATCHDOG 10000\n", b"OK WATCHDOG 10000\n"),
+            (b"LEVEL 255\n", b"OK LEVEL 255\n"),
+            (b"ON 3\n", b"OK ON 3\n"),  # what was lit is lit again before STATE is asked
+            (b"STATE\n", b"STATE 3\n"),
+        ]
+        + CLOSE
+    )
+    with expected_protocol(script) as port:
+        with SerialLightController(port, 8, **FAST) as controller:
+            controller.switch(3)
+            assert controller.reboots_seen == 0
+            assert controller.state().lit == {3}
+            assert controller.reboots_seen == 1
