@@ -231,3 +231,37 @@ def test_simulation_is_seeded_and_follows_the_layout(tmp_path: Path) -> None:
     other = load_rig(write(tmp_path, text.replace("seed = 5", "seed = 6")))
     assert not np.allclose(build_simulation(other).light_directions, a.light_directions)
     assert math.isclose(rig.scene.lights.max_zenith_deg, 40.0)
+
+
+def test_fault_forms_and_gphoto2_settings(tmp_path: Path) -> None:
+    text = MINIMAL + (
+        "[faults]\nseed = 4\n"
+        "controller = [{ kind = 'garble', probability = 0.1 }, { kind = 'silence', at = 30 }]\n"
+    )
+    rig = load_rig(write(tmp_path, text))
+    assert [(f.kind, f.at, f.probability) for f in rig.faults.controller] == [
+        ("garble", None, 0.1),
+        ("silence", 30, 0.0),
+    ]
+    with pytest.raises(RigError, match=r"at: missing"):
+        load_rig(write(tmp_path, MINIMAL + "[[faults.camera]]\nkind = 'timeout'\n"))
+    with pytest.raises(RigError, match=r"probability: unknown key"):
+        load_rig(
+            write(
+                tmp_path,
+                MINIMAL + "[[faults.camera]]\nkind = 'timeout'\nat = 2\nprobability = 0.5\n",
+            )
+        )
+    with pytest.raises(RigError, match=r"kind: unknown value 'stop'"):
+        load_rig(write(tmp_path, MINIMAL + "[[faults.controller]]\nkind = 'stop'\nat = 2\n"))
+
+    template = (RIGS / "arduino-gphoto2.toml").read_text()
+    with_settings = template.replace(
+        "# [camera.settings]\n# whitebalance", "[camera.settings]\nwhitebalance"
+    ).replace('# imagequality = "RAW"', 'imagequality = "RAW"')
+    rig = load_rig(write(tmp_path, with_settings))
+    assert dict(rig.camera.settings) == {"whitebalance": "Daylight", "imagequality": "RAW"}
+    assert rig.camera_settings()["settings"] == {"imagequality": "RAW", "whitebalance": "Daylight"}
+    bad = with_settings.replace('imagequality = "RAW"', "imagequality = [1, 2]")
+    with pytest.raises(RigError, match=r"\[camera.settings\] imagequality: expected a string"):
+        load_rig(write(tmp_path, bad))
