@@ -1,4 +1,4 @@
-"""Write a rendered scene as a photometric-stereo dataset folder (the layout ``ps-lab reconstruct`` reads)."""
+"""Write a rendered scene as a dataset folder in the layout ``ps-lab reconstruct`` reads."""
 
 from __future__ import annotations
 
@@ -83,6 +83,7 @@ def write_simulated_dataset(
         Target folder; must not exist or be empty. Written into a temporary sibling folder and
         renamed at the end, so a failed run leaves nothing behind.
     settings : SimulationSettings
+        Scene, lights, material, noise and image format.
     progress : callable, optional
         Called with 1 after each light is rendered and again after each image is written
         (``2 * settings.lights`` calls in all).

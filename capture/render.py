@@ -1,14 +1,15 @@
 """Orthographic photometric-stereo renderer with ground-truth normals.
 
 The camera looks down ``-z`` (orthographic, one pixel = one length unit); lights are directional.
-Vectors live in the camera frame: x right, y up (``y = -(row offset)``), z toward the camera, and light
-directions point from the surface toward the light (the DiLiGenT convention). Pixel ``(x, y)`` is
-(column, row) with the origin at the centre of the top-left pixel.
+Vectors live in the camera frame: x right, y up (``y = -(row offset)``), z toward the camera, and
+light directions point from the surface toward the light (the DiLiGenT convention). Pixel ``(x, y)``
+is (column, row) with the origin at the centre of the top-left pixel.
 
 Public API: :func:`random_light_directions`, :class:`Surface`, :func:`sphere_surface`,
-:func:`relief_surface`, :func:`render`, :func:`render_chrome_sphere`, and the scene composition used by
+:func:`relief_surface`, :func:`render`, :func:`render_chrome_sphere`; the scene composition used by
 the simulated rig: :class:`SceneObject`, :class:`Scene`, :func:`render_scene`,
-:func:`scene_ground_truth`; and :func:`write_simulated_dataset` behind ``ps-lab simulate``. See ``docs/renderer.md`` for the model.
+:func:`scene_ground_truth`; and :func:`write_simulated_dataset` behind ``ps-lab simulate``.
+See ``docs/renderer.md`` for the model.
 """
 
 from __future__ import annotations
@@ -154,7 +155,7 @@ def sphere_surface(
     Returns
     -------
     Surface
-        Height ``z = sqrt(r^2 - dx^2 - dy^2)`` and normals ``(dx, dy, z) / r`` with ``dy`` pointing up.
+        Height ``z = sqrt(r^2 - dx^2 - dy^2)`` and normals ``(dx, dy, z) / r``, ``dy`` pointing up.
     """
     h, w = shape
     if center is None:
@@ -181,7 +182,9 @@ def _smooth_noise(shape: tuple[int, int], rng: np.random.Generator, scale: float
     """Smooth random field in [0, 1] with features of about ``scale`` pixels."""
     field = rng.standard_normal(shape)
     sigma = max(scale, 0.5)
-    field = cv2.GaussianBlur(field, (0, 0), sigmaX=sigma, sigmaY=sigma, borderType=cv2.BORDER_REFLECT)
+    field = cv2.GaussianBlur(
+        field, (0, 0), sigmaX=sigma, sigmaY=sigma, borderType=cv2.BORDER_REFLECT
+    )
     lo, hi = field.min(), field.max()
     return (field - lo) / (hi - lo) if hi > lo else np.zeros(shape)
 
@@ -196,9 +199,9 @@ def relief_surface(
 ) -> Surface:
     """Build a height-field object: a rounded dome carrying smooth bumps and ridges.
 
-    The bumps are steep enough (slopes up to about 60-70 degrees) to cast visible shadows onto the dome
-    under oblique light. The normals are the analytic normals of the very height field returned in
-    ``height``, so shading and ray-marched shadows agree.
+    The bumps are steep enough (slopes up to about 60-70 degrees) to cast visible shadows onto the
+    dome under oblique light. The normals are the analytic normals of the very height field returned
+    in ``height``, so shading and ray-marched shadows agree.
 
     Parameters
     ----------
@@ -272,7 +275,9 @@ def relief_surface(
     normals[~mask] = 0.0
     if albedo is None:
         albedo = 0.55 + 0.45 * _smooth_noise(shape, rng, 0.12 * radius)
-    return Surface(normals=normals, mask=mask, height=height, albedo=_albedo_array(albedo, shape, mask))
+    return Surface(
+        normals=normals, mask=mask, height=height, albedo=_albedo_array(albedo, shape, mask)
+    )
 
 
 class _HeightSampler:
@@ -313,15 +318,15 @@ def _terrain_ahead(
 ) -> tuple[np.ndarray, np.ndarray]:
     """Highest ``G = h - rise u`` ahead of every pixel along the light, from one sweep.
 
-    Returns ``ahead`` and ``G``-offset ``rise * u``, both (H, W): pixel ``p`` may be shadowed only if
-    ``ahead[p] > h(p) + bias - rise u(p)`` (up to the interpolation margin ``_SHADOW_SLACK``).
+    Returns ``ahead`` and the offset ``rise * u``, both (H, W): pixel ``p`` may be shadowed only
+    if ``ahead[p] > h(p) + bias - rise u(p)`` (up to the interpolation margin ``_SHADOW_SLACK``).
 
-    Along a ray ``q = p + t d`` the test ``h(q) > h(p) + bias + t rise`` reads ``G(q) > G(p) + bias``
-    with ``G = h - rise u`` and ``u`` the coordinate along ``d``. The height field is resampled on a
-    grid rotated so that ``d`` runs along its rows; a reverse running maximum of ``G`` along each
-    row gives, for every pixel at once, the highest ``G`` ahead (from 2 pixels on). Rotating that
-    back interpolates between neighbouring rows, so comparisons keep a margin
-    (``_SHADOW_SLACK``); the caller marches the candidates exactly.
+    Along a ray ``q = p + t d`` the test ``h(q) > h(p) + bias + t rise`` reads
+    ``G(q) > G(p) + bias`` with ``G = h - rise u`` and ``u`` the coordinate along ``d``. The height
+    field is resampled on a grid rotated so that ``d`` runs along its rows; a reverse running
+    maximum of ``G`` along each row gives, for every pixel at once, the highest ``G`` ahead (from
+    2 pixels on). Rotating that back interpolates between neighbouring rows, so comparisons keep a
+    margin (``_SHADOW_SLACK``); the caller marches the candidates exactly.
     """
     step_x, step_y = step
     h, w = height.shape
@@ -337,8 +342,12 @@ def _terrain_ahead(
     )
     flags = cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP
     rotated = cv2.warpAffine(
-        height.astype(np.float32), to_original, (size, size), flags=flags,
-        borderMode=cv2.BORDER_CONSTANT, borderValue=0.0,
+        height.astype(np.float32),
+        to_original,
+        (size, size),
+        flags=flags,
+        borderMode=cv2.BORDER_CONSTANT,
+        borderValue=0.0,
     ).astype(np.float64)
     along = np.arange(size, dtype=np.float64)
     g_rot = rotated - rise * along[None, :]
@@ -352,8 +361,12 @@ def _terrain_ahead(
         ]
     )
     ahead_here = cv2.warpAffine(
-        ahead.astype(np.float32), to_rotated, (w, h), flags=flags,
-        borderMode=cv2.BORDER_CONSTANT, borderValue=-1e9,
+        ahead.astype(np.float32),
+        to_rotated,
+        (w, h),
+        flags=flags,
+        borderMode=cv2.BORDER_CONSTANT,
+        borderValue=-1e9,
     )
     cols = np.arange(w, dtype=np.float64)[None, :]
     rows = np.arange(h, dtype=np.float64)[:, None]
@@ -411,8 +424,12 @@ def _cast_shadow(
     src = height.astype(np.float32)
     for t in (1, 2):
         quick = cv2.remap(
-            src, cols + np.float32(t * step_x), rows + np.float32(t * step_y),
-            interpolation=cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0.0,
+            src,
+            cols + np.float32(t * step_x),
+            rows + np.float32(t * step_y),
+            interpolation=cv2.INTER_LINEAR,
+            borderMode=cv2.BORDER_CONSTANT,
+            borderValue=0.0,
         )
         ys, xs = np.nonzero(lit & ~candidate & (quick > ray0 + t * rise - _SHADOW_SLACK))
         shadow[ys, xs] |= sample(xs + t * step_x, ys + t * step_y) > ray0[ys, xs] + t * rise
@@ -434,7 +451,9 @@ def _cast_shadow(
         shadow[ys[blocked], xs[blocked]] = True
         # Once the sweep says nothing ahead of the ray's position rises to it (2 pixels on),
         # four more exact steps finish the ray (the sweep is read at the nearest pixel).
-        clear = ahead[np.rint(y).astype(np.intp), np.rint(x).astype(np.intp)] < g0 - 3 * _SHADOW_SLACK
+        clear = (
+            ahead[np.rint(y).astype(np.intp), np.rint(x).astype(np.intp)] < g0 - 3 * _SHADOW_SLACK
+        )
         last = np.where(clear, np.minimum(last, t + 4), last)
         t += 1
         keep = ~blocked & (last >= t)
@@ -511,7 +530,8 @@ def render(
     noise_sigma : float
         Standard deviation of the additive Gaussian noise.
     noise_fraction : float
-        Share of the object's observations (light x pixel) that receive noise (the paper's noise density).
+        Share of the object's observations (light x pixel) that receive noise (the paper's noise
+        density).
     rng : numpy.random.Generator, optional
         Noise source; default ``numpy.random.default_rng(0)``.
     progress : callable, optional
@@ -564,7 +584,9 @@ def render(
             lit &= ~_cast_shadow(height, mask, lit_map, light)[mask]
         shading[i] = np.where(lit, n_dot_l, 0.0)
         if specular > 0:
-            spec[i] = np.where(lit, specular * _cook_torrance(normals, light, n_dot_l, roughness), 0.0)
+            spec[i] = np.where(
+                lit, specular * _cook_torrance(normals, light, n_dot_l, roughness), 0.0
+            )
         if progress is not None:
             progress(1)
 
@@ -596,8 +618,9 @@ def _chrome_geometry(
 ) -> tuple[tuple[slice, slice], np.ndarray, tuple[np.ndarray, ...]] | None:
     """Sub-pixel geometry of a mirror sphere over its bounding box.
 
-    Returns the box (row slice, column slice), the (bh, bw) share of each pixel covered by the sphere,
-    and the reflected view vector components, each of shape (s*s, bh, bw); None if the box is empty.
+    Returns the box (row slice, column slice), the (bh, bw) share of each pixel covered by the
+    sphere, and the reflected view vector components, each of shape (s*s, bh, bw); None if the box
+    is empty.
     (The highlights are rendered separately, on a finer grid: see :func:`_chrome_highlight`.)
     Cached: the simulated camera renders the same sphere for every frame; callers must not modify
     the returned arrays.
@@ -641,21 +664,30 @@ def render_chrome_sphere(
     """Render a mirror sphere under small disc-shaped lights.
 
     A sub-pixel sample on the sphere reflects the view vector ``v = (0, 0, 1)`` into
-    ``r = 2 (n.v) n - v``; it sees ``light_radiance`` where ``r`` falls inside a light's disc of angular
-    radius ``light_angular_radius_deg`` (with a narrow linear ramp at the disc's edge) and ``ambient``
-    everywhere on the sphere. Each pixel averages an ``s x s`` grid of sub-pixel samples for the outline
-    and a finer grid for the highlight (one sub-sample spans at most a quarter of the disc radius), so
-    both are anti-aliased and the highlight centroid moves smoothly with the light. The background is 0.
+    ``r = 2 (n.v) n - v``; it sees ``light_radiance`` where ``r`` falls inside a light's disc of
+    angular radius ``light_angular_radius_deg`` (with a narrow linear ramp at the disc's edge) and
+    ``ambient`` everywhere on the sphere. Each pixel averages an ``s x s`` grid of sub-pixel samples
+    for the outline and a finer grid for the highlight (one sub-sample spans at most a quarter of
+    the disc radius), so both are anti-aliased and the highlight centroid moves smoothly with the
+    light.
+    The background is 0.
 
     Parameters
     ----------
     shape : (H, W)
+        Image size.
     center : (x, y)
         Sphere centre in pixels.
     radius : float
         Sphere radius in pixels.
     light_directions : ndarray of shape (n, 3)
-    light_angular_radius_deg, light_radiance, ambient : float
+        Directions toward the lights.
+    light_angular_radius_deg : float
+        Angular radius of each light's disc, degrees.
+    light_radiance : float
+        Radiance seen in a light's disc.
+    ambient : float
+        Radiance reflected everywhere else on the sphere.
     supersample : int
         Sub-pixel grid size ``s``.
 
@@ -665,10 +697,14 @@ def render_chrome_sphere(
     """
     lights = _normalise_lights(light_directions)
     if light_angular_radius_deg <= 0:
-        raise ValueError(f"light_angular_radius_deg must be positive, got {light_angular_radius_deg}")
+        raise ValueError(
+            f"light_angular_radius_deg must be positive, got {light_angular_radius_deg}"
+        )
     out = np.zeros((lights.shape[0], shape[0], shape[1]))
     geometry = _chrome_geometry(
-        (int(shape[0]), int(shape[1])), (float(center[0]), float(center[1])), float(radius),
+        (int(shape[0]), int(shape[1])),
+        (float(center[0]), float(center[1])),
+        float(radius),
         int(supersample),
     )
     if geometry is None:
@@ -734,7 +770,9 @@ def _chrome_highlight(
     ramp = per_pixel / fine
     weight = np.where(inside, np.clip((disc - angle) / ramp + 0.5, 0.0, 1.0), 0.0)
     sigma = _HIGHLIGHT_PSF_SIGMA * fine
-    weight = cv2.GaussianBlur(weight, (0, 0), sigmaX=sigma, sigmaY=sigma, borderType=cv2.BORDER_CONSTANT)
+    weight = cv2.GaussianBlur(
+        weight, (0, 0), sigmaX=sigma, sigmaY=sigma, borderType=cv2.BORDER_CONSTANT
+    )
     values = weight.reshape(y1 - y0, fine, x1 - x0, fine).mean(axis=(1, 3))
     return (slice(y0, y1), slice(x0, x1)), values
 
@@ -746,8 +784,8 @@ class SceneObject:
     Attributes
     ----------
     kind : str
-        ``'sphere'`` (Lambertian + specular sphere), ``'relief'`` (height-field object, placed in its
-        bounding circle), ``'chrome'`` (mirror sphere) or ``'matte'`` (Lambertian sphere).
+        ``'sphere'`` (Lambertian + specular sphere), ``'relief'`` (height-field object, placed in
+        its bounding circle), ``'chrome'`` (mirror sphere) or ``'matte'`` (Lambertian sphere).
     center : (x, y)
         Centre in pixels.
     radius : float
@@ -771,7 +809,7 @@ class SceneObject:
 
 @dataclass(frozen=True)
 class Scene:
-    """Objects on a constant background, seen by an orthographic camera of ``height x width`` pixels.
+    """Objects on a constant background, seen by an orthographic ``height x width`` camera.
 
     ``background`` is a light-independent level (stray light, sensor offset) present in every frame
     outside the objects, including the dark frame.
@@ -827,8 +865,10 @@ def _object_alpha(scene: Scene, obj: SceneObject, surface: Surface | None) -> np
         return surface.mask.astype(np.float64)
     alpha = np.zeros((scene.height, scene.width))
     geometry = _chrome_geometry(
-        (scene.height, scene.width), (float(obj.center[0]), float(obj.center[1])),
-        float(obj.radius), 4,
+        (scene.height, scene.width),
+        (float(obj.center[0]), float(obj.center[1])),
+        float(obj.radius),
+        4,
     )
     if geometry is not None:
         box, coverage, _ = geometry
@@ -844,6 +884,7 @@ def render_scene(
     Parameters
     ----------
     scene : Scene
+        The objects and background.
     light_directions : ndarray of shape (k, 3)
         The lit lights; ``k = 0`` gives the dark frame.
     light_intensities : ndarray of shape (k, 3), optional
@@ -854,7 +895,8 @@ def render_scene(
     ndarray of shape (H, W, 3)
         ``background`` outside the objects plus the sum over lit lights of each object's radiance.
         Later objects cover earlier ones (the chrome sphere's outline is anti-aliased); cast shadows
-        are computed within each object. ``frame(A and B) - dark = (frame(A) - dark) + (frame(B) - dark)``.
+        are computed within each object. Frames add up:
+        ``frame(A and B) - dark = (frame(A) - dark) + (frame(B) - dark)``.
     """
     h, w = scene.height, scene.width
     lights = np.asarray(light_directions, dtype=np.float64).reshape(-1, 3)
@@ -895,8 +937,8 @@ def scene_ground_truth(scene: Scene) -> dict:
     Returns
     -------
     dict
-        ``normals`` (H, W, 3) of the sphere/relief objects (zeros elsewhere), ``mask`` (H, W) bool of
-        those objects, ``chrome`` and ``matte``: lists of ``(cx, cy, r)`` circles.
+        ``normals`` (H, W, 3) of the sphere/relief objects (zeros elsewhere), ``mask`` (H, W) bool
+        of those objects, ``chrome`` and ``matte``: lists of ``(cx, cy, r)`` circles.
     """
     h, w = scene.height, scene.width
     normals = np.zeros((h, w, 3))

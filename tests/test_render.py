@@ -1,4 +1,4 @@
-"""Renderer: geometry, shading, shadows, specular, noise, chrome highlights and scene composition."""
+"""Renderer: geometry, shading, shadows, specular, noise, chrome highlights, scene composition."""
 
 from __future__ import annotations
 
@@ -47,11 +47,15 @@ def test_random_light_directions_are_unit_and_inside_the_cap(rng):
     assert np.ptp(np.arctan2(lights[:, 1], lights[:, 0])) > 5.0
 
 
-@pytest.mark.parametrize("make", [lambda: sphere_surface(SHAPE), lambda: relief_surface(SHAPE, seed=3)])
+@pytest.mark.parametrize(
+    "make", [lambda: sphere_surface(SHAPE), lambda: relief_surface(SHAPE, seed=3)]
+)
 def test_normals_unit_inside_mask_zero_outside(make):
     surface = make()
     assert surface.mask.any() and not surface.mask.all()
-    np.testing.assert_allclose(np.linalg.norm(surface.normals[surface.mask], axis=-1), 1.0, atol=1e-12)
+    np.testing.assert_allclose(
+        np.linalg.norm(surface.normals[surface.mask], axis=-1), 1.0, atol=1e-12
+    )
     assert np.all(surface.normals[~surface.mask] == 0.0)
     assert np.all(surface.height[~surface.mask] == 0.0)
     assert np.all(surface.normals[surface.mask][:, 2] > 0.0)
@@ -147,7 +151,9 @@ def test_oblique_light_casts_shadows_where_attached_test_says_lit():
     blocked = [_blocked_by_oracle(surface, rows[i], cols[i], light) for i in pick]
     assert np.mean(blocked) > 0.9
     # Elsewhere on the lit side the image is plain Lambertian shading.
-    np.testing.assert_allclose(image[facing & ~cast], (surface.normals @ light * surface.albedo)[facing & ~cast])
+    np.testing.assert_allclose(
+        image[facing & ~cast], (surface.normals @ light * surface.albedo)[facing & ~cast]
+    )
 
 
 def _ray_excess(surface: Surface, row: int, col: int, light: np.ndarray) -> float:
@@ -215,14 +221,20 @@ def test_noise_share_matches_noise_fraction(rng, fraction):
     assert abs(changed.sum() / observations - fraction) < 1e-3
     assert abs(np.std((noisy - clean)[changed]) - 0.05) < 0.005
     # Seeded: the same generator state gives the same noise.
-    again = render(surface, lights, noise_sigma=0.05, noise_fraction=fraction, rng=np.random.default_rng(7))
-    twice = render(surface, lights, noise_sigma=0.05, noise_fraction=fraction, rng=np.random.default_rng(7))
+    again = render(
+        surface, lights, noise_sigma=0.05, noise_fraction=fraction, rng=np.random.default_rng(7)
+    )
+    twice = render(
+        surface, lights, noise_sigma=0.05, noise_fraction=fraction, rng=np.random.default_rng(7)
+    )
     np.testing.assert_array_equal(again, twice)
 
 
 def test_chrome_highlight_at_centre_for_a_light_from_the_camera():
     center, radius = (40.3, 37.6), 25.4
-    image = render_chrome_sphere((80, 84), center, radius, np.array([[0.0, 0.0, 1.0]]), ambient=0.0)[0]
+    image = render_chrome_sphere(
+        (80, 84), center, radius, np.array([[0.0, 0.0, 1.0]]), ambient=0.0
+    )[0]
     cx, cy = _centroid(image)
     assert abs(cx - center[0]) < 0.02 and abs(cy - center[1]) < 0.02
 
@@ -234,13 +246,23 @@ def test_chrome_highlight_where_the_normal_bisects_view_and_light(rng):
     for light, image in zip(lights, images, strict=True):
         half = (light + [0, 0, 1]) / np.linalg.norm(light + [0, 0, 1])
         cx, cy = _centroid(image)
-        assert np.hypot(cx - (center[0] + radius * half[0]), cy - (center[1] - radius * half[1])) < 0.02
+        assert (
+            np.hypot(cx - (center[0] + radius * half[0]), cy - (center[1] - radius * half[1]))
+            < 0.02
+        )
 
 
 def test_chrome_outline_is_antialiased_and_ambient():
     center, radius = (30.25, 29.6), 20.3
-    image = render_chrome_sphere((60, 60), center, radius, np.array([[0.0, 0.0, 1.0]]),
-                                 light_radiance=0.0, ambient=1.0, supersample=8)[0]
+    image = render_chrome_sphere(
+        (60, 60),
+        center,
+        radius,
+        np.array([[0.0, 0.0, 1.0]]),
+        light_radiance=0.0,
+        ambient=1.0,
+        supersample=8,
+    )[0]
     assert abs(image.sum() - np.pi * radius**2) < 0.01 * np.pi * radius**2
     partial = (image > 0.02) & (image < 0.98)
     assert partial.sum() > 20  # grey edge pixels, not a binary disc
@@ -269,11 +291,13 @@ def test_render_scene_dark_frame_and_additivity(rng):
     truth = scene_ground_truth(scene)
     assert np.all(dark[0, 0] == 0.01)
     assert np.all(dark[truth["mask"]] == 0.0)
-    single = [render_scene(scene, lights[i : i + 1], intensities[i : i + 1]) - dark for i in range(3)]
+    single = [
+        render_scene(scene, lights[i : i + 1], intensities[i : i + 1]) - dark for i in range(3)
+    ]
     both = render_scene(scene, lights[:2], intensities[:2]) - dark
     np.testing.assert_allclose(both, single[0] + single[1], atol=1e-12)
     assert single[1][truth["mask"]].max() > 0
-    # Per-channel intensities and albedo: channel ratio of the relief follows (0.5*0.9, 1*0.7, 2*0.5).
+    # Per-channel intensities and albedo: the relief's channel ratio is (0.5*0.9, 1*0.7, 2*0.5).
     pixels = truth["mask"] & (single[1][..., 1] > 0.05)
     ratio = single[1][pixels] / single[1][pixels][:, 1:2]
     np.testing.assert_allclose(np.median(ratio, axis=0), [0.45 / 0.7, 1.0, 1.0 / 0.7], rtol=0.05)

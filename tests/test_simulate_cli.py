@@ -30,8 +30,20 @@ def _read(path):
 )
 def test_simulate_writes_a_consistent_dataset(tmp_path, image_format, suffix, dtype):
     out = tmp_path / "ds"
-    args = ["simulate", str(out), "--scene", "relief", "--lights", "7", "--size", "40",
-            "--seed", "3", "--format", image_format]
+    args = [
+        "simulate",
+        str(out),
+        "--scene",
+        "relief",
+        "--lights",
+        "7",
+        "--size",
+        "40",
+        "--seed",
+        "3",
+        "--format",
+        image_format,
+    ]
     result = runner.invoke(app, args)
     assert result.exit_code == 0, result.output
     names = (out / "filenames.txt").read_text().split()
@@ -65,8 +77,24 @@ def test_simulate_writes_a_consistent_dataset(tmp_path, image_format, suffix, dt
 
 def test_simulate_sphere_noise_and_specular(tmp_path):
     out = tmp_path / "sphere"
-    args = ["simulate", str(out), "--lights", "5", "--size", "32", "--format", "npy",
-            "--specular", "0.5", "--roughness", "0.2", "--noise-fraction", "0.5", "--noise-sigma", "0.1"]
+    args = [
+        "simulate",
+        str(out),
+        "--lights",
+        "5",
+        "--size",
+        "32",
+        "--format",
+        "npy",
+        "--specular",
+        "0.5",
+        "--roughness",
+        "0.2",
+        "--noise-fraction",
+        "0.5",
+        "--noise-sigma",
+        "0.1",
+    ]
     result = runner.invoke(app, args)
     assert result.exit_code == 0, result.output
     images = np.array([np.load(out / f"00{i}.npy") for i in range(1, 6)])

@@ -29,14 +29,17 @@ class ImageFormat(str, Enum):
 @lab_command
 def simulate(
     out: Annotated[
-        Path, typer.Argument(help="New dataset folder (must not exist or be empty).", show_default=False)
+        Path,
+        typer.Argument(help="New dataset folder (must not exist or be empty).", show_default=False),
     ],
     scene: Annotated[
         SceneKind, typer.Option(help="sphere, or relief (a height field whose bumps cast shadows).")
     ] = SceneKind.sphere,
     lights: Annotated[int, typer.Option(min=3, help="Number of random lights.")] = 40,
     size: Annotated[int, typer.Option(min=8, help="Image width and height in pixels.")] = 128,
-    seed: Annotated[int, typer.Option(help="Seed of the lights, the relief layout and the noise.")] = 0,
+    seed: Annotated[
+        int, typer.Option(help="Seed of the lights, the relief layout and the noise.")
+    ] = 0,
     specular: Annotated[
         float, typer.Option(min=0.0, help="Cook-Torrance strength (0 = Lambertian).")
     ] = 0.0,
@@ -44,17 +47,25 @@ def simulate(
     noise_fraction: Annotated[
         float, typer.Option(min=0.0, max=1.0, help="Share of observations that get Gaussian noise.")
     ] = 0.0,
-    noise_sigma: Annotated[float, typer.Option(min=0.0, help="Standard deviation of that noise.")] = 0.0,
+    noise_sigma: Annotated[
+        float, typer.Option(min=0.0, help="Standard deviation of that noise.")
+    ] = 0.0,
     cast_shadows: Annotated[bool, typer.Option(help="Ray-march cast shadows.")] = True,
     max_zenith: Annotated[
         float, typer.Option(help="Largest light angle from the camera axis, degrees.")
     ] = 60.0,
     image_format: Annotated[
         ImageFormat,
-        typer.Option("--format", help="png16 (scaled: peak = 0.9 x 65535), tiff32 or npy (linear)."),
+        typer.Option(
+            "--format", help="png16 (scaled: peak = 0.9 x 65535), tiff32 or npy (linear)."
+        ),
     ] = ImageFormat.png16,
 ) -> None:
-    """Write images, filenames.txt, light_directions.txt, light_intensities.txt, mask.png, normal_gt.npy."""
+    """Render a sphere or relief under random lights and write it as a dataset with ground truth.
+
+    Writes the images, filenames.txt, light_directions.txt, light_intensities.txt, mask.png and
+    normal_gt.npy.
+    """
     from ps_lab.capture.render import (
         SimulationSettings,
         check_new_dataset_folder,
@@ -79,7 +90,8 @@ def simulate(
     with progress_bar(2 * lights, f"rendering {scene.value}") as advance:
         result = write_simulated_dataset(out, settings, progress=advance)
     typer.echo(
-        f"wrote {result['images']} images of {size}x{size} ({result['pixels']} object pixels) to {out}"
+        f"wrote {result['images']} images of {size}x{size} "
+        f"({result['pixels']} object pixels) to {out}"
     )
 
 
