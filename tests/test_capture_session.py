@@ -504,3 +504,38 @@ def test_simulator_in_another_process_via_state_file(tmp_path: Path, reference: 
     true = np.loadtxt(run / "simulation" / "light_directions_true.txt")
     angles = np.degrees(np.arccos(np.clip(np.sum(nominal * true, axis=1), -1, 1)))
     np.testing.assert_allclose(angles, 2.0, atol=1e-4)
+
+
+@pytest.mark.parametrize("mishap", ["power_cycle", "watchdog"])
+def test_light_lost_during_the_exposure_is_shot_again(
+    tmp_path: Path, reference: dict, monkeypatch: pytest.MonkeyPatch, mishap: str
+) -> None:
+    """A controller that resets, or whose watchdog fires, mid-exposure must not yield a dark frame
+    under a light's name: the session notices (reboot count, STATE) and shoots the frame again."""
+    from ps_lab.capture import cameras
+
+    k = int(np.random.default_rng(len(mishap)).integers(2, N_FRAMES))
+    original = cameras.SimulatedCamera._do_capture
+    calls: list[int] = []
+
+    def unlucky(self, path, frame_index, label):
+        calls.append(frame_index)
+        if len(calls) == k:
+            firmware = self.light_state.__self__
+            if mishap == "power_cycle":
+                firmware.power_cycle()  # READY arrives unasked; every light is off
+            else:
+                time.sleep(0.9)  # longer than the rig's 600 ms watchdog
+        return original(self, path, frame_index, label)
+
+    monkeypatch.setattr(cameras.SimulatedCamera, "_do_capture", unlucky)
+    text = write_rig(tmp_path).read_text().replace("watchdog_ms = 1500", "watchdog_ms = 600")
+    rig_path = tmp_path / "short-watchdog.toml"
+    rig_path.write_text(text)
+    session = CaptureSession(load_rig(rig_path), tmp_path / "run")
+    result = session.run()
+    assert result.retries == 1
+    assert calls[k - 1] == calls[k]  # the unlucky frame was shot again
+    record = read_manifest(tmp_path / "run")["frames"][calls[k - 1]]
+    assert record["attempts"] == 2
+    assert frame_hashes(tmp_path / "run") == reference
