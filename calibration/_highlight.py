@@ -103,8 +103,8 @@ def locate_highlight(
                 f"{100 * share:.0f}% of the chrome sphere is saturated: shorten the exposure or "
                 "dim the light"
             )
-        if sat.any():
-            img = np.where(sat, max(img.max(), img[sat].max()), img)
+        # Clipped pixels keep their values: with 2x2 binned RAW a block is flagged when any one
+        # photosite clipped, and its binned value still measures how much of it is lit.
     values = img[disc]
     level = float(np.median(values))
     sigma = float(1.4826 * np.median(np.abs(values - level)))
