@@ -613,17 +613,14 @@ def _subpixel_offsets(supersample: int) -> np.ndarray:
 
 
 @functools.lru_cache(maxsize=8)
-def _chrome_geometry(
+def _chrome_coverage(
     shape: tuple[int, int], center: tuple[float, float], radius: float, supersample: int
-) -> tuple[tuple[slice, slice], np.ndarray, tuple[np.ndarray, ...]] | None:
-    """Sub-pixel geometry of a mirror sphere over its bounding box.
+) -> tuple[tuple[slice, slice], np.ndarray] | None:
+    """Anti-aliased outline of a sphere: its bounding box and each pixel's covered share.
 
-    Returns the box (row slice, column slice), the (bh, bw) share of each pixel covered by the
-    sphere, and the reflected view vector components, each of shape (s*s, bh, bw); None if the box
-    is empty.
-    (The highlights are rendered separately, on a finer grid: see :func:`_chrome_highlight`.)
-    Cached: the simulated camera renders the same sphere for every frame; callers must not modify
-    the returned arrays.
+    Returns the box (row slice, column slice) and the (bh, bw) share of each pixel inside the
+    sphere, from an ``s x s`` sub-pixel grid; None if the box is empty. Cached: the simulated camera
+    renders the same sphere for every frame; callers must not modify the returned array.
     """
     h, w = shape
     if radius <= 0:
@@ -635,19 +632,13 @@ def _chrome_geometry(
     y1 = min(int(np.ceil(center[1] + radius)) + 2, h)
     if x0 >= x1 or y0 >= y1:
         return None
-    cols = np.arange(x0, x1, dtype=np.float64)
-    rows = np.arange(y0, y1, dtype=np.float64)
-    oy, ox = np.meshgrid(offsets, offsets, indexing="ij")
-    dx = (cols[None, None, :] + ox.reshape(-1, 1, 1) - center[0]) / radius
-    dy = -(rows[None, :, None] + oy.reshape(-1, 1, 1) - center[1]) / radius
-    d2 = dx * dx + dy * dy
-    inside = d2 < 1.0
-    nz = np.sqrt(np.clip(1.0 - d2, 0.0, None))
-    # Reflected view vector r = 2 (n.v) n - v with v = (0, 0, 1); off the sphere it points away.
-    rx = np.where(inside, 2.0 * nz * dx, 0.0)
-    ry = np.where(inside, 2.0 * nz * dy, 0.0)
-    rz = np.where(inside, 2.0 * nz * nz - 1.0, -1.0)
-    return (slice(y0, y1), slice(x0, x1)), inside.mean(axis=0), (rx, ry, rz)
+    xs = ((np.arange(x0, x1)[:, None] + offsets[None, :]).ravel() - center[0]) / radius
+    ys = ((np.arange(y0, y1)[:, None] + offsets[None, :]).ravel() - center[1]) / radius
+    inside = ys[:, None] ** 2 + xs[None, :] ** 2 < 1.0
+    s = offsets.size
+    coverage = inside.reshape(y1 - y0, s, x1 - x0, s).mean(axis=(1, 3))
+    coverage.flags.writeable = False
+    return (slice(y0, y1), slice(x0, x1)), coverage
 
 
 def render_chrome_sphere(
@@ -701,7 +692,7 @@ def render_chrome_sphere(
             f"light_angular_radius_deg must be positive, got {light_angular_radius_deg}"
         )
     out = np.zeros((lights.shape[0], shape[0], shape[1]))
-    geometry = _chrome_geometry(
+    geometry = _chrome_coverage(
         (int(shape[0]), int(shape[1])),
         (float(center[0]), float(center[1])),
         float(radius),
@@ -709,7 +700,7 @@ def render_chrome_sphere(
     )
     if geometry is None:
         return out
-    box, coverage, _ = geometry
+    box, coverage = geometry
     out[:, box[0], box[1]] = ambient * coverage
     disc = np.deg2rad(light_angular_radius_deg)
     for i, light in enumerate(lights):
@@ -848,7 +839,7 @@ def _build_surfaces(scene: Scene) -> tuple[tuple[Surface | None, np.ndarray], ..
     )
 
 
-_cached_surfaces = functools.lru_cache(maxsize=8)(_build_surfaces)
+_cached_surfaces = functools.lru_cache(maxsize=2)(_build_surfaces)
 
 
 def _scene_surfaces(scene: Scene) -> tuple[tuple[Surface | None, np.ndarray], ...]:
@@ -864,14 +855,14 @@ def _object_alpha(scene: Scene, obj: SceneObject, surface: Surface | None) -> np
     if surface is not None:
         return surface.mask.astype(np.float64)
     alpha = np.zeros((scene.height, scene.width))
-    geometry = _chrome_geometry(
+    geometry = _chrome_coverage(
         (scene.height, scene.width),
         (float(obj.center[0]), float(obj.center[1])),
         float(obj.radius),
         4,
     )
     if geometry is not None:
-        box, coverage, _ = geometry
+        box, coverage = geometry
         alpha[box] = coverage
     return alpha
 
