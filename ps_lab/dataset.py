@@ -19,10 +19,13 @@ the file.
 from __future__ import annotations
 
 import hashlib
+import io
 import json
 import logging
+import os
 import re
-from collections.abc import Iterator
+import tempfile
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -30,7 +33,14 @@ import cv2
 import numpy as np
 
 from ps_lab.errors import DatasetError
-from ps_lab.imageio import SUPPORTED_SUFFIXES, Image, is_supported, read_image
+from ps_lab.imageio import (
+    SUPPORTED_SUFFIXES,
+    Image,
+    is_supported,
+    read_image,
+    read_image_size,
+    read_npy_header,
+)
 
 log = logging.getLogger("ps_lab.dataset")
 
@@ -300,6 +310,131 @@ def load_dataset(
         Any problem with the folder, with one line naming the file and the problem.
 
     """
+    header = open_dataset(path, channel=channel, read_size=False)
+    mask = None if header.mask_file is None else read_mask(header.mask_file)
+    n = len(header.names)
+    images: np.ndarray | None = None
+    valid: np.ndarray | None = None
+    for i, (frame, clipped) in enumerate(iter_frames(header.plan)):
+        if images is None:
+            images = np.empty((n, *frame.shape[:2]), dtype=np.float32)
+            valid = np.empty((n, *frame.shape[:2]), dtype=bool)
+        images[i], valid[i] = observe(
+            frame, clipped, header.light_intensities[i], channel, shadow_threshold
+        )
+    assert images is not None and valid is not None
+    height, width = images.shape[1:]
+    if mask is None:
+        mask = np.ones((height, width), dtype=bool)
+    elif mask.shape != (height, width):
+        raise DatasetError(
+            f"{header.mask_file}: mask size {mask.shape[1]}x{mask.shape[0]} differs from the "
+            f"image size {width}x{height}"
+        )
+    normal_gt = _find_normal_gt(header.root, (height, width))
+    return Dataset(
+        images=images,
+        valid=valid,
+        light_directions=header.light_directions,
+        light_intensities=header.light_intensities,
+        mask=mask,
+        normal_gt=normal_gt,
+        names=header.names,
+        root=header.root,
+    )
+
+
+def observe(
+    frame: np.ndarray,
+    saturated: np.ndarray,
+    intensity: np.ndarray,
+    channel: str = "mean",
+    shadow_threshold: float | None = None,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Turn one linear frame into the solvers' observations and their validity.
+
+    The single place where the colour rule and the validity rule are applied, shared by
+    :func:`load_dataset` and the streamed loader (:func:`stage_observations`).
+
+    Parameters
+    ----------
+    frame : ndarray of shape (H, W, C), float32
+        A frame from :func:`iter_frames`.
+    saturated : ndarray of shape (H, W), bool
+    intensity : ndarray of shape (3,)
+        The light's RGB intensity.
+    channel : {"mean", "r", "g", "b"}
+    shadow_threshold : float or None
+
+    Returns
+    -------
+    observations : ndarray of shape (H, W), float32
+    valid : ndarray of shape (H, W), bool
+        Not saturated, and above the shadow threshold when one is given.
+
+    """
+    observations = combine_channels(frame, intensity, channel)
+    valid = np.logical_not(saturated)
+    if shadow_threshold is not None:
+        valid &= observations > np.float32(shadow_threshold)
+    return observations, valid
+
+
+@dataclass(frozen=True)
+class DatasetHeader:
+    """Everything about a dataset except its pixels (cheap to obtain, checked up front).
+
+    Attributes
+    ----------
+    root : Path
+    plan : FramePlan
+    light_directions : ndarray of shape (n, 3), float64
+    light_intensities : ndarray of shape (n, 3), float64
+    mask_file : Path or None
+    names : list of str
+    shape : (H, W) or None
+        Image size read from the first light frame's header (None when not asked for).
+
+    """
+
+    root: Path
+    plan: FramePlan
+    light_directions: np.ndarray
+    light_intensities: np.ndarray
+    mask_file: Path | None
+    names: list[str]
+    shape: tuple[int, int] | None
+
+    def read_mask(self) -> np.ndarray:
+        """The object mask of shape (H, W), bool (all pixels when there is no mask file)."""
+        assert self.shape is not None
+        if self.mask_file is None:
+            return np.ones(self.shape, dtype=bool)
+        return read_mask(self.mask_file, self.shape)
+
+
+def open_dataset(path: Path, *, channel: str = "mean", read_size: bool = True) -> DatasetHeader:
+    """Check a dataset folder and read everything but its pixels.
+
+    Parameters
+    ----------
+    path : Path
+        Image folder or capture run.
+    channel : {"mean", "r", "g", "b"}
+        Checked here so that a bad choice fails before any pixel is read.
+    read_size : bool
+        Read the image size from the first light frame (its header when the format allows).
+
+    Returns
+    -------
+    DatasetHeader
+
+    Raises
+    ------
+    DatasetError
+        Any problem with the folder, the light files, the channel or the first frame's header.
+
+    """
     if channel not in CHANNELS:
         raise DatasetError(f"unknown channel {channel!r} (choose one of {', '.join(CHANNELS)})")
     root = Path(path)
@@ -318,38 +453,15 @@ def load_dataset(
         light_intensities = read_light_intensities(intensities_file, n)
     else:
         light_intensities = np.ones((n, 3))
-    mask_file = _find_file(root, MASK)
-    mask = read_mask(mask_file) if mask_file is not None else None
-
-    images: np.ndarray | None = None
-    valid: np.ndarray | None = None
-    for i, (frame, clipped) in enumerate(iter_frames(plan)):
-        if images is None:
-            images = np.empty((n, *frame.shape[:2]), dtype=np.float32)
-            valid = np.empty((n, *frame.shape[:2]), dtype=bool)
-        images[i] = combine_channels(frame, light_intensities[i], channel)
-        np.logical_not(clipped, out=valid[i])
-        if shadow_threshold is not None:
-            valid[i] &= images[i] > np.float32(shadow_threshold)
-    assert images is not None and valid is not None
-    height, width = images.shape[1:]
-    if mask is None:
-        mask = np.ones((height, width), dtype=bool)
-    elif mask.shape != (height, width):
-        raise DatasetError(
-            f"{mask_file}: mask size {mask.shape[1]}x{mask.shape[0]} differs from the image size "
-            f"{width}x{height}"
-        )
-    normal_gt = _find_normal_gt(root, (height, width))
-    return Dataset(
-        images=images,
-        valid=valid,
+    shape = read_image_size(plan.light_files[0][0]) if read_size else None
+    return DatasetHeader(
+        root=root,
+        plan=plan,
         light_directions=light_directions,
         light_intensities=light_intensities,
-        mask=mask,
-        normal_gt=normal_gt,
+        mask_file=_find_file(root, MASK),
         names=plan.names,
-        root=root,
+        shape=shape,
     )
 
 
@@ -741,4 +853,316 @@ def _find_normal_gt(root: Path, shape: tuple[int, int]) -> np.ndarray | None:
     ):
         if candidate.is_file():
             return read_normal_gt(candidate, shape)
+    return None
+
+
+# --- streamed loading: captures of any size in bounded memory ---------------------------------
+
+
+@dataclass(frozen=True)
+class Band:
+    """A block of whole image rows solved together.
+
+    Attributes
+    ----------
+    index : int
+    row_start, row_stop : int
+        Image rows ``row_start:row_stop``.
+    pixel_start : int
+        Index of the band's first mask pixel among all mask pixels (row-major order).
+    pixel_count : int
+        Mask pixels in the band.
+
+    """
+
+    index: int
+    row_start: int
+    row_stop: int
+    pixel_start: int
+    pixel_count: int
+
+
+def plan_bands(mask: np.ndarray, max_pixels: int) -> list[Band]:
+    """Cut the image into row bands of at most ``max_pixels`` mask pixels each.
+
+    A band is closed before it would exceed ``max_pixels`` mask pixels or ``4 * max_pixels``
+    image pixels (so that per-band image buffers stay bounded when the mask is sparse); every band
+    holds at least one row.
+
+    Parameters
+    ----------
+    mask : ndarray of shape (H, W), bool
+    max_pixels : int
+        Positive.
+
+    Returns
+    -------
+    list of Band
+        Covering rows 0..H in order.
+
+    """
+    height, width = mask.shape
+    max_pixels = max(int(max_pixels), 1)
+    max_rows = max(4 * max_pixels // max(width, 1), 1)
+    per_row = np.count_nonzero(mask, axis=1)
+    bands: list[Band] = []
+    start, count, pixel_start = 0, 0, 0
+    for row in range(height):
+        rows = row - start
+        if rows > 0 and (count + per_row[row] > max_pixels or rows >= max_rows):
+            bands.append(Band(len(bands), start, row, pixel_start, count))
+            start, pixel_start, count = row, pixel_start + count, 0
+        count += int(per_row[row])
+    bands.append(Band(len(bands), start, height, pixel_start, count))
+    return bands
+
+
+class ObservationStore:
+    """Masked observations (float32) and their validity (packed bits), stored band by band.
+
+    Layout: for each band, the ``(n, P_band)`` float32 observations light after light, then the
+    packed validity bits of each light (``ceil(P_band / 8)`` bytes per light), so that one band's
+    block is read contiguously. The backing is a temporary file, or a bytes buffer in memory when
+    the store is small: the code is the same. Use as a context manager or call :meth:`close`,
+    which deletes the file.
+
+    Attributes
+    ----------
+    bands : list of Band
+    n_lights : int
+    shape : (H, W)
+    mask : ndarray of shape (H, W), bool
+    path : Path or None
+        The backing file (None in memory).
+    sample_observations : ndarray of shape (n, m), float32
+        Observations of ``m`` evenly spaced mask pixels (for the solvers' noise estimate).
+    sample_valid : ndarray of shape (n, m), bool
+
+    """
+
+    def __init__(
+        self,
+        bands: list[Band],
+        n_lights: int,
+        mask: np.ndarray,
+        *,
+        folder: Path | None = None,
+        in_memory: bool = False,
+        sample_pixels: int = 20000,
+    ) -> None:
+        self.bands = bands
+        self.n_lights = n_lights
+        self.mask = mask
+        self.shape = mask.shape
+        self.pixels = sum(band.pixel_count for band in bands)
+        self._offsets: list[tuple[int, int]] = []
+        offset = 0
+        for band in bands:
+            values = offset
+            offset += n_lights * band.pixel_count * 4
+            self._offsets.append((values, offset))
+            offset += n_lights * _packed_size(band.pixel_count)
+        self.nbytes = offset
+        self.path: Path | None = None
+        if in_memory:
+            self._stream = io.BytesIO()
+        else:
+            handle, name = tempfile.mkstemp(prefix="ps-lab-observations-", suffix=".bin", dir=folder)
+            self.path = Path(name)
+            self._stream = os.fdopen(handle, "w+b")
+        # The noise sample: the same pixels the solvers would pick among all mask pixels.
+        p = self.pixels
+        take = np.linspace(0, p - 1, min(p, sample_pixels)).round().astype(np.int64) if p else []
+        self.sample_index = np.unique(take).astype(np.int64)
+        self.sample_observations = np.zeros((n_lights, self.sample_index.size), np.float32)
+        self.sample_valid = np.zeros((n_lights, self.sample_index.size), bool)
+
+    def __enter__(self) -> ObservationStore:
+        return self
+
+    def __exit__(self, *exc_info) -> None:
+        self.close()
+
+    def close(self) -> None:
+        """Release the backing buffer and delete the backing file."""
+        self._stream.close()
+        if self.path is not None:
+            self.path.unlink(missing_ok=True)
+
+    def write(self, light: int, band: Band, observations: np.ndarray, valid: np.ndarray) -> None:
+        """Store one light's observations (P_band,) float32 and validity (P_band,) of a band."""
+        values, bits = self._offsets[band.index]
+        count = band.pixel_count
+        self._stream.seek(values + light * count * 4)
+        self._stream.write(np.ascontiguousarray(observations, dtype=np.float32).data)
+        self._stream.seek(bits + light * _packed_size(count))
+        self._stream.write(np.packbits(valid).data)
+        lo, hi = np.searchsorted(self.sample_index, [band.pixel_start, band.pixel_start + count])
+        local = self.sample_index[lo:hi] - band.pixel_start
+        self.sample_observations[light, lo:hi] = observations[local]
+        self.sample_valid[light, lo:hi] = valid[local]
+
+    def read(self, band: Band) -> tuple[np.ndarray, np.ndarray]:
+        """One band's observations (n, P_band) float32 and validity (n, P_band) bool."""
+        values, bits = self._offsets[band.index]
+        count = band.pixel_count
+        observations = np.empty((self.n_lights, count), np.float32)
+        packed = np.empty((self.n_lights, _packed_size(count)), np.uint8)
+        self._stream.seek(values)
+        self._read_exactly(observations)
+        self._stream.seek(bits)
+        self._read_exactly(packed)
+        valid = np.unpackbits(packed, axis=1, count=count).view(bool)
+        return observations, valid
+
+    def _read_exactly(self, array: np.ndarray) -> None:
+        view = memoryview(array).cast("B")
+        done = 0
+        while done < len(view):
+            got = self._stream.readinto(view[done:])
+            if not got:
+                raise DatasetError(f"{self.path or 'observation store'}: staging data truncated")
+            done += got
+
+
+def _packed_size(count: int) -> int:
+    return (count + 7) // 8
+
+
+def stage_observations(
+    header: DatasetHeader,
+    mask: np.ndarray,
+    bands: list[Band],
+    *,
+    channel: str = "mean",
+    shadow_threshold: float | None = None,
+    folder: Path | None = None,
+    in_memory: bool = False,
+    sample_pixels: int = 20000,
+    progress: Callable[[int], None] | None = None,
+) -> ObservationStore:
+    """Read every frame once, one at a time, and store its mask pixels band by band.
+
+    The per-light scaling, colour rule and validity rule are those of :func:`load_dataset`
+    (:func:`iter_frames` then :func:`observe`), so ``store.read(band)`` equals
+    ``load_dataset(...).images[:, rows][:, mask]`` bit for bit.
+
+    Parameters
+    ----------
+    header : DatasetHeader
+        From :func:`open_dataset` (with the image size).
+    mask : ndarray of shape (H, W), bool
+    bands : list of Band
+        From :func:`plan_bands`.
+    channel, shadow_threshold
+        As for :func:`load_dataset`.
+    folder : Path or None
+        Where the temporary file goes (default: the system's temporary folder).
+    in_memory : bool
+        Keep the store in a memory buffer instead of a file.
+    sample_pixels : int
+        Size of the noise-estimation sample (see :class:`ObservationStore`).
+    progress : callable or None
+        ``progress(1)`` after each light.
+
+    Returns
+    -------
+    ObservationStore
+        The caller closes it (it is closed here if reading fails).
+
+    """
+    store = ObservationStore(
+        bands,
+        len(header.names),
+        mask,
+        folder=folder,
+        in_memory=in_memory,
+        sample_pixels=sample_pixels,
+    )
+    height, width = mask.shape
+    try:
+        for i, (frame, clipped) in enumerate(iter_frames(header.plan)):
+            if frame.shape[:2] != (height, width):
+                file = header.plan.light_files[i][0]
+                raise DatasetError(
+                    f"{file}: image size {frame.shape[1]}x{frame.shape[0]} differs from the "
+                    f"first image ({width}x{height})"
+                )
+            observations, valid = observe(
+                frame, clipped, header.light_intensities[i], channel, shadow_threshold
+            )
+            del frame, clipped
+            for band in bands:
+                rows = slice(band.row_start, band.row_stop)
+                inside = mask[rows]
+                store.write(i, band, observations[rows][inside], valid[rows][inside])
+            del observations, valid
+            if progress is not None:
+                progress(1)
+    except BaseException:
+        store.close()
+        raise
+    return store
+
+
+class NormalTruth:
+    """Ground-truth normals read band by band (``normal_gt.npy`` from disk, ``.mat`` in memory).
+
+    Use :func:`open_normal_gt`. ``rows(a, b)`` returns rows ``a:b`` as (b - a, W, 3) float64.
+    """
+
+    def __init__(self, path: Path, shape: tuple[int, int]) -> None:
+        self.path = path
+        self.shape = shape
+        self._array: np.ndarray | None = None
+        self._layout: tuple[np.dtype, int] | None = None
+        if path.suffix.lower() == ".npy":
+            try:
+                with path.open("rb") as stream:
+                    dims, fortran, dtype, offset = read_npy_header(stream)
+            except (OSError, ValueError) as exc:
+                raise DatasetError(f"{path}: corrupt or unreadable .npy file ({exc})") from None
+            if len(dims) != 3 or dims[2] != 3:
+                raise DatasetError(
+                    f"{path}: ground-truth normals must be H x W x 3, got {tuple(dims)}"
+                )
+            if dims[:2] != tuple(shape):
+                raise DatasetError(
+                    f"{path}: ground-truth size {dims[1]}x{dims[0]} differs from the image size "
+                    f"{shape[1]}x{shape[0]}"
+                )
+            expected = offset + int(np.prod(dims)) * dtype.itemsize
+            if not fortran and dtype.kind == "f" and path.stat().st_size >= expected:
+                self._layout = (dtype, offset)
+        if self._layout is None:
+            self._array = read_normal_gt(path, shape)
+
+    def rows(self, start: int, stop: int) -> np.ndarray:
+        """Rows ``start:stop`` of the normals, shape (stop - start, W, 3), float64."""
+        if self._array is not None:
+            return self._array[start:stop]
+        assert self._layout is not None
+        dtype, offset = self._layout
+        width = self.shape[1]
+        count = (stop - start) * width * 3
+        with self.path.open("rb") as stream:
+            stream.seek(offset + start * width * 3 * dtype.itemsize)
+            data = np.fromfile(stream, dtype=dtype, count=count)
+        if data.size != count:
+            raise DatasetError(f"{self.path}: file is truncated")
+        normals = data.reshape(stop - start, width, 3).astype(np.float64)
+        if not np.all(np.isfinite(normals)):
+            raise DatasetError(f"{self.path}: ground-truth normals contain NaN or infinite values")
+        return normals
+
+
+def open_normal_gt(root: Path, shape: tuple[int, int]) -> NormalTruth | None:
+    """The dataset's ground-truth normals for band-wise reading, or None (see :func:`load_dataset`)."""
+    for candidate in (
+        root / "normal_gt.npy",
+        root / "Normal_gt.mat",
+        root / SIMULATION / "normal_gt.npy",
+    ):
+        if candidate.is_file():
+            return NormalTruth(candidate, shape)
     return None

@@ -18,6 +18,7 @@ work on one file at a time so that callers can stream large captures.
 from __future__ import annotations
 
 import re
+import struct
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -107,6 +108,43 @@ def read_image(path: Path) -> Image:
     return _to_linear(array, path)
 
 
+def read_image_size(path: Path) -> tuple[int, int]:
+    """Size ``(H, W)`` of an image file, from its header when the format allows.
+
+    PNG (IHDR chunk), ``.npy`` (array header) and TIFF (first page) are read without decoding
+    the pixels; other formats (PFM, camera RAW) are decoded once.
+
+    Raises
+    ------
+    DatasetError
+        The file is missing or unreadable (message names the file).
+
+    """
+    path = Path(path)
+    suffix = path.suffix.lower()
+    try:
+        if suffix == ".png":
+            with path.open("rb") as stream:
+                head = stream.read(24)
+            if head.startswith(_PNG_SIGNATURE) and head[12:16] == b"IHDR":
+                width, height = struct.unpack(">II", head[16:24])
+                if width and height:
+                    return int(height), int(width)
+        elif suffix == ".npy":
+            with path.open("rb") as stream:
+                shape, _, _, _ = read_npy_header(stream)
+            if len(shape) in (2, 3):
+                return int(shape[0]), int(shape[1])
+        elif suffix in (".tif", ".tiff"):
+            with tifffile.TiffFile(path) as tiff:
+                page = tiff.pages[0]
+                if page.imagelength and page.imagewidth:
+                    return int(page.imagelength), int(page.imagewidth)
+    except Exception:  # noqa: BLE001, S110 - any header problem: decode the file, which names it
+        pass
+    return read_image(path).shape
+
+
 def read_pfm(path: Path) -> np.ndarray:
     """Read a Portable Float Map.
 
@@ -174,6 +212,26 @@ def write_pfm(path: Path, image: np.ndarray) -> None:
     height, width = array.shape[:2]
     header = magic + b"\n" + f"{width} {height}\n-1.0\n".encode("ascii")
     Path(path).write_bytes(header + np.ascontiguousarray(array[::-1]).tobytes())
+
+
+def read_npy_header(stream) -> tuple[tuple[int, ...], bool, np.dtype, int]:
+    """Read the header of an open ``.npy`` file.
+
+    Returns
+    -------
+    shape : tuple of int
+    fortran_order : bool
+    dtype : numpy dtype
+    offset : int
+        Byte offset of the array data.
+
+    """
+    version = np.lib.format.read_magic(stream)
+    if version == (1, 0):
+        shape, fortran_order, dtype = np.lib.format.read_array_header_1_0(stream)
+    else:
+        shape, fortran_order, dtype = np.lib.format.read_array_header_2_0(stream)
+    return tuple(shape), bool(fortran_order), np.dtype(dtype), stream.tell()
 
 
 def _read_png(path: Path) -> np.ndarray:

@@ -11,9 +11,11 @@ Files (see ``docs/datasets.md``): ``normals.npy``, ``normal.png``, ``albedo.npy`
 
 from __future__ import annotations
 
+import inspect
 import json
 import logging
 import os
+import re
 import shutil
 import time
 from collections.abc import Callable, Iterator
@@ -25,7 +27,14 @@ from typing import Any
 import cv2
 import numpy as np
 
-from ps_lab.dataset import Dataset, write_light_table
+from ps_lab.dataset import (
+    ObservationStore,
+    open_dataset,
+    open_normal_gt,
+    plan_bands,
+    stage_observations,
+    write_light_table,
+)
 from ps_lab.errors import PsLabError
 
 log = logging.getLogger("ps_lab.outputs")
@@ -36,67 +45,6 @@ METRICS = "metrics.json"
 
 class OutputError(PsLabError):
     """The output folder cannot be written or would overwrite something that is not a result."""
-
-
-@dataclass(frozen=True)
-class ResultMaps:
-    """Per-pixel results laid out as images.
-
-    Attributes
-    ----------
-    normals : ndarray of shape (H, W, 3), float32
-        Unit normals inside the mask, zeros outside and where unsolvable.
-    albedo : ndarray of shape (H, W), float32
-        Zeros outside the mask.
-    corruption : ndarray of shape (H, W), float32
-        Share (0..1) of a pixel's usable observations that the method treated as outliers.
-    solved : ndarray of shape (H, W), bool
-        Mask pixels that received a normal.
-
-    """
-
-    normals: np.ndarray
-    albedo: np.ndarray
-    corruption: np.ndarray
-    solved: np.ndarray
-
-
-def solution_maps(solution: Any, mask: np.ndarray, valid: np.ndarray | None = None) -> ResultMaps:
-    """Scatter a solver's per-pixel results (mask pixels in row-major order) back into images.
-
-    Parameters
-    ----------
-    solution : ps_lab.reconstruct.Solution
-        ``normals`` (P, 3), ``albedo`` (P,), ``outliers`` (n, P).
-    mask : ndarray of shape (H, W), bool
-        P = ``mask.sum()`` pixels.
-    valid : ndarray of shape (n, P), bool, or None
-        Usable observations; the corruption share is taken over these (all n when None).
-
-    Returns
-    -------
-    ResultMaps
-
-    """
-    height, width = mask.shape
-    normals = np.zeros((height, width, 3), dtype=np.float32)
-    albedo = np.zeros((height, width), dtype=np.float32)
-    corruption = np.zeros((height, width), dtype=np.float32)
-    pixel_normals = np.asarray(solution.normals, dtype=np.float64)
-    lengths = np.linalg.norm(pixel_normals, axis=1)
-    solved_pixels = np.isfinite(lengths) & (lengths > 0.5)
-    unit = np.zeros_like(pixel_normals)
-    unit[solved_pixels] = pixel_normals[solved_pixels] / lengths[solved_pixels, None]
-    normals[mask] = unit
-    pixel_albedo = np.nan_to_num(np.asarray(solution.albedo, dtype=np.float64))
-    albedo[mask] = np.where(solved_pixels, pixel_albedo, 0.0)
-    outliers = np.asarray(solution.outliers, dtype=bool)
-    used = outliers.shape[0] if valid is None else np.asarray(valid, dtype=bool).sum(axis=0)
-    share = outliers.sum(axis=0) / np.maximum(used, 1)
-    corruption[mask] = share
-    solved = np.zeros((height, width), dtype=bool)
-    solved[mask] = solved_pixels
-    return ResultMaps(normals=normals, albedo=albedo, corruption=corruption, solved=solved)
 
 
 def normal_picture(normals: np.ndarray, mask: np.ndarray) -> np.ndarray:
@@ -173,68 +121,6 @@ def _json_safe(value: Any) -> Any:
     return repr(value)
 
 
-def normal_errors(maps: ResultMaps, dataset: Dataset) -> np.ndarray | None:
-    """Angular errors in degrees at solved mask pixels that have ground truth, or None.
-
-    Returns
-    -------
-    ndarray of shape (k,) or None
-
-    """
-    if dataset.normal_gt is None:
-        return None
-    from ps_lab.reconstruct.metrics import angular_errors_deg
-
-    has_truth = np.linalg.norm(dataset.normal_gt, axis=2) > 0.5
-    pixels = maps.solved & has_truth & dataset.mask
-    return angular_errors_deg(maps.normals[pixels].astype(np.float64), dataset.normal_gt[pixels])
-
-
-def build_metrics(
-    dataset: Dataset,
-    solution: Any,
-    maps: ResultMaps,
-    *,
-    solve_seconds: float,
-    extra: dict | None = None,
-) -> dict:
-    """Collect the numbers of ``metrics.json``.
-
-    Returns
-    -------
-    dict
-        method, parameters, pixels, lights, ``solve_seconds``, iteration statistics, outlier share,
-        and ``angular_error_deg`` (mean/median/p90/max) when the dataset has ground truth.
-
-    """
-    params = dict(getattr(solution, "params", {}) or {})
-    valid = dataset.valid[:, dataset.mask]
-    pixels = int(dataset.mask.sum())
-    metrics: dict[str, Any] = {
-        "format": RESULT_FORMAT,
-        "method": params.get("method"),
-        "parameters": params,
-        "dataset": str(dataset.root),
-        "image_size": [int(dataset.mask.shape[1]), int(dataset.mask.shape[0])],
-        "pixels": pixels,
-        "lights": int(dataset.images.shape[0]),
-        "solve_seconds": float(solve_seconds),
-        "iterations": _statistics(np.asarray(solution.iterations)),
-        "valid_observation_share": float(valid.mean()) if valid.size else 0.0,
-        "outlier_share": float(np.asarray(solution.outliers).sum() / max(int(valid.sum()), 1)),
-        "unsolved_pixels": int(pixels - maps.solved[dataset.mask].sum()),
-    }
-    errors = normal_errors(maps, dataset)
-    if errors is not None:
-        from ps_lab.reconstruct.metrics import error_summary
-
-        metrics["angular_error_deg"] = error_summary(errors) if errors.size else None
-        metrics["error_pixels"] = int(errors.size)
-    if extra:
-        metrics.update(extra)
-    return _json_safe(metrics)
-
-
 def _is_result_folder(folder: Path) -> bool:
     if not any(folder.iterdir()):
         return True
@@ -298,91 +184,433 @@ def staged_folder(out: Path) -> Iterator[Path]:
         raise
 
 
-def write_results(
-    folder: Path,
-    dataset: Dataset,
-    solution: Any,
-    *,
-    solve_seconds: float,
-    light_directions: np.ndarray | None = None,
-    light_intensities: np.ndarray | None = None,
-    extra: dict | None = None,
-) -> dict:
-    """Write every result file of one solve into ``folder`` (normally a :func:`staged_folder`).
 
-    Parameters
-    ----------
-    folder : Path
-        Existing folder to write into.
-    dataset : Dataset
-        The dataset that was solved (mask, ground truth, lights).
-    solution : ps_lab.reconstruct.Solution
-        Results for the P = ``dataset.mask.sum()`` mask pixels in row-major order.
-    solve_seconds : float
-        Wall-clock time of the solve.
-    light_directions : ndarray of shape (n, 3) or None
-        Refined light directions to write as ``light_directions.txt``.
-    light_intensities : ndarray of shape (n, 3) or None
-        Refined light intensities to write as ``light_intensities.txt``.
-    extra : dict or None
-        More entries for ``metrics.json``.
 
-    Returns
-    -------
-    dict
-        The metrics written to ``metrics.json``.
+# --- streamed reconstruction: one code path for captures of any size ----------------------------
+
+DEFAULT_MEMORY_BUDGET = 1 << 30
+# Bytes held per observation of a band while it is solved: the float32 observations, their
+# validity, the solver's usable and outlier masks, and headroom for the refinement sums.
+BYTES_PER_OBSERVATION = 12
+# Bytes per pixel of a band: the solver's per-pixel results and the band's output images.
+BYTES_PER_PIXEL = 200
+# A store at most this share of the budget stays in memory; larger ones go to a temporary file.
+IN_MEMORY_SHARE = 0.25
+# Angular errors are summarised from a histogram of this bin width (degrees): median and p90 are
+# within half a bin of the exact values, mean and max are exact.
+ERROR_BIN_DEG = 0.001
+_SIZE_UNITS = {"": 1 << 20, "k": 1 << 10, "m": 1 << 20, "g": 1 << 30, "t": 1 << 40}
+
+
+def parse_memory_size(text: str | int | float) -> int:
+    """Parse a memory size such as ``"512MB"``, ``"1.5G"``, ``"2 GiB"`` or ``"800"`` (MB) into bytes.
+
+    Raises
+    ------
+    OutputError
+        Not a positive size.
 
     """
-    folder = Path(folder)
-    mask = dataset.mask
-    maps = solution_maps(solution, mask, dataset.valid[:, mask])
-    try:
-        np.save(folder / "normals.npy", maps.normals)
-        np.save(folder / "albedo.npy", maps.albedo)
-        write_png(folder / "normal.png", normal_picture(maps.normals, maps.solved))
-        write_png(folder / "albedo.png", albedo_picture(maps.albedo, mask))
-        write_png(folder / "corruption.png", corruption_picture(maps.corruption))
-        if light_directions is not None:
-            write_light_table(folder / "light_directions.txt", light_directions)
-        if light_intensities is not None:
-            write_light_table(folder / "light_intensities.txt", light_intensities)
-        metrics = build_metrics(dataset, solution, maps, solve_seconds=solve_seconds, extra=extra)
+    if isinstance(text, (int, float)):
+        value, unit = float(text), ""
+    else:
+        match = re.fullmatch(r"\s*([0-9]*\.?[0-9]+)\s*([kKmMgGtT]?)(?:i?[bB])?\s*", str(text))
+        if match is None:
+            raise OutputError(f"memory budget {text!r}: expected a size such as 800MB or 2GB")
+        value, unit = float(match.group(1)), match.group(2).lower()
+    size = int(value * _SIZE_UNITS[unit])
+    if size <= 0:
+        raise OutputError(f"memory budget {text!r} must be positive")
+    return size
+
+
+def band_pixels(memory_budget: int, n_lights: int) -> int:
+    """Most mask pixels per band that keep one band's solve within ``memory_budget`` bytes."""
+    per_pixel = n_lights * BYTES_PER_OBSERVATION + BYTES_PER_PIXEL
+    return max(int(memory_budget) // per_pixel, 1)
+
+
+ProgressBars = Callable[[int, str], Any]
+
+
+@contextmanager
+def _no_bar(total: int, description: str) -> Iterator[Callable[..., None]]:
+    yield lambda n=1, description=None: None
+
+
+class _Histogram:
+    """Streamed summary of non-negative values: exact count/mean/max, binned quantiles."""
+
+    def __init__(self, bin_width: float, top: float) -> None:
+        self.width = bin_width
+        self.counts = np.zeros(int(np.ceil(top / bin_width)) + 1, np.int64)
+        self.total = 0.0
+        self.count = 0
+        self.max = -np.inf
+
+    def add(self, values: np.ndarray) -> None:
+        values = np.asarray(values, np.float64).ravel()
+        values = values[np.isfinite(values)]
+        if not values.size:
+            return
+        bins = np.minimum((values / self.width).astype(np.int64), self.counts.size - 1)
+        self.counts += np.bincount(bins, minlength=self.counts.size)
+        self.total += float(values.sum())
+        self.count += values.size
+        self.max = max(self.max, float(values.max()))
+
+    def quantile(self, q: float) -> float:
+        """Linear-interpolated quantile (numpy's default rule) with values at bin centres."""
+        rank = q * (self.count - 1)
+        cumulative = np.cumsum(self.counts)
+        lo, hi = int(np.floor(rank)), int(np.ceil(rank))
+        value_lo, value_hi = (
+            (int(np.searchsorted(cumulative, k, side="right")) + 0.5) * self.width for k in (lo, hi)
+        )
+        return min(value_lo + (rank - lo) * (value_hi - value_lo), self.max)
+
+    def summary(self) -> dict[str, float] | None:
+        if not self.count:
+            return None
+        return {
+            "mean": self.total / self.count,
+            "median": self.quantile(0.5),
+            "p90": self.quantile(0.9),
+            "max": self.max,
+        }
+
+
+def _iteration_statistics(counts: np.ndarray) -> dict[str, float]:
+    """Mean, exact median and max of non-negative integers given as a bincount."""
+    total = int(counts.sum())
+    if total == 0:
+        return {"mean": 0.0, "median": 0.0, "max": 0.0}
+    values = np.arange(counts.size)
+    cumulative = np.cumsum(counts)
+    lo, hi = (int(np.searchsorted(cumulative, k, side="right")) for k in ((total - 1) // 2, total // 2))
+    return {
+        "mean": float((counts * values).sum() / total),
+        "median": float(0.5 * (lo + hi)),
+        "max": float(values[counts > 0].max()),
+    }
+
+
+def _outer6(x: np.ndarray) -> np.ndarray:
+    """Unique entries (xx, yy, zz, xy, xz, yz) of x x^T per row: (P, 3) -> (P, 6)."""
+    return np.stack(
+        [x[:, 0] ** 2, x[:, 1] ** 2, x[:, 2] ** 2, x[:, 0] * x[:, 1], x[:, 0] * x[:, 2],
+         x[:, 1] * x[:, 2]],
+        axis=1,
+    )  # fmt: skip
+
+
+def _solve6(m: np.ndarray, t: np.ndarray, rel_eps: float = 1e-9) -> tuple[np.ndarray, np.ndarray]:
+    """Solve symmetric 3x3 systems given as (n, 6) entries; ``ok`` False where near singular."""
+    xx, yy, zz, xy, xz, yz = m.T
+    c00, c11, c22 = yy * zz - yz * yz, xx * zz - xz * xz, xx * yy - xy * xy
+    c01, c02, c12 = xz * yz - xy * zz, xy * yz - xz * yy, xy * xz - xx * yz
+    det = xx * c00 + xy * c01 + xz * c02
+    scale = (xx + yy + zz) / 3.0
+    ok = (det > rel_eps * scale**3) & (scale > 0)
+    inv_det = np.where(ok, 1.0 / np.where(ok, det, 1.0), 0.0)
+    t0, t1, t2 = t.T
+    v = np.stack(
+        [c00 * t0 + c01 * t1 + c02 * t2, c01 * t0 + c11 * t1 + c12 * t2,
+         c02 * t0 + c12 * t1 + c22 * t2],
+        axis=1,
+    )  # fmt: skip
+    return v * inv_det[:, None], ok
+
+
+@dataclass
+class _PassResult:
+    params: dict
+    error_sum: float = 0.0
+    all_have_truth: bool = True
+    normal_matrices: np.ndarray | None = None  # (n, 6) sums of x x^T over each light's inliers
+    normal_targets: np.ndarray | None = None  # (n, 3) sums of y x
+    inliers: int = 0
+    usable: int = 0
+
+
+class _OutputWriter:
+    """Result files written band by band: memory-mapped ``.npy`` rows and 8-bit pictures."""
+
+    def __init__(self, folder: Path, mask: np.ndarray, truth, n_lights: int) -> None:
+        self.folder = folder
+        self.mask = mask
+        self.truth = truth
+        height, width = mask.shape
+        self.offsets = {}
+        for name, shape in (("normals", (height, width, 3)), ("albedo", (height, width))):
+            array = np.lib.format.open_memmap(
+                folder / f"{name}.npy", mode="w+", dtype=np.float32, shape=shape
+            )
+            self.offsets[name] = (array.offset, shape[1:])
+            del array
+        self.normal_png = np.zeros((height, width, 3), np.uint8)
+        self.corruption_png = np.zeros((height, width), np.uint8)
+        self.albedo_values = np.zeros(int(mask.sum()), np.float32)
+        self.errors = _Histogram(ERROR_BIN_DEG, 180.0)
+        self.iterations = np.zeros(1, np.int64)
+        self.valid_count = 0
+        self.outlier_count = 0
+        self.solved_count = 0
+        self.observation_count = 0
+
+    def _write_rows(self, name: str, start: int, block: np.ndarray) -> None:
+        offset, row_shape = self.offsets[name]
+        row_bytes = int(np.prod(row_shape)) * 4
+        rows = np.memmap(
+            self.folder / f"{name}.npy",
+            dtype=np.float32,
+            mode="r+",
+            offset=offset + start * row_bytes,
+            shape=block.shape,
+        )
+        rows[...] = block
+        rows.flush()
+        del rows  # unmapped at once: written pages do not stay in the resident set
+
+    def add(self, band, solution, valid: np.ndarray) -> None:
+        rows = slice(band.row_start, band.row_stop)
+        inside = self.mask[rows]
+        height, width = inside.shape
+        pixel_normals = np.asarray(solution.normals, dtype=np.float64)
+        lengths = np.linalg.norm(pixel_normals, axis=1)
+        solved = np.isfinite(lengths) & (lengths > 0.5)
+        unit = np.zeros_like(pixel_normals)
+        unit[solved] = pixel_normals[solved] / lengths[solved, None]
+        normals = np.zeros((height, width, 3), np.float32)
+        normals[inside] = unit
+        albedo = np.zeros((height, width), np.float32)
+        albedo[inside] = np.where(solved, np.nan_to_num(np.asarray(solution.albedo, np.float64)), 0.0)
+        outliers = np.asarray(solution.outliers, dtype=bool)
+        used = valid.sum(axis=0)
+        corruption = np.zeros((height, width), np.float32)
+        corruption[inside] = outliers.sum(axis=0) / np.maximum(used, 1)
+        solved_map = np.zeros((height, width), bool)
+        solved_map[inside] = solved
+        self._write_rows("normals", band.row_start, normals)
+        self._write_rows("albedo", band.row_start, albedo)
+        self.normal_png[rows] = normal_picture(normals, solved_map)
+        self.corruption_png[rows] = corruption_picture(corruption)
+        self.albedo_values[band.pixel_start : band.pixel_start + band.pixel_count] = albedo[inside]
+        counts = np.bincount(np.asarray(solution.iterations, np.int64))
+        if counts.size > self.iterations.size:
+            counts[: self.iterations.size] += self.iterations
+            self.iterations = counts
+        else:
+            self.iterations[: counts.size] += counts
+        self.valid_count += int(used.sum())
+        self.observation_count += valid.size
+        self.outlier_count += int(outliers.sum())
+        self.solved_count += int(solved.sum())
+        if self.truth is not None:
+            from ps_lab.reconstruct.metrics import angular_errors_deg
+
+            gt = self.truth.rows(band.row_start, band.row_stop)
+            pixels = solved_map & inside & (np.linalg.norm(gt, axis=2) > 0.5)
+            self.errors.add(angular_errors_deg(normals[pixels].astype(np.float64), gt[pixels]))
+
+    def finish(self, header, params: dict, *, lights, intensities, seconds, extra) -> dict:
+        folder = self.folder
+        mask = self.mask
+        write_png(folder / "normal.png", self.normal_png)
+        self.normal_png = None
+        write_png(folder / "corruption.png", self.corruption_png)
+        self.corruption_png = None
+        albedo_png = np.zeros(mask.shape, np.uint8)
+        values = self.albedo_values
+        top = float(np.percentile(values, 99)) if values.size else 0.0
+        if np.isfinite(top) and top > 0:
+            albedo_png[mask] = np.clip(np.rint(values / top * 255.0), 0, 255).astype(np.uint8)
+        write_png(folder / "albedo.png", albedo_png)
+        del albedo_png
+        if lights is not None:
+            write_light_table(folder / "light_directions.txt", lights)
+        if intensities is not None:
+            write_light_table(folder / "light_intensities.txt", intensities)
+        pixels = int(mask.sum())
+        metrics: dict[str, Any] = {
+            "format": RESULT_FORMAT,
+            "method": params.get("method"),
+            "parameters": params,
+            "dataset": str(header.root),
+            "image_size": [int(mask.shape[1]), int(mask.shape[0])],
+            "pixels": pixels,
+            "lights": len(header.names),
+            "solve_seconds": float(seconds),
+            "iterations": _iteration_statistics(self.iterations),
+            "valid_observation_share": self.valid_count / max(self.observation_count, 1),
+            "outlier_share": self.outlier_count / max(self.valid_count, 1),
+            "unsolved_pixels": pixels - self.solved_count,
+        }
+        if self.truth is not None:
+            metrics["angular_error_deg"] = self.errors.summary()
+            metrics["angular_error_method"] = (
+                f"mean and max exact; median and p90 from a histogram of {ERROR_BIN_DEG} deg bins"
+            )
+            metrics["error_pixels"] = self.errors.count
+        if extra:
+            metrics.update(extra)
+        metrics = _json_safe(metrics)
         (folder / METRICS).write_text(json.dumps(metrics, indent=2) + "\n", encoding="utf-8")
-    except OSError as exc:
-        raise OutputError(f"{folder}: cannot write results ({exc.strerror or exc})") from None
-    return metrics
+        return metrics
+
+
+def _probe_parameters(store: ObservationStore, vectors: np.ndarray, method: str, threads) -> dict:
+    """Global solver parameters (noise level, outlier threshold) fixed for every band.
+
+    The solver estimates them from an evenly spaced sample of all pixels; the store kept that very
+    sample, so one cheap solve of it (one iteration) reports the values a single whole-image
+    solve would use. Bands are then solved with them, so results do not depend on the banding.
+    """
+    from ps_lab import reconstruct
+
+    if method != "sbl" or store.sample_index.size == 0:
+        return {}
+    probe = reconstruct.solve(
+        store.sample_observations,
+        vectors,
+        method=method,
+        valid=store.sample_valid,
+        threads=threads,
+        max_iter=1,
+    )
+    fixed = {}
+    # Only SBL can be given both values: ``solve`` derives the noise level from ``lam``, while for
+    # L1 and R-PCA an explicit outlier threshold leaves it undefined (their bands estimate it).
+    if method == "sbl" and "lambda" in probe.params:
+        fixed["lam"] = probe.params["lambda"]
+        if probe.params.get("outlier_threshold") is not None:
+            fixed["outlier_threshold"] = probe.params["outlier_threshold"]
+        if "noise_sigma" in probe.params:
+            fixed["noise_sigma"] = probe.params["noise_sigma"]
+    return fixed
+
+
+def _solve_pass(
+    store: ObservationStore,
+    vectors: np.ndarray,
+    *,
+    method: str,
+    threads: int | None,
+    truth,
+    fit: bool,
+    writer: _OutputWriter | None,
+    advance: Callable[..., None],
+    label: str,
+) -> _PassResult:
+    """Solve every band once with the light vectors ``vectors`` (n, 3)."""
+    from ps_lab import reconstruct
+    from ps_lab.reconstruct.metrics import angular_errors_deg
+
+    fixed = _probe_parameters(store, vectors, method, threads)
+    noise = fixed.pop("noise_sigma", None)
+    n = store.n_lights
+    result = _PassResult(params={})
+    if fit:
+        result.normal_matrices = np.zeros((n, 6))
+        result.normal_targets = np.zeros((n, 3))
+    count = len(store.bands)
+    for band in store.bands:
+        if band.pixel_count == 0:
+            continue
+        advance(0, description=f"{label}: band {band.index + 1}/{count}")
+        observations, valid = store.read(band)
+        solution = reconstruct.solve(
+            observations,
+            vectors,
+            method=method,
+            valid=valid,
+            threads=threads,
+            progress=advance,
+            **fixed,
+        )
+        if not result.params:
+            result.params = dict(solution.params)
+            if noise is not None:
+                result.params["noise_sigma"] = noise
+        if writer is not None:
+            writer.add(band, solution, valid)
+        if truth is not None:
+            gt = truth.rows(band.row_start, band.row_stop)[store.mask[band.row_start : band.row_stop]]
+            result.all_have_truth &= bool(np.all(np.linalg.norm(gt, axis=1) > 0.5))
+            result.error_sum += float(angular_errors_deg(solution.normals, gt).sum())
+        if fit:
+            _accumulate_fit(result, observations, valid, solution)
+        del observations, valid, solution
+    return result
+
+
+def _accumulate_fit(result: _PassResult, observations, valid, solution, chunk: int = 65536) -> None:
+    """Add one band's per-light least-squares sums (paper section 3.3b) to ``result``."""
+    x_all = np.asarray(solution.normals, np.float64) * np.asarray(solution.albedo, np.float64)[:, None]
+    solved_all = np.asarray(solution.albedo) > 0
+    for a in range(0, observations.shape[1], chunk):
+        b = min(a + chunk, observations.shape[1])
+        y = observations[:, a:b].astype(np.float64)
+        usable = valid[:, a:b] & np.isfinite(y)
+        inliers = usable & ~solution.outliers[:, a:b] & solved_all[None, a:b]
+        x = x_all[a:b]
+        result.normal_matrices += inliers.astype(np.float64) @ _outer6(x)
+        result.normal_targets += np.where(inliers, y, 0.0) @ x
+        result.inliers += int(inliers.sum())
+        result.usable += int(usable.sum())
 
 
 def reconstruct_to_folder(
-    dataset: Dataset,
+    dataset: Path,
     out: Path,
     *,
+    channel: str = "mean",
+    shadow_threshold: float | None = None,
     method: str = "sbl",
     threads: int | None = None,
     refine_lights: int = 0,
     fixed_intensities: bool = False,
-    progress: Callable[[int], None] | None = None,
+    memory_budget: int | str = DEFAULT_MEMORY_BUDGET,
+    staging: str = "auto",
+    progress_bars: ProgressBars | None = None,
     extra: dict | None = None,
 ) -> dict:
-    """Solve a loaded dataset and write every result file into ``out`` (staged, all or nothing).
+    """Reconstruct a dataset folder into ``out``, streamed by row bands in bounded memory.
+
+    Pass 1 decodes each frame once and stores its mask pixels band by band
+    (:func:`ps_lab.dataset.stage_observations`); each solve pass then reads one band's
+    ``(n, P_band)`` block, solves it (:func:`ps_lab.reconstruct.solve`) and, on the last pass,
+    writes the band's rows of every output. Light refinement runs K + 1 passes, accumulating each
+    light's least-squares sums band by band. Everything is written into a staged folder that
+    replaces ``out`` only on success (:func:`staged_folder`); the staging store is deleted in every
+    case. Small datasets take the same path in one band.
 
     Parameters
     ----------
-    dataset : Dataset
-        Observations of the P = ``dataset.mask.sum()`` mask pixels are solved.
+    dataset : Path
+        Image folder or capture run.
     out : Path
-        Output folder: absent, empty or an earlier result (it is replaced only on success).
+        Output folder: absent, empty or an earlier result.
+    channel, shadow_threshold
+        As for :func:`ps_lab.dataset.load_dataset`.
     method : {"ls", "l1", "sbl", "rpca"}
-        Solver (:func:`ps_lab.reconstruct.solve`).
+        Solver. Noise level and outlier threshold are estimated once for the whole image; R-PCA's
+        low-rank model is fitted per band.
     threads : int or None
-        Worker threads of the solver (default all cores).
+        Solver threads (default all cores).
     refine_lights : int
-        Iterations of light refinement (:func:`ps_lab.reconstruct.refine_lights`); 0 = none. The
-        refined lights are written as ``light_directions.txt`` / ``light_intensities.txt``.
+        Iterations of light refinement (0 = none); the refined lights are written as
+        ``light_directions.txt`` / ``light_intensities.txt``.
     fixed_intensities : bool
         Refine directions only.
-    progress : callable or None
-        ``progress(k)`` with pixels just solved (P in all, P per solve when refining).
+    memory_budget : int or str
+        Bytes (or a size such as ``"1GB"``) that one band's solve may use; sets the band height.
+    staging : {"auto", "memory", "file"}
+        Backing of the observation store: in memory when small (``auto``), or forced.
+    progress_bars : callable or None
+        ``progress_bars(total, description)`` returning a context manager that yields
+        ``advance(n=1, description=None)`` (e.g. :func:`ps_lab._cli_util.progress_bar`): one bar
+        for reading the frames, one for the solve passes (pixels, band shown in the description).
     extra : dict or None
         More entries for ``metrics.json``.
 
@@ -392,64 +620,173 @@ def reconstruct_to_folder(
         The metrics written to ``metrics.json`` (``out`` added under ``"out"``).
 
     """
+    if staging not in ("auto", "memory", "file"):
+        raise OutputError(f"staging must be auto, memory or file, got {staging!r}")
+    budget = parse_memory_size(memory_budget)
+    bars = progress_bars or _no_bar
+    out = Path(out)
+    check_output_folder(out)
+    started = time.perf_counter()
+    header = open_dataset(dataset, channel=channel)
+    assert header.shape is not None
+    mask = header.read_mask()
+    truth = open_normal_gt(header.root, header.shape)
+    n = len(header.names)
+    bands = plan_bands(mask, band_pixels(budget, n))
+    pixels = int(mask.sum())
+    store_bytes = n * (4 * pixels + (pixels + 7 * len(bands)) // 8)
+    in_memory = staging == "memory" or (staging == "auto" and store_bytes <= IN_MEMORY_SHARE * budget)
     from ps_lab import reconstruct
 
-    check_output_folder(out)
-    observations = dataset.images[:, dataset.mask]
-    valid = dataset.valid[:, dataset.mask]
-    refined_directions = refined_intensities = None
-    extra = dict(extra or {})
+    sample_pixels = _default(reconstruct.estimate_noise, "max_pixels", 20000)
+    timings: dict[str, float] = {}
     with staged_folder(out) as stage:
-        started = time.perf_counter()
-        if refine_lights > 0:
-            truth = None
-            if dataset.normal_gt is not None:
-                truth = dataset.normal_gt[dataset.mask]
-                if not np.all(np.linalg.norm(truth, axis=1) > 0.5):
-                    truth = None  # pixels without ground truth would read as 90-degree errors
-            result = reconstruct.refine_lights(
-                observations,
-                dataset.light_directions,
+        with bars(n, "reading images") as advance:
+            store = stage_observations(
+                header,
+                mask,
+                bands,
+                channel=channel,
+                shadow_threshold=shadow_threshold,
+                folder=stage,
+                in_memory=in_memory,
+                sample_pixels=sample_pixels,
+                progress=advance,
+            )
+        timings["read_seconds"] = time.perf_counter() - started
+        with store:
+            metrics = _solve_and_write(
+                store,
+                header,
+                truth,
+                stage,
                 method=method,
-                iterations=refine_lights,
+                threads=threads,
+                refine_lights=refine_lights,
                 fixed_intensities=fixed_intensities,
-                valid=valid,
-                normal_gt=truth,
-                threads=threads,
-                progress=progress,
+                bars=bars,
+                timings=timings,
+                extra={
+                    **(extra or {}),
+                    "streaming": {
+                        "bands": len(bands),
+                        "max_band_pixels": max(band.pixel_count for band in bands),
+                        "memory_budget_bytes": budget,
+                        "staging": "memory" if in_memory else "file",
+                        "staging_bytes": store.nbytes,
+                    },
+                },
             )
-            solution = result.solution
-            refined_directions = np.asarray(result.light_directions, dtype=np.float64)
-            # The observations were already divided by the file's intensities, so the refined
-            # relative intensity multiplies them.
-            scale = np.asarray(result.light_intensities, dtype=np.float64).reshape(-1, 1)
-            refined_intensities = dataset.light_intensities * scale
-            for step in result.history[1:]:
-                log.info(
-                    "light refinement iteration %d: mean direction change %.3f deg (max %.3f)",
-                    step["iteration"],
-                    step.get("mean_direction_change_deg", float("nan")),
-                    step.get("max_direction_change_deg", float("nan")),
-                )
-            extra["refinement"] = {"iterations": refine_lights, "history": list(result.history)}
-        else:
-            solution = reconstruct.solve(
-                observations,
-                dataset.light_directions,
-                method=method,
-                valid=valid,
-                threads=threads,
-                progress=progress,
-            )
-        seconds = time.perf_counter() - started
-        metrics = write_results(
-            stage,
-            dataset,
-            solution,
-            solve_seconds=seconds,
-            light_directions=refined_directions,
-            light_intensities=refined_intensities,
-            extra=extra,
-        )
     metrics["out"] = str(out)
+    return metrics
+
+
+def _default(function: Callable, name: str, fallback: Any) -> Any:
+    parameter = inspect.signature(function).parameters.get(name)
+    if parameter is None or parameter.default is inspect.Parameter.empty:
+        return fallback
+    return parameter.default
+
+
+def _solve_and_write(
+    store: ObservationStore,
+    header,
+    truth,
+    stage: Path,
+    *,
+    method: str,
+    threads: int | None,
+    refine_lights: int,
+    fixed_intensities: bool,
+    bars: ProgressBars,
+    timings: dict,
+    extra: dict,
+) -> dict:
+    from ps_lab.reconstruct.metrics import angular_errors_deg
+
+    started = time.perf_counter()
+    lights = np.asarray(header.light_directions, dtype=np.float64)
+    directions = lights / np.linalg.norm(lights, axis=1, keepdims=True)
+    n = store.n_lights
+    factor = np.ones(n)
+    history: list[dict] = []
+    pending: dict = {}
+    passes = refine_lights + 1
+    writer = _OutputWriter(stage, store.mask, truth, n)
+    with bars(store.pixels * passes, f"{method}: pixels") as advance:
+        for k in range(passes):
+            final = k == refine_lights
+            label = method if passes == 1 else f"{method} pass {k + 1}/{passes}"
+            result = _solve_pass(
+                store,
+                directions * factor[:, None],
+                method=method,
+                threads=threads,
+                truth=truth if refine_lights else None,
+                fit=not final,
+                writer=writer if final else None,
+                advance=advance,
+                label=label,
+            )
+            if refine_lights:
+                errors = {}
+                if truth is not None and result.all_have_truth:
+                    errors["normal_error_deg"] = result.error_sum / max(store.pixels, 1)
+                history.append({"iteration": 0, **errors} if k == 0 else {**pending, **errors})
+            if final:
+                break
+            # Least-squares light vectors v_i = argmin sum_j (y_ij - x_j . v)^2 over inliers.
+            v, ok = _solve6(result.normal_matrices, result.normal_targets)
+            length = np.linalg.norm(v, axis=1)
+            ok &= length > 0
+            new_directions = np.where(
+                ok[:, None], v / np.where(ok, length, 1.0)[:, None], directions
+            )
+            change = angular_errors_deg(new_directions, directions)
+            new_factor = factor
+            if not fixed_intensities:
+                raw = np.where(ok, length, factor)
+                new_factor = raw / raw.mean() * factor.mean()
+            pending = {
+                "iteration": k + 1,
+                "mean_direction_change_deg": float(change.mean()),
+                "max_direction_change_deg": float(change.max()),
+                "mean_intensity_change": float(np.mean(np.abs(new_factor / factor - 1.0))),
+                "used_fraction": float(result.inliers / max(result.usable, 1)),
+            }
+            log.info(
+                "light refinement iteration %d: mean direction change %.3f deg (max %.3f)",
+                k + 1,
+                pending["mean_direction_change_deg"],
+                pending["max_direction_change_deg"],
+            )
+            directions, factor = new_directions, new_factor
+    seconds = time.perf_counter() - started
+    params = dict(result.params)
+    extra = dict(extra)
+    refined_directions = refined_intensities = None
+    if refine_lights:
+        params["refine_iterations"] = refine_lights
+        refined_directions = directions
+        # The observations were already divided by the file's intensities, so the refined
+        # relative intensity multiplies them.
+        refined_intensities = header.light_intensities * factor.reshape(-1, 1)
+        extra["refinement"] = {"iterations": refine_lights, "history": history}
+    written = time.perf_counter()
+    timings["solve_seconds"] = seconds
+    try:
+        metrics_extra = {**extra, "timings": timings}
+        metrics = writer.finish(
+            header,
+            params,
+            lights=refined_directions,
+            intensities=refined_intensities,
+            seconds=seconds,
+            extra=metrics_extra,
+        )
+    except OSError as exc:
+        raise OutputError(f"{stage}: cannot write results ({exc.strerror or exc})") from None
+    timings["write_seconds"] = time.perf_counter() - written
+    metrics["timings"] = dict(timings)
+    (stage / METRICS).write_text(json.dumps(metrics, indent=2) + "\n", encoding="utf-8")
     return metrics

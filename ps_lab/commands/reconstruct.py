@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import sys
 from enum import Enum
 from pathlib import Path
 from typing import Annotated
@@ -59,27 +60,30 @@ def reconstruct(
     fixed_intensities: Annotated[
         bool, typer.Option(help="With --refine-lights: refine directions only.")
     ] = False,
+    memory_budget: Annotated[
+        str,
+        typer.Option(
+            help="Memory for one row band's solve, e.g. 800MB or 2GB (sets the band height)."
+        ),
+    ] = "1GB",
 ) -> None:
     """Estimate surface normals and albedo; write normals.npy, normal.png, albedo, metrics.json."""
-    from ps_lab.dataset import load_dataset
-    from ps_lab.outputs import check_output_folder, reconstruct_to_folder
+    from ps_lab.outputs import parse_memory_size, reconstruct_to_folder
 
     out = out if out is not None else dataset / "recon" / method.value
-    check_output_folder(out)
-    data = load_dataset(dataset, channel=channel.value, shadow_threshold=shadow_threshold)
-    pixels = int(data.mask.sum())
-    extra = {"channel": channel.value, "shadow_threshold": shadow_threshold}
-    with progress_bar(pixels * (refine_lights + 1), f"{method.value}: pixels") as advance:
-        metrics = reconstruct_to_folder(
-            data,
-            out,
-            method=method.value,
-            threads=threads,
-            refine_lights=refine_lights,
-            fixed_intensities=fixed_intensities,
-            progress=advance,
-            extra=extra,
-        )
+    metrics = reconstruct_to_folder(
+        dataset,
+        out,
+        channel=channel.value,
+        shadow_threshold=shadow_threshold,
+        method=method.value,
+        threads=threads,
+        refine_lights=refine_lights,
+        fixed_intensities=fixed_intensities,
+        memory_budget=parse_memory_size(memory_budget),
+        progress_bars=_terminal_bars,
+        extra={"channel": channel.value, "shadow_threshold": shadow_threshold},
+    )
     typer.echo(
         f"{metrics['pixels']} pixels, {metrics['lights']} lights, {method.value} "
         f"in {metrics['solve_seconds']:.2f} s"
@@ -99,6 +103,11 @@ def reconstruct(
             line += f", mean normal error {step['normal_error_deg']:.2f} deg"
         typer.echo(line)
     typer.echo(f"results: {out}")
+
+
+def _terminal_bars(total: int, description: str):
+    """Progress bars on a terminal only, so that a failure on a pipe stays one error line."""
+    return progress_bar(total, description, enabled=sys.stderr.isatty())
 
 
 def register(app: typer.Typer) -> None:
