@@ -48,4 +48,4 @@ for _module in (simulate, reconstruct, capture, calibrate, rig, bench):
 
 def main() -> None:
     """Console-script entry point."""
-    app()
+    app(prog_name="ps-lab")

@@ -1,0 +1,98 @@
+"""``make demo``: the whole lab job on the simulated rig, through the real command line.
+
+Each stage is the ``ps-lab`` command a user would type, run as its own process:
+
+1. ``ps-lab capture --rig rigs/simulated.toml`` — the simulated protocol-v1 controller is served on a
+   pseudo-terminal and driven through the OS serial layer; the simulated camera writes DNG frames;
+2. ``ps-lab calibrate RUN`` — chrome sphere and highlights, no flags;
+3. ``ps-lab reconstruct RUN --method sbl --refine-lights 2``.
+
+Then it prints a summary against the simulator's ground truth (``RUN/simulation/``).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import shutil
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+from ps_lab.reconstruct.metrics import angular_errors_deg, error_summary
+
+DEFAULT_RIG = Path("rigs/simulated.toml")
+DEFAULT_OUT = Path("demo-run")
+
+
+def _stage(title: str, args: list[str]) -> float:
+    """Run ``ps-lab ARGS`` in a child process; return its wall time, exit on failure."""
+    print(f"\n== {title}: ps-lab {' '.join(args)}", flush=True)
+    start = time.perf_counter()
+    done = subprocess.run([sys.executable, "-m", "ps_lab", *args], check=False)
+    seconds = time.perf_counter() - start
+    if done.returncode != 0:
+        sys.exit(f"demo: stage '{title}' failed (exit {done.returncode})")
+    return seconds
+
+
+def _calibration_error(run: Path) -> dict[str, float]:
+    estimated = np.loadtxt(run / "light_directions.txt", ndmin=2)
+    truth = np.loadtxt(run / "simulation" / "light_directions_true.txt", ndmin=2)
+    return error_summary(angular_errors_deg(estimated, truth))
+
+
+def _clear_previous_demo(out: Path) -> None:
+    # Only ever delete a folder this demo made: it holds a capture run and nothing else.
+    if not out.exists():
+        return
+    if not (out / "run" / "manifest.json").is_file() and any(out.iterdir()):
+        sys.exit(f"demo: {out} exists and is not a demo folder; remove it or pass --out")
+    shutil.rmtree(out)
+
+
+def main(argv: list[str] | None = None) -> None:
+    """Capture, calibrate and reconstruct on the simulated rig, then print a summary."""
+    parser = argparse.ArgumentParser(prog="python -m ps_lab.demo", description=__doc__.splitlines()[0])
+    parser.add_argument("--rig", type=Path, default=DEFAULT_RIG, help="rig file (default %(default)s)")
+    parser.add_argument("--out", type=Path, default=DEFAULT_OUT, help="demo folder (replaced)")
+    args = parser.parse_args(argv)
+    if not args.rig.is_file():
+        sys.exit(f"demo: rig file {args.rig} not found (run from the repository root)")
+
+    _clear_previous_demo(args.out)
+    run = args.out / "run"
+    recon = run / "recon" / "sbl"
+    seconds = {
+        "capture": _stage("capture", ["capture", "--rig", str(args.rig), "--out", str(run)]),
+        "calibrate": _stage("calibrate", ["calibrate", str(run)]),
+        "reconstruct": _stage(
+            "reconstruct",
+            ["reconstruct", str(run), "--method", "sbl", "--refine-lights", "2", "--out", str(recon)],
+        ),
+    }
+
+    calibration = _calibration_error(run)
+    metrics = json.loads((recon / "metrics.json").read_text())
+    normal_error = metrics["angular_error_deg"]
+    print("\n== summary")
+    print(
+        f"calibration error vs simulator truth: mean {calibration['mean']:.3f} deg, "
+        f"max {calibration['max']:.3f} deg ({len(np.loadtxt(run / 'light_directions.txt', ndmin=2))} lights)"
+    )
+    print(
+        f"SBL normal error on the object:       mean {normal_error['mean']:.3f} deg, "
+        f"median {normal_error['median']:.3f} deg, p90 {normal_error['p90']:.3f} deg "
+        f"({metrics['pixels']} pixels, {metrics['lights']} lights)"
+    )
+    print("time per stage: " + ", ".join(f"{k} {v:.1f} s" for k, v in seconds.items()))
+    print(f"total {sum(seconds.values()):.1f} s")
+    print(f"normal map:      {recon / 'normal.png'}")
+    print(f"calibration:     {run / 'calibration.png'}")
+
+
+if __name__ == "__main__":
+    main()
