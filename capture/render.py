@@ -482,7 +482,10 @@ def _cook_torrance(
     ``n.l`` of the rendering equation cancels that of the BRDF denominator.
     """
     half = light + _VIEW
-    half = half / np.linalg.norm(half)
+    length = float(np.linalg.norm(half))
+    if length < 1e-9:  # light straight from behind: no visible point can reflect it
+        return np.zeros(normals.shape[0])
+    half = half / length
     n_dot_h = np.clip(normals @ half, 1e-6, 1.0)
     n_dot_v = np.clip(normals[:, 2], 1e-6, 1.0)
     v_dot_h = max(float(half[2]), 1e-6)

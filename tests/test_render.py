@@ -209,6 +209,18 @@ def test_specular_adds_positive_energy_near_the_mirror_direction():
     assert (rough > 0.05 * rough.max()).sum() > (extra > 0.05 * extra.max()).sum()
 
 
+def test_lights_from_behind_leave_the_object_dark():
+    surface = relief_surface((48, 48), seed=1)
+    lights = np.array([[0.0, 0.0, -1.0], [0.3, 0.1, -0.9]])
+    images = render(surface, lights, specular=0.5)
+    assert images.shape == (2, 48, 48)
+    assert np.all(images[0] == 0.0)
+    # A light behind the object can reach only the steep normals that face it, with finite values.
+    facing = surface.normals @ (lights[1] / np.linalg.norm(lights[1])) > 0
+    assert np.all(np.isfinite(images[1])) and np.all(images[1] >= 0.0)
+    assert np.all(images[1][~facing] == 0.0)
+
+
 @pytest.mark.parametrize("fraction", [0.1, 0.4])
 def test_noise_share_matches_noise_fraction(rng, fraction):
     surface = sphere_surface((64, 64))
