@@ -35,6 +35,7 @@ def refine_lights(
     threads: int | None = None,
     tile_size: int | None = None,
     progress: Callable[[int], None] | None = None,
+    keep_gauge: bool = True,
     **method_params,
 ) -> RefinementResult:
     """Alternate normal estimation and per-light least-squares re-fits of the lights.
@@ -47,8 +48,13 @@ def refine_lights(
     ``fixed_intensities``. A final solve uses the refined lights.
 
     Gauge: a common rotation of all lights (with the normals rotated alike) explains the images
-    equally well, so refinement can only remove light errors relative to each other; a global
-    rotation of the whole light set is never recovered.
+    equally well -- with free intensities even any common invertible linear map ``G``
+    (lights ``L G``, normals ``G^-1 x``) -- so refinement can only remove light errors relative
+    to each other; a global rotation of the whole light set is never recovered. With
+    ``keep_gauge`` (default) each re-fitted light set is mapped by the least-squares ``G`` back
+    onto the input lights, so the common part stays that of the input calibration instead of
+    drifting; measured on rendered scenes this halves the remaining light error (see
+    docs/solvers.md).
 
     Parameters
     ----------
@@ -73,6 +79,9 @@ def refine_lights(
         Ground truth for the history's ``light_error_deg``.
     threads, tile_size, progress, **method_params
         Passed to :func:`solve` (``progress`` counts the pixels of every solve).
+    keep_gauge : bool
+        Map each re-fitted light set back onto the input lights by the best common linear map
+        (see Gauge above).
 
     Returns
     -------
@@ -110,6 +119,7 @@ def refine_lights(
             entry["light_error_deg"] = float(np.mean(angular_errors_deg(dirs, light_directions_gt)))
         return entry
 
+    anchor_vectors = directions.copy()
     sol = run(directions, factor)
     history = [{"iteration": 0, **errors(sol, directions)}]
     for k in range(1, iterations + 1):
@@ -117,6 +127,11 @@ def refine_lights(
         solved = sol.albedo > 0
         inliers = usable & ~sol.outliers & solved[None, :]
         v, ok = _fit_lights(obs, inliers, x)
+        if keep_gauge and ok.sum() >= 3:
+            # Gauge: any invertible G maps (lights, x) to (lights G, G^-1 x) with the same images,
+            # so the data cannot tell the light set's common linear part; keep the input's.
+            g, *_ = np.linalg.lstsq(v[ok], anchor_vectors[ok], rcond=None)
+            v = v @ g
         length = np.linalg.norm(v, axis=1)
         ok &= length > 0
         new_dirs = np.where(ok[:, None], v / np.where(ok, length, 1.0)[:, None], directions)

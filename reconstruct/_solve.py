@@ -28,7 +28,7 @@ LAMBDA_FLOOR = 1e-6
 MIN_OUTLIER_THRESHOLD = 0.05
 # A pixel needs a usable 3x3 normal matrix: det >= this * (trace/3)^3 (conditioning).
 SOLVABLE_REL_DET = 1e-6
-NOISE_SAMPLE_PIXELS = 20000
+NOISE_SAMPLE_PIXELS = 4000
 # Observations below this share of the pixel scale are not used to estimate the noise.
 SHADOW_FRACTION = 0.1
 # The noise is read from a low quantile of the residual magnitudes, which stays clean while

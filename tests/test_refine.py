@@ -32,12 +32,15 @@ def perturbed():
 def test_refinement_reduces_the_normal_error(perturbed):
     y, lights, wrong, normals = perturbed
     assert np.allclose(angular_errors_deg(wrong, lights), 5.0)
+    drift = refine_lights(y, wrong, iterations=1, valid=y > 0, normal_gt=normals, keep_gauge=False)
+    assert drift.history[1]["normal_error_deg"] < drift.history[0]["normal_error_deg"]
     res = refine_lights(y, wrong, iterations=3, valid=y > 0, normal_gt=normals,
                         light_directions_gt=lights)
     err = [h["normal_error_deg"] for h in res.history]
     assert [h["iteration"] for h in res.history] == [0, 1, 2, 3]
-    assert err[1] < 0.8 * err[0]
-    assert err[3] < 0.75 * err[0]
+    assert err[1] < 0.7 * err[0]
+    assert err[3] <= 0.6 * err[0]
+    assert err[3] <= err[2] + 0.05
     assert res.history[3]["light_error_deg"] < 0.5 * res.history[0]["light_error_deg"]
     assert res.history[1]["mean_direction_change_deg"] > res.history[3]["mean_direction_change_deg"]
     assert np.allclose(np.linalg.norm(res.light_directions, axis=1), 1.0)
