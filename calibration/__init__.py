@@ -15,13 +15,16 @@ from ps_lab.calibration._calibrate import (
 from ps_lab.calibration._circle import (
     Circle,
     CircleFit,
+    circle_candidates,
     circle_inside_image,
     fit_circle,
-    circle_candidates,
     refine_circle,
     summary_image,
 )
-from ps_lab.calibration._geometry import highlights_from_light_directions, light_directions_from_highlights
+from ps_lab.calibration._geometry import (
+    highlights_from_light_directions,
+    light_directions_from_highlights,
+)
 from ps_lab.calibration._highlight import Highlight, locate_highlight
 from ps_lab.calibration._intensity import fit_light_intensities
 from ps_lab.calibration._report import (
@@ -54,4 +57,5 @@ __all__ = [
     "rig_circles",
     "summary_image",
     "write_calibration",
+    "zenith_azimuth_deg",
 ]

@@ -11,8 +11,8 @@ from ps_lab.calibration._circle import (
     Circle,
     CircleFit,
     _edge_points,
-    circle_inside_image,
     circle_candidates,
+    circle_inside_image,
     luminance,
     refine_circle,
     summary_image,
@@ -51,6 +51,7 @@ class Calibration:
         Per-pixel maximum over frames of the sphere's surroundings (for the picture).
     preview_origin : (int, int)
         ``(x0, y0)`` of ``preview`` in the image.
+
     """
 
     circle: Circle
@@ -73,7 +74,8 @@ def _as_stack(images: np.ndarray) -> np.ndarray:
         arr = arr[..., None]
     if arr.ndim != 4 or arr.shape[-1] not in (1, 3):
         raise CalibrationError(
-            f"calibration needs frames of shape (n, H, W) or (n, H, W, C) with C = 1 or 3, got {arr.shape}"
+            f"calibration needs frames of shape (n, H, W) or (n, H, W, C) with C = 1 or 3, "
+            f"got {arr.shape}"
         )
     if arr.shape[0] < 1:
         raise CalibrationError("no frames to calibrate")
@@ -104,12 +106,21 @@ def circle_residual(summary: np.ndarray, circle: Circle) -> float:
 def chrome_score(luma: np.ndarray, circle: Circle, *, max_frames: int = 12) -> float:
     """Share of frames in which the disc shows one small, strong highlight (chrome), 0..1.
 
-    A matte sphere's shading covers a large part of the disc; a chrome sphere's highlight a tiny one.
+    A matte sphere's shading covers a large part of the disc; a chrome sphere's highlight a
+    tiny one.
 
     Parameters
     ----------
     luma : ndarray of shape (n, H, W)
+        Frame luminance.
     circle : Circle
+        Candidate outline.
+    max_frames : int
+        Frames looked at (evenly spaced).
+
+    Returns
+    -------
+    float
     """
     n, h, w = luma.shape
     idx = np.linspace(0, n - 1, min(n, max_frames)).round().astype(int)
@@ -145,12 +156,13 @@ def _find_sphere(
         x, y, rw, rh = roi
         if rw < 8 or rh < 8 or x < 0 or y < 0 or x + rw > w or y + rh > h:
             raise CalibrationError(f"--roi {x},{y},{rw},{rh} does not fit in the {w}x{h} image")
-        sub = summary[y: y + rh, x: x + rw]
+        sub = summary[y : y + rh, x : x + rw]
         ox, oy = x, y
     candidates = circle_candidates(sub)
     if not candidates:
         raise CalibrationError(
-            "no chrome sphere found: no circular outline in the images (pass --sphere CX,CY,R or --roi)"
+            "no chrome sphere found: no circular outline in the images "
+            "(pass --sphere CX,CY,R or --roi)"
         )
     best: tuple[float, float, CircleFit] | None = None
     for cand in candidates:
@@ -234,6 +246,7 @@ def calibrate(
     CalibrationError
         No sphere found, sphere cut by the border, a frame without a usable highlight, all
         frames saturated, a degenerate matte fit.
+
     """
     stack = _as_stack(images)
     n, h, w, _ = stack.shape
@@ -260,7 +273,8 @@ def calibrate(
         moved = np.hypot(circle.x - hint.x, circle.y - hint.y)
         if moved > 0.1 * hint.radius or abs(circle.radius - hint.radius) > 0.1 * hint.radius:
             warnings.append(
-                f"chrome sphere fitted at ({circle.x:.1f}, {circle.y:.1f}) r={circle.radius:.1f}, far "
+                f"chrome sphere fitted at ({circle.x:.1f}, {circle.y:.1f}) r={circle.radius:.1f}, "
+                "far "
                 f"from the rig's nominal ({hint.x:.1f}, {hint.y:.1f}) r={hint.radius:.1f}"
             )
     else:
@@ -270,11 +284,14 @@ def calibrate(
         raise CalibrationError(f"chrome sphere radius {circle.radius:.1f} px is too small")
     if not circle_inside_image(circle, (h, w)):
         raise CalibrationError(
-            f"chrome sphere at ({circle.x:.1f}, {circle.y:.1f}) r={circle.radius:.1f} is cut by the "
+            f"chrome sphere at ({circle.x:.1f}, {circle.y:.1f}) r={circle.radius:.1f} "
+            "is cut by the "
             f"image border ({w}x{h}): move it fully into view"
         )
     if np.isfinite(residual) and residual > 0.5:
-        warnings.append(f"sphere outline residual {residual:.2f} px is large: check calibration.png")
+        warnings.append(
+            f"sphere outline residual {residual:.2f} px is large: check calibration.png"
+        )
 
     found: list[Highlight | None] = []
     problems: list[tuple[int, str]] = []
@@ -283,7 +300,9 @@ def calibrate(
         try:
             found.append(
                 locate_highlight(
-                    luma[j], circle, saturated=None if saturated is None else saturated[j],
+                    luma[j],
+                    circle,
+                    saturated=None if saturated is None else saturated[j],
                     safe_radius=safe_radius,
                 )
             )
@@ -295,7 +314,8 @@ def calibrate(
             progress(1)
     if saturated_frames == n:
         raise CalibrationError(
-            f"all {n} frames are saturated over the chrome sphere: shorten the exposure or dim the lights"
+            f"all {n} frames are saturated over the chrome sphere: "
+            "shorten the exposure or dim the lights"
         )
     contrasts = np.array([hl.contrast for hl in found if hl is not None])
     if len(contrasts):
@@ -304,8 +324,12 @@ def calibrate(
             if hl is not None and hl.contrast < 0.05 * typical:
                 found[j] = None
                 problems.append(
-                    (j, f"no highlight: its peak is {hl.contrast / typical:.1%} of the typical highlight "
-                        "(light off or blocked?)")
+                    (
+                        j,
+                        f"no highlight: its peak is {hl.contrast / typical:.1%} of the typical "
+                        "highlight "
+                        "(light off or blocked?)",
+                    )
                 )
     if problems:
         problems.sort()
@@ -319,7 +343,8 @@ def calibrate(
         if hl.second_blob is not None:
             sx, sy, share = hl.second_blob
             warnings.append(
-                f"{_frame_label(j, names)}: second bright spot at ({sx:.1f}, {sy:.1f}) with {share:.0%} "
+                f"{_frame_label(j, names)}: second bright spot at ({sx:.1f}, {sy:.1f}) "
+                f"with {share:.0%} "
                 "of the highlight's energy ignored (inter-reflection?)"
             )
     if focal_length_px is not None and principal_point is None:
@@ -339,21 +364,34 @@ def calibrate(
                 # A matte sphere's limb is dim in the median (grazing shading); the maximum over
                 # frames shows it as a step.
                 bright = luma[np.linspace(0, n - 1, min(n, 24)).round().astype(int)].max(axis=0)
-                matte_circle = refine_circle(bright, hint, search_px=max(8.0, 0.15 * hint.radius)).circle
+                matte_circle = refine_circle(
+                    bright, hint, search_px=max(8.0, 0.15 * hint.radius)
+                ).circle
             except CalibrationError as exc:
-                warnings.append(f"matte sphere outline not refined ({exc}); using the rig's nominal circle")
+                warnings.append(
+                    f"matte sphere outline not refined ({exc}); using the rig's nominal circle"
+                )
                 matte_circle = hint
         if not circle_inside_image(matte_circle, (h, w), margin=0.0):
             raise CalibrationError(
-                f"matte sphere at ({matte_circle.x:.1f}, {matte_circle.y:.1f}) r={matte_circle.radius:.1f} "
+                f"matte sphere at ({matte_circle.x:.1f}, {matte_circle.y:.1f}) "
+                f"r={matte_circle.radius:.1f} "
                 "is cut by the image border"
             )
-        intensities, extra = fit_light_intensities(stack, directions, matte_circle, saturated=saturated)
+        intensities, extra = fit_light_intensities(
+            stack, directions, matte_circle, saturated=saturated
+        )
         warnings.extend(extra)
 
     pad = int(np.ceil(0.15 * circle.radius)) + 4
-    x0, x1 = max(0, int(circle.x - circle.radius) - pad), min(w, int(circle.x + circle.radius) + pad + 1)
-    y0, y1 = max(0, int(circle.y - circle.radius) - pad), min(h, int(circle.y + circle.radius) + pad + 1)
+    x0, x1 = (
+        max(0, int(circle.x - circle.radius) - pad),
+        min(w, int(circle.x + circle.radius) + pad + 1),
+    )
+    y0, y1 = (
+        max(0, int(circle.y - circle.radius) - pad),
+        min(h, int(circle.y + circle.radius) + pad + 1),
+    )
     preview = luma[:, y0:y1, x0:x1].max(axis=0)
 
     return Calibration(
@@ -380,10 +418,13 @@ def _circle_from_record(record: object, what: str) -> Circle | None:
         circle = Circle(float(x), float(y), float(r))
     except (KeyError, TypeError, ValueError):
         raise CalibrationError(
-            f"manifest rig snapshot: calibration.{what} must be {{center = [x, y], radius = r}}, got {record!r}"
+            f"manifest rig snapshot: calibration.{what} must be "
+            f"{{center = [x, y], radius = r}}, got {record!r}"
         ) from None
     if not all(np.isfinite(circle)) or circle.radius <= 0:
-        raise CalibrationError(f"manifest rig snapshot: calibration.{what} is not a valid circle: {record!r}")
+        raise CalibrationError(
+            f"manifest rig snapshot: calibration.{what} is not a valid circle: {record!r}"
+        )
     return circle
 
 
@@ -398,11 +439,14 @@ def rig_circles(manifest: dict | None) -> tuple[Circle | None, Circle | None]:
     Returns
     -------
     chrome, matte : Circle or None
+
     """
     if not manifest:
         return None, None
     cal = (manifest.get("rig") or {}).get("calibration") or {}
     if not isinstance(cal, dict):
         return None, None
-    return (_circle_from_record(cal.get("chrome_sphere"), "chrome_sphere"),
-            _circle_from_record(cal.get("matte_sphere"), "matte_sphere"))
+    return (
+        _circle_from_record(cal.get("chrome_sphere"), "chrome_sphere"),
+        _circle_from_record(cal.get("matte_sphere"), "matte_sphere"),
+    )

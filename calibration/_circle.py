@@ -41,6 +41,7 @@ class CircleFit(NamedTuple):
         Inlier edge points ``(x, y)``.
     coverage : float
         Share of the radial profiles that gave a valid inlier edge point (0..1).
+
     """
 
     circle: Circle
@@ -61,6 +62,7 @@ def luminance(images: np.ndarray) -> np.ndarray:
     Returns
     -------
     ndarray of shape (..., H, W), float32
+
     """
     return np.asarray(images, dtype=np.float32).mean(axis=-1)
 
@@ -71,11 +73,15 @@ def summary_image(luma: np.ndarray, *, max_frames: int = 24) -> np.ndarray:
     Parameters
     ----------
     luma : ndarray of shape (n, H, W)
+        Frame luminance.
+    max_frames : int
+        Frames used (evenly spaced), to bound time and memory.
 
     Returns
     -------
     ndarray of shape (H, W), float32
         The chrome sphere shows as a plain disc: each highlight is lit in few frames only.
+
     """
     n = luma.shape[0]
     if n > max_frames:
@@ -104,7 +110,10 @@ def _to_uint8(image: np.ndarray) -> np.ndarray:
 
 
 def circle_candidates(
-    summary: np.ndarray, *, min_radius: float = 8.0, max_radius: float | None = None,
+    summary: np.ndarray,
+    *,
+    min_radius: float = 8.0,
+    max_radius: float | None = None,
     max_candidates: int = 12,
 ) -> list[Circle]:
     """Coarse circle candidates: round bright blobs, then OpenCV's gradient Hough transform.
@@ -126,6 +135,7 @@ def circle_candidates(
     -------
     list of Circle
         Blob candidates first, then Hough candidates strongest first; empty when none was found.
+
     """
     h, w = summary.shape
     scale = min(1.0, 1200.0 / max(h, w))
@@ -139,7 +149,9 @@ def circle_candidates(
     hi = max(lo + 2, int(np.ceil(max_radius * scale)))
 
     def to_image(x: float, y: float, r: float) -> Circle:
-        return Circle(float((x + 0.5) / scale - 0.5), float((y + 0.5) / scale - 0.5), float(r / scale))
+        return Circle(
+            float((x + 0.5) / scale - 0.5), float((y + 0.5) / scale - 0.5), float(r / scale)
+        )
 
     found: list[Circle] = []
     _, binary = cv2.threshold(img8, 0, 255, cv2.THRESH_BINARY + cv2.THRESH_OTSU)
@@ -152,8 +164,14 @@ def circle_candidates(
         if lo <= r <= hi and 0.6 < area / (bw * bh) < 0.95 and 0.8 < bw / bh < 1.25:
             found.append(to_image(centroids[i][0], centroids[i][1], r))
     circles = cv2.HoughCircles(
-        img8, cv2.HOUGH_GRADIENT, dp=1, minDist=max(4.0, lo), param1=60, param2=25,
-        minRadius=lo, maxRadius=hi,
+        img8,
+        cv2.HOUGH_GRADIENT,
+        dp=1,
+        minDist=max(4.0, lo),
+        param1=60,
+        param2=25,
+        minRadius=lo,
+        maxRadius=hi,
     )
     if circles is not None:
         found.extend(to_image(c[0], c[1], c[2]) for c in circles[0][:max_candidates])
@@ -171,6 +189,7 @@ def fit_circle(points: np.ndarray) -> Circle:
     Returns
     -------
     Circle
+
     """
     pts = np.asarray(points, dtype=np.float64)
     if len(pts) < 3:
@@ -182,7 +201,7 @@ def fit_circle(points: np.ndarray) -> Circle:
     p = (pts - mean) / scale
     # Kasa: x^2 + y^2 + D x + E y + F = 0, on normalised coordinates.
     a = np.column_stack([p[:, 0], p[:, 1], np.ones(len(p))])
-    b = -(p ** 2).sum(axis=1)
+    b = -(p**2).sum(axis=1)
     sol, _, rank, _ = np.linalg.lstsq(a, b, rcond=None)
     if rank < 3:
         raise CalibrationError("circle fit: edge points are degenerate")
@@ -212,6 +231,7 @@ def _edge_points(
         Edge point per ray (NaN where the ray gave none).
     contrast : ndarray of shape (K,)
         |inside − outside| level per ray (NaN where none).
+
     """
     h, w = image.shape
     cx, cy, r = circle
@@ -220,8 +240,11 @@ def _edge_points(
     rho = np.arange(max(r - half_width, 1.0), r + half_width + step / 2, step)
     cos, sin = np.cos(theta)[:, None], np.sin(theta)[:, None]
     xs, ys = cx + rho[None, :] * cos, cy + rho[None, :] * sin
-    inside_image = (xs.min(axis=1) >= 0) & (xs.max(axis=1) <= w - 1) & (ys.min(axis=1) >= 0) & (
-        ys.max(axis=1) <= h - 1
+    inside_image = (
+        (xs.min(axis=1) >= 0)
+        & (xs.max(axis=1) <= w - 1)
+        & (ys.min(axis=1) >= 0)
+        & (ys.max(axis=1) <= h - 1)
     )
     prof = ndimage.map_coordinates(image, [ys.ravel(), xs.ravel()], order=1, mode="nearest")
     prof = prof.reshape(xs.shape).astype(np.float64)
@@ -236,7 +259,7 @@ def _edge_points(
     m = len(rho)
     # The strongest edge along each ray, away from the ends so that both levels can be measured.
     valid_range = np.zeros(m, dtype=bool)
-    valid_range[hi_off: m - hi_off] = True
+    valid_range[hi_off : m - hi_off] = True
     g = np.where(valid_range[None, :], grad, -np.inf)
     peak = np.argmax(g, axis=1)
     usable = inside_image & np.isfinite(g[np.arange(k), peak]) & (m > 2 * hi_off)
@@ -262,7 +285,11 @@ def _edge_points(
 
 
 def refine_circle(
-    image: np.ndarray, circle: Circle, *, search_px: float | None = None, iterations: int = 3,
+    image: np.ndarray,
+    circle: Circle,
+    *,
+    search_px: float | None = None,
+    iterations: int = 3,
     min_coverage: float = 0.3,
 ) -> CircleFit:
     """Sub-pixel circle fit to the limb of a disc near ``circle``.
@@ -289,6 +316,7 @@ def refine_circle(
     ------
     CalibrationError
         When too few edge points are found.
+
     """
     img = np.asarray(image, dtype=np.float32)
     half = search_px if search_px is not None else max(6.0, 0.1 * circle.radius)
@@ -322,7 +350,7 @@ def refine_circle(
         current = fit
         half = 1.5 if it == 0 else 1.0
     res = np.hypot(pts[inliers, 0] - current.x, pts[inliers, 1] - current.y) - current.radius
-    return CircleFit(current, float(np.sqrt(np.mean(res ** 2))), pts[inliers], float(inliers.mean()))
+    return CircleFit(current, float(np.sqrt(np.mean(res**2))), pts[inliers], float(inliers.mean()))
 
 
 def circle_inside_image(circle: Circle, shape: tuple[int, int], margin: float = 1.0) -> bool:
@@ -330,6 +358,8 @@ def circle_inside_image(circle: Circle, shape: tuple[int, int], margin: float = 
     h, w = shape
     x, y, r = circle
     return bool(
-        x - r >= -0.5 + margin and y - r >= -0.5 + margin
-        and x + r <= w - 0.5 - margin and y + r <= h - 0.5 - margin
+        x - r >= -0.5 + margin
+        and y - r >= -0.5 + margin
+        and x + r <= w - 0.5 - margin
+        and y + r <= h - 0.5 - margin
     )

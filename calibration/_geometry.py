@@ -24,7 +24,10 @@ from ps_lab.calibration._circle import Circle
 
 
 def light_directions_from_highlights(
-    highlights: np.ndarray, circle: Circle, *, focal_length_px: float | None = None,
+    highlights: np.ndarray,
+    circle: Circle,
+    *,
+    focal_length_px: float | None = None,
     principal_point: tuple[float, float] | None = None,
 ) -> np.ndarray:
     """Mirror-reflect the view vector at each highlight.
@@ -44,6 +47,7 @@ def light_directions_from_highlights(
     -------
     ndarray of shape (n, 3)
         Unit light directions (surface toward light), camera frame x right, y up, z toward camera.
+
     """
     hl = np.asarray(highlights, dtype=np.float64).reshape(-1, 2)
     cx, cy, r = circle
@@ -90,12 +94,15 @@ def highlights_from_light_directions(light_directions: np.ndarray, circle: Circl
     Parameters
     ----------
     light_directions : ndarray of shape (n, 3)
+        Unit directions toward the lights.
     circle : Circle
+        The sphere's outline.
 
     Returns
     -------
     ndarray of shape (n, 2)
         ``(x, y)`` pixel positions of the mirror points (the half-vector of l and v).
+
     """
     lights = np.asarray(light_directions, dtype=np.float64).reshape(-1, 3)
     lights = lights / np.linalg.norm(lights, axis=1, keepdims=True)

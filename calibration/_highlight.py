@@ -30,6 +30,7 @@ class Highlight:
     second_blob : tuple of (x, y, share) or None
         The strongest rejected secondary blob (inter-reflection) and its energy relative to the
         highlight.
+
     """
 
     x: float
@@ -45,8 +46,13 @@ _EIGHT = np.ones((3, 3), dtype=bool)
 
 
 def locate_highlight(
-    frame: np.ndarray, circle: Circle, *, saturated: np.ndarray | None = None,
-    safe_radius: float = 0.9, min_snr: float = 10.0, max_saturated_share: float = 0.2,
+    frame: np.ndarray,
+    circle: Circle,
+    *,
+    saturated: np.ndarray | None = None,
+    safe_radius: float = 0.9,
+    min_snr: float = 10.0,
+    max_saturated_share: float = 0.2,
 ) -> Highlight:
     """Find the mirror highlight of one light inside the chrome sphere.
 
@@ -82,6 +88,7 @@ def locate_highlight(
     ------
     CalibrationError
         No highlight, highlight outside the safe radius, or the sphere saturated.
+
     """
     h, w = frame.shape
     cx, cy, r = circle
@@ -140,8 +147,15 @@ def locate_highlight(
     # Extended source: second moments of the blob give the cap half-angle b (tangential
     # semi-axis a = r sin b of a uniform ellipse, variance a^2 / 4; minus the pixel box 1/12).
     dxw, dyw = xx[window] - mx, yy[window] - my
-    cov = np.array([[np.sum(wts * dxw * dxw), np.sum(wts * dxw * dyw)],
-                    [np.sum(wts * dxw * dyw), np.sum(wts * dyw * dyw)]]) / total
+    cov = (
+        np.array(
+            [
+                [np.sum(wts * dxw * dxw), np.sum(wts * dxw * dyw)],
+                [np.sum(wts * dxw * dyw), np.sum(wts * dyw * dyw)],
+            ]
+        )
+        / total
+    )
     lam = float(np.linalg.eigvalsh(cov)[-1])
     sin_b = np.sqrt(max(4.0 * (lam - 1.0 / 12.0), 0.0)) / r
     cos_b = np.sqrt(max(1.0 - min(sin_b, 1.0) ** 2, 1e-6))
@@ -153,7 +167,10 @@ def locate_highlight(
             "(light nearly behind the sphere)"
         )
     return Highlight(
-        x=float(hx), y=float(hy), contrast=contrast, area=int(blob.sum()),
+        x=float(hx),
+        y=float(hy),
+        contrast=contrast,
+        area=int(blob.sum()),
         saturated=bool(sat is not None and (sat & blob).any()),
         source_radius_deg=float(2.0 * np.degrees(np.arcsin(min(sin_b, 1.0)))),
         second_blob=second,

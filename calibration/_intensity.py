@@ -8,13 +8,17 @@ from ps_lab.calibration._circle import Circle
 from ps_lab.errors import CalibrationError
 
 
-def sphere_normals(shape: tuple[int, int], circle: Circle, *, inner: float = 0.9) -> tuple[np.ndarray, np.ndarray]:
+def sphere_normals(
+    shape: tuple[int, int], circle: Circle, *, inner: float = 0.9
+) -> tuple[np.ndarray, np.ndarray]:
     """Orthographic normals of a sphere inside ``inner`` of its radius.
 
     Parameters
     ----------
     shape : (H, W)
+        Image size.
     circle : Circle
+        Sphere outline.
     inner : float
         Share of the radius to keep (the limb is steep, blurred and inter-reflecting).
 
@@ -23,6 +27,7 @@ def sphere_normals(shape: tuple[int, int], circle: Circle, *, inner: float = 0.9
     index : tuple of two ndarrays of shape (m,)
         Row and column indices of the pixels used.
     normals : ndarray of shape (m, 3)
+
     """
     h, w = shape
     cx, cy, r = circle
@@ -36,8 +41,13 @@ def sphere_normals(shape: tuple[int, int], circle: Circle, *, inner: float = 0.9
 
 
 def fit_light_intensities(
-    images: np.ndarray, light_directions: np.ndarray, circle: Circle, *,
-    saturated: np.ndarray | None = None, min_shading: float = 0.15, min_pixels: int = 50,
+    images: np.ndarray,
+    light_directions: np.ndarray,
+    circle: Circle,
+    *,
+    saturated: np.ndarray | None = None,
+    min_shading: float = 0.15,
+    min_pixels: int = 50,
 ) -> tuple[np.ndarray, list[str]]:
     """Relative intensity per light and channel from a matte sphere.
 
@@ -52,6 +62,7 @@ def fit_light_intensities(
     images : ndarray of shape (n, H, W, C)
         Linear frames, C = 1 or 3.
     light_directions : ndarray of shape (n, 3)
+        Calibrated unit directions.
     circle : Circle
         The matte sphere's outline.
     saturated : ndarray of shape (n, H, W), bool, optional
@@ -65,11 +76,14 @@ def fit_light_intensities(
     -------
     intensities : ndarray of shape (n, 3)
     warnings : list of str
+
     """
     n, h, w, c = images.shape
     (rows, cols), normals = sphere_normals((h, w), circle)
     if len(rows) < min_pixels:
-        raise CalibrationError(f"matte sphere r={circle.radius:.1f} px is too small to fit intensities")
+        raise CalibrationError(
+            f"matte sphere r={circle.radius:.1f} px is too small to fit intensities"
+        )
     out = np.full((n, c), np.nan)
     warnings: list[str] = []
     for j in range(n):
@@ -93,7 +107,8 @@ def fit_light_intensities(
     if np.any(out[np.isfinite(out)] <= 0):
         bad = sorted({j + 1 for j in np.nonzero(np.any(out <= 0, axis=1))[0]})
         raise CalibrationError(
-            f"matte sphere: non-positive intensity fitted for light(s) {bad}: is the matte circle right?"
+            f"matte sphere: non-positive intensity fitted for light(s) {bad}: "
+            "is the matte circle right?"
         )
     fill = np.nanmean(out, axis=0)
     out = np.where(np.isfinite(out), out, fill[None, :])

@@ -20,7 +20,12 @@ from ps_lab.calibration._calibrate import Calibration
 from ps_lab.errors import CalibrationError
 
 CALIBRATION_FORMAT = "ps-lab-calibration"
-OUTPUT_FILES = ("light_directions.txt", "light_intensities.txt", "calibration.json", "calibration.png")
+OUTPUT_FILES = (
+    "light_directions.txt",
+    "light_intensities.txt",
+    "calibration.json",
+    "calibration.png",
+)
 
 _GREEN = (80, 220, 80)
 _RED = (60, 60, 255)
@@ -36,10 +41,12 @@ def zenith_azimuth_deg(light_directions: np.ndarray) -> tuple[np.ndarray, np.nda
     Parameters
     ----------
     light_directions : ndarray of shape (n, 3)
+        Unit directions.
 
     Returns
     -------
     zenith, azimuth : ndarrays of shape (n,)
+
     """
     d = np.asarray(light_directions, dtype=np.float64)
     zenith = np.degrees(np.arccos(np.clip(d[:, 2], -1.0, 1.0)))
@@ -48,23 +55,27 @@ def zenith_azimuth_deg(light_directions: np.ndarray) -> tuple[np.ndarray, np.nda
 
 
 def calibration_record(calibration: Calibration) -> dict:
-    """The content of ``calibration.json`` (plain JSON types)."""
+    """Return the content of ``calibration.json`` (plain JSON types)."""
     cal = calibration
     zen, azi = zenith_azimuth_deg(cal.light_directions)
     lights = []
     for j in range(len(cal.light_directions)):
-        lights.append({
-            "light": j + 1,
-            "frame": cal.names[j] if j < len(cal.names) else None,
-            "highlight": [round(float(v), 4) for v in cal.highlights[j]],
-            "direction": [round(float(v), 7) for v in cal.light_directions[j]],
-            "zenith_deg": round(float(zen[j]), 3),
-            "azimuth_deg": round(float(azi[j]), 3),
-            "intensity": [round(float(v), 6) for v in cal.light_intensities[j]],
-            "source_radius_deg": (
-                None if cal.source_radius_deg is None else round(float(cal.source_radius_deg[j]), 3)
-            ),
-        })
+        lights.append(
+            {
+                "light": j + 1,
+                "frame": cal.names[j] if j < len(cal.names) else None,
+                "highlight": [round(float(v), 4) for v in cal.highlights[j]],
+                "direction": [round(float(v), 7) for v in cal.light_directions[j]],
+                "zenith_deg": round(float(zen[j]), 3),
+                "azimuth_deg": round(float(azi[j]), 3),
+                "intensity": [round(float(v), 6) for v in cal.light_intensities[j]],
+                "source_radius_deg": (
+                    None
+                    if cal.source_radius_deg is None
+                    else round(float(cal.source_radius_deg[j]), 3)
+                ),
+            }
+        )
     record = {
         "format": CALIBRATION_FORMAT,
         "version": 1,
@@ -76,11 +87,15 @@ def calibration_record(calibration: Calibration) -> dict:
             "residual_px": None if not np.isfinite(cal.residual) else round(cal.residual, 4),
             "source": cal.circle_source,
         },
-        "matte_sphere": None if cal.matte_circle is None else {
+        "matte_sphere": None
+        if cal.matte_circle is None
+        else {
             "center": [round(cal.matte_circle.x, 4), round(cal.matte_circle.y, 4)],
             "radius": round(cal.matte_circle.radius, 4),
         },
-        "intensities": "matte sphere fit" if cal.matte_circle is not None else "all ones (no matte target)",
+        "intensities": "matte sphere fit"
+        if cal.matte_circle is not None
+        else "all ones (no matte target)",
         "lights": lights,
         "warnings": list(cal.warnings),
     }
@@ -91,30 +106,38 @@ def _tone_map(image: np.ndarray) -> np.ndarray:
     img = np.asarray(image, dtype=np.float64)
     img = img - np.percentile(img, 1.0)
     hi = max(float(np.percentile(img, 99.9)), 1e-12)
-    body = max(float(np.percentile(img[img > 0], 50.0)) if np.any(img > 0) else hi * 1e-3, hi * 1e-4)
+    body = max(
+        float(np.percentile(img[img > 0], 50.0)) if np.any(img > 0) else hi * 1e-3, hi * 1e-4
+    )
     # Log scale anchored on the sphere's body, so the outline and the highlights both show.
     mapped = np.log1p(np.clip(img, 0, hi) / (0.5 * body)) / np.log1p(hi / (0.5 * body))
     return np.round(255 * np.clip(mapped, 0, 1)).astype(np.uint8)
 
 
-def _text(img: np.ndarray, text: str, org: tuple[int, int], color=_WHITE, scale: float = 0.45) -> None:
+def _text(
+    img: np.ndarray, text: str, org: tuple[int, int], color=_WHITE, scale: float = 0.45
+) -> None:
     cv2.putText(img, text, (org[0] + 1, org[1] + 1), _FONT, scale, (0, 0, 0), 2, cv2.LINE_AA)
     cv2.putText(img, text, org, _FONT, scale, color, 1, cv2.LINE_AA)
 
 
 def calibration_picture(calibration: Calibration, *, panel: int = 520) -> np.ndarray:
-    """The picture a user checks: the sphere with its outline and numbered highlights, and a polar
-    plot of the light directions (radius = zenith angle, circles at 30, 60, 90 degrees).
+    """Draw the picture a user checks before trusting a calibration.
+
+    The sphere with its outline and numbered highlights, beside a polar plot of the light
+    directions (radius = zenith angle, circles at 30, 60, 90 degrees).
 
     Parameters
     ----------
     calibration : Calibration
+        The result to show.
     panel : int
         Height in pixels of each panel.
 
     Returns
     -------
     ndarray of shape (panel + 40, width, 3), uint8 (BGR)
+
     """
     cal = calibration
     shift = 4  # sub-pixel drawing: coordinates in 1/16 px
@@ -129,16 +152,24 @@ def calibration_picture(calibration: Calibration, *, panel: int = 520) -> np.nda
         x0, y0 = int(cal.circle.x - size / 2), int(cal.circle.y - size / 2)
     ch, cw = crop.shape
     scale = panel / ch
-    left = cv2.resize(crop, (max(1, round(cw * scale)), panel), interpolation=cv2.INTER_NEAREST
-                      if scale >= 1 else cv2.INTER_AREA)
+    left = cv2.resize(
+        crop,
+        (max(1, round(cw * scale)), panel),
+        interpolation=cv2.INTER_NEAREST if scale >= 1 else cv2.INTER_AREA,
+    )
     left = cv2.cvtColor(left, cv2.COLOR_GRAY2BGR)
 
     def to_left(x: float, y: float) -> tuple[int, int]:
         # Pixel centres: image x maps to (x - x0 + 0.5) * scale - 0.5 in the resized panel.
-        return (round(((x - x0 + 0.5) * scale - 0.5) * one), round(((y - y0 + 0.5) * scale - 0.5) * one))
+        return (
+            round(((x - x0 + 0.5) * scale - 0.5) * one),
+            round(((y - y0 + 0.5) * scale - 0.5) * one),
+        )
 
     c = cal.circle
-    cv2.circle(left, to_left(c.x, c.y), round(c.radius * scale * one), _GREEN, 1, cv2.LINE_AA, shift)
+    cv2.circle(
+        left, to_left(c.x, c.y), round(c.radius * scale * one), _GREEN, 1, cv2.LINE_AA, shift
+    )
     cx, cy = to_left(c.x, c.y)
     cv2.drawMarker(left, (cx >> shift, cy >> shift), _GREEN, cv2.MARKER_CROSS, 10, 1, cv2.LINE_AA)
     for j, (hx, hy) in enumerate(cal.highlights):
@@ -155,14 +186,31 @@ def calibration_picture(calibration: Calibration, *, panel: int = 520) -> np.nda
 
     def to_polar(z: float, a: float) -> tuple[int, int]:
         rr = z / zmax * rad
-        return (round((centre + rr * np.cos(np.radians(a))) * one),
-                round((centre - rr * np.sin(np.radians(a))) * one))
+        return (
+            round((centre + rr * np.cos(np.radians(a))) * one),
+            round((centre - rr * np.sin(np.radians(a))) * one),
+        )
 
     for z in (30, 60, 90):
-        cv2.circle(right, (round(centre * one), round(centre * one)), round(z / zmax * rad * one), _GREY, 1,
-                   cv2.LINE_AA, shift)
-        _text(right, f"{z}", (round(centre + z / zmax * rad * 0.707) + 2, round(centre - z / zmax * rad * 0.707) - 2),
-              _GREY, 0.4)
+        cv2.circle(
+            right,
+            (round(centre * one), round(centre * one)),
+            round(z / zmax * rad * one),
+            _GREY,
+            1,
+            cv2.LINE_AA,
+            shift,
+        )
+        _text(
+            right,
+            f"{z}",
+            (
+                round(centre + z / zmax * rad * 0.707) + 2,
+                round(centre - z / zmax * rad * 0.707) - 2,
+            ),
+            _GREY,
+            0.4,
+        )
     ic = round(centre)
     cv2.line(right, (ic - round(rad), ic), (ic + round(rad), ic), (70, 70, 70), 1)
     cv2.line(right, (ic, ic - round(rad)), (ic, ic + round(rad)), (70, 70, 70), 1)
@@ -177,10 +225,22 @@ def calibration_picture(calibration: Calibration, *, panel: int = 520) -> np.nda
     body = np.hstack([left, gap, right])
     header = np.full((40, body.shape[1], 3), 0, np.uint8)
     res = "n/a" if not np.isfinite(cal.residual) else f"{cal.residual:.3f} px"
-    _text(header, f"chrome sphere ({c.x:.2f}, {c.y:.2f}) r={c.radius:.2f} [{cal.circle_source}], "
-          f"residual {res}", (8, 16), _WHITE, 0.45)
-    _text(header, f"{len(zen)} lights; zenith {zen.min():.1f}-{zen.max():.1f} deg (circles: 30/60/90)"
-          + (f"; {len(cal.warnings)} warning(s)" if cal.warnings else ""), (8, 34), _WHITE, 0.45)
+    _text(
+        header,
+        f"chrome sphere ({c.x:.2f}, {c.y:.2f}) r={c.radius:.2f} [{cal.circle_source}], "
+        f"residual {res}",
+        (8, 16),
+        _WHITE,
+        0.45,
+    )
+    _text(
+        header,
+        f"{len(zen)} lights; zenith {zen.min():.1f}-{zen.max():.1f} deg (circles: 30/60/90)"
+        + (f"; {len(cal.warnings)} warning(s)" if cal.warnings else ""),
+        (8, 34),
+        _WHITE,
+        0.45,
+    )
     return np.vstack([header, body])
 
 
@@ -194,7 +254,9 @@ def write_calibration(calibration: Calibration, out_dir: Path) -> dict[str, Path
     Parameters
     ----------
     calibration : Calibration
+        The result to write.
     out_dir : Path
+        Output folder.
 
     Returns
     -------
@@ -206,13 +268,16 @@ def write_calibration(calibration: Calibration, out_dir: Path) -> dict[str, Path
     ------
     CalibrationError
         When the folder cannot be written (nothing is left behind).
+
     """
     out = Path(out_dir)
     try:
         out.mkdir(parents=True, exist_ok=True)
         staging = Path(tempfile.mkdtemp(prefix=".calibrate-", dir=out))
     except OSError as exc:
-        raise CalibrationError(f"{out}: cannot write calibration outputs ({exc.strerror or exc})") from None
+        raise CalibrationError(
+            f"{out}: cannot write calibration outputs ({exc.strerror or exc})"
+        ) from None
     try:
         np.savetxt(staging / "light_directions.txt", calibration.light_directions, fmt="%.9f")
         np.savetxt(staging / "light_intensities.txt", calibration.light_intensities, fmt="%.9f")

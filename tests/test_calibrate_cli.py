@@ -31,8 +31,16 @@ def write_png_folder(
         assert cv2.imwrite(str(folder / f"L{k + 1:02d}.png"), frame)
 
 
-def sphere_folder(tmp_path: Path, *, n: int = 16, center=(101.3, 96.8), radius: float = 70.0,
-                  shape=(200, 220), seed: int = 0, **kwargs) -> tuple[Path, np.ndarray]:
+def sphere_folder(
+    tmp_path: Path,
+    *,
+    n: int = 16,
+    center=(101.3, 96.8),
+    radius: float = 70.0,
+    shape=(200, 220),
+    seed: int = 0,
+    **kwargs,
+) -> tuple[Path, np.ndarray]:
     rng = np.random.default_rng(seed)
     lights = random_light_directions(n, rng, max_zenith_deg=55.0)
     folder = tmp_path / "data"
@@ -65,7 +73,9 @@ def test_image_folder(tmp_path):
     assert record["chrome_sphere"]["source"] == "auto" and len(record["lights"]) == 16
     assert (folder / "calibration.png").stat().st_size > 1000
     # Calibrating again reads the same frames (outputs are not taken for frames) and agrees.
-    again = calibrate_cli(str(folder), "--out", str(tmp_path / "second"), "--sphere", "101.3,96.8,70")
+    again = calibrate_cli(
+        str(folder), "--out", str(tmp_path / "second"), "--sphere", "101.3,96.8,70"
+    )
     assert again.exit_code == 0, again.output
     assert "[given]" in again.output
     dirs2 = np.loadtxt(tmp_path / "second" / "light_directions.txt")
@@ -74,7 +84,19 @@ def test_image_folder(tmp_path):
 
 def test_simulated_capture_run_calibrates_with_no_flags(tmp_path):
     run = tmp_path / "run"
-    captured = runner.invoke(app, ["capture", "--rig", str(RIGS / "simulated.toml"), "--out", str(run), "--lights", "1-10", "--quiet"])
+    captured = runner.invoke(
+        app,
+        [
+            "capture",
+            "--rig",
+            str(RIGS / "simulated.toml"),
+            "--out",
+            str(run),
+            "--lights",
+            "1-10",
+            "--quiet",
+        ],
+    )
     assert captured.exit_code == 0, captured.output
     result = calibrate_cli(str(run))
     assert result.exit_code == 0, result.output
@@ -108,14 +130,19 @@ def test_frame_without_highlight(tmp_path):
     folder = tmp_path / "data"
     write_png_folder(folder, radiance, rng)
     before = {p.name for p in folder.iterdir()}
-    assert_one_line_error(calibrate_cli(str(folder)), "light 4 (L04.png): no highlight", folder, before)
+    assert_one_line_error(
+        calibrate_cli(str(folder)), "light 4 (L04.png): no highlight", folder, before
+    )
 
 
 def test_all_frames_saturated(tmp_path):
     folder, _ = sphere_folder(tmp_path, n=8, peak_over_white=5000.0)
     before = {p.name for p in folder.iterdir()}
     assert_one_line_error(
-        calibrate_cli(str(folder), "--sphere", "101.3,96.8,70"), "all 8 frames are saturated", folder, before
+        calibrate_cli(str(folder), "--sphere", "101.3,96.8,70"),
+        "all 8 frames are saturated",
+        folder,
+        before,
     )
 
 

@@ -16,7 +16,12 @@ from ps_lab.calibration import (
     rig_circles,
     write_calibration,
 )
-from ps_lab.capture.render import random_light_directions, render, render_chrome_sphere, sphere_surface
+from ps_lab.capture.render import (
+    random_light_directions,
+    render,
+    render_chrome_sphere,
+    sphere_surface,
+)
 from ps_lab.errors import CalibrationError
 
 
@@ -27,8 +32,12 @@ def angular_errors(a: np.ndarray, b: np.ndarray) -> np.ndarray:
 
 
 def quantised_frames(
-    radiance: np.ndarray, rng: np.random.Generator, *, peak_over_white: float = 4.0,
-    noise: float = 2e-4, light_radiance: float = 50.0,
+    radiance: np.ndarray,
+    rng: np.random.Generator,
+    *,
+    peak_over_white: float = 4.0,
+    noise: float = 2e-4,
+    light_radiance: float = 50.0,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Expose rendered radiance so a highlight peaks at ``peak_over_white`` x the white level,
     add noise, clip and quantise to 16 bits. Returns frames in [0, 1] and the saturation mask."""
@@ -63,13 +72,22 @@ def test_mirror_law_round_trip(rng):
 def test_mirror_law_frame_conventions():
     circle = Circle(100.0, 100.0, 50.0)
     # Centre: light at the camera. Up in the image (smaller row) is +y; right is +x.
-    pts = np.array([[100.0, 100.0], [100.0, 100.0 - 50 * np.sin(np.radians(30))],
-                    [100.0 + 50 * np.sin(np.radians(30)), 100.0]])
+    pts = np.array(
+        [
+            [100.0, 100.0],
+            [100.0, 100.0 - 50 * np.sin(np.radians(30))],
+            [100.0 + 50 * np.sin(np.radians(30)), 100.0],
+        ]
+    )
     dirs = light_directions_from_highlights(pts, circle)
     np.testing.assert_allclose(dirs[0], [0, 0, 1], atol=1e-12)
     # Normal at 30 degrees from the view axis reflects the view vector to 60 degrees.
-    np.testing.assert_allclose(dirs[1], [0, np.sin(np.radians(60)), np.cos(np.radians(60))], atol=1e-12)
-    np.testing.assert_allclose(dirs[2], [np.sin(np.radians(60)), 0, np.cos(np.radians(60))], atol=1e-12)
+    np.testing.assert_allclose(
+        dirs[1], [0, np.sin(np.radians(60)), np.cos(np.radians(60))], atol=1e-12
+    )
+    np.testing.assert_allclose(
+        dirs[2], [np.sin(np.radians(60)), 0, np.cos(np.radians(60))], atol=1e-12
+    )
 
 
 def test_perspective_correction(rng):
@@ -77,10 +95,14 @@ def test_perspective_correction(rng):
     circle = Circle(400.0, 250.0, 80.0)
     highlights = highlights_from_light_directions(lights, circle)
     ortho = light_directions_from_highlights(highlights, circle)
-    far = light_directions_from_highlights(highlights, circle, focal_length_px=1e9, principal_point=(320, 240))
+    far = light_directions_from_highlights(
+        highlights, circle, focal_length_px=1e9, principal_point=(320, 240)
+    )
     assert angular_errors(far, ortho).max() < 1e-5
     # A sphere off the optical axis of a wide lens: its view vectors tilt by about the field angle.
-    near = light_directions_from_highlights(highlights, circle, focal_length_px=800.0, principal_point=(320, 240))
+    near = light_directions_from_highlights(
+        highlights, circle, focal_length_px=800.0, principal_point=(320, 240)
+    )
     shift = angular_errors(near, ortho)
     field = np.degrees(np.arctan(np.hypot(400 - 320, 250 - 240) / 800.0))
     assert 0.3 * field < shift.mean() < 2.5 * field
@@ -88,7 +110,9 @@ def test_perspective_correction(rng):
 
 def test_fit_circle_geometric(rng):
     t = rng.uniform(0, 2 * np.pi, 200)
-    pts = np.column_stack([31.2 + 47.9 * np.cos(t), -12.5 + 47.9 * np.sin(t)]) + rng.normal(0, 0.01, (200, 2))
+    pts = np.column_stack([31.2 + 47.9 * np.cos(t), -12.5 + 47.9 * np.sin(t)]) + rng.normal(
+        0, 0.01, (200, 2)
+    )
     c = fit_circle(pts)
     assert abs(c.x - 31.2) < 0.01 and abs(c.y + 12.5) < 0.01 and abs(c.radius - 47.9) < 0.01
     with pytest.raises(CalibrationError):
@@ -103,7 +127,9 @@ def test_fit_circle_geometric(rng):
     [(100, 40, 4.0, 0.15, 0.5), (97, 60, 20.0, 0.15, 0.5), (40, 20, 12.0, 0.3, 0.8)],
 )
 def test_automatic_calibration_accuracy(radius, n_lights, peak, mean_max, max_max):
-    frames, saturated, lights, center = chrome_frames(radius, n_lights, seed=radius + n_lights, peak_over_white=peak)
+    frames, saturated, lights, center = chrome_frames(
+        radius, n_lights, seed=radius + n_lights, peak_over_white=peak
+    )
     assert saturated.any(axis=(1, 2)).all()  # every highlight clips
     cal = calibrate(frames, saturated=saturated)
     assert cal.circle_source == "auto"
@@ -134,16 +160,25 @@ def test_simulated_dng_half_size(tmp_path):
     frames, saturated = [], []
     for k in range(len(lights)):
         dn = black + radiance[k] * (3.0 / 50.0) * (white - black)
-        dn = dn + rng.normal(0.0, 2.0, dn.shape) + rng.normal(0.0, 1.0, dn.shape) * np.sqrt(np.maximum(dn - black, 0) * 0.5)
+        dn = (
+            dn
+            + rng.normal(0.0, 2.0, dn.shape)
+            + rng.normal(0.0, 1.0, dn.shape) * np.sqrt(np.maximum(dn - black, 0) * 0.5)
+        )
         path = tmp_path / f"L{k:02d}.dng"
-        write_dng(path, np.clip(np.round(dn), 0, white).astype(np.uint16), black_level=black, white_level=white)
+        write_dng(
+            path,
+            np.clip(np.round(dn), 0, white).astype(np.uint16),
+            black_level=black,
+            white_level=white,
+        )
         raw = load_raw(path)
         frames.append(raw.image)
         saturated.append(raw.saturated)
     images = np.stack(frames)
     assert images.shape[1:3] == (240, 280)
     cal = calibrate(images, saturated=np.stack(saturated))
-    # Half-size binning: pixel (i, j) averages full-res pixels 2i..2i+1, so x_half = (x + 0.5) / 2 - 0.5.
+    # Half-size binning: pixel i averages full-res pixels 2i..2i+1: x_half = (x + 0.5) / 2 - 0.5.
     assert abs(cal.circle.radius - full_radius / 2) < 0.05
     assert abs(cal.circle.x - ((center[0] + 0.5) / 2 - 0.5)) < 0.05
     err = angular_errors(cal.light_directions, lights)
@@ -157,8 +192,12 @@ def test_matte_sphere_intensities():
     intensities = rng.uniform(0.6, 1.4, (n, 1)) * rng.uniform(0.9, 1.1, (n, 3))
     shape = (250, 480)
     chrome = render_chrome_sphere(shape, (120.4, 124.2), 90.0, lights)
-    matte = render(sphere_surface(shape, (350.7, 125.1), 95.0, albedo=np.array([0.6, 0.6, 0.6])),
-                   lights, intensities, cast_shadows=False)
+    matte = render(
+        sphere_surface(shape, (350.7, 125.1), 95.0, albedo=np.array([0.6, 0.6, 0.6])),
+        lights,
+        intensities,
+        cast_shadows=False,
+    )
     radiance = chrome[..., None] * intensities[:, None, None, :] + matte * 10.0
     frames, saturated = quantised_frames(radiance, rng, peak_over_white=4.0)
     cal = calibrate(frames, saturated=saturated.any(axis=-1), matte_hint=(351.0, 125.0, 94.0))
@@ -188,10 +227,14 @@ def test_given_and_rig_circles():
 def test_second_blob_is_rejected_with_warning():
     frames, saturated, lights, _ = chrome_frames(90, 12, seed=8)
     # A fake inter-reflection: a copy of light 3's highlight, dimmer, elsewhere on the sphere.
-    hl = highlights_from_light_directions(lights[2:3], Circle(*calibrate(frames, saturated=saturated).circle))[0]
+    hl = highlights_from_light_directions(
+        lights[2:3], Circle(*calibrate(frames, saturated=saturated).circle)
+    )[0]
     x, y = int(round(hl[0])), int(round(hl[1]))
-    patch = frames[2, y - 4: y + 5, x - 4: x + 5].copy()
-    frames[2, y + 26: y + 35, x - 4: x + 5] = np.maximum(frames[2, y + 26: y + 35, x - 4: x + 5], 0.8 * patch)
+    patch = frames[2, y - 4 : y + 5, x - 4 : x + 5].copy()
+    frames[2, y + 26 : y + 35, x - 4 : x + 5] = np.maximum(
+        frames[2, y + 26 : y + 35, x - 4 : x + 5], 0.8 * patch
+    )
     cal = calibrate(frames, saturated=saturated)
     assert any(w.startswith("light 3:") and "second bright spot" in w for w in cal.warnings)
     assert angular_errors(cal.light_directions, lights)[2] < 0.3
@@ -259,7 +302,9 @@ def test_write_calibration_outputs(tmp_path):
     record = json.loads(paths["calibration.json"].read_text())
     assert record["chrome_sphere"]["radius"] == pytest.approx(cal.circle.radius, abs=1e-3)
     assert [d["frame"] for d in record["lights"]] == cal.names
-    np.testing.assert_allclose([d["highlight"] for d in record["lights"]], cal.highlights, atol=1e-3)
+    np.testing.assert_allclose(
+        [d["highlight"] for d in record["lights"]], cal.highlights, atol=1e-3
+    )
     import cv2
 
     picture = cv2.imread(str(paths["calibration.png"]))

@@ -27,35 +27,50 @@ def _numbers(text: str | None, option: str, names: str) -> tuple[float, ...] | N
 @lab_command
 def calibrate(
     data: Annotated[
-        Path, typer.Argument(help="Capture run or image folder (one frame per light).", show_default=False)
+        Path,
+        typer.Argument(
+            help="Capture run or image folder (one frame per light).", show_default=False
+        ),
     ],
     sphere: Annotated[
         str | None,
-        typer.Option(help="Chrome sphere circle CX,CY,R in pixels (x = column, y = row), used as given."),
+        typer.Option(
+            help="Chrome sphere circle CX,CY,R in pixels (x = column, y = row), used as given."
+        ),
     ] = None,
     roi: Annotated[
         str | None, typer.Option(help="Search the sphere only in X,Y,W,H (pixels).")
     ] = None,
     matte: Annotated[
         str | None,
-        typer.Option(help="Matte (Lambertian) sphere CX,CY,R for light intensities (default: rig file)."),
+        typer.Option(
+            help="Matte (Lambertian) sphere CX,CY,R for light intensities (default: rig file)."
+        ),
     ] = None,
     out: Annotated[
-        Path | None, typer.Option(help="Output folder (default: DATA, so reconstruct picks the lights up).")
+        Path | None,
+        typer.Option(help="Output folder (default: DATA, so reconstruct picks the lights up)."),
     ] = None,
     focal_length: Annotated[
         float | None, typer.Option(help="Lens focal length in mm, for the perspective correction.")
     ] = None,
     pixel_pitch: Annotated[
         float | None,
-        typer.Option(help="Pixel pitch of the loaded image in micrometres (2x the sensor's for half-size RAW)."),
+        typer.Option(
+            help="Pixel pitch of the loaded image in micrometres "
+            "(2x the sensor's for half-size RAW)."
+        ),
     ] = None,
     safe_radius: Annotated[
-        float, typer.Option(min=0.1, max=0.99, help="Reject highlights beyond this share of the sphere radius.")
+        float,
+        typer.Option(
+            min=0.1, max=0.99, help="Reject highlights beyond this share of the sphere radius."
+        ),
     ] = 0.9,
 ) -> None:
-    """Find the chrome sphere and its highlight in every frame; write light_directions.txt,
-    light_intensities.txt, calibration.json and calibration.png.
+    """Find the chrome sphere and its highlight in every frame; calibrate the lights.
+
+    Writes light_directions.txt, light_intensities.txt, calibration.json and calibration.png.
     """
     from ps_lab.calibration import calibrate as run_calibration
     from ps_lab.calibration import rig_circles, write_calibration
@@ -65,7 +80,9 @@ def calibrate(
     matte_c = _numbers(matte, "--matte", "CX,CY,R")
     roi_v = _numbers(roi, "--roi", "X,Y,W,H")
     if (focal_length is None) != (pixel_pitch is None):
-        raise CalibrationError("--focal-length and --pixel-pitch go together (perspective correction)")
+        raise CalibrationError(
+            "--focal-length and --pixel-pitch go together (perspective correction)"
+        )
     focal_px = None if focal_length is None else focal_length / (pixel_pitch * 1e-3)  # type: ignore[operator]
 
     frames = load_frames(data)
@@ -92,7 +109,9 @@ def calibrate(
         f"chrome sphere ({c.x:.2f}, {c.y:.2f}) r={c.radius:.2f} px [{result.circle_source}], "
         f"outline residual {residual}"
     )
-    intensities = "matte sphere" if result.matte_circle is not None else "all ones (no matte target)"
+    intensities = (
+        "matte sphere" if result.matte_circle is not None else "all ones (no matte target)"
+    )
     typer.echo(f"{n} lights calibrated; intensities: {intensities}")
     for warning in result.warnings:
         typer.secho(f"warning: {warning}", fg=typer.colors.YELLOW, err=True)
