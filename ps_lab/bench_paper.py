@@ -36,6 +36,7 @@ from __future__ import annotations
 import argparse
 import math
 import platform
+import sys
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import asdict, dataclass, field, replace
@@ -75,7 +76,7 @@ Progress = Callable[[int], None] | None
 class PaperConfig:
     """Everything that defines a run of the paper's experiments (the defaults are the full run)."""
 
-    size: int = 96
+    size: int = 64
     light_sets: int = 5
     seed: int = 0
     scenes: tuple[str, ...] = ("sphere", "relief")
@@ -1000,7 +1001,15 @@ def main(argv: Sequence[str] | None = None) -> int:
         )
     except ValueError as exc:
         parser.error(str(exc))
-    results = run_paper(config)
+    total = total_steps(config)
+    done = [0]
+
+    def progress(n: int) -> None:
+        done[0] += n
+        print(f"\r{done[0]}/{total} solves", end="", file=sys.stderr, flush=True)
+
+    results = run_paper(config, progress=progress)
+    print(file=sys.stderr)
     print(format_markdown(results) if args.markdown else format_text(results))
     if args.markdown_file:
         with open(args.markdown_file, "w", encoding="utf-8") as fh:

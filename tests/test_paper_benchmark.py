@@ -165,6 +165,6 @@ def test_paper_orderings_at_full_resolution(request: pytest.FixtureRequest) -> N
     # `pytest` runs every marker by default; this one only when selected with `-m slow`.
     if not _slow_selected(request.config):
         pytest.skip("long experiment: run with -m slow")
-    results = bp.run_paper(bp.PaperConfig(size=96, light_sets=3))
+    results = bp.run_paper(bp.PaperConfig())  # the full run of docs/results.md
     _assert_orderings(results)
     _assert_refinement_never_worse(results)
