@@ -1016,7 +1016,9 @@ class ObservationStore:
         return observations, valid
 
     def _read_exactly(self, array: np.ndarray) -> None:
-        view = memoryview(array).cast("B")
+        if array.size == 0:
+            return
+        view = memoryview(array.reshape(-1).view(np.uint8))
         done = 0
         while done < len(view):
             got = self._stream.readinto(view[done:])

@@ -202,7 +202,7 @@ ERROR_BIN_DEG = 0.001
 _SIZE_UNITS = {"": 1 << 20, "k": 1 << 10, "m": 1 << 20, "g": 1 << 30, "t": 1 << 40}
 
 
-def parse_memory_size(text: str | int | float) -> int:
+def parse_memory_size(text: str) -> int:
     """Parse a memory size such as ``"512MB"``, ``"1.5G"``, ``"2 GiB"`` or ``"800"`` (MB) into bytes.
 
     Raises
@@ -211,14 +211,10 @@ def parse_memory_size(text: str | int | float) -> int:
         Not a positive size.
 
     """
-    if isinstance(text, (int, float)):
-        value, unit = float(text), ""
-    else:
-        match = re.fullmatch(r"\s*([0-9]*\.?[0-9]+)\s*([kKmMgGtT]?)(?:i?[bB])?\s*", str(text))
-        if match is None:
-            raise OutputError(f"memory budget {text!r}: expected a size such as 800MB or 2GB")
-        value, unit = float(match.group(1)), match.group(2).lower()
-    size = int(value * _SIZE_UNITS[unit])
+    match = re.fullmatch(r"\s*([0-9]*\.?[0-9]+)\s*([kKmMgGtT]?)(?:i?[bB])?\s*", str(text))
+    if match is None:
+        raise OutputError(f"memory budget {text!r}: expected a size such as 800MB or 2GB")
+    size = int(float(match.group(1)) * _SIZE_UNITS[match.group(2).lower()])
     if size <= 0:
         raise OutputError(f"memory budget {text!r} must be positive")
     return size
@@ -514,6 +510,7 @@ def _solve_pass(
         result.normal_matrices = np.zeros((n, 6))
         result.normal_targets = np.zeros((n, 3))
     count = len(store.bands)
+    started = time.perf_counter()
     for band in store.bands:
         if band.pixel_count == 0:
             continue
@@ -541,6 +538,14 @@ def _solve_pass(
         if fit:
             _accumulate_fit(result, observations, valid, solution)
         del observations, valid, solution
+        log.info(
+            "%s: band %d/%d done (%d pixels, %.1f s since the pass began)",
+            label,
+            band.index + 1,
+            count,
+            band.pixel_count,
+            time.perf_counter() - started,
+        )
     return result
 
 
@@ -604,7 +609,8 @@ def reconstruct_to_folder(
     fixed_intensities : bool
         Refine directions only.
     memory_budget : int or str
-        Bytes (or a size such as ``"1GB"``) that one band's solve may use; sets the band height.
+        Bytes (int), or a size such as ``"1GB"`` (see :func:`parse_memory_size`), that one band's
+        solve may use; sets the band height.
     staging : {"auto", "memory", "file"}
         Backing of the observation store: in memory when small (``auto``), or forced.
     progress_bars : callable or None
@@ -622,7 +628,9 @@ def reconstruct_to_folder(
     """
     if staging not in ("auto", "memory", "file"):
         raise OutputError(f"staging must be auto, memory or file, got {staging!r}")
-    budget = parse_memory_size(memory_budget)
+    budget = memory_budget if isinstance(memory_budget, int) else parse_memory_size(memory_budget)
+    if budget <= 0:
+        raise OutputError(f"memory budget must be positive, got {memory_budget}")
     bars = progress_bars or _no_bar
     out = Path(out)
     check_output_folder(out)
@@ -654,6 +662,19 @@ def reconstruct_to_folder(
                 progress=advance,
             )
         timings["read_seconds"] = time.perf_counter() - started
+        log.info(
+            "read %d images (%dx%d, %d mask pixels) in %.1f s: %d bands of at most %d pixels, "
+            "%.2f GB staged in %s",
+            n,
+            mask.shape[1],
+            mask.shape[0],
+            pixels,
+            timings["read_seconds"],
+            len(bands),
+            max(band.pixel_count for band in bands),
+            store.nbytes / 1e9,
+            "memory" if in_memory else "a file",
+        )
         with store:
             metrics = _solve_and_write(
                 store,
@@ -709,6 +730,7 @@ def _solve_and_write(
     directions = lights / np.linalg.norm(lights, axis=1, keepdims=True)
     n = store.n_lights
     factor = np.ones(n)
+    anchor = directions.copy()
     history: list[dict] = []
     pending: dict = {}
     passes = refine_lights + 1
@@ -737,6 +759,11 @@ def _solve_and_write(
                 break
             # Least-squares light vectors v_i = argmin sum_j (y_ij - x_j . v)^2 over inliers.
             v, ok = _solve6(result.normal_matrices, result.normal_targets)
+            if ok.sum() >= 3:
+                # Keep the input gauge, as refine_lights does by default: map the re-fitted set
+                # back onto the input lights by the least-squares common linear map.
+                gauge, *_ = np.linalg.lstsq(v[ok], anchor[ok], rcond=None)
+                v = v @ gauge
             length = np.linalg.norm(v, axis=1)
             ok &= length > 0
             new_directions = np.where(

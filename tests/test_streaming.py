@@ -1,0 +1,347 @@
+"""Streamed reconstruction: row bands and the staging store give the single-band result."""
+
+from __future__ import annotations
+
+import json
+import tempfile
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from ps_lab import reconstruct as solvers
+from ps_lab.dataset import (
+    ObservationStore,
+    load_dataset,
+    open_dataset,
+    plan_bands,
+    stage_observations,
+)
+from ps_lab.errors import DatasetError
+from ps_lab.outputs import (
+    BYTES_PER_OBSERVATION,
+    BYTES_PER_PIXEL,
+    OutputError,
+    _Histogram,
+    parse_memory_size,
+    reconstruct_to_folder,
+)
+
+render = pytest.importorskip("ps_lab.capture.render")
+
+SHAPE = (30, 26)
+N_LIGHTS = 12
+
+
+def write_capture(folder: Path, *, seed: int = 0, colour: bool = False, n: int = N_LIGHTS) -> dict:
+    """A rendered glossy sphere as 16-bit PNGs, with lights, intensities, dark frame, mask, truth."""
+    rng = np.random.default_rng(seed)
+    folder.mkdir(parents=True)
+    surface = render.sphere_surface(SHAPE, albedo=(0.8, 0.6, 0.4) if colour else 0.7)
+    lights = render.random_light_directions(n, rng)
+    images = render.render(surface, lights, specular=0.4, noise_sigma=0.002, rng=rng)
+    scale = 0.8 / float(images.max())
+    dark = rng.uniform(0.0, 0.01, images.shape[1:]).astype(np.float32)
+    for i, image in enumerate(images):
+        counts = np.clip(np.rint((image * scale + dark) * 65535), 0, 65535).astype(np.uint16)
+        if counts.ndim == 3:
+            counts = np.ascontiguousarray(counts[..., ::-1])
+        assert cv2.imwrite(str(folder / f"{i:03d}.png"), counts)
+    dark_counts = np.rint(dark * 65535).astype(np.uint16)
+    if dark_counts.ndim == 3:
+        dark_counts = np.ascontiguousarray(dark_counts[..., ::-1])
+    cv2.imwrite(str(folder / "dark.png"), dark_counts)
+    np.savetxt(folder / "light_directions.txt", lights)
+    np.savetxt(folder / "light_intensities.txt", rng.uniform(0.8, 1.2, (n, 3)))
+    cv2.imwrite(str(folder / "mask.png"), surface.mask.astype(np.uint8) * 255)
+    np.save(folder / "normal_gt.npy", surface.normals)
+    return {"surface": surface, "lights": lights}
+
+
+@pytest.fixture(scope="module")
+def capture(tmp_path_factory) -> Path:
+    folder = tmp_path_factory.mktemp("streaming") / "sphere"
+    write_capture(folder)
+    return folder
+
+
+def budget_for(rows_of_pixels: int, n: int = N_LIGHTS) -> int:
+    """A memory budget whose bands hold about this many mask pixels."""
+    return rows_of_pixels * (n * BYTES_PER_OBSERVATION + BYTES_PER_PIXEL)
+
+
+# --- band plan and staging store ---------------------------------------------------------------
+
+
+@pytest.mark.parametrize("max_pixels", [1, 7, 40, 10_000])
+def test_bands_cover_the_image_within_the_pixel_limit(max_pixels):
+    rng = np.random.default_rng(max_pixels)
+    mask = rng.random((37, 11)) < 0.6
+    bands = plan_bands(mask, max_pixels)
+    assert bands[0].row_start == 0 and bands[-1].row_stop == mask.shape[0]
+    for before, after in zip(bands, bands[1:], strict=False):
+        assert before.row_stop == after.row_start
+        assert after.pixel_start == before.pixel_start + before.pixel_count
+    for band in bands:
+        assert band.row_stop > band.row_start
+        assert band.pixel_count == mask[band.row_start : band.row_stop].sum()
+        one_row = band.row_stop - band.row_start == 1
+        assert band.pixel_count <= max_pixels or one_row
+    assert sum(b.pixel_count for b in bands) == mask.sum()
+
+
+@pytest.mark.parametrize("colour", [False, True])
+@pytest.mark.parametrize("in_memory", [False, True])
+@pytest.mark.parametrize("max_pixels", [5, 97, 100_000])
+def test_store_equals_load_dataset_bit_for_bit(tmp_path, colour, in_memory, max_pixels):
+    folder = tmp_path / "d"
+    write_capture(folder, colour=colour, seed=2)
+    for channel in ("mean", "g") if colour else ("mean",):
+        data = load_dataset(folder, channel=channel, shadow_threshold=0.01)
+        header = open_dataset(folder, channel=channel)
+        mask = header.read_mask()
+        np.testing.assert_array_equal(mask, data.mask)
+        bands = plan_bands(mask, max_pixels)
+        with stage_observations(
+            header, mask, bands, channel=channel, shadow_threshold=0.01,
+            folder=tmp_path, in_memory=in_memory, sample_pixels=50,
+        ) as store:  # fmt: skip
+            assert (store.path is None) == in_memory
+            for band in bands:
+                observations, valid = store.read(band)
+                rows = slice(band.row_start, band.row_stop)
+                inside = mask[rows]
+                np.testing.assert_array_equal(observations, data.images[:, rows][:, inside])
+                np.testing.assert_array_equal(valid, data.valid[:, rows][:, inside])
+            everything = data.images[:, mask]
+            np.testing.assert_array_equal(store.sample_observations, everything[:, store.sample_index])
+            assert store.sample_index.size == 50
+        assert not list(tmp_path.glob("ps-lab-observations-*"))  # closed: file deleted
+
+
+def test_store_file_is_removed_when_reading_fails(tmp_path):
+    folder = tmp_path / "d"
+    write_capture(folder)
+    (folder / "005.png").write_bytes(b"\x89PNG\r\n\x1a\n broken")
+    header = open_dataset(folder)
+    mask = header.read_mask()
+    with pytest.raises(DatasetError, match="005.png"):
+        stage_observations(header, mask, plan_bands(mask, 50), folder=tmp_path)
+    assert not list(tmp_path.glob("ps-lab-observations-*"))
+
+
+def test_store_in_system_temp_is_removed_on_close():
+    mask = np.ones((3, 4), bool)
+    store = ObservationStore(plan_bands(mask, 5), 3, mask)
+    assert store.path is not None and store.path.parent == Path(tempfile.gettempdir())
+    assert store.path.exists()
+    store.close()
+    assert not store.path.exists()
+
+
+# --- streamed results equal the single-band result ---------------------------------------------
+
+
+def run(folder: Path, out: Path, **options) -> dict:
+    options.setdefault("shadow_threshold", 0.005)
+    return reconstruct_to_folder(folder, out, **options)
+
+
+def outputs(out: Path) -> dict:
+    return {
+        "normals": np.load(out / "normals.npy"),
+        "albedo": np.load(out / "albedo.npy"),
+        "corruption": cv2.imread(str(out / "corruption.png"), cv2.IMREAD_UNCHANGED),
+        "normal_png": cv2.imread(str(out / "normal.png"), cv2.IMREAD_UNCHANGED),
+        "metrics": json.loads((out / "metrics.json").read_text()),
+    }
+
+
+@pytest.mark.parametrize("method", ["ls", "sbl"])
+def test_any_band_height_gives_the_single_band_result(capture, tmp_path, method):
+    single = run(capture, tmp_path / "single", method=method, threads=1)
+    assert single["streaming"]["bands"] == 1
+    reference = outputs(tmp_path / "single")
+    for pixels, staging in ((13, "file"), (60, "memory"), (250, "file")):
+        out = tmp_path / f"bands-{pixels}"
+        metrics = run(
+            capture, out, method=method, memory_budget=budget_for(pixels), staging=staging,
+            threads=2,
+        )  # fmt: skip
+        assert metrics["streaming"]["bands"] > 1
+        assert metrics["streaming"]["max_band_pixels"] <= max(pixels, SHAPE[1])
+        result = outputs(out)
+        np.testing.assert_allclose(result["normals"], reference["normals"], atol=1e-6)
+        np.testing.assert_allclose(result["albedo"], reference["albedo"], rtol=1e-6, atol=1e-9)
+        np.testing.assert_array_equal(result["corruption"], reference["corruption"])
+        np.testing.assert_array_equal(result["normal_png"], reference["normal_png"])
+        for key in ("angular_error_deg", "iterations", "outlier_share", "unsolved_pixels"):
+            assert result["metrics"][key] == pytest.approx(reference["metrics"][key], rel=1e-9)
+        if method == "sbl":
+            assert result["metrics"]["parameters"]["lambda"] == reference["metrics"]["parameters"]["lambda"]
+
+
+@pytest.mark.parametrize("method", ["ls", "sbl"])
+def test_streamed_result_equals_the_in_memory_solve(capture, tmp_path, method):
+    data = load_dataset(capture, shadow_threshold=0.005)
+    solution = solvers.solve(
+        data.images[:, data.mask], data.light_directions, method=method,
+        valid=data.valid[:, data.mask], threads=1,
+    )  # fmt: skip
+    metrics = run(capture, tmp_path / "out", method=method, memory_budget=budget_for(40))
+    assert metrics["streaming"]["bands"] > 3
+    result = outputs(tmp_path / "out")
+    normals = result["normals"][data.mask]
+    np.testing.assert_allclose(normals, solution.normals.astype(np.float32), atol=1e-6)
+    np.testing.assert_allclose(
+        result["albedo"][data.mask], solution.albedo.astype(np.float32), rtol=1e-6
+    )
+    # the noise level comes from the same pixels; BLAS rounding may differ with array shapes
+    assert metrics["parameters"].get("lambda") == pytest.approx(solution.params.get("lambda"))
+    assert metrics["outlier_share"] == pytest.approx(
+        solution.outliers.sum() / data.valid[:, data.mask].sum(), rel=1e-12
+    )
+    errors = solvers.angular_errors_deg(normals.astype(np.float64), data.normal_gt[data.mask])
+    summary = metrics["angular_error_deg"]
+    assert summary["mean"] == pytest.approx(errors.mean(), rel=1e-9)
+    assert summary["max"] == pytest.approx(errors.max(), rel=1e-9)
+    # median and p90 come from a histogram of 0.001-degree bins
+    assert summary["median"] == pytest.approx(np.median(errors), abs=1e-3)
+    assert summary["p90"] == pytest.approx(np.percentile(errors, 90), abs=1e-3)
+
+
+def perturb(lights: np.ndarray, degrees: float, rng: np.random.Generator) -> np.ndarray:
+    axis = np.cross(lights, rng.normal(size=lights.shape))
+    axis /= np.linalg.norm(axis, axis=1, keepdims=True)
+    angle = np.radians(degrees)
+    return lights * np.cos(angle) + np.cross(axis, lights) * np.sin(angle)
+
+
+@pytest.mark.parametrize("fixed_intensities", [False, True])
+def test_streamed_light_refinement_equals_refine_lights(tmp_path, fixed_intensities):
+    folder = tmp_path / "d"
+    truth = write_capture(folder, seed=4, n=16)
+    np.savetxt(
+        folder / "light_directions.txt", perturb(truth["lights"], 4.0, np.random.default_rng(1))
+    )
+    data = load_dataset(folder, shadow_threshold=0.005)
+    expected = solvers.refine_lights(
+        data.images[:, data.mask], data.light_directions, method="sbl", iterations=2,
+        fixed_intensities=fixed_intensities, valid=data.valid[:, data.mask],
+        normal_gt=data.normal_gt[data.mask], threads=1,
+    )  # fmt: skip
+    metrics = run(
+        folder, tmp_path / "out", method="sbl", refine_lights=2,
+        fixed_intensities=fixed_intensities, memory_budget=budget_for(45),
+    )  # fmt: skip
+    assert metrics["streaming"]["bands"] > 3
+    directions = np.loadtxt(tmp_path / "out" / "light_directions.txt")
+    np.testing.assert_allclose(directions, expected.light_directions, atol=1e-6)
+    intensities = np.loadtxt(tmp_path / "out" / "light_intensities.txt")
+    np.testing.assert_allclose(
+        intensities, data.light_intensities * expected.light_intensities[:, None], rtol=1e-6
+    )
+    normals = np.load(tmp_path / "out" / "normals.npy")[data.mask]
+    np.testing.assert_allclose(normals, expected.solution.normals, atol=1e-5)
+    history = metrics["refinement"]["history"]
+    assert [h["iteration"] for h in history] == [0, 1, 2]
+    for got, want in zip(history, expected.history, strict=True):
+        assert set(got) == set(want)
+        for key, value in want.items():
+            assert got[key] == pytest.approx(value, rel=1e-6, abs=1e-9), key
+
+
+def test_tiny_memory_budget_still_works(capture, tmp_path):
+    metrics = run(capture, tmp_path / "out", method="ls", memory_budget=1)
+    mask = cv2.imread(str(capture / "mask.png"), cv2.IMREAD_UNCHANGED) > 0
+    assert metrics["streaming"]["bands"] == SHAPE[0]  # one row per band
+    assert metrics["streaming"]["staging"] == "file"
+    normals = np.load(tmp_path / "out" / "normals.npy")
+    np.testing.assert_allclose(np.linalg.norm(normals[mask], axis=1), 1.0, atol=1e-5)
+    assert metrics["angular_error_deg"]["median"] < 5.0
+
+
+# --- staging is removed after success and failure ---------------------------------------------
+
+
+def listing(root: Path) -> set[str]:
+    return {str(p.relative_to(root)) for p in root.rglob("*")}
+
+
+def test_staging_removed_after_success(capture, tmp_path, monkeypatch):
+    monkeypatch.setattr(tempfile, "tempdir", str(tmp_path / "sys-tmp"))
+    (tmp_path / "sys-tmp").mkdir()
+    out = tmp_path / "results" / "out"
+    seen = []
+    original = solvers.solve
+
+    def spy(observations, *args, **kwargs):
+        seen.extend(p.name for p in out.parent.rglob("ps-lab-observations-*"))
+        return original(observations, *args, **kwargs)
+
+    monkeypatch.setattr(solvers, "solve", spy)
+    run(capture, out, method="ls", memory_budget=budget_for(50), staging="file")
+    assert seen  # the store was a file in the staged output folder while solving
+    assert listing(tmp_path / "results") == {
+        "out", *(f"out/{name}" for name in
+                 ("normals.npy", "albedo.npy", "normal.png", "albedo.png", "corruption.png",
+                  "metrics.json"))  # fmt: skip
+    }
+    assert not list((tmp_path / "sys-tmp").iterdir())
+
+
+@pytest.mark.parametrize("staging", ["file", "memory"])
+def test_staging_removed_after_failure(capture, tmp_path, monkeypatch, staging):
+    before = listing(capture)
+    out = tmp_path / "new" / "out"
+    calls = []
+
+    def failing_solve(observations, *args, progress=None, **kwargs):
+        calls.append(observations.shape[1])
+        if len(calls) == 3:
+            raise DatasetError("solver failed in band 3")
+        return original(observations, *args, progress=progress, **kwargs)
+
+    original = solvers.solve
+    monkeypatch.setattr(solvers, "solve", failing_solve)
+    with pytest.raises(DatasetError, match="band 3"):
+        run(capture, out, method="ls", memory_budget=budget_for(60), staging=staging)
+    assert len(calls) == 3
+    assert not (tmp_path / "new").exists()
+    assert listing(capture) == before
+
+
+def test_bad_budget_and_staging_are_refused(capture, tmp_path):
+    with pytest.raises(OutputError, match="memory budget"):
+        run(capture, tmp_path / "o", memory_budget="lots")
+    with pytest.raises(OutputError, match="staging"):
+        run(capture, tmp_path / "o", staging="disk")
+    assert not (tmp_path / "o").exists()
+
+
+# --- helpers ------------------------------------------------------------------------------------
+
+
+def test_parse_memory_size():
+    assert parse_memory_size("512MB") == 512 << 20
+    assert parse_memory_size("1.5G") == int(1.5 * (1 << 30))
+    assert parse_memory_size("2 GiB") == 2 << 30
+    assert parse_memory_size("800") == 800 << 20
+    assert parse_memory_size(" 4096 ") == 4096 << 20
+    for bad in ("", "-1GB", "0", "12 parsecs"):
+        with pytest.raises(OutputError):
+            parse_memory_size(bad)
+
+
+def test_error_histogram_matches_numpy_within_a_bin():
+    rng = np.random.default_rng(3)
+    values = rng.gamma(2.0, 1.5, 20001)
+    histogram = _Histogram(0.001, 180.0)
+    for part in np.array_split(values, 7):
+        histogram.add(part)
+    summary = histogram.summary()
+    assert summary["mean"] == pytest.approx(values.mean(), rel=1e-12)
+    assert summary["max"] == values.max()
+    assert summary["median"] == pytest.approx(np.median(values), abs=1e-3)
+    assert summary["p90"] == pytest.approx(np.percentile(values, 90), abs=1e-3)
