@@ -840,6 +840,9 @@ class OpenRig:
         self.camera: Any = None
         self.simulation: Simulation | None = None
         self.firmware: Any = None  # the simulated controller's firmware, when simulated
+        #: False when closing could not confirm that the lights are off (the controller's
+        #: watchdog switches them off then).
+        self.lights_off_confirmed = True
         self._closers: list[Callable[[], None]] = []
 
     def __enter__(self) -> OpenRig:
@@ -857,6 +860,8 @@ class OpenRig:
                 closer()
             except Exception as exc:  # keep closing the rest; report the first failure
                 log.info("while closing the rig: %s", exc)
+                if self.controller is not None and closer == self.controller.close:
+                    self.lights_off_confirmed = False
                 first_error = first_error or exc
         if first_error is not None and not isinstance(first_error, PsLabError):
             log.debug("close error", exc_info=first_error)

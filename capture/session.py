@@ -39,6 +39,7 @@ from pathlib import Path
 from typing import Any, Protocol
 
 import numpy as np
+
 from ps_lab.capture.rig import (
     OpenRig,
     Rig,
@@ -48,7 +49,6 @@ from ps_lab.capture.rig import (
     open_rig,
     snapshot_differences,
 )
-
 from ps_lab.errors import CameraError, DatasetError, PsLabError, RigError
 
 log = logging.getLogger(__name__)
@@ -483,6 +483,18 @@ class CaptureSession:
         """Whether every planned frame is in the manifest."""
         return not self.remaining
 
+    def lights_note(self) -> str:
+        """``"lights off"``, or what to expect when switching off was not confirmed."""
+        if self.opened is None or self.opened.lights_off_confirmed:
+            return "lights off"
+        watchdog = self.rig.controller.watchdog_ms
+        if watchdog:
+            return (
+                "OFF not confirmed: the controller's watchdog switches the lights off "
+                f"within {watchdog / 1000:g} s"
+            )
+        return "OFF not confirmed and the watchdog is disabled: check the lights"
+
     def status_line(self) -> str:
         """One line: how many frames are saved and how to go on."""
         done, total = len(self.records), len(self.plan.frames)
@@ -573,16 +585,18 @@ class CaptureSession:
                     captured += 1
                     report(1)
             frame = None
-        except PsLabError as exc:
+        except (PsLabError, OSError) as exc:
             where = f"frame {frame.index} ({frame.label})" if frame is not None else "setup"
-            self.stopped_reason = f"{where}: {exc}"
-            message = f"capture stopped at {where}: {exc}; {self.status_line()}"
-            raise _reworded(exc, message) from None
-        except OSError as exc:
-            where = f"frame {frame.index} ({frame.label})" if frame is not None else "setup"
-            raise DatasetError(
-                f"capture stopped at {where}: cannot write the run: {exc}; {self.status_line()}"
-            ) from None
+            reason = str(exc) if isinstance(exc, PsLabError) else f"cannot write the run: {exc}"
+            self.stopped_reason = f"{where}: {reason}"
+            with _sigint_deferred():
+                self._shutdown(opened)  # first, so that the message can say whether lights are off
+            message = (
+                f"capture stopped at {where}: {reason}; {self.lights_note()}; {self.status_line()}"
+            )
+            if isinstance(exc, PsLabError):
+                raise _reworded(exc, message) from None
+            raise DatasetError(message) from None
         finally:
             with _sigint_deferred():
                 self._shutdown(opened)
@@ -628,6 +642,7 @@ class CaptureSession:
     def _write_simulation(self, opened: OpenRig) -> None:
         """Write the simulator's ground truth (normals, mask, true lights in plan order)."""
         import cv2
+
         from ps_lab.capture.render import scene_ground_truth
 
         sim = opened.simulation if opened.simulation is not None else build_simulation(self.rig)

@@ -270,6 +270,7 @@ def test_fault_at_a_random_point_then_resume_is_byte_identical(
         assert stopped is not None
         message = str(stopped)
         assert "\n" not in message and "continue with --resume" in message
+        assert "lights off" in message  # confirmed, or the watchdog's promise
         assert isinstance(stopped, CameraError if device == "camera" else RigError)
         # Stopped cleanly: lights off (by OFF or the watchdog), manifest lists only complete frames.
         assert wait_safe(session.opened.firmware)

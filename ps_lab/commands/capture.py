@@ -72,7 +72,8 @@ def capture(
         with progress_bar(len(session.remaining), "capture", enabled=not quiet) as advance:
             result = session.run(progress=advance)
     except KeyboardInterrupt:
-        raise fail(f"interrupted; lights off; {session.status_line()}", EXIT_INTERRUPTED) from None
+        message = f"interrupted; {session.lights_note()}; {session.status_line()}"
+        raise fail(message, EXIT_INTERRUPTED) from None
     retried = f", {result.retries} re-shot" if result.retries else ""
     typer.echo(
         f"captured {result.frames_captured} frames{retried} in {result.elapsed_s:.1f} s; "
