@@ -20,6 +20,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+
 from ps_lab.capture.raw import load_raw
 from ps_lab.capture.render import render_scene
 from ps_lab.capture.rig import build_simulation, load_rig
@@ -30,7 +31,6 @@ from ps_lab.capture.session import (
     make_plan,
     read_manifest,
 )
-
 from ps_lab.errors import CameraError, DatasetError, PsLabError, RigError
 
 N_LIGHTS = 8

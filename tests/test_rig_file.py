@@ -8,6 +8,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+
 from ps_lab.capture.rig import (
     apply_overrides,
     build_simulation,
@@ -17,7 +18,6 @@ from ps_lab.capture.rig import (
     parse_light_selection,
     snapshot_differences,
 )
-
 from ps_lab.errors import RigError
 
 RIGS = Path(__file__).resolve().parents[1] / "rigs"
