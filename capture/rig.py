@@ -151,6 +151,7 @@ class LightLayoutConfig:
     seed: int = 0
     max_zenith_deg: float = 55.0
     directions: tuple[tuple[float, float, float], ...] | None = None
+    intensities: tuple[tuple[float, float, float], ...] | None = None
     intensity_spread: float = 0.0
     color_spread: float = 0.0
     nominal_error_deg: float = 0.0
@@ -656,6 +657,7 @@ def _parse_scene(t: _Table, n_lights: int) -> SceneConfig:
             seed=lt.int("seed", 0, lo=0),
             max_zenith_deg=lt.float("max_zenith_deg", 55.0, lo=1.0, hi=89.0),
             directions=_unit_vectors(lt, "directions", n_lights),
+            intensities=_intensities(lt, n_lights),
             intensity_spread=lt.float("intensity_spread", 0.0, lo=0.0, hi=0.9),
             color_spread=lt.float("color_spread", 0.0, lo=0.0, hi=0.9),
             nominal_error_deg=lt.float("nominal_error_deg", 0.0, lo=0.0, hi=20.0),
@@ -665,6 +667,19 @@ def _parse_scene(t: _Table, n_lights: int) -> SceneConfig:
     return SceneConfig(
         width=width, height=height, objects=tuple(objects), lights=lights, background=background
     )
+
+
+def _intensities(t: _Table, count: int) -> tuple[tuple[float, ...], ...] | None:
+    rows = t.vectors("intensities", 3)
+    if rows is None:
+        return None
+    if len(rows) != count:
+        raise t.error(
+            "intensities", f"expected {count} [r, g, b] rows (one per light), got {len(rows)}"
+        )
+    if any(v <= 0 for row in rows for v in row):
+        raise t.error("intensities", "every intensity must be positive")
+    return rows
 
 
 def _parse_faults(t: _Table) -> FaultsConfig:
@@ -792,10 +807,13 @@ def build_simulation(rig: Rig) -> Simulation:
         directions = render.random_light_directions(
             n, np.random.default_rng(layout.seed), max_zenith_deg=layout.max_zenith_deg
         )
-    rng = np.random.default_rng([layout.seed, 1])
-    scale = 1.0 + layout.intensity_spread * rng.uniform(-1.0, 1.0, size=(n, 1))
-    color = 1.0 + layout.color_spread * rng.uniform(-1.0, 1.0, size=(n, 3))
-    intensities = scale * color
+    if layout.intensities is not None:
+        intensities = np.asarray(layout.intensities, dtype=np.float64)
+    else:
+        rng = np.random.default_rng([layout.seed, 1])
+        scale = 1.0 + layout.intensity_spread * rng.uniform(-1.0, 1.0, size=(n, 1))
+        color = 1.0 + layout.color_spread * rng.uniform(-1.0, 1.0, size=(n, 3))
+        intensities = scale * color
     return Simulation(scene=scene, light_directions=directions, light_intensities=intensities)
 
 

@@ -265,3 +265,14 @@ def test_fault_forms_and_gphoto2_settings(tmp_path: Path) -> None:
     bad = with_settings.replace('imagequality = "RAW"', "imagequality = [1, 2]")
     with pytest.raises(RigError, match=r"\[camera.settings\] imagequality: expected a string"):
         load_rig(write(tmp_path, bad))
+
+
+def test_explicit_light_layout(tmp_path: Path) -> None:
+    directions = "[[0, 0, 1], [0.5, 0, 1], [0, 0.5, 1], [-0.5, -0.5, 1]]"
+    intensities = "[[1, 1, 1], [2, 2, 2], [1, 0.5, 1], [0.8, 0.9, 1]]"
+    text = MINIMAL + f"[scene.lights]\ndirections = {directions}\nintensities = {intensities}\n"
+    sim = build_simulation(load_rig(write(tmp_path, text)))
+    np.testing.assert_allclose(sim.light_directions[1], np.array([0.5, 0, 1]) / np.hypot(0.5, 1))
+    np.testing.assert_allclose(sim.light_intensities[2], [1, 0.5, 1])
+    with pytest.raises(RigError, match="expected 4 \\[r, g, b\\] rows"):
+        load_rig(write(tmp_path, MINIMAL + "[scene.lights]\nintensities = [[1, 1, 1]]\n"))
