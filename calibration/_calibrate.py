@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -13,7 +13,6 @@ from ps_lab.calibration._circle import (
     _edge_points,
     circle_candidates,
     circle_inside_image,
-    luminance,
     refine_circle,
     summary_image,
 )
@@ -82,13 +81,21 @@ def _as_stack(images: np.ndarray) -> np.ndarray:
     return arr
 
 
-def _infer_saturated(luma_stack: np.ndarray) -> np.ndarray | None:
+def _frame_luma(
+    stack: np.ndarray, j: int, rows: slice = slice(None), cols: slice = slice(None)
+) -> np.ndarray:
+    return np.asarray(stack[j, rows, cols], dtype=np.float32).mean(axis=-1)
+
+
+def _infer_saturated(stack: np.ndarray) -> np.ndarray | None:
     # Without a sensor mask, clipping shows as a plateau at the stack's maximum.
-    top = float(luma_stack.max())
+    top = float(stack.max())
     if top <= 0:
         return None
-    sat = luma_stack >= top * (1.0 - 1e-6)
-    return sat if sat.sum() > luma_stack.shape[0] else None
+    sat = np.empty(stack.shape[:3], dtype=bool)
+    for j in range(stack.shape[0]):
+        sat[j] = np.any(stack[j] >= top * (1.0 - 1e-6), axis=-1)
+    return sat if sat.sum() > stack.shape[0] else None
 
 
 def circle_residual(summary: np.ndarray, circle: Circle) -> float:
@@ -103,7 +110,7 @@ def circle_residual(summary: np.ndarray, circle: Circle) -> float:
     return float(np.sqrt(np.mean(res[keep] ** 2)))
 
 
-def chrome_score(luma: np.ndarray, circle: Circle, *, max_frames: int = 12) -> float:
+def chrome_score(images: np.ndarray, circle: Circle, *, max_frames: int = 12) -> float:
     """Share of frames in which the disc shows one small, strong highlight (chrome), 0..1.
 
     A matte sphere's shading covers a large part of the disc; a chrome sphere's highlight a
@@ -111,8 +118,8 @@ def chrome_score(luma: np.ndarray, circle: Circle, *, max_frames: int = 12) -> f
 
     Parameters
     ----------
-    luma : ndarray of shape (n, H, W)
-        Frame luminance.
+    images : ndarray of shape (n, H, W) or (n, H, W, C)
+        Linear frames (channels are averaged).
     circle : Circle
         Candidate outline.
     max_frames : int
@@ -122,7 +129,7 @@ def chrome_score(luma: np.ndarray, circle: Circle, *, max_frames: int = 12) -> f
     -------
     float
     """
-    n, h, w = luma.shape
+    n, h, w = images.shape[:3]
     idx = np.linspace(0, n - 1, min(n, max_frames)).round().astype(int)
     cx, cy, r = circle
     x0, x1 = max(0, int(cx - r)), min(w, int(np.ceil(cx + r)) + 1)
@@ -135,7 +142,8 @@ def chrome_score(luma: np.ndarray, circle: Circle, *, max_frames: int = 12) -> f
         return 0.0
     good = 0
     for k in idx:
-        v = luma[k, y0:y1, x0:x1][disc].astype(np.float64)
+        crop = np.asarray(images[k, y0:y1, x0:x1], dtype=np.float64)
+        v = (crop.mean(axis=-1) if crop.ndim == 3 else crop)[disc]
         med = np.median(v)
         sigma = 1.4826 * np.median(np.abs(v - med))
         peak = v.max()
@@ -147,7 +155,7 @@ def chrome_score(luma: np.ndarray, circle: Circle, *, max_frames: int = 12) -> f
 
 
 def _find_sphere(
-    summary: np.ndarray, luma: np.ndarray, roi: tuple[int, int, int, int] | None
+    summary: np.ndarray, stack: np.ndarray, roi: tuple[int, int, int, int] | None
 ) -> tuple[CircleFit, float]:
     h, w = summary.shape
     ox, oy = 0, 0
@@ -175,7 +183,7 @@ def _find_sphere(
         # circle through the highlights) collects edge points on a small part of its outline.
         if fit.coverage < 0.5:
             continue
-        score = chrome_score(luma, fit.circle)
+        score = chrome_score(stack, fit.circle)
         if score < 0.5:
             continue
         key = (score, fit.coverage)
@@ -252,14 +260,13 @@ def calibrate(
     n, h, w, _ = stack.shape
     if not np.all(np.isfinite(stack)):
         stack = np.nan_to_num(stack, nan=0.0, posinf=0.0, neginf=0.0)
-    luma = luminance(stack)
     if saturated is not None:
         saturated = np.asarray(saturated, dtype=bool)
         if saturated.shape != (n, h, w):
             raise CalibrationError(f"saturation mask shape {saturated.shape} != frames {(n, h, w)}")
     else:
-        saturated = _infer_saturated(luma)
-    summary = summary_image(luma)
+        saturated = _infer_saturated(stack)
+    summary = summary_image(stack)
     warnings: list[str] = []
 
     if sphere is not None:
@@ -278,7 +285,7 @@ def calibrate(
                 f"from the rig's nominal ({hint.x:.1f}, {hint.y:.1f}) r={hint.radius:.1f}"
             )
     else:
-        fit, _ = _find_sphere(summary, luma, roi)
+        fit, _ = _find_sphere(summary, stack, roi)
         circle, residual, source = fit.circle, fit.residual, "auto"
     if circle.radius <= 3:
         raise CalibrationError(f"chrome sphere radius {circle.radius:.1f} px is too small")
@@ -296,16 +303,24 @@ def calibrate(
     found: list[Highlight | None] = []
     problems: list[tuple[int, str]] = []
     saturated_frames = 0
+    # Highlights are searched on the sphere's bounding box only (frames may be tens of MP).
+    bx0, by0 = max(0, int(circle.x - circle.radius) - 3), max(0, int(circle.y - circle.radius) - 3)
+    bx1 = min(w, int(np.ceil(circle.x + circle.radius)) + 4)
+    by1 = min(h, int(np.ceil(circle.y + circle.radius)) + 4)
+    box = (slice(by0, by1), slice(bx0, bx1))
+    local = Circle(circle.x - bx0, circle.y - by0, circle.radius)
     for j in range(n):
         try:
-            found.append(
-                locate_highlight(
-                    luma[j],
-                    circle,
-                    saturated=None if saturated is None else saturated[j],
-                    safe_radius=safe_radius,
-                )
+            hl = locate_highlight(
+                _frame_luma(stack, j, *box),
+                local,
+                saturated=None if saturated is None else saturated[j][box],
+                safe_radius=safe_radius,
             )
+            second = hl.second_blob
+            if second is not None:
+                second = (second[0] + bx0, second[1] + by0, second[2])
+            found.append(replace(hl, x=hl.x + bx0, y=hl.y + by0, second_blob=second))
         except CalibrationError as exc:
             found.append(None)
             problems.append((j, str(exc)))
@@ -363,7 +378,7 @@ def calibrate(
             try:
                 # A matte sphere's limb is dim in the median (grazing shading); the maximum over
                 # frames shows it as a step.
-                bright = luma[np.linspace(0, n - 1, min(n, 24)).round().astype(int)].max(axis=0)
+                bright = summary_image(stack, reduce="max")
                 matte_circle = refine_circle(
                     bright, hint, search_px=max(8.0, 0.15 * hint.radius)
                 ).circle
@@ -392,7 +407,9 @@ def calibrate(
         max(0, int(circle.y - circle.radius) - pad),
         min(h, int(circle.y + circle.radius) + pad + 1),
     )
-    preview = luma[:, y0:y1, x0:x1].max(axis=0)
+    preview = np.max(
+        [_frame_luma(stack, j, slice(y0, y1), slice(x0, x1)) for j in range(n)], axis=0
+    )
 
     return Calibration(
         circle=circle,

@@ -67,26 +67,40 @@ def luminance(images: np.ndarray) -> np.ndarray:
     return np.asarray(images, dtype=np.float32).mean(axis=-1)
 
 
-def summary_image(luma: np.ndarray, *, max_frames: int = 24) -> np.ndarray:
-    """Per-pixel median over (at most ``max_frames`` evenly spaced) frames.
+def summary_image(
+    images: np.ndarray, *, max_frames: int = 24, reduce: str = "median", band_rows: int = 256
+) -> np.ndarray:
+    """Per-pixel median (or maximum) of the luminance over evenly spaced frames.
+
+    Computed in row bands, so only a band of the selected frames is ever copied.
 
     Parameters
     ----------
-    luma : ndarray of shape (n, H, W)
-        Frame luminance.
+    images : ndarray of shape (n, H, W) or (n, H, W, C)
+        Linear frames (channels are averaged).
     max_frames : int
         Frames used (evenly spaced), to bound time and memory.
+    reduce : {"median", "max"}
+        The median shows a chrome sphere as a plain disc (each highlight is lit in few frames);
+        the maximum shows a matte sphere's limb as a step.
+    band_rows : int
+        Rows per band.
 
     Returns
     -------
     ndarray of shape (H, W), float32
-        The chrome sphere shows as a plain disc: each highlight is lit in few frames only.
-
     """
-    n = luma.shape[0]
-    if n > max_frames:
-        luma = luma[np.linspace(0, n - 1, max_frames).round().astype(int)]
-    return np.median(luma, axis=0).astype(np.float32)
+    n, h = images.shape[0], images.shape[1]
+    idx = np.linspace(0, n - 1, min(n, max_frames)).round().astype(int)
+    out = np.empty(images.shape[1:3], dtype=np.float32)
+    for r0 in range(0, h, band_rows):
+        band = np.asarray(images[idx, r0 : r0 + band_rows], dtype=np.float32)
+        if band.ndim == 4:
+            band = band.mean(axis=-1)
+        out[r0 : r0 + band_rows] = (
+            np.median(band, axis=0) if reduce == "median" else band.max(axis=0)
+        )
+    return out
 
 
 def noise_sigma(image: np.ndarray) -> float:
