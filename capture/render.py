@@ -899,7 +899,7 @@ def render_scene(
         intensities = np.ones((k, 3))
     else:
         intensities = np.broadcast_to(
-            np.asarray(light_intensities, dtype=np.float64).reshape(k, -1), (k, 3)
+            np.asarray(light_intensities, dtype=np.float64).reshape(k, -1 if k else 3), (k, 3)
         )
     frame = np.full((h, w, 3), float(scene.background))
     for obj, (surface, alpha) in zip(scene.objects, _scene_surfaces(scene), strict=True):

@@ -997,17 +997,6 @@ _PERMISSION = (
 )
 
 
-def _render_lit(
-    scene: Any, light_directions: np.ndarray, light_intensities: np.ndarray
-) -> np.ndarray:
-    """Render ``scene`` under the lit lights; the dark frame (no light) passes no intensities."""
-    from ps_lab.capture.render import render_scene
-
-    if len(light_directions) == 0:
-        return render_scene(scene, np.zeros((0, 3)))
-    return render_scene(scene, light_directions, light_intensities)
-
-
 def _open_camera(
     rig: Rig,
     opened: OpenRig,
@@ -1040,7 +1029,6 @@ def _open_camera(
             seed=cfg.seed,
             timeout_s=cfg.timeout_s,
             faults=[{"kind": f.kind, "at": f.at} for f in rig.faults.camera],
-            render=_render_lit,
         )
     elif cfg.driver == "folder":
         assert cfg.folder is not None

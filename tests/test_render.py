@@ -300,6 +300,8 @@ def test_render_scene_dark_frame_and_additivity(rng):
     intensities = np.array([[1.0, 1.0, 1.0], [0.5, 1.0, 2.0], [1.2, 0.9, 1.0]])
     dark = render_scene(scene, np.zeros((0, 3)))
     assert dark.shape == (112, 160, 3)
+    # The simulated camera passes its (empty) intensities along with the (empty) directions.
+    np.testing.assert_array_equal(render_scene(scene, np.zeros((0, 3)), np.zeros((0, 3))), dark)
     truth = scene_ground_truth(scene)
     assert np.all(dark[0, 0] == 0.01)
     assert np.all(dark[truth["mask"]] == 0.0)
