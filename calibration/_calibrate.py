@@ -273,27 +273,40 @@ def calibrate(
         circle = Circle(*map(float, sphere))
         residual = circle_residual(summary, circle)
         source = "given"
-    elif sphere_hint is not None:
-        hint = Circle(*map(float, sphere_hint))
-        fit = refine_circle(summary, hint, search_px=max(8.0, 0.15 * hint.radius))
-        circle, residual, source = fit.circle, fit.residual, "rig"
-        moved = np.hypot(circle.x - hint.x, circle.y - hint.y)
-        if moved > 0.1 * hint.radius or abs(circle.radius - hint.radius) > 0.1 * hint.radius:
-            warnings.append(
-                f"chrome sphere fitted at ({circle.x:.1f}, {circle.y:.1f}) r={circle.radius:.1f}, "
-                "far "
-                f"from the rig's nominal ({hint.x:.1f}, {hint.y:.1f}) r={hint.radius:.1f}"
-            )
     else:
-        fit, _ = _find_sphere(summary, stack, roi)
-        circle, residual, source = fit.circle, fit.residual, "auto"
+        fit = None
+        if sphere_hint is not None:
+            hint = Circle(*map(float, sphere_hint))
+            try:
+                fit = refine_circle(summary, hint, search_px=max(8.0, 0.15 * hint.radius))
+                if fit.coverage < 0.5 or chrome_score(stack, fit.circle) < 0.5:
+                    raise CalibrationError(
+                        f"no chrome sphere outline with highlights near ({hint.x:.1f}, "
+                        f"{hint.y:.1f}) r={hint.radius:.1f}"
+                    )
+                source = "rig"
+            except CalibrationError as exc:
+                fit = None
+                warnings.append(f"rig's nominal chrome sphere not confirmed ({exc}); searching")
+            if fit is not None and (
+                np.hypot(fit.circle.x - hint.x, fit.circle.y - hint.y) > 0.1 * hint.radius
+                or abs(fit.circle.radius - hint.radius) > 0.1 * hint.radius
+            ):
+                warnings.append(
+                    f"chrome sphere fitted at ({fit.circle.x:.1f}, {fit.circle.y:.1f}) "
+                    f"r={fit.circle.radius:.1f}, far from the rig's nominal "
+                    f"({hint.x:.1f}, {hint.y:.1f}) r={hint.radius:.1f}"
+                )
+        if fit is None:
+            fit, _ = _find_sphere(summary, stack, roi)
+            source = "auto"
+        circle, residual = fit.circle, fit.residual
     if circle.radius <= 3:
         raise CalibrationError(f"chrome sphere radius {circle.radius:.1f} px is too small")
     if not circle_inside_image(circle, (h, w)):
         raise CalibrationError(
             f"chrome sphere at ({circle.x:.1f}, {circle.y:.1f}) r={circle.radius:.1f} "
-            "is cut by the "
-            f"image border ({w}x{h}): move it fully into view"
+            f"is cut by the image border ({w}x{h}): move it fully into view"
         )
     if np.isfinite(residual) and residual > 0.5:
         warnings.append(

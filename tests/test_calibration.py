@@ -217,6 +217,10 @@ def test_given_and_rig_circles():
     assert rig.circle_source == "rig"
     assert np.hypot(rig.circle.x - center[0], rig.circle.y - center[1]) < 0.05
     assert angular_errors(rig.light_directions, lights).mean() < 0.15
+    # A wrong nominal circle (the rig was moved) falls back to the automatic search, with a warning.
+    moved = calibrate(frames, saturated=saturated, sphere_hint=(20.0, 20.0, 15.0))
+    assert moved.circle_source == "auto" and any("not confirmed" in w for w in moved.warnings)
+    assert np.hypot(moved.circle.x - center[0], moved.circle.y - center[1]) < 0.05
     manifest = {"rig": {"calibration": {"chrome_sphere": {"center": [62.0, 61.5], "radius": 52.0}}}}
     assert rig_circles(manifest) == (Circle(62.0, 61.5, 52.0), None)
     assert rig_circles(None) == (None, None)
