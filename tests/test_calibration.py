@@ -341,3 +341,23 @@ def test_error_against_radius_sweep(radius):
     err = np.concatenate(errs)
     limit = 0.15 if radius >= 85 else 0.35
     assert err.mean() <= limit, err.mean()
+
+
+def test_extended_light_source_correction():
+    # A 5-degree light: the highlight's centroid sits at cos(b) of the mirror point (b = 2.5 deg);
+    # the correction from the blob's second moments removes that radial bias.
+    rng = np.random.default_rng(17)
+    lights = random_light_directions(16, rng, max_zenith_deg=75.0)
+    radiance = render_chrome_sphere(
+        (330, 330), (165.2, 164.6), 130.0, lights, light_angular_radius_deg=5.0
+    )
+    frames, saturated = quantised_frames(radiance, rng)
+    cal = calibrate(frames, saturated=saturated)
+    assert 4.0 < np.median(cal.source_radius_deg) < 8.0
+    centre = np.array(cal.circle[:2])
+    uncorrected = (
+        centre + (cal.highlights - centre) * np.cos(np.radians(cal.source_radius_deg / 2))[:, None]
+    )
+    err = angular_errors(cal.light_directions, lights)
+    err_raw = angular_errors(light_directions_from_highlights(uncorrected, cal.circle), lights)
+    assert err.mean() < 0.06 and err.mean() < 0.8 * err_raw.mean(), (err.mean(), err_raw.mean())
