@@ -54,18 +54,19 @@ def light_directions(n: int, seed: int) -> np.ndarray:
 
 
 def sphere_rows(shape, start, stop):
-    """Normals (rows, W, 3), mask (rows, W) and albedo (rows, W) of rows start:stop."""
+    """Normals (rows, W, 3), mask (rows, W) and albedo (rows, W) of rows start:stop (float32)."""
     height, width = shape
     cx, cy, radius = (width - 1) / 2.0, (height - 1) / 2.0, 0.45 * min(height, width)
-    x = (np.arange(width) - cx) / radius
-    y = -(np.arange(start, stop) - cy) / radius  # y up
+    x = ((np.arange(width) - cx) / radius).astype(np.float32)
+    y = (-(np.arange(start, stop) - cy) / radius).astype(np.float32)  # y up
     nx, ny = np.meshgrid(x, y)
     r2 = nx * nx + ny * ny
     mask = r2 < 0.98
     nz = np.sqrt(np.clip(1.0 - r2, 0.0, None))
-    normals = np.where(mask[..., None], np.stack([nx, ny, nz], axis=-1), 0.0)
-    cols = np.arange(width)[None, :]
-    rows = np.arange(start, stop)[:, None]
+    normals = np.stack([nx, ny, nz], axis=-1)
+    normals[~mask] = 0.0
+    cols = np.arange(width, dtype=np.float32)[None, :]
+    rows = np.arange(start, stop, dtype=np.float32)[:, None]
     albedo = 0.55 + 0.25 * np.sin(cols / 97.0) * np.cos(rows / 131.0)
     return normals, mask, albedo
 
@@ -82,11 +83,14 @@ def generate(folder: Path, megapixels: float, lights: int, seed: int = 0) -> dic
         folder / "normal_gt.npy", mode="w+", dtype=np.float32, shape=(height, width, 3)
     )
     mask = np.zeros(shape, np.uint8)
+    # The geometry of every band (float32, about 17 bytes per pixel) is kept for all the lights.
+    geometry = []
     for start in range(0, height, RENDER_BAND_ROWS):
         stop = min(start + RENDER_BAND_ROWS, height)
-        normals, inside, _ = sphere_rows(shape, start, stop)
+        normals, inside, albedo = sphere_rows(shape, start, stop)
         truth[start:stop] = normals
         mask[start:stop] = inside * 255
+        geometry.append((start, stop, normals, inside, albedo))
     truth.flush()
     del truth
     cv2.imwrite(str(folder / "mask.png"), mask)
@@ -96,18 +100,19 @@ def generate(folder: Path, megapixels: float, lights: int, seed: int = 0) -> dic
     halfway /= np.linalg.norm(halfway, axis=1, keepdims=True)
     image = np.empty(shape, np.uint16)
     for i, light in enumerate(directions):
-        for start in range(0, height, RENDER_BAND_ROWS):
-            stop = min(start + RENDER_BAND_ROWS, height)
-            normals, inside, albedo = sphere_rows(shape, start, stop)
-            shading = albedo * np.clip(normals @ light, 0.0, None)
-            highlight = np.clip(normals @ halfway[i], 0.0, None) ** 200
+        for start, stop, normals, inside, albedo in geometry:
+            value = 0.8 * albedo * np.clip(normals @ light.astype(np.float32), 0.0, None)
+            cosine = normals @ halfway[i].astype(np.float32)
+            glossy = cosine > 0.97  # the highlight (cos^200) is negligible elsewhere
+            value[glossy] += 0.5 * cosine[glossy] ** 200
             rng = np.random.default_rng([seed, i, start])
-            value = 0.8 * shading + 0.5 * highlight + rng.normal(0.0, 0.002, shading.shape)
-            value = np.where(inside, value, 0.0)
+            value += rng.standard_normal(value.shape, dtype=np.float32) * np.float32(0.002)
+            value[~inside] = 0.0
             image[start:stop] = np.clip(np.rint(value * 65535.0), 0, 65535).astype(np.uint16)
         cv2.imwrite(str(folder / f"{i:03d}.png"), image, [cv2.IMWRITE_PNG_COMPRESSION, 1])
-        print(f"  rendered {i + 1}/{lights}", end="\r", file=sys.stderr, flush=True)
-    print(file=sys.stderr)
+        if (i + 1) % 10 == 0 or i + 1 == lights:
+            elapsed = time.perf_counter() - started
+            print(f"  rendered {i + 1}/{lights} in {elapsed:.0f} s", file=sys.stderr, flush=True)
     size = sum(p.stat().st_size for p in folder.iterdir() if p.is_file())
     return {
         "width": width,

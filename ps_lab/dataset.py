@@ -14,6 +14,11 @@ Two kinds of folder are datasets:
 the lights, mask and ground truth and reduces colour to one observation per light and pixel (what
 the solvers read). Every problem raises :class:`~ps_lab.errors.DatasetError` with one line naming
 the file.
+
+For captures too large for memory, :func:`open_dataset` checks a folder without reading pixels,
+:func:`plan_bands` cuts the image into row bands, and :func:`stage_observations` reads each frame
+once and stores its mask pixels band by band in an :class:`ObservationStore` (same scaling as
+:func:`load_dataset`, bit for bit); :class:`NormalTruth` reads ground truth band by band.
 """
 
 from __future__ import annotations

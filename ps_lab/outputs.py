@@ -7,6 +7,10 @@ leaves no partial output, and an earlier result stays untouched until the new on
 Files (see ``docs/datasets.md``): ``normals.npy``, ``normal.png``, ``albedo.npy``, ``albedo.png``,
 ``corruption.png``, ``metrics.json``, and the refined ``light_directions.txt`` /
 ``light_intensities.txt`` when lights were refined.
+
+:func:`reconstruct_to_folder` is the one production path of ``ps-lab reconstruct``: it streams a
+capture of any size through row bands in bounded memory (``docs/scale.md``); a small dataset is
+simply one band.
 """
 
 from __future__ import annotations

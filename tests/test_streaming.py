@@ -345,3 +345,23 @@ def test_error_histogram_matches_numpy_within_a_bin():
     assert summary["max"] == values.max()
     assert summary["median"] == pytest.approx(np.median(values), abs=1e-3)
     assert summary["p90"] == pytest.approx(np.percentile(values, 90), abs=1e-3)
+
+
+def test_cli_memory_budget(capture, tmp_path):
+    from typer.testing import CliRunner
+
+    from ps_lab.cli import app
+
+    runner = CliRunner()
+    args = ["reconstruct", str(capture), "--method", "ls", "--shadow-threshold", "0.005"]
+    result = runner.invoke(app, [*args, "--out", str(tmp_path / "a"), "--memory-budget", "20KB"])
+    assert result.exit_code == 0, result.output
+    assert json.loads((tmp_path / "a" / "metrics.json").read_text())["streaming"]["bands"] > 1
+    result = runner.invoke(app, [*args, "--out", str(tmp_path / "b")])
+    assert result.exit_code == 0, result.output
+    np.testing.assert_allclose(
+        np.load(tmp_path / "a" / "normals.npy"), np.load(tmp_path / "b" / "normals.npy"), atol=1e-6
+    )
+    result = runner.invoke(app, [*args, "--out", str(tmp_path / "c"), "--memory-budget", "lots"])
+    assert result.exit_code == 2 and result.output.startswith("error: memory budget")
+    assert not (tmp_path / "c").exists()
