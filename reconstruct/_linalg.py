@@ -16,13 +16,6 @@ def outer6(lights: np.ndarray) -> np.ndarray:
     return np.stack([x * x, y * y, z * z, x * y, x * z, y * z], axis=1)
 
 
-def quad6(lights: np.ndarray) -> np.ndarray:
-    """Weights so that ``inv6 @ quad6(A).T`` gives ``a_i^T M a_i`` for all lights: (n, 6)."""
-    o = outer6(lights)
-    o[:, 3:] *= 2.0
-    return o
-
-
 def inverse6(m: np.ndarray, rel_eps: float) -> tuple[np.ndarray, np.ndarray]:
     """Inverse of symmetric 3x3 matrices by cofactors.
 
@@ -61,6 +54,10 @@ def apply6(inv: np.ndarray, t: np.ndarray) -> np.ndarray:
     i00, i11, i22, i01, i02, i12 = (inv[:, k] for k in range(6))
     t0, t1, t2 = t[:, 0], t[:, 1], t[:, 2]
     return np.stack(
-        [i00 * t0 + i01 * t1 + i02 * t2, i01 * t0 + i11 * t1 + i12 * t2, i02 * t0 + i12 * t1 + i22 * t2],
+        [
+            i00 * t0 + i01 * t1 + i02 * t2,
+            i01 * t0 + i11 * t1 + i12 * t2,
+            i02 * t0 + i12 * t1 + i22 * t2,
+        ],
         axis=1,
     )

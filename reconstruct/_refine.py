@@ -103,7 +103,10 @@ def refine_lights(
         raise SolverInputError("light_directions contain NaN or zero rows")
     directions = lights / norms[:, None]
     n = directions.shape[0]
-    base = np.ones(n) if light_intensities is None else np.asarray(light_intensities, np.float64).reshape(n)
+    if light_intensities is None:
+        base = np.ones(n)
+    else:
+        base = np.asarray(light_intensities, np.float64).reshape(n)
     factor = np.ones(n)
     usable = np.isfinite(obs) if valid is None else (np.asarray(valid, bool) & np.isfinite(obs))
 

@@ -19,7 +19,8 @@ DEFAULTS: dict[str, dict] = {
     "l1": {"max_iter": 100, "tol": 1e-6, "delta": 1e-6, "outlier_threshold": None},
     "sbl": {"lam": None, "sigma_x2": 1e6, "max_iter": 100, "tol": 1e-4, "gamma_floor": 1e-10,
             "outlier_threshold": None},
-    "rpca": {"lam_sparse": None, "max_iter": 500, "tol": 1e-7, "rho": 1.5, "outlier_threshold": None},
+    "rpca": {"lam_sparse": None, "max_iter": 500, "tol": 1e-7, "rho": 1.5,
+             "outlier_threshold": None},
 }
 DEFAULT_TILE_SIZE = 4096
 # Noise level floor (relative to the pixel scale): the paper's lambda for noise-free data.
@@ -58,7 +59,9 @@ def pixel_scale(y: np.ndarray, w: np.ndarray) -> np.ndarray:
     lo = np.clip((k - 1) // 2, 0, None)
     hi = np.clip(k // 2, 0, None)
     rows = np.arange(y.shape[0])
-    med = np.where(k > 0, 0.5 * (a[rows, np.minimum(lo, a.shape[1] - 1)] + a[rows, np.minimum(hi, a.shape[1] - 1)]), 0.0)
+    last = a.shape[1] - 1
+    mid = 0.5 * (a[rows, np.minimum(lo, last)] + a[rows, np.minimum(hi, last)])
+    med = np.where(k > 0, mid, 0.0)
     a[~np.isfinite(a)] = 0.0
     mean = a.sum(axis=1) / np.maximum(k, 1)
     return np.where(med > 0, med, mean)
@@ -73,16 +76,19 @@ def _check_inputs(observations, light_directions, valid):
     lights = np.asarray(light_directions, dtype=np.float64)
     n = obs.shape[0]
     if lights.shape != (n, 3):
-        raise SolverInputError(f"light_directions must be ({n}, 3) for {n} observations per pixel, got {lights.shape}")
+        raise SolverInputError(f"light_directions must be ({n}, 3) for {n} observations per "
+                               f"pixel, got {lights.shape}")
     if not np.all(np.isfinite(lights)):
         raise SolverInputError("light_directions contain NaN or infinite values")
     if n < 3 or np.linalg.matrix_rank(lights) < 3:
-        raise SolverInputError("the light directions do not span 3-D space (need >= 3 non-coplanar lights)")
+        raise SolverInputError("the light directions do not span 3-D space "
+                               "(need >= 3 non-coplanar lights)")
     usable = np.isfinite(obs)
     if valid is not None:
         valid = np.asarray(valid, dtype=bool)
         if valid.shape != obs.shape:
-            raise SolverInputError(f"valid must have the observations' shape {obs.shape}, got {valid.shape}")
+            raise SolverInputError(f"valid must have the observations' shape {obs.shape}, "
+                               f"got {valid.shape}")
         usable &= valid
     return obs, lights, usable
 
@@ -113,7 +119,8 @@ def _prepare_tile(obs, usable, lights, a, b):
     return y, w.astype(np.float64), scale, ok
 
 
-def estimate_noise(observations, light_directions, valid=None, *, max_pixels: int = NOISE_SAMPLE_PIXELS) -> float:
+def estimate_noise(observations, light_directions, valid=None, *,
+                   max_pixels: int = NOISE_SAMPLE_PIXELS) -> float:
     """Noise level of the scaled observations, from residuals of a robust (L1) fit.
 
     Parameters
@@ -127,9 +134,11 @@ def estimate_noise(observations, light_directions, valid=None, *, max_pixels: in
     Returns
     -------
     float
-        ``1.4826 * median |r|`` over the usable observations of the sampled pixels, where ``r``
-        are the residuals of the per-pixel L1 fit on observations divided by the pixel's robust
-        scale: a standard deviation relative to a typical observation of a pixel.
+        A standard deviation relative to a pixel's typical observation: the residuals ``r``
+        of the per-pixel L1 fit on observations divided by the pixel's robust scale, kept
+        where the observation and the fit both exceed ``SHADOW_FRACTION`` (shadows are not
+        noise) and ``r`` is not an exact interpolation; then ``quantile(|r|, 0.25) / 0.31864``
+        (the Gaussian ratio), which ignores up to 75 % corrupted residuals.
     """
     obs, lights, usable = _check_inputs(observations, light_directions, valid)
     return _noise_level(obs, lights, usable, max_pixels)
@@ -137,12 +146,15 @@ def estimate_noise(observations, light_directions, valid=None, *, max_pixels: in
 
 def _noise_level(obs, lights, usable, max_pixels=NOISE_SAMPLE_PIXELS):
     n, p = obs.shape
-    take = np.unique(np.linspace(0, p - 1, min(p, max_pixels)).round().astype(np.int64)) if p else np.zeros(0, np.int64)
+    if p == 0:
+        return 0.0
+    take = np.unique(np.linspace(0, p - 1, min(p, max_pixels)).round().astype(np.int64))
     y, w, _, ok = _prepare_tile(obs[:, take], usable[:, take], lights, 0, take.size)
     y, w = y[ok], w[ok]
     if y.shape[0] == 0:
         return 0.0
-    res = _kernels.l1_tile(y, w, lights, max_iter=30, tol=1e-6, delta=1e-6, outlier_threshold=np.inf)
+    res = _kernels.l1_tile(y, w, lights, max_iter=30, tol=1e-6, delta=1e-6,
+                           outlier_threshold=np.inf)
     model = res.x @ lights.T
     r = np.abs(y - model)
     # Attached and cast shadows are the bulk of the corruptions (often half the observations of a
