@@ -11,15 +11,26 @@ def pytest_addoption(parser: pytest.Parser) -> None:
     parser.addoption("--camera", default=None, help="run real-camera tests (gphoto2) with this port")
 
 
+def _slow_selected(config: pytest.Config) -> bool:
+    expression = config.getoption("-m") or ""
+    return "slow" in expression and "not slow" not in expression
+
+
 def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
     # Hardware tests live in *_with_device.py and run only when a device option is given.
     has_device = config.getoption("--rig-port") or config.getoption("--camera")
-    skip = pytest.mark.skip(reason="needs hardware: pass --rig-port or --camera")
+    skip_device = pytest.mark.skip(reason="needs hardware: pass --rig-port or --camera")
+    # Long experiments run only when asked for (`make test-slow`, i.e. `pytest -m slow`); CI runs
+    # their reduced versions, which are ordinary tests.
+    skip_slow = pytest.mark.skip(reason="long experiment: run with -m slow")
+    run_slow = _slow_selected(config)
     for item in items:
         if item.fspath.basename.endswith("_with_device.py"):
             item.add_marker(pytest.mark.device)
             if not has_device:
-                item.add_marker(skip)
+                item.add_marker(skip_device)
+        if "slow" in item.keywords and not run_slow:
+            item.add_marker(skip_slow)
 
 
 @pytest.fixture
