@@ -63,41 +63,40 @@ def _solve3(xx, yy, zz, xy, xz, yz, t0, t1, t2):
 
 
 @njit(nogil=True, cache=True)
-def _weighted_fit(y, v, lights, p):
+def _weighted_fit(y, v, lights, aa, p):
     """x minimising sum_i v_i (y_pi - a_i.x)^2 for pixel p (v: weights of length n)."""
     xx = yy = zz = xy = xz = yz = 0.0
     t0 = t1 = t2 = 0.0
     for i in range(lights.shape[0]):
         vi = v[i]
-        ax, ay, az = lights[i, 0], lights[i, 1], lights[i, 2]
-        xx += vi * ax * ax
-        yy += vi * ay * ay
-        zz += vi * az * az
-        xy += vi * ax * ay
-        xz += vi * ax * az
-        yz += vi * ay * az
+        xx += vi * aa[i, 0]
+        yy += vi * aa[i, 1]
+        zz += vi * aa[i, 2]
+        xy += vi * aa[i, 3]
+        xz += vi * aa[i, 4]
+        yz += vi * aa[i, 5]
         vy = vi * y[p, i]
-        t0 += vy * ax
-        t1 += vy * ay
-        t2 += vy * az
+        t0 += vy * lights[i, 0]
+        t1 += vy * lights[i, 1]
+        t2 += vy * lights[i, 2]
     s = _solve3(xx, yy, zz, xy, xz, yz, t0, t1, t2)
     return s[0], s[1], s[2]
 
 
 @njit(nogil=True, cache=True)
-def _l1_kernel(y, w, lights, max_iter, tol, delta, threshold, x_out, outliers, iters):
+def _l1_kernel(y, w, lights, aa, max_iter, tol, delta, threshold, x_out, outliers, iters):
     m, n = y.shape
     v = np.empty(n)
     for p in range(m):
         for i in range(n):
             v[i] = w[p, i]
-        x0, x1, x2 = _weighted_fit(y, v, lights, p)
+        x0, x1, x2 = _weighted_fit(y, v, lights, aa, p)
         iters[p] = max_iter
         for it in range(1, max_iter + 1):
             for i in range(n):
                 r = abs(y[p, i] - (x0 * lights[i, 0] + x1 * lights[i, 1] + x2 * lights[i, 2]))
                 v[i] = w[p, i] / (r if r > delta else delta)
-            n0, n1, n2 = _weighted_fit(y, v, lights, p)
+            n0, n1, n2 = _weighted_fit(y, v, lights, aa, p)
             step = max(abs(n0 - x0), abs(n1 - x1), abs(n2 - x2))
             x0, x1, x2 = n0, n1, n2
             if step < tol:
@@ -121,13 +120,13 @@ def l1_tile(y, w, lights, *, max_iter: int, tol: float, delta: float,
     x = np.zeros((m, 3))
     outliers = np.zeros(y.shape, np.bool_)
     iters = np.zeros(m, np.int64)
-    _l1_kernel(y, w, lights, int(max_iter), float(tol), float(delta), float(outlier_threshold),
+    _l1_kernel(y, w, lights, outer6(lights), int(max_iter), float(tol), float(delta), float(outlier_threshold),
                x, outliers, iters)
     return TileResult(x, outliers, iters)
 
 
 @njit(nogil=True, cache=True)
-def _sbl_kernel(y, w, lights, lam, ridge, max_iter, tol, floor, threshold, x_out, outliers, iters):
+def _sbl_kernel(y, w, lights, aa, lam, ridge, max_iter, tol, floor, threshold, x_out, outliers, iters):
     m, n = y.shape
     g = np.empty(n)
     z_old = np.empty(n)
@@ -144,17 +143,16 @@ def _sbl_kernel(y, w, lights, lam, ridge, max_iter, tol, floor, threshold, x_out
             for i in range(n):
                 di = w[p, i] / (g[i] + lam)
                 d[i] = di
-                ax, ay, az = lights[i, 0], lights[i, 1], lights[i, 2]
-                xx += di * ax * ax
-                yy += di * ay * ay
-                zz += di * az * az
-                xy += di * ax * ay
-                xz += di * ax * az
-                yz += di * ay * az
+                xx += di * aa[i, 0]
+                yy += di * aa[i, 1]
+                zz += di * aa[i, 2]
+                xy += di * aa[i, 3]
+                xz += di * aa[i, 4]
+                yz += di * aa[i, 5]
                 dy = di * y[p, i]
-                t0 += dy * ax
-                t1 += dy * ay
-                t2 += dy * az
+                t0 += dy * lights[i, 0]
+                t1 += dy * lights[i, 1]
+                t2 += dy * lights[i, 2]
             x0, x1, x2, i00, i11, i22, i01, i02, i12 = _solve3(
                 xx + ridge, yy + ridge, zz + ridge, xy, xz, yz, t0, t1, t2)
             if it == max_iter or (it > 0 and iters[p] < max_iter):
@@ -164,16 +162,16 @@ def _sbl_kernel(y, w, lights, lam, ridge, max_iter, tol, floor, threshold, x_out
                     r = y[p, i] - (x0 * lights[i, 0] + x1 * lights[i, 1] + x2 * lights[i, 2])
                     outliers[p, i] = w[p, i] > 0.0 and abs(g[i] * d[i] * r) > threshold
                 break
+            j01, j02, j12 = 2.0 * i01, 2.0 * i02, 2.0 * i12
             step = 0.0
             for i in range(n):
-                ax, ay, az = lights[i, 0], lights[i, 1], lights[i, 2]
                 gi = g[i]
                 di = d[i]
-                r = y[p, i] - (x0 * ax + x1 * ay + x2 * az)
+                r = y[p, i] - (x0 * lights[i, 0] + x1 * lights[i, 1] + x2 * lights[i, 2])
                 gd = gi * di
                 z = gd * r  # (Gamma S y)_i with S y = D (y - A x)
-                q = (i00 * ax * ax + i11 * ay * ay + i22 * az * az
-                     + 2.0 * (i01 * ax * ay + i02 * ax * az + i12 * ay * az))
+                q = (i00 * aa[i, 0] + i11 * aa[i, 1] + i22 * aa[i, 2]
+                     + j01 * aa[i, 3] + j02 * aa[i, 4] + j12 * aa[i, 5])
                 # u_i = gamma_i - gamma_i^2 S_ii, S_ii = d_i - d_i^2 a_i^T M^-1 a_i
                 gn = z * z + (gi - gi * gd * (1.0 - di * q))
                 g[i] = gn if gn > floor else floor
@@ -205,6 +203,6 @@ def sbl_tile(y, w, lights, *, lam: float, sigma_x2: float, max_iter: int, tol: f
     x = np.zeros((m, 3))
     outliers = np.zeros(y.shape, np.bool_)
     iters = np.zeros(m, np.int64)
-    _sbl_kernel(y, w, lights, float(lam), 1.0 / float(sigma_x2), int(max_iter), float(tol),
+    _sbl_kernel(y, w, lights, outer6(lights), float(lam), 1.0 / float(sigma_x2), int(max_iter), float(tol),
                 float(gamma_floor), float(outlier_threshold), x, outliers, iters)
     return TileResult(x, outliers, iters)
