@@ -4,7 +4,7 @@ The package imports neither ``ps_lab.capture`` nor ``ps_lab.calibration``.
 """
 
 from ._solution import METHODS, RefinementResult, Solution, SolverInputError
-from ._refine import refine_lights
+from ._refine import fit_lights, light_fit_sums, refine_lights
 from ._solve import estimate_noise, solve
 from .metrics import angular_errors_deg, error_summary
 
@@ -16,6 +16,8 @@ __all__ = [
     "angular_errors_deg",
     "error_summary",
     "estimate_noise",
+    "fit_lights",
+    "light_fit_sums",
     "refine_lights",
     "solve",
 ]

@@ -12,13 +12,89 @@ from ._solve import solve
 from .metrics import angular_errors_deg
 
 
-def _fit_lights(obs, usable, x):
-    """Least-squares light vector per light on the usable observations: (n, 3) and a fit mask."""
-    w = usable.astype(np.float64)
-    y = np.where(usable, obs, 0.0)
-    m6 = w @ outer6(x)
-    inv, ok = inverse6(m6, 1e-9)
-    return apply6(inv, y @ x), ok
+def light_fit_sums(observations: np.ndarray, valid: np.ndarray | None, solution) -> tuple:
+    """Normal-equation sums of the per-light least-squares re-fit, over one set of pixels.
+
+    Sums are additive over pixels, so a capture solved in bands accumulates them band by band
+    and calls :func:`fit_lights` once.
+
+    Parameters
+    ----------
+    observations : ndarray of shape (n, P)
+    valid : ndarray of shape (n, P), bool, or None
+    solution : Solution
+        The solver's result for these pixels (normals, albedo, outliers).
+
+    Returns
+    -------
+    normal_matrices : ndarray of shape (n, 6)
+        ``sum_j x_j x_j^T`` per light over the observations that are usable, of solved pixels and
+        not flagged as outliers (``x_j`` = albedo * normal), as ``(xx, yy, zz, xy, xz, yz)``.
+    normal_targets : ndarray of shape (n, 3)
+        ``sum_j y_ij x_j`` over the same observations.
+    used : int
+        Number of observations that entered.
+    """
+    obs = np.asarray(observations, dtype=np.float64)
+    usable = np.isfinite(obs) if valid is None else (np.asarray(valid, bool) & np.isfinite(obs))
+    x = solution.normals * solution.albedo[:, None]
+    inliers = usable & ~solution.outliers & (solution.albedo > 0)[None, :]
+    y = np.where(inliers, obs, 0.0)
+    return inliers.astype(np.float64) @ outer6(x), y @ x, int(inliers.sum())
+
+
+def fit_lights(
+    normal_matrices: np.ndarray,
+    normal_targets: np.ndarray,
+    directions: np.ndarray,
+    factor: np.ndarray,
+    anchor: np.ndarray | None,
+    fixed_intensities: bool = False,
+) -> tuple:
+    """One refinement update of the lights from :func:`light_fit_sums`.
+
+    Parameters
+    ----------
+    normal_matrices, normal_targets : ndarray of shape (n, 6), (n, 3)
+        Sums over all pixels.
+    directions : ndarray of shape (n, 3)
+        Current unit directions (kept for a light whose fit is singular).
+    factor : ndarray of shape (n,)
+        Current relative intensity factors (the light vectors solved with are
+        ``directions * factor``).
+    anchor : ndarray of shape (n, 3) or None
+        Input light vectors whose gauge is kept (see :func:`refine_lights`); None lets it drift.
+    fixed_intensities : bool
+        Keep ``factor``.
+
+    Returns
+    -------
+    directions : ndarray of shape (n, 3)
+    factor : ndarray of shape (n,)
+    entry : dict
+        ``mean_direction_change_deg``, ``max_direction_change_deg``, ``mean_intensity_change``.
+    """
+    inv, ok = inverse6(np.asarray(normal_matrices, np.float64), 1e-9)
+    v = apply6(inv, np.asarray(normal_targets, np.float64))
+    if anchor is not None and ok.sum() >= 3:
+        # Gauge: any invertible G maps (lights, x) to (lights G, G^-1 x) with the same images,
+        # so the data cannot tell the light set's common linear part; keep the input's.
+        g, *_ = np.linalg.lstsq(v[ok], np.asarray(anchor, np.float64)[ok], rcond=None)
+        v = v @ g
+    length = np.linalg.norm(v, axis=1)
+    ok &= length > 0
+    new_dirs = np.where(ok[:, None], v / np.where(ok, length, 1.0)[:, None], directions)
+    change = angular_errors_deg(new_dirs, directions)
+    new_factor = factor
+    if not fixed_intensities:
+        raw = np.where(ok, length, factor)
+        new_factor = raw / raw.mean() * factor.mean()
+    entry = {
+        "mean_direction_change_deg": float(change.mean()),
+        "max_direction_change_deg": float(change.max()),
+        "mean_intensity_change": float(np.mean(np.abs(new_factor / factor - 1.0))),
+    }
+    return new_dirs, new_factor, entry
 
 
 def refine_lights(
@@ -126,31 +202,12 @@ def refine_lights(
     sol = run(directions, factor)
     history = [{"iteration": 0, **errors(sol, directions)}]
     for k in range(1, iterations + 1):
-        x = sol.normals * sol.albedo[:, None]
-        solved = sol.albedo > 0
-        inliers = usable & ~sol.outliers & solved[None, :]
-        v, ok = _fit_lights(obs, inliers, x)
-        if keep_gauge and ok.sum() >= 3:
-            # Gauge: any invertible G maps (lights, x) to (lights G, G^-1 x) with the same images,
-            # so the data cannot tell the light set's common linear part; keep the input's.
-            g, *_ = np.linalg.lstsq(v[ok], anchor_vectors[ok], rcond=None)
-            v = v @ g
-        length = np.linalg.norm(v, axis=1)
-        ok &= length > 0
-        new_dirs = np.where(ok[:, None], v / np.where(ok, length, 1.0)[:, None], directions)
-        change = angular_errors_deg(new_dirs, directions)
-        new_factor = factor
-        if not fixed_intensities:
-            # the fit is in the units of the current light vectors (direction * factor)
-            raw = np.where(ok, length, factor)
-            new_factor = raw / raw.mean() * factor.mean()
-        entry = {
-            "iteration": k,
-            "mean_direction_change_deg": float(change.mean()),
-            "max_direction_change_deg": float(change.max()),
-            "mean_intensity_change": float(np.mean(np.abs(new_factor / factor - 1.0))),
-            "used_fraction": float(inliers.sum() / max(usable.sum(), 1)),
-        }
+        sums_m, sums_t, used = light_fit_sums(obs, valid, sol)
+        new_dirs, new_factor, update = fit_lights(sums_m, sums_t, directions, factor,
+                                                  anchor_vectors if keep_gauge else None,
+                                                  fixed_intensities)
+        entry = {"iteration": k, **update,
+                 "used_fraction": float(used / max(usable.sum(), 1))}
         directions, factor = new_dirs, new_factor
         sol = run(directions, factor)
         entry.update(errors(sol, directions))

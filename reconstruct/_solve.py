@@ -16,11 +16,12 @@ from ._solution import METHODS, Solution, SolverInputError
 # Defaults of each method's parameters (in units of the pixel's robust scale, see `pixel_scale`).
 DEFAULTS: dict[str, dict] = {
     "ls": {},
-    "l1": {"max_iter": 100, "tol": 1e-6, "delta": 1e-6, "outlier_threshold": None},
+    "l1": {"max_iter": 100, "tol": 1e-6, "delta": 1e-6, "outlier_threshold": None,
+           "noise_sigma": None},
     "sbl": {"lam": None, "sigma_x2": 1e6, "max_iter": 100, "tol": 1e-4, "gamma_floor": 1e-10,
-            "outlier_threshold": None},
+            "outlier_threshold": None, "noise_sigma": None},
     "rpca": {"lam_sparse": None, "max_iter": 500, "tol": 1e-7, "rho": 1.5,
-             "outlier_threshold": None},
+             "outlier_threshold": None, "noise_sigma": None},
 }
 DEFAULT_TILE_SIZE = 4096
 # Noise level floor (relative to the pixel scale): the paper's lambda for noise-free data.
@@ -208,7 +209,10 @@ def solve(
         - ``rpca``: ``lam_sparse`` (1/sqrt(max(n, P))), ``max_iter`` (500), ``tol`` (1e-7),
           ``rho`` (1.5), ``outlier_threshold``.
 
-        ``outlier_threshold`` defaults to ``max(3 sigma, 0.05)`` with sigma the noise level.
+        ``outlier_threshold`` defaults to ``max(3 sigma, 0.05)`` with sigma the noise level;
+        ``noise_sigma`` (l1, sbl, rpca) gives sigma instead of estimating it from these
+        observations (for solving a capture in bands with whole-image parameters); SBL's
+        default ``lam`` is ``max(sigma^2, 1e-6)``.
 
     Returns
     -------
@@ -225,18 +229,21 @@ def solve(
     used: dict = {"method": method}
 
     if method != "ls":
-        noise = None
+        noise = params.pop("noise_sigma")
         if method == "sbl":
             if params["lam"] is None:
-                noise = _noise_level(obs, lights, usable)
+                if noise is None:
+                    noise = _noise_level(obs, lights, usable)
                 params["lam"] = max(noise * noise, LAMBDA_FLOOR)
             used["lambda"] = float(params["lam"])
-            noise = math.sqrt(params["lam"]) if noise is None else noise
-        if params.get("outlier_threshold") is None:
+            if noise is None:
+                noise = math.sqrt(params["lam"])
+        if params["outlier_threshold"] is None:
             if noise is None:
                 noise = _noise_level(obs, lights, usable)
             params["outlier_threshold"] = max(3.0 * noise, MIN_OUTLIER_THRESHOLD)
-        used["noise_sigma"] = float(noise)
+        if noise is not None:
+            used["noise_sigma"] = float(noise)
     used.update({k: v for k, v in params.items() if k != "lam"})
 
     if method == "rpca":

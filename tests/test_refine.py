@@ -70,3 +70,24 @@ def test_refinement_rejects_bad_lights():
         refine_lights(np.ones((3, 5)), np.zeros((3, 3)))
     with pytest.raises(SolverInputError):
         refine_lights(np.ones((3, 5)), np.eye(3), iterations=-1)
+
+
+def test_band_sums_reproduce_refine_lights(perturbed):
+    from ps_lab.reconstruct import fit_lights, light_fit_sums, solve
+
+    y, lights, wrong, _ = perturbed
+    valid = y > 0
+    expected = refine_lights(y, wrong, iterations=1, valid=valid)
+    sol = solve(y, wrong, valid=valid)
+    half = y.shape[1] // 2
+    sums = [np.zeros((len(lights), 6)), np.zeros((len(lights), 3))]
+    for band in (slice(0, half), slice(half, None)):
+        band_sol = solve(y[:, band], wrong, valid=valid[:, band], lam=sol.params["lambda"])
+        m6, t3, _ = light_fit_sums(y[:, band], valid[:, band], band_sol)
+        sums[0] += m6
+        sums[1] += t3
+    directions, factor, entry = fit_lights(sums[0], sums[1], wrong, np.ones(len(lights)), wrong)
+    assert np.abs(directions - expected.light_directions).max() < 1e-9
+    assert np.allclose(factor, expected.light_intensities)
+    assert entry["mean_direction_change_deg"] == pytest.approx(
+        expected.history[1]["mean_direction_change_deg"])

@@ -209,3 +209,15 @@ def test_metrics():
     assert np.allclose(e, [0.0, 90.0, np.degrees(0.1), 90.0])
     s = error_summary(e)
     assert s["max"] == pytest.approx(90.0) and s["median"] == pytest.approx(np.median(e))
+
+
+@pytest.mark.parametrize("method", ("l1", "sbl", "rpca"))
+def test_given_noise_level_and_threshold_are_used(corrupted, method):
+    y, lights, valid, _ = corrupted
+    sol = solve(y, lights, method=method, valid=valid, noise_sigma=0.03)
+    assert sol.params["noise_sigma"] == 0.03
+    assert sol.params["outlier_threshold"] == pytest.approx(0.09)
+    if method == "sbl":
+        assert sol.params["lambda"] == pytest.approx(0.03**2)
+    fixed = solve(y, lights, method=method, valid=valid, outlier_threshold=0.2)
+    assert fixed.params["outlier_threshold"] == 0.2
