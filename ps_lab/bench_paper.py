@@ -2,7 +2,8 @@
 
 The paper evaluates its sparse-regression photometric stereo (SBL) against least squares (LS),
 L1 regression and R-PCA on a synthetic object with attached and cast shadows and Cook-Torrance
-speculars, with light directions drawn at random from the upper hemisphere. This module renders
+speculars, with light directions drawn at random from the upper hemisphere (here: uniform over
+the cap of zenith angle <= ``max_zenith_deg`` = 60 degrees). This module renders
 its own scenes with :mod:`ps_lab.capture.render` (a sphere and the height-field "relief" object)
 and rebuilds the paper's tables:
 
@@ -64,6 +65,13 @@ __all__ = [
     "table_refinement",
     "format_text",
     "format_markdown",
+    "results_as_dict",
+    "light_set_rng",
+    "machine_description",
+    "source_revision",
+    "make_config",
+    "parse_tables",
+    "total_steps",
     "main",
 ]
 
@@ -76,7 +84,7 @@ Progress = Callable[[int], None] | None
 class PaperConfig:
     """Everything that defines a run of the paper's experiments (the defaults are the full run)."""
 
-    size: int = 64
+    size: int = 128
     light_sets: int = 5
     seed: int = 0
     scenes: tuple[str, ...] = ("sphere", "relief")

@@ -26,7 +26,7 @@ def paper(
     ] = False,
     size: Annotated[
         int | None,
-        typer.Option(min=8, help="Image width and height in pixels (default 64; 48 with --quick)."),
+        typer.Option(min=8, help="Image width and height in pixels (default 128; --quick 48)."),
     ] = None,
     light_sets: Annotated[
         int | None,
