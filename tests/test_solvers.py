@@ -122,7 +122,7 @@ def test_sbl_flags_injected_corruptions_and_recovers_normals():
     assert np.median(angular_errors_deg(sol.normals, normals)) < 0.05
 
 
-@pytest.mark.parametrize("method", ("ls", "l1", "sbl"))
+@pytest.mark.parametrize("method", METHODS)
 def test_dropped_observations_do_not_matter(method):
     rng = np.random.default_rng(4)
     lights = lights_upper(20, rng)
