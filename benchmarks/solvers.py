@@ -141,6 +141,22 @@ def cmd_lambda(args):
                 cells.append(f"{e['mean']:5.2f}/{e['median']:5.2f}")
             print(f"{kind + ' ' + str(seed):>12} {lam:11.2e} " + " ".join(f"{c:>12}" for c in cells),
                   flush=True)
+    print("# exposure sweep (seed 1): peak = 99.5th percentile as a share of full scale, full well")
+    for peak, full_well in ((0.8, 20000.0), (0.1, 20000.0), (0.05, 5000.0)):
+        for kind in ("sphere", "relief"):
+            obs, lights, valid, normals = real_like(kind, 40, 1, peak=peak, full_well=full_well)
+            cells, lam = [], None
+            for name in names:
+                kw = {"method": name.split()[0]}
+                if name.startswith("sbl") and name != "sbl auto":
+                    kw["lam"] = float(name.split()[1])
+                sol = solve(obs, lights, valid=valid, **kw)
+                if name == "sbl auto":
+                    lam = sol.params["lambda"]
+                e = error_summary(angular_errors_deg(sol.normals, normals))
+                cells.append(f"{e['mean']:5.2f}/{e['median']:5.2f}")
+            label = f"{kind} {peak:g}/{full_well:g}"
+            print(f"{label:>20} {lam:11.2e} " + " ".join(f"{c:>12}" for c in cells), flush=True)
 
 
 def cmd_accuracy(args):
