@@ -1,1 +1,35 @@
-"""ps_lab.capture"""
+"""ps_lab.capture: drive a photometric-stereo rig and read what it shoots.
+
+- light controllers: :class:`LightController`, :class:`SerialLightController` (protocol v1 over
+  pyserial; importing this package registers the ``pslabsim://`` URL of the simulated controller);
+- cameras: :class:`Camera`, :class:`FolderCamera`, :class:`SimulatedCamera`,
+  :class:`~ps_lab.capture.gphoto2_camera.Gphoto2Camera` (optional extra ``ps-lab[gphoto2]``);
+- linear RAW: :func:`load_raw`, :func:`write_dng`;
+- rig files and capture sessions: :func:`load_rig`, :class:`CaptureSession`.
+
+The simulators (``sim_lights``, ``render``) are imported only when a rig file selects them.
+"""
+
+from ps_lab.capture.cameras import Camera, CapturedFrame, FolderCamera, SimulatedCamera
+from ps_lab.capture.dng import write_dng
+from ps_lab.capture.lights import LightController, LightState, SerialLightController
+from ps_lab.capture.raw import RAW_SUFFIXES, RawImage, load_raw
+from ps_lab.capture.rig import Rig, load_rig
+from ps_lab.capture.session import CaptureSession
+
+__all__ = [
+    "RAW_SUFFIXES",
+    "Camera",
+    "CaptureSession",
+    "CapturedFrame",
+    "FolderCamera",
+    "LightController",
+    "LightState",
+    "RawImage",
+    "Rig",
+    "SerialLightController",
+    "SimulatedCamera",
+    "load_raw",
+    "load_rig",
+    "write_dng",
+]
