@@ -189,8 +189,8 @@ class PaperResults:
     tables: tuple  # ErrorTable | RefinementTable, in the order of config.tables
     seconds: float
     machine: str
-    date: str = field(default="")
-    revision: str = field(default="unknown")
+    date: str = field(default="")  # when the run started
+    revision: str = field(default="unknown")  # source revision at the start
 
 
 # --------------------------------------------------------------------------------------------
@@ -744,6 +744,8 @@ def run_paper(config: PaperConfig, *, progress: Progress = None) -> PaperResults
     PaperResults
     """
     start = time.perf_counter()
+    revision = source_revision()
+    started = datetime.now(UTC).strftime("%Y-%m-%d %H:%M UTC")
     scenes = [_prepare_scene(name, config) for name in config.scenes]
     tables: list = []
     for number in config.tables:
@@ -764,8 +766,8 @@ def run_paper(config: PaperConfig, *, progress: Progress = None) -> PaperResults
         tables=tuple(tables),
         seconds=time.perf_counter() - start,
         machine=machine_description(),
-        date=datetime.now(UTC).strftime("%Y-%m-%d %H:%M UTC"),
-        revision=source_revision(),
+        date=started,
+        revision=revision,
     )
 
 
@@ -890,7 +892,8 @@ def format_markdown(results: PaperResults) -> str:
     parts = [
         f"Command: `{c.command_line()}`  ",
         f"Machine: {results.machine}  ",
-        f"Date: {results.date}; wall time {results.seconds:.0f} s; source {results.revision}  ",
+        f"Started: {results.date}; wall time {results.seconds:.0f} s; "
+        f"source {results.revision}  ",
         f"Scenes: {c.size}x{c.size} px; {c.light_sets} light sets of {c.n_lights} lights "
         f"(zenith <= {c.max_zenith_deg:g} deg), seed {c.seed}. "
         "Errors in degrees, time in seconds per solve.",
