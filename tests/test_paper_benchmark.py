@@ -155,16 +155,9 @@ def test_cli_rejects_unknown_table() -> None:
     assert "1, 3, 4, 5" in result.output
 
 
-def _slow_selected(config: pytest.Config) -> bool:
-    expression = config.getoption("markexpr") or ""
-    return "slow" in expression and "not slow" not in expression
-
-
 @pytest.mark.slow
-def test_paper_orderings_at_full_resolution(request: pytest.FixtureRequest) -> None:
-    # `pytest` runs every marker by default; this one only when selected with `-m slow`.
-    if not _slow_selected(request.config):
-        pytest.skip("long experiment: run with -m slow")
+def test_paper_orderings_at_full_resolution() -> None:
+    # Skipped unless selected with `-m slow` (tests/conftest.py); ~15 min on 2 cores.
     results = bp.run_paper(bp.PaperConfig())  # the full run of docs/results.md
     _assert_orderings(results)
     _assert_refinement_never_worse(results)
