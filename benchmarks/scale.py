@@ -24,6 +24,7 @@ import os
 import platform
 import resource
 import shutil
+import signal
 import subprocess
 import sys
 import threading
@@ -180,8 +181,12 @@ def reconstruct(folder: Path, out: Path, args) -> dict:
         child.wait(timeout=args.timeout)
     except subprocess.TimeoutExpired:
         timed_out = True
-        child.terminate()
-        child.wait()
+        child.send_signal(signal.SIGINT)  # Ctrl-C: the run removes its staged folder and store
+        try:
+            child.wait(timeout=60)
+        except subprocess.TimeoutExpired:
+            child.kill()
+            child.wait()
     ended = time.perf_counter()
     monitor.stopped.set()
     monitor.join()
@@ -230,7 +235,8 @@ def table(generated: dict, run: dict, args) -> str:
     rows = [
         ("generate capture (benchmark itself)", f"{generated['seconds']:.0f}", "-"),
     ]
-    rows.append(("reconstruct: read + stage (pass 1)", f"{run.get('read_seconds', float('nan')):.0f}",
+    read_seconds = run.get("read_seconds", float("nan"))
+    rows.append(("reconstruct: read + stage (pass 1)", f"{read_seconds:.0f}",
                  gb(run.get("read_peak_rss", 0))))  # fmt: skip
     if "metrics" in run:
         rows.append((f"reconstruct: {args.method} solve + banded outputs",
@@ -239,15 +245,19 @@ def table(generated: dict, run: dict, args) -> str:
     elif "solve_rate" in run:
         projected = pixels * (args.refine_lights + 1) / run["solve_rate"]
         rows.append((f"reconstruct: {args.method} solve (stopped after {run['bands_done']} bands, "
-                     f"{run['pixels_solved']} px)", f"{run['wall_seconds'] - run['read_seconds']:.0f}",
+                     f"{run['pixels_solved']} px)", f"{run['wall_seconds'] - read_seconds:.0f}",
                      gb(run.get("solve_peak_rss", 0))))  # fmt: skip
         rows.append((f"reconstruct: {args.method} solve, projected for all pixels",
                      f"{projected:.0f}", "-"))  # fmt: skip
-    rows.append(("reconstruct: total (subprocess)", f"{run['wall_seconds']:.0f}", gb(run["peak_rss"])))
+    rows.append(
+        ("reconstruct: total (subprocess)", f"{run['wall_seconds']:.0f}", gb(run["peak_rss"]))
+    )
     cpu = platform.processor() or platform.machine()
     try:
-        model = next(line.split(":", 1)[1].strip() for line in
-                     Path("/proc/cpuinfo").read_text().splitlines() if line.startswith("model name"))  # fmt: skip
+        cpuinfo = Path("/proc/cpuinfo").read_text().splitlines()
+        model = next(
+            line.split(":", 1)[1].strip() for line in cpuinfo if line.startswith("model name")
+        )
         cpu = model
     except (OSError, StopIteration):
         pass
@@ -279,8 +289,9 @@ def table(generated: dict, run: dict, args) -> str:
                      f"deg, p90 {errors['p90']:.3f} deg.")  # fmt: skip
     streaming = run.get("metrics", {}).get("streaming")
     if streaming:
+        staged = streaming["staging_bytes"] / 1e9
         lines.append(f"Bands: {streaming['bands']} of at most {streaming['max_band_pixels']} "
-                     f"pixels; staging {streaming['staging']} ({streaming['staging_bytes'] / 1e9:.2f} GB).")  # fmt: skip
+                     f"pixels; staging {streaming['staging']} ({staged:.2f} GB).")  # fmt: skip
     return "\n".join(lines)
 
 

@@ -972,7 +972,9 @@ class ObservationStore:
         if in_memory:
             self._stream = io.BytesIO()
         else:
-            handle, name = tempfile.mkstemp(prefix="ps-lab-observations-", suffix=".bin", dir=folder)
+            handle, name = tempfile.mkstemp(
+                prefix="ps-lab-observations-", suffix=".bin", dir=folder
+            )
             self.path = Path(name)
             self._stream = os.fdopen(handle, "w+b")
         # The noise sample: the same pixels the solvers would pick among all mask pixels.
@@ -1164,7 +1166,7 @@ class NormalTruth:
 
 
 def open_normal_gt(root: Path, shape: tuple[int, int]) -> NormalTruth | None:
-    """The dataset's ground-truth normals for band-wise reading, or None (see :func:`load_dataset`)."""
+    """The dataset's ground-truth normals for band-wise reading, or None (as in load_dataset)."""
     for candidate in (
         root / "normal_gt.npy",
         root / "Normal_gt.mat",

@@ -96,17 +96,6 @@ def write_png(path: Path, picture: np.ndarray) -> None:
     Path(path).write_bytes(encoded.tobytes())
 
 
-def _statistics(values: np.ndarray) -> dict[str, float]:
-    values = np.asarray(values, dtype=np.float64)
-    if values.size == 0:
-        return {"mean": 0.0, "median": 0.0, "max": 0.0}
-    return {
-        "mean": float(values.mean()),
-        "median": float(np.median(values)),
-        "max": float(values.max()),
-    }
-
-
 def _json_safe(value: Any) -> Any:
     if isinstance(value, dict):
         return {str(k): _json_safe(v) for k, v in value.items()}
@@ -207,7 +196,7 @@ _SIZE_UNITS = {"": 1 << 20, "k": 1 << 10, "m": 1 << 20, "g": 1 << 30, "t": 1 << 
 
 
 def parse_memory_size(text: str) -> int:
-    """Parse a memory size such as ``"512MB"``, ``"1.5G"``, ``"2 GiB"`` or ``"800"`` (MB) into bytes.
+    """Parse a memory size such as ``"512MB"``, ``"1.5G"``, ``"2 GiB"`` or ``"800"`` (MB), in bytes.
 
     Raises
     ------
@@ -287,7 +276,8 @@ def _iteration_statistics(counts: np.ndarray) -> dict[str, float]:
         return {"mean": 0.0, "median": 0.0, "max": 0.0}
     values = np.arange(counts.size)
     cumulative = np.cumsum(counts)
-    lo, hi = (int(np.searchsorted(cumulative, k, side="right")) for k in ((total - 1) // 2, total // 2))
+    middle = ((total - 1) // 2, total // 2)
+    lo, hi = (int(np.searchsorted(cumulative, k, side="right")) for k in middle)
     return {
         "mean": float((counts * values).sum() / total),
         "median": float(0.5 * (lo + hi)),
@@ -384,7 +374,8 @@ class _OutputWriter:
         normals = np.zeros((height, width, 3), np.float32)
         normals[inside] = unit
         albedo = np.zeros((height, width), np.float32)
-        albedo[inside] = np.where(solved, np.nan_to_num(np.asarray(solution.albedo, np.float64)), 0.0)
+        pixel_albedo = np.nan_to_num(np.asarray(solution.albedo, np.float64))
+        albedo[inside] = np.where(solved, pixel_albedo, 0.0)
         outliers = np.asarray(solution.outliers, dtype=bool)
         used = valid.sum(axis=0)
         corruption = np.zeros((height, width), np.float32)
@@ -536,7 +527,8 @@ def _solve_pass(
         if writer is not None:
             writer.add(band, solution, valid)
         if truth is not None:
-            gt = truth.rows(band.row_start, band.row_stop)[store.mask[band.row_start : band.row_stop]]
+            rows = slice(band.row_start, band.row_stop)
+            gt = truth.rows(band.row_start, band.row_stop)[store.mask[rows]]
             result.all_have_truth &= bool(np.all(np.linalg.norm(gt, axis=1) > 0.5))
             result.error_sum += float(angular_errors_deg(solution.normals, gt).sum())
         if fit:
@@ -555,7 +547,8 @@ def _solve_pass(
 
 def _accumulate_fit(result: _PassResult, observations, valid, solution, chunk: int = 65536) -> None:
     """Add one band's per-light least-squares sums (paper section 3.3b) to ``result``."""
-    x_all = np.asarray(solution.normals, np.float64) * np.asarray(solution.albedo, np.float64)[:, None]
+    albedo = np.asarray(solution.albedo, np.float64)
+    x_all = np.asarray(solution.normals, np.float64) * albedo[:, None]
     solved_all = np.asarray(solution.albedo) > 0
     for a in range(0, observations.shape[1], chunk):
         b = min(a + chunk, observations.shape[1])
@@ -647,7 +640,8 @@ def reconstruct_to_folder(
     bands = plan_bands(mask, band_pixels(budget, n))
     pixels = int(mask.sum())
     store_bytes = n * (4 * pixels + (pixels + 7 * len(bands)) // 8)
-    in_memory = staging == "memory" or (staging == "auto" and store_bytes <= IN_MEMORY_SHARE * budget)
+    small = store_bytes <= IN_MEMORY_SHARE * budget
+    in_memory = staging == "memory" or (staging == "auto" and small)
     from ps_lab import reconstruct
 
     sample_pixels = _default(reconstruct.estimate_noise, "max_pixels", 20000)

@@ -35,7 +35,7 @@ N_LIGHTS = 12
 
 
 def write_capture(folder: Path, *, seed: int = 0, colour: bool = False, n: int = N_LIGHTS) -> dict:
-    """A rendered glossy sphere as 16-bit PNGs, with lights, intensities, dark frame, mask, truth."""
+    """A rendered glossy sphere as 16-bit PNGs with lights, intensities, dark, mask and truth."""
     rng = np.random.default_rng(seed)
     folder.mkdir(parents=True)
     surface = render.sphere_surface(SHAPE, albedo=(0.8, 0.6, 0.4) if colour else 0.7)
@@ -115,7 +115,8 @@ def test_store_equals_load_dataset_bit_for_bit(tmp_path, colour, in_memory, max_
                 np.testing.assert_array_equal(observations, data.images[:, rows][:, inside])
                 np.testing.assert_array_equal(valid, data.valid[:, rows][:, inside])
             everything = data.images[:, mask]
-            np.testing.assert_array_equal(store.sample_observations, everything[:, store.sample_index])
+            sample = everything[:, store.sample_index]
+            np.testing.assert_array_equal(store.sample_observations, sample)
             assert store.sample_index.size == 50
         assert not list(tmp_path.glob("ps-lab-observations-*"))  # closed: file deleted
 
@@ -179,7 +180,8 @@ def test_any_band_height_gives_the_single_band_result(capture, tmp_path, method)
         for key in ("angular_error_deg", "iterations", "outlier_share", "unsolved_pixels"):
             assert result["metrics"][key] == pytest.approx(reference["metrics"][key], rel=1e-9)
         if method == "sbl":
-            assert result["metrics"]["parameters"]["lambda"] == reference["metrics"]["parameters"]["lambda"]
+            parameters = result["metrics"]["parameters"]
+            assert parameters["lambda"] == reference["metrics"]["parameters"]["lambda"]
 
 
 @pytest.mark.parametrize("method", ["ls", "sbl"])
