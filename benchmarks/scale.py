@@ -233,7 +233,8 @@ def table(generated: dict, run: dict, args) -> str:
     """The results as a Markdown table with the machine."""
     pixels = generated["pixels"]
     rows = [
-        ("generate capture (benchmark itself)", f"{generated['seconds']:.0f}", "-"),
+        ("generate capture (benchmark itself)",
+         "reused" if math.isnan(generated["seconds"]) else f"{generated['seconds']:.0f}", "-"),
     ]
     read_seconds = run.get("read_seconds", float("nan"))
     rows.append(("reconstruct: read + stage (pass 1)", f"{read_seconds:.0f}",
