@@ -285,33 +285,6 @@ def _iteration_statistics(counts: np.ndarray) -> dict[str, float]:
     }
 
 
-def _outer6(x: np.ndarray) -> np.ndarray:
-    """Unique entries (xx, yy, zz, xy, xz, yz) of x x^T per row: (P, 3) -> (P, 6)."""
-    return np.stack(
-        [x[:, 0] ** 2, x[:, 1] ** 2, x[:, 2] ** 2, x[:, 0] * x[:, 1], x[:, 0] * x[:, 2],
-         x[:, 1] * x[:, 2]],
-        axis=1,
-    )  # fmt: skip
-
-
-def _solve6(m: np.ndarray, t: np.ndarray, rel_eps: float = 1e-9) -> tuple[np.ndarray, np.ndarray]:
-    """Solve symmetric 3x3 systems given as (n, 6) entries; ``ok`` False where near singular."""
-    xx, yy, zz, xy, xz, yz = m.T
-    c00, c11, c22 = yy * zz - yz * yz, xx * zz - xz * xz, xx * yy - xy * xy
-    c01, c02, c12 = xz * yz - xy * zz, xy * yz - xz * yy, xy * xz - xx * yz
-    det = xx * c00 + xy * c01 + xz * c02
-    scale = (xx + yy + zz) / 3.0
-    ok = (det > rel_eps * scale**3) & (scale > 0)
-    inv_det = np.where(ok, 1.0 / np.where(ok, det, 1.0), 0.0)
-    t0, t1, t2 = t.T
-    v = np.stack(
-        [c00 * t0 + c01 * t1 + c02 * t2, c01 * t0 + c11 * t1 + c12 * t2,
-         c02 * t0 + c12 * t1 + c22 * t2],
-        axis=1,
-    )  # fmt: skip
-    return v * inv_det[:, None], ok
-
-
 @dataclass
 class _PassResult:
     params: dict
@@ -450,35 +423,26 @@ class _OutputWriter:
         return metrics
 
 
-def _probe_parameters(store: ObservationStore, vectors: np.ndarray, method: str, threads) -> dict:
-    """Global solver parameters (noise level, outlier threshold) fixed for every band.
+def _whole_image_parameters(store: ObservationStore, vectors: np.ndarray, method: str) -> dict:
+    """The noise level a single whole-image solve would estimate, fixed for every band.
 
-    The solver estimates them from an evenly spaced sample of all pixels; the store kept that very
-    sample, so one cheap solve of it (one iteration) reports the values a single whole-image
-    solve would use. Bands are then solved with them, so results do not depend on the banding.
+    ``solve`` estimates it from an evenly spaced sample of all pixels (at most ``max_pixels`` of
+    :func:`ps_lab.reconstruct.estimate_noise`); the store kept that very sample, so the estimate
+    on it is the whole-image one. Each band is solved with ``noise_sigma=`` it, from which
+    ``solve`` derives the outlier threshold (and SBL's ``lam``), so results do not depend on the
+    banding. Least squares takes no noise level.
     """
     from ps_lab import reconstruct
 
-    if method != "sbl" or store.sample_index.size == 0:
+    if method == "ls" or store.sample_index.size == 0:
         return {}
-    probe = reconstruct.solve(
+    sigma = reconstruct.estimate_noise(
         store.sample_observations,
         vectors,
-        method=method,
-        valid=store.sample_valid,
-        threads=threads,
-        max_iter=1,
+        store.sample_valid,
+        max_pixels=store.sample_index.size,
     )
-    fixed = {}
-    # Only SBL can be given both values: ``solve`` derives the noise level from ``lam``, while for
-    # L1 and R-PCA an explicit outlier threshold leaves it undefined (their bands estimate it).
-    if method == "sbl" and "lambda" in probe.params:
-        fixed["lam"] = probe.params["lambda"]
-        if probe.params.get("outlier_threshold") is not None:
-            fixed["outlier_threshold"] = probe.params["outlier_threshold"]
-        if "noise_sigma" in probe.params:
-            fixed["noise_sigma"] = probe.params["noise_sigma"]
-    return fixed
+    return {"noise_sigma": sigma}
 
 
 def _solve_pass(
@@ -497,8 +461,7 @@ def _solve_pass(
     from ps_lab import reconstruct
     from ps_lab.reconstruct.metrics import angular_errors_deg
 
-    fixed = _probe_parameters(store, vectors, method, threads)
-    noise = fixed.pop("noise_sigma", None)
+    fixed = _whole_image_parameters(store, vectors, method)
     n = store.n_lights
     result = _PassResult(params={})
     if fit:
@@ -522,8 +485,6 @@ def _solve_pass(
         )
         if not result.params:
             result.params = dict(solution.params)
-            if noise is not None:
-                result.params["noise_sigma"] = noise
         if writer is not None:
             writer.add(band, solution, valid)
         if truth is not None:
@@ -546,20 +507,27 @@ def _solve_pass(
 
 
 def _accumulate_fit(result: _PassResult, observations, valid, solution, chunk: int = 65536) -> None:
-    """Add one band's per-light least-squares sums (paper section 3.3b) to ``result``."""
-    albedo = np.asarray(solution.albedo, np.float64)
-    x_all = np.asarray(solution.normals, np.float64) * albedo[:, None]
-    solved_all = np.asarray(solution.albedo) > 0
+    """Add one band's per-light least-squares sums (:func:`ps_lab.reconstruct.light_fit_sums`).
+
+    The sums add over pixels; taking the band in chunks of pixels bounds the float64 copies.
+    """
+    from ps_lab.reconstruct import Solution, light_fit_sums
+
     for a in range(0, observations.shape[1], chunk):
         b = min(a + chunk, observations.shape[1])
-        y = observations[:, a:b].astype(np.float64)
-        usable = valid[:, a:b] & np.isfinite(y)
-        inliers = usable & ~solution.outliers[:, a:b] & solved_all[None, a:b]
-        x = x_all[a:b]
-        result.normal_matrices += inliers.astype(np.float64) @ _outer6(x)
-        result.normal_targets += np.where(inliers, y, 0.0) @ x
-        result.inliers += int(inliers.sum())
-        result.usable += int(usable.sum())
+        part = Solution(
+            solution.normals[a:b],
+            solution.albedo[a:b],
+            solution.outliers[:, a:b],
+            solution.iterations[a:b],
+        )
+        normal_matrices, normal_targets, used = light_fit_sums(
+            observations[:, a:b], valid[:, a:b], part
+        )
+        result.normal_matrices += normal_matrices
+        result.normal_targets += normal_targets
+        result.inliers += used
+        result.usable += int((valid[:, a:b] & np.isfinite(observations[:, a:b])).sum())
 
 
 def reconstruct_to_folder(
@@ -721,7 +689,7 @@ def _solve_and_write(
     timings: dict,
     extra: dict,
 ) -> dict:
-    from ps_lab.reconstruct.metrics import angular_errors_deg
+    from ps_lab.reconstruct import fit_lights
 
     started = time.perf_counter()
     lights = np.asarray(header.light_directions, dtype=np.float64)
@@ -755,28 +723,17 @@ def _solve_and_write(
                 history.append({"iteration": 0, **errors} if k == 0 else {**pending, **errors})
             if final:
                 break
-            # Least-squares light vectors v_i = argmin sum_j (y_ij - x_j . v)^2 over inliers.
-            v, ok = _solve6(result.normal_matrices, result.normal_targets)
-            if ok.sum() >= 3:
-                # Keep the input gauge, as refine_lights does by default: map the re-fitted set
-                # back onto the input lights by the least-squares common linear map.
-                gauge, *_ = np.linalg.lstsq(v[ok], anchor[ok], rcond=None)
-                v = v @ gauge
-            length = np.linalg.norm(v, axis=1)
-            ok &= length > 0
-            new_directions = np.where(
-                ok[:, None], v / np.where(ok, length, 1.0)[:, None], directions
+            directions, factor, update = fit_lights(
+                result.normal_matrices,
+                result.normal_targets,
+                directions,
+                factor,
+                anchor,
+                fixed_intensities,
             )
-            change = angular_errors_deg(new_directions, directions)
-            new_factor = factor
-            if not fixed_intensities:
-                raw = np.where(ok, length, factor)
-                new_factor = raw / raw.mean() * factor.mean()
             pending = {
                 "iteration": k + 1,
-                "mean_direction_change_deg": float(change.mean()),
-                "max_direction_change_deg": float(change.max()),
-                "mean_intensity_change": float(np.mean(np.abs(new_factor / factor - 1.0))),
+                **update,
                 "used_fraction": float(result.inliers / max(result.usable, 1)),
             }
             log.info(
@@ -785,7 +742,6 @@ def _solve_and_write(
                 pending["mean_direction_change_deg"],
                 pending["max_direction_change_deg"],
             )
-            directions, factor = new_directions, new_factor
     seconds = time.perf_counter() - started
     params = dict(result.params)
     extra = dict(extra)

@@ -159,7 +159,7 @@ def outputs(out: Path) -> dict:
     }
 
 
-@pytest.mark.parametrize("method", ["ls", "sbl"])
+@pytest.mark.parametrize("method", ["ls", "l1", "sbl"])
 def test_any_band_height_gives_the_single_band_result(capture, tmp_path, method):
     single = run(capture, tmp_path / "single", method=method, threads=1)
     assert single["streaming"]["bands"] == 1
@@ -179,12 +179,14 @@ def test_any_band_height_gives_the_single_band_result(capture, tmp_path, method)
         np.testing.assert_array_equal(result["normal_png"], reference["normal_png"])
         for key in ("angular_error_deg", "iterations", "outlier_share", "unsolved_pixels"):
             assert result["metrics"][key] == pytest.approx(reference["metrics"][key], rel=1e-9)
-        if method == "sbl":
-            parameters = result["metrics"]["parameters"]
-            assert parameters["lambda"] == reference["metrics"]["parameters"]["lambda"]
+        parameters = result["metrics"]["parameters"]
+        for key in ("lambda", "noise_sigma", "outlier_threshold"):
+            assert parameters.get(key) == reference["metrics"]["parameters"].get(key), key
+        if method != "ls":
+            assert parameters["noise_sigma"] > 0
 
 
-@pytest.mark.parametrize("method", ["ls", "sbl"])
+@pytest.mark.parametrize("method", ["ls", "l1", "sbl"])
 def test_streamed_result_equals_the_in_memory_solve(capture, tmp_path, method):
     data = load_dataset(capture, shadow_threshold=0.005)
     solution = solvers.solve(
@@ -200,7 +202,8 @@ def test_streamed_result_equals_the_in_memory_solve(capture, tmp_path, method):
         result["albedo"][data.mask], solution.albedo.astype(np.float32), rtol=1e-6
     )
     # the noise level comes from the same pixels; BLAS rounding may differ with array shapes
-    assert metrics["parameters"].get("lambda") == pytest.approx(solution.params.get("lambda"))
+    for key in ("lambda", "noise_sigma", "outlier_threshold"):
+        assert metrics["parameters"].get(key) == pytest.approx(solution.params.get(key)), key
     assert metrics["outlier_share"] == pytest.approx(
         solution.outliers.sum() / data.valid[:, data.mask].sum(), rel=1e-12
     )
