@@ -837,28 +837,43 @@ def read_normal_gt(path: Path, shape: tuple[int, int] | None = None) -> np.ndarr
             normals = np.load(path, allow_pickle=False)
         except (OSError, ValueError, EOFError) as exc:
             raise DatasetError(f"{path}: corrupt or unreadable .npy file ({exc})") from None
-    if normals.ndim != 3 or normals.shape[2] != 3:
-        raise DatasetError(f"{path}: ground-truth normals must be H x W x 3, got {normals.shape}")
-    if shape is not None and normals.shape[:2] != tuple(shape):
+    _check_normal_gt_shape(path, normals.shape, shape)
+    return _finite_normals(path, normals.astype(np.float64))
+
+
+def _check_normal_gt_shape(path: Path, dims: tuple, shape: tuple[int, int] | None) -> None:
+    """Raise DatasetError unless ``dims`` is (H, W, 3) with (H, W) == ``shape`` (when given)."""
+    if len(dims) != 3 or dims[2] != 3:
+        raise DatasetError(f"{path}: ground-truth normals must be H x W x 3, got {tuple(dims)}")
+    if shape is not None and tuple(dims[:2]) != tuple(shape):
         raise DatasetError(
-            f"{path}: ground-truth size {normals.shape[1]}x{normals.shape[0]} differs from the "
+            f"{path}: ground-truth size {dims[1]}x{dims[0]} differs from the "
             f"image size {shape[1]}x{shape[0]}"
         )
-    normals = normals.astype(np.float64)
+
+
+def _finite_normals(path: Path, normals: np.ndarray) -> np.ndarray:
     if not np.all(np.isfinite(normals)):
         raise DatasetError(f"{path}: ground-truth normals contain NaN or infinite values")
     return normals
 
 
-def _find_normal_gt(root: Path, shape: tuple[int, int]) -> np.ndarray | None:
+def _normal_gt_path(root: Path) -> Path | None:
+    """The dataset's ground-truth file: ``normal_gt.npy``, ``Normal_gt.mat`` (DiLiGenT), else
+    the simulator's ``simulation/normal_gt.npy``; None when there is none."""
     for candidate in (
         root / "normal_gt.npy",
         root / "Normal_gt.mat",
         root / SIMULATION / "normal_gt.npy",
     ):
         if candidate.is_file():
-            return read_normal_gt(candidate, shape)
+            return candidate
     return None
+
+
+def _find_normal_gt(root: Path, shape: tuple[int, int]) -> np.ndarray | None:
+    path = _normal_gt_path(root)
+    return None if path is None else read_normal_gt(path, shape)
 
 
 # --- streamed loading: captures of any size in bounded memory ---------------------------------
@@ -1131,15 +1146,7 @@ class NormalTruth:
                     dims, fortran, dtype, offset = read_npy_header(stream)
             except (OSError, ValueError) as exc:
                 raise DatasetError(f"{path}: corrupt or unreadable .npy file ({exc})") from None
-            if len(dims) != 3 or dims[2] != 3:
-                raise DatasetError(
-                    f"{path}: ground-truth normals must be H x W x 3, got {tuple(dims)}"
-                )
-            if dims[:2] != tuple(shape):
-                raise DatasetError(
-                    f"{path}: ground-truth size {dims[1]}x{dims[0]} differs from the image size "
-                    f"{shape[1]}x{shape[0]}"
-                )
+            _check_normal_gt_shape(path, tuple(dims), shape)
             expected = offset + int(np.prod(dims)) * dtype.itemsize
             if not fortran and dtype.kind == "f" and path.stat().st_size >= expected:
                 self._layout = (dtype, offset)
@@ -1159,19 +1166,10 @@ class NormalTruth:
             data = np.fromfile(stream, dtype=dtype, count=count)
         if data.size != count:
             raise DatasetError(f"{self.path}: file is truncated")
-        normals = data.reshape(stop - start, width, 3).astype(np.float64)
-        if not np.all(np.isfinite(normals)):
-            raise DatasetError(f"{self.path}: ground-truth normals contain NaN or infinite values")
-        return normals
+        return _finite_normals(self.path, data.reshape(stop - start, width, 3).astype(np.float64))
 
 
 def open_normal_gt(root: Path, shape: tuple[int, int]) -> NormalTruth | None:
     """The dataset's ground-truth normals for band-wise reading, or None (as in load_dataset)."""
-    for candidate in (
-        root / "normal_gt.npy",
-        root / "Normal_gt.mat",
-        root / SIMULATION / "normal_gt.npy",
-    ):
-        if candidate.is_file():
-            return NormalTruth(candidate, shape)
-    return None
+    path = _normal_gt_path(root)
+    return None if path is None else NormalTruth(path, shape)

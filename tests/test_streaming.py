@@ -370,3 +370,16 @@ def test_cli_memory_budget(capture, tmp_path):
     result = runner.invoke(app, [*args, "--out", str(tmp_path / "c"), "--memory-budget", "lots"])
     assert result.exit_code == 2 and result.output.startswith("error: memory budget")
     assert not (tmp_path / "c").exists()
+
+
+def test_rpca_bands_share_the_whole_image_noise_level(capture, tmp_path):
+    # R-PCA's low-rank model is fitted per band (documented); its noise level and outlier
+    # threshold are still the whole-image ones.
+    single = run(capture, tmp_path / "single", method="rpca", threads=1)
+    banded = run(capture, tmp_path / "banded", method="rpca", memory_budget=budget_for(60))
+    assert single["streaming"]["bands"] == 1 and banded["streaming"]["bands"] > 1
+    for key in ("noise_sigma", "outlier_threshold"):
+        assert banded["parameters"][key] == single["parameters"][key], key
+    assert single["parameters"]["noise_sigma"] > 0
+    errors = banded["angular_error_deg"]
+    assert errors["mean"] == pytest.approx(single["angular_error_deg"]["mean"], rel=0.25)
