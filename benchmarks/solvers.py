@@ -122,8 +122,8 @@ def real_like(kind, n, seed, *, shape=(96, 96), specular=0.3, full_well=20000.0,
 
 
 def cmd_lambda(args):
-    print(f"# SBL lambda on real-like 16-bit captures (40 lights, speculars 0.3, shot+read noise, "
-          f"saturation dropped) — mean/median angular error in degrees")
+    print("# SBL lambda on real-like 16-bit captures (40 lights, speculars 0.3, shot+read noise, "
+          "saturation dropped) — mean/median angular error in degrees")
     names = ["ls", "l1", "sbl auto", "sbl 1e-2", "sbl 1e-4", "sbl 1e-6"]
     print(f"{'scene':>12} {'auto lambda':>11} " + " ".join(f"{x:>12}" for x in names))
     for kind in ("sphere", "relief"):

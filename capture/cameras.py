@@ -29,9 +29,9 @@ from types import TracebackType
 from typing import Any, Protocol
 
 import numpy as np
+
 from ps_lab.capture.dng import write_dng
 from ps_lab.capture.raw import RAW_SUFFIXES, read_exposure
-
 from ps_lab.errors import CameraError, PsLabError
 
 __all__ = [

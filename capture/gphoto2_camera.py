@@ -24,7 +24,6 @@ from typing import Any
 
 from ps_lab.capture.cameras import Camera
 from ps_lab.capture.raw import RAW_SUFFIXES
-
 from ps_lab.errors import CameraError
 
 __all__ = ["CAMERA_RAW_SUFFIXES", "Gphoto2Camera", "parse_shutter_speed"]

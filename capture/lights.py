@@ -15,8 +15,8 @@ from dataclasses import dataclass
 from typing import Any
 
 import serial
-from ps_lab.capture._serial_link import POLL_S, SerialLink
 
+from ps_lab.capture._serial_link import POLL_S, SerialLink
 from ps_lab.errors import RigError
 
 __all__ = [

@@ -14,6 +14,8 @@ import threading
 import time
 from collections.abc import Callable
 
+from serial.serialutil import PortNotOpenError, SerialBase, SerialException, SerialTimeoutException
+
 from ps_lab.capture.sim_lights import (
     LineAssembler,
     Reply,
@@ -21,8 +23,6 @@ from ps_lab.capture.sim_lights import (
     _Outbox,
     firmware_from_url,
 )
-from serial.serialutil import PortNotOpenError, SerialBase, SerialException, SerialTimeoutException
-
 from ps_lab.errors import RigError
 
 

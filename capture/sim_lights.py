@@ -42,7 +42,6 @@ from ps_lab.capture.lights import (
     PROTOCOL_VERSION,
     LightState,
 )
-
 from ps_lab.errors import RigError
 
 __all__ = [

@@ -3,8 +3,8 @@
 The package imports neither ``ps_lab.capture`` nor ``ps_lab.calibration``.
 """
 
-from ._solution import METHODS, RefinementResult, Solution, SolverInputError
 from ._refine import fit_lights, light_fit_sums, refine_lights
+from ._solution import METHODS, RefinementResult, Solution, SolverInputError
 from ._solve import estimate_noise, solve
 from .metrics import angular_errors_deg, error_summary
 

@@ -64,7 +64,7 @@ def _solve3(xx, yy, zz, xy, xz, yz, t0, t1, t2):
 
 @njit(nogil=True, cache=True)
 def _weighted_fit(y, v, lights, aa, p):
-    """x minimising sum_i v_i (y_pi - a_i.x)^2 for pixel p (v: weights of length n)."""
+    """Return x minimising sum_i v_i (y_pi - a_i.x)^2 for pixel p (v: weights of length n)."""
     xx = yy = zz = xy = xz = yz = 0.0
     t0 = t1 = t2 = 0.0
     for i in range(lights.shape[0]):

@@ -9,9 +9,9 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+
 from ps_lab.capture.cameras import Camera, CapturedFrame, FolderCamera, SimulatedCamera
 from ps_lab.capture.raw import load_raw
-
 from ps_lab.errors import CameraError, DatasetError
 
 
@@ -403,6 +403,7 @@ def test_folder_camera_copy_mode_and_raw_exposure(tmp_path, rng):
 # --------------------------------------------------------------------------------------------
 
 from gphoto2_double import GP_ERROR_IO_USB_CLAIM, Shot, make_gphoto2_double  # noqa: E402
+
 from ps_lab.capture.gphoto2_camera import Gphoto2Camera, parse_shutter_speed  # noqa: E402
 
 RIG_SETTINGS = {"imageformat": "RAW", "shutterspeed": "1/20", "iso": "100", "aperture": "8"}

@@ -9,6 +9,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import pytest
+
 from ps_lab.capture.sim_lights import LineAssembler, ManualClock, SimulatedFirmware
 
 FIRMWARE = Path(__file__).resolve().parents[1] / "rigs" / "firmware"

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+
 from ps_lab.capture.gphoto2_camera import Gphoto2Camera
 from ps_lab.capture.raw import load_raw
 

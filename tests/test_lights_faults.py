@@ -13,6 +13,7 @@ import time
 import pytest
 import serial
 from lights_doubles import CLOSE, expected_protocol, handshake
+
 from ps_lab.capture.lights import LightState, SerialLightController
 from ps_lab.capture.sim_lights import (
     Fault,
@@ -24,7 +25,6 @@ from ps_lab.capture.sim_lights import (
     parse_faults,
     register_firmware,
 )
-
 from ps_lab.errors import RigError
 
 FIRST = 5  # number of the first command after the handshake

@@ -10,8 +10,8 @@ from __future__ import annotations
 import os
 
 import pytest
-from ps_lab.capture.lights import LightState, SerialLightController, walk_lights
 
+from ps_lab.capture.lights import LightState, SerialLightController, walk_lights
 from ps_lab.errors import RigError
 
 

@@ -5,9 +5,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import rawpy
+
 from ps_lab.capture.dng import CFA_PATTERNS, write_dng
 from ps_lab.capture.raw import RAW_SUFFIXES, load_raw
-
 from ps_lab.errors import DatasetError
 
 WHITE = 16383

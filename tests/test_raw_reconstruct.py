@@ -8,9 +8,9 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
-from ps_lab.capture.cameras import SimulatedCamera
 from typer.testing import CliRunner
 
+from ps_lab.capture.cameras import SimulatedCamera
 from ps_lab.cli import app
 
 render = pytest.importorskip("ps_lab.capture.render")
