@@ -4,7 +4,7 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 
-.PHONY: demo test test-slow bench clean
+.PHONY: demo test test-slow bench lint clean
 
 $(STAMP): pyproject.toml
 	@command -v $(PYTHON) >/dev/null 2>&1 || { echo "need $(PYTHON) (set PYTHON=...)"; exit 1; }
@@ -23,7 +23,11 @@ test-slow: $(STAMP)
 	$(BIN)/python -m pytest -q -m slow
 
 bench: $(STAMP)
-	$(BIN)/python benchmarks/solvers.py
+	$(BIN)/python benchmarks/solvers.py speed --quick
+
+lint: $(STAMP)
+	$(BIN)/python -m pip install -q -e '.[test,lint]'
+	$(BIN)/ruff check .
 
 clean:
 	rm -rf $(VENV) build *.egg-info
