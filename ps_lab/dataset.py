@@ -859,8 +859,11 @@ def _finite_normals(path: Path, normals: np.ndarray) -> np.ndarray:
 
 
 def _normal_gt_path(root: Path) -> Path | None:
-    """The dataset's ground-truth file: ``normal_gt.npy``, ``Normal_gt.mat`` (DiLiGenT), else
-    the simulator's ``simulation/normal_gt.npy``; None when there is none."""
+    """The dataset's ground-truth file, or None.
+
+    ``normal_gt.npy``, else DiLiGenT's ``Normal_gt.mat``, else the simulator's
+    ``simulation/normal_gt.npy``.
+    """
     for candidate in (
         root / "normal_gt.npy",
         root / "Normal_gt.mat",
