@@ -121,6 +121,21 @@ def real_like(kind, n, seed, *, shape=(96, 96), specular=0.3, full_well=20000.0,
     return obs, lights, dn[:, surf.mask] < 65535, surf.normals[surf.mask]
 
 
+def _lambda_row(names, obs, lights, valid, normals):
+    """Mean/median error cells of each method in ``names`` and the automatic lambda."""
+    cells, lam = [], None
+    for name in names:
+        kw = {"method": name.split()[0]}
+        if name.startswith("sbl") and name != "sbl auto":
+            kw["lam"] = float(name.split()[1])
+        sol = solve(obs, lights, valid=valid, **kw)
+        if name == "sbl auto":
+            lam = sol.params["lambda"]
+        e = error_summary(angular_errors_deg(sol.normals, normals))
+        cells.append(f"{e['mean']:5.2f}/{e['median']:5.2f}")
+    return cells, lam
+
+
 def cmd_lambda(args):
     print("# SBL lambda on real-like 16-bit captures (40 lights, speculars 0.3, shot+read noise, "
           "saturation dropped) — mean/median angular error in degrees")
@@ -128,33 +143,15 @@ def cmd_lambda(args):
     print(f"{'scene':>12} {'auto lambda':>11} " + " ".join(f"{x:>12}" for x in names))
     for kind in ("sphere", "relief"):
         for seed in (1, 2, 3):
-            obs, lights, valid, normals = real_like(kind, 40, seed)
-            cells, lam = [], None
-            for name in names:
-                kw = {"method": name.split()[0]}
-                if name.startswith("sbl") and name != "sbl auto":
-                    kw["lam"] = float(name.split()[1])
-                sol = solve(obs, lights, valid=valid, **kw)
-                if name == "sbl auto":
-                    lam = sol.params["lambda"]
-                e = error_summary(angular_errors_deg(sol.normals, normals))
-                cells.append(f"{e['mean']:5.2f}/{e['median']:5.2f}")
+            cells, lam = _lambda_row(names, *real_like(kind, 40, seed))
             print(f"{kind + ' ' + str(seed):>12} {lam:11.2e} " + " ".join(f"{c:>12}" for c in cells),
                   flush=True)
     print("# exposure sweep (seed 1): peak = 99.5th percentile as a share of full scale, full well")
     for peak, full_well in ((0.8, 20000.0), (0.1, 20000.0), (0.05, 5000.0)):
         for kind in ("sphere", "relief"):
-            obs, lights, valid, normals = real_like(kind, 40, 1, peak=peak, full_well=full_well)
-            cells, lam = [], None
-            for name in names:
-                kw = {"method": name.split()[0]}
-                if name.startswith("sbl") and name != "sbl auto":
-                    kw["lam"] = float(name.split()[1])
-                sol = solve(obs, lights, valid=valid, **kw)
-                if name == "sbl auto":
-                    lam = sol.params["lambda"]
-                e = error_summary(angular_errors_deg(sol.normals, normals))
-                cells.append(f"{e['mean']:5.2f}/{e['median']:5.2f}")
+            cells, lam = _lambda_row(
+                names, *real_like(kind, 40, 1, peak=peak, full_well=full_well)
+            )
             label = f"{kind} {peak:g}/{full_well:g}"
             print(f"{label:>20} {lam:11.2e} " + " ".join(f"{c:>12}" for c in cells), flush=True)
 

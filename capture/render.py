@@ -133,6 +133,20 @@ def _albedo_array(albedo: object, shape: tuple[int, int], mask: np.ndarray) -> n
     return out
 
 
+def _default_disc(
+    shape: tuple[int, int], center: tuple[float, float] | None, radius: float | None
+) -> tuple[tuple[float, float], float]:
+    """Centre (default: image centre) and radius (default: 0.45 of the shorter side) of an object."""
+    h, w = shape
+    if center is None:
+        center = ((w - 1) / 2.0, (h - 1) / 2.0)
+    if radius is None:
+        radius = 0.45 * min(h, w)
+    if radius <= 0:
+        raise ValueError(f"radius must be positive, got {radius}")
+    return center, radius
+
+
 def sphere_surface(
     shape: tuple[int, int],
     center: tuple[float, float] | None = None,
@@ -157,13 +171,7 @@ def sphere_surface(
     Surface
         Height ``z = sqrt(r^2 - dx^2 - dy^2)`` and normals ``(dx, dy, z) / r``, ``dy`` pointing up.
     """
-    h, w = shape
-    if center is None:
-        center = ((w - 1) / 2.0, (h - 1) / 2.0)
-    if radius is None:
-        radius = 0.45 * min(h, w)
-    if radius <= 0:
-        raise ValueError(f"radius must be positive, got {radius}")
+    center, radius = _default_disc(shape, center, radius)
     cols, rows = _pixel_grid(shape)
     dx = cols - center[0]
     dy = -(rows - center[1])
@@ -220,13 +228,7 @@ def relief_surface(
     -------
     Surface
     """
-    h, w = shape
-    if center is None:
-        center = ((w - 1) / 2.0, (h - 1) / 2.0)
-    if radius is None:
-        radius = 0.45 * min(h, w)
-    if radius <= 0:
-        raise ValueError(f"radius must be positive, got {radius}")
+    center, radius = _default_disc(shape, center, radius)
     rng = np.random.default_rng(seed)
     cols, rows = _pixel_grid(shape)
     # Work in units of the radius: u right, v up.
