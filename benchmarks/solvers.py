@@ -182,16 +182,6 @@ def cmd_accuracy(args):
                   flush=True)
 
 
-def turn_each(lights, deg, rng):
-    out = []
-    for light in lights:
-        axis = rng.normal(size=3)
-        axis -= axis.dot(light) * light
-        axis /= np.linalg.norm(axis)
-        out.append(np.cos(np.radians(deg)) * light + np.sin(np.radians(deg)) * axis)
-    return np.array(out)
-
-
 def cmd_refine(args):
     print("# light refinement: 40 lights each turned 5 deg in a random direction, specular 0.2, "
           "shadows dropped; mean normal error (deg) after k iterations; last column: mean light error")
@@ -202,7 +192,7 @@ def cmd_refine(args):
                 lights = R.random_light_directions(40, rng)
                 surf = R.sphere_surface((96, 96)) if kind == "sphere" else R.relief_surface((96, 96), seed=seed)
                 obs = R.render(surf, lights, specular=0.2, rng=rng)[:, surf.mask]
-                res = refine_lights(obs, turn_each(lights, 5.0, rng), method=method, iterations=args.iterations,
+                res = refine_lights(obs, R.perturb_light_directions(lights, 5.0, rng), method=method, iterations=args.iterations,
                                     valid=obs > 0, normal_gt=surf.normals[surf.mask],
                                     light_directions_gt=lights)
                 errs = [h["normal_error_deg"] for h in res.history]

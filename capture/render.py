@@ -34,6 +34,7 @@ __all__ = [
     "SceneObject",
     "SimulationSettings",
     "check_new_dataset_folder",
+    "perturb_light_directions",
     "Surface",
     "random_light_directions",
     "relief_surface",
@@ -110,6 +111,34 @@ class Surface:
     mask: np.ndarray
     height: np.ndarray
     albedo: np.ndarray
+
+
+def perturb_light_directions(
+    light_directions: np.ndarray, angle_deg: float, rng: np.random.Generator
+) -> np.ndarray:
+    """Turn every light by exactly ``angle_deg`` about a random axis perpendicular to it.
+
+    Parameters
+    ----------
+    light_directions : ndarray of shape (n, 3)
+        Unit light directions.
+    angle_deg : float
+        Angle between each light and its perturbed copy.
+    rng : numpy.random.Generator
+        Source of the random directions of the turn.
+
+    Returns
+    -------
+    ndarray of shape (n, 3)
+        Unit vectors at ``angle_deg`` from the input, in uniformly random directions.
+    """
+    lights = np.asarray(light_directions, dtype=np.float64)
+    lights = lights / np.linalg.norm(lights, axis=1, keepdims=True)
+    tangent = rng.standard_normal(lights.shape)
+    tangent -= np.sum(tangent * lights, axis=1, keepdims=True) * lights
+    tangent /= np.linalg.norm(tangent, axis=1, keepdims=True)
+    a = np.radians(angle_deg)
+    return np.cos(a) * lights + np.sin(a) * tangent
 
 
 def _pixel_grid(shape: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:

@@ -56,7 +56,6 @@ __all__ = [
     "RefinementTable",
     "SceneStats",
     "PaperResults",
-    "perturb_light_directions",
     "specular_share",
     "roughness_for_specular_share",
     "run_paper",
@@ -346,34 +345,6 @@ def roughness_for_specular_share(
     return math.exp(0.5 * (lo + hi))
 
 
-def perturb_light_directions(
-    light_directions: np.ndarray, angle_deg: float, rng: np.random.Generator
-) -> np.ndarray:
-    """Turn every light by exactly ``angle_deg`` about a random axis perpendicular to it.
-
-    Parameters
-    ----------
-    light_directions : ndarray of shape (n, 3)
-        Unit light directions.
-    angle_deg : float
-        Angle between each light and its perturbed copy.
-    rng : numpy.random.Generator
-        Source of the random directions of the turn.
-
-    Returns
-    -------
-    ndarray of shape (n, 3)
-        Unit vectors at ``angle_deg`` from the input, in uniformly random directions.
-    """
-    lights = np.asarray(light_directions, dtype=np.float64)
-    lights = lights / np.linalg.norm(lights, axis=1, keepdims=True)
-    tangent = rng.standard_normal(lights.shape)
-    tangent -= np.sum(tangent * lights, axis=1, keepdims=True) * lights
-    tangent /= np.linalg.norm(tangent, axis=1, keepdims=True)
-    a = math.radians(angle_deg)
-    return math.cos(a) * lights + math.sin(a) * tangent
-
-
 def _prepare_scene(name: str, config: PaperConfig) -> _PreparedScene:
     surface = _make_surface(name, config.size, config.seed)
     mask = surface.mask
@@ -619,7 +590,7 @@ def table_refinement(
             for set_index, light_set in enumerate(scene.light_sets):
                 true_lights = light_set.light_directions
                 rng = np.random.default_rng([config.seed, set_index, 5])
-                lights = perturb_light_directions(true_lights, config.light_error_deg, rng)
+                lights = _render.perturb_light_directions(true_lights, config.light_error_deg, rng)
                 result, elapsed_s = _refine(config, light_set, lights, scene.normals, method)
                 for entry in result.history:
                     k = int(entry["iteration"])

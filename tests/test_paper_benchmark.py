@@ -112,7 +112,7 @@ def test_tables_print_as_text_and_markdown(quick_results: bp.PaperResults) -> No
 def test_perturbed_lights_are_turned_by_exactly_the_angle() -> None:
     rng = np.random.default_rng(3)
     lights = render.random_light_directions(50, rng)
-    turned = bp.perturb_light_directions(lights, 5.0, rng)
+    turned = render.perturb_light_directions(lights, 5.0, rng)
     np.testing.assert_allclose(np.linalg.norm(turned, axis=1), 1.0, atol=1e-12)
     angles = np.degrees(np.arccos(np.clip(np.sum(lights * turned, axis=1), -1, 1)))
     np.testing.assert_allclose(angles, 5.0, atol=1e-6)

@@ -6,27 +6,15 @@ import numpy as np
 import pytest
 from test_solvers import lights_upper, scene
 
+from ps_lab.capture.render import perturb_light_directions
 from ps_lab.reconstruct import SolverInputError, angular_errors_deg, refine_lights
 
 
-def turn_each(lights, deg, rng):
-    """Turn every light by `deg` degrees in a random direction."""
-    out = []
-    for light in lights:
-        axis = rng.normal(size=3)
-        axis -= axis.dot(light) * light
-        axis /= np.linalg.norm(axis)
-        t = np.radians(deg)
-        out.append(np.cos(t) * light + np.sin(t) * axis)
-    return np.array(out)
-
-
-@pytest.fixture(scope="module")
 def perturbed():
     rng = np.random.default_rng(2)
     lights = lights_upper(32, rng)
     y, normals, _ = scene("sphere", (40, 40), lights, rng, specular=0.2)
-    return y, lights, turn_each(lights, 5.0, rng), normals
+    return y, lights, perturb_light_directions(lights, 5.0, rng), normals
 
 
 def test_refinement_reduces_the_normal_error(perturbed):
