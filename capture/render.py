@@ -91,28 +91,6 @@ def random_light_directions(
     return np.stack([s * np.cos(phi), s * np.sin(phi), z], axis=1)
 
 
-@dataclass(frozen=True)
-class Surface:
-    """A height-field object seen by the orthographic camera.
-
-    Attributes
-    ----------
-    normals : ndarray of shape (H, W, 3)
-        Unit normals inside ``mask`` (camera frame), zeros outside.
-    mask : ndarray of shape (H, W), bool
-        Pixels covered by the object.
-    height : ndarray of shape (H, W)
-        Surface height z in pixel units (used for ray-marched cast shadows), 0 outside.
-    albedo : ndarray of shape (H, W) or (H, W, 3)
-        Lambertian albedo (grey or per channel).
-    """
-
-    normals: np.ndarray
-    mask: np.ndarray
-    height: np.ndarray
-    albedo: np.ndarray
-
-
 def perturb_light_directions(
     light_directions: np.ndarray, angle_deg: float, rng: np.random.Generator
 ) -> np.ndarray:
@@ -139,6 +117,28 @@ def perturb_light_directions(
     tangent /= np.linalg.norm(tangent, axis=1, keepdims=True)
     a = np.radians(angle_deg)
     return np.cos(a) * lights + np.sin(a) * tangent
+
+
+@dataclass(frozen=True)
+class Surface:
+    """A height-field object seen by the orthographic camera.
+
+    Attributes
+    ----------
+    normals : ndarray of shape (H, W, 3)
+        Unit normals inside ``mask`` (camera frame), zeros outside.
+    mask : ndarray of shape (H, W), bool
+        Pixels covered by the object.
+    height : ndarray of shape (H, W)
+        Surface height z in pixel units (used for ray-marched cast shadows), 0 outside.
+    albedo : ndarray of shape (H, W) or (H, W, 3)
+        Lambertian albedo (grey or per channel).
+    """
+
+    normals: np.ndarray
+    mask: np.ndarray
+    height: np.ndarray
+    albedo: np.ndarray
 
 
 def _pixel_grid(shape: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:

@@ -10,6 +10,7 @@ from ps_lab.capture.render import perturb_light_directions
 from ps_lab.reconstruct import SolverInputError, angular_errors_deg, refine_lights
 
 
+@pytest.fixture(scope="module")
 def perturbed():
     rng = np.random.default_rng(2)
     lights = lights_upper(32, rng)
