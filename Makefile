@@ -16,7 +16,10 @@ $(STAMP): pyproject.toml
 demo: $(STAMP)
 	$(BIN)/python -m ps_lab.demo
 
+# Import contracts ([tool.importlinter] in pyproject.toml) first, then the tests.
 test: $(STAMP)
+	$(BIN)/python tools/import_tree.py $(VENV)/import-tree
+	cd $(VENV)/import-tree && PYTHONPATH=. $(CURDIR)/$(BIN)/lint-imports --no-cache $(CURDIR)/pyproject.toml
 	$(BIN)/python -m pytest -q
 
 test-slow: $(STAMP)

@@ -1,6 +1,6 @@
 """Regenerate the tables of Ikehata et al. (CVPR 2012) on rendered scenes.
 
-A thin script over :mod:`ps_lab.bench_paper` (so that ``ps-lab bench paper`` works from an
+A thin script over :mod:`ps_lab.bench.paper` (so that ``ps-lab bench paper`` works from an
 installed CLI too). Usage::
 
     python benchmarks/paper.py [--quick] [--size N] [--light-sets K] [--seed S] [--tables 1,3,4,5]
@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import sys
 
-from ps_lab.bench_paper import (  # noqa: F401  (re-exported for importers of this module)
+from ps_lab.bench.paper import (  # noqa: F401  (re-exported for importers of this module)
     PaperConfig,
     format_markdown,
     format_text,

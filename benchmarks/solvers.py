@@ -25,9 +25,9 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
 
-from solver_oracles import solve_oracle  # noqa: E402
+from helpers.solver_oracles import solve_oracle  # noqa: E402
 
-from ps_lab.capture import render as R  # noqa: E402
+from ps_lab import render as R  # noqa: E402
 from ps_lab.reconstruct import (  # noqa: E402
     METHODS,
     angular_errors_deg,

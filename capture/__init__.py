@@ -2,20 +2,22 @@
 
 - light controllers: :class:`LightController`, :class:`SerialLightController` (protocol v1 over
   pyserial; importing this package registers the ``pslabsim://`` URL of the simulated controller);
-- cameras: :class:`Camera`, :class:`FolderCamera`, :class:`SimulatedCamera`,
+- cameras: :class:`Camera`, :class:`FolderCamera`,
   :class:`~ps_lab.capture.gphoto2_camera.Gphoto2Camera` (optional extra ``ps-lab[gphoto2]``);
-- linear RAW: :func:`load_raw`, :func:`write_dng`;
+- linear RAW (re-exported from :mod:`ps_lab.io`): :func:`load_raw`, :func:`write_dng`;
 - rig files and capture sessions: :func:`load_rig`, :class:`CaptureSession`.
 
-The simulators (``sim_lights``, ``render``) are imported only when a rig file selects them.
+The simulators (:mod:`ps_lab.capture.simulated`: controller firmware, its ``pslabsim://`` URL
+handler, the simulated camera) are imported only by :mod:`ps_lab.capture.connect`, when a rig
+file selects them.
 """
 
-from ps_lab.capture.cameras import Camera, CapturedFrame, FolderCamera, SimulatedCamera
-from ps_lab.capture.dng import write_dng
+from ps_lab.capture.cameras import Camera, CapturedFrame, FolderCamera
 from ps_lab.capture.lights import LightController, LightState, SerialLightController
-from ps_lab.capture.raw import RAW_SUFFIXES, RawImage, load_raw
 from ps_lab.capture.rig import Rig, load_rig
 from ps_lab.capture.session import CaptureSession
+from ps_lab.io.dng import write_dng
+from ps_lab.io.raw import RAW_SUFFIXES, RawImage, load_raw
 
 __all__ = [
     "RAW_SUFFIXES",
@@ -28,7 +30,6 @@ __all__ = [
     "RawImage",
     "Rig",
     "SerialLightController",
-    "SimulatedCamera",
     "load_raw",
     "load_rig",
     "write_dng",

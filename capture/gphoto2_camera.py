@@ -23,8 +23,8 @@ from types import ModuleType
 from typing import Any
 
 from ps_lab.capture.cameras import Camera
-from ps_lab.capture.raw import RAW_SUFFIXES
 from ps_lab.errors import CameraError
+from ps_lab.io.raw import RAW_SUFFIXES
 
 __all__ = ["CAMERA_RAW_SUFFIXES", "Gphoto2Camera", "parse_shutter_speed"]
 
@@ -60,6 +60,8 @@ _INSTALL_HINT = "python-gphoto2 is not installed: pip install 'ps-lab[gphoto2]'"
 
 
 def _import_gphoto2() -> ModuleType:
+    # Imported here, on first use: python-gphoto2 is an optional extra (ps-lab[gphoto2]) that
+    # needs libgphoto2; without it every other camera still works.
     try:
         import gphoto2  # type: ignore[import-not-found]
     except ImportError:

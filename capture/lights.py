@@ -37,9 +37,11 @@ MAX_LEVEL = 255
 MAX_LINE = 200
 
 # pyserial finds a ``scheme://`` handler by importing ``protocol_<scheme>`` from these packages;
-# this makes ``pslabsim://`` (capture/protocol_pslabsim.py) available to every serial_for_url call.
-if "ps_lab.capture" not in serial.protocol_handler_packages:
-    serial.protocol_handler_packages.append("ps_lab.capture")
+# this makes ``pslabsim://`` (capture/simulated/protocol_pslabsim.py) available to every
+# serial_for_url call. Only the package name is registered: pyserial imports the simulator when a
+# ``pslabsim://`` URL is opened, never otherwise.
+if "ps_lab.capture.simulated" not in serial.protocol_handler_packages:
+    serial.protocol_handler_packages.append("ps_lab.capture.simulated")
 
 
 @dataclass(frozen=True)

@@ -15,7 +15,7 @@ frame is shot again. Frames of the simulated camera depend only on the frame ind
 resumed run is byte-identical to an uninterrupted one.
 
 Order of one frame (``kind = "light"``): switch the light on and wait for the controller's
-reply; wait ``settle_ms``; capture; check the file (RAW: :func:`~ps_lab.capture.raw.load_raw`
+reply; wait ``settle_ms``; capture; check the file (RAW: :func:`~ps_lab.io.raw.load_raw`
 reads it); switch the light off. A :class:`~ps_lab.errors.CameraError` (timeout, unreadable
 file) is retried ``[camera] retries`` times — light off, light on again, capture again; a
 controller error stops the run (the driver already retried what the protocol allows).
@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import contextlib
 import hashlib
+import io
 import json
 import logging
 import os
@@ -38,18 +39,15 @@ from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any, Protocol
 
+import cv2
 import numpy as np
 
-from ps_lab.capture.rig import (
-    OpenRig,
-    Rig,
-    build_simulation,
-    comparable_snapshot,
-    nominal_directions,
-    open_rig,
-    snapshot_differences,
-)
+from ps_lab import __version__
+from ps_lab.capture.connect import OpenRig, build_simulation, nominal_directions, open_rig
+from ps_lab.capture.rig import Rig, comparable_snapshot, snapshot_differences
 from ps_lab.errors import CameraError, DatasetError, PsLabError, RigError
+from ps_lab.io.raw import is_raw_file, load_raw
+from ps_lab.render import scene_ground_truth
 
 log = logging.getLogger(__name__)
 
@@ -294,16 +292,12 @@ def _verify_frame(path: Path, file_type: str) -> None:
     """Raise :class:`CameraError` unless ``path`` is a readable image of its type."""
     if not path.is_file() or path.stat().st_size == 0:
         raise CameraError(f"the camera left no file at {path.name}")
-    from ps_lab.capture.raw import is_raw_file, load_raw
-
     if is_raw_file(path):
         try:
             load_raw(path)
         except PsLabError as exc:
             raise CameraError(f"the frame does not read back: {exc}") from None
     else:
-        import cv2
-
         if cv2.imread(str(path), cv2.IMREAD_UNCHANGED) is None:
             raise CameraError(f"the frame {path.name} does not read back as an image")
 
@@ -457,8 +451,6 @@ class CaptureSession:
             )
 
     def _new_manifest(self) -> dict[str, Any]:
-        from ps_lab import __version__
-
         return {
             "format": RUN_FORMAT,
             "version": RUN_VERSION,
@@ -641,10 +633,6 @@ class CaptureSession:
 
     def _write_simulation(self, opened: OpenRig) -> None:
         """Write the simulator's ground truth (normals, mask, true lights in plan order)."""
-        import cv2
-
-        from ps_lab.capture.render import scene_ground_truth
-
         sim = opened.simulation if opened.simulation is not None else build_simulation(self.rig)
         folder = self.run_dir / SIMULATION_DIR
         folder.mkdir(exist_ok=True)
@@ -779,8 +767,6 @@ def _table(rows: np.ndarray) -> bytes:
 
 
 def _npy_bytes(array: np.ndarray) -> bytes:
-    import io
-
     buf = io.BytesIO()
     np.save(buf, array)
     return buf.getvalue()

@@ -2,12 +2,16 @@
 
 A symmetric 3x3 matrix is stored as its six unique entries in the order
 ``(xx, yy, zz, xy, xz, yz)`` so that the per-pixel normal matrices ``sum_i w_i a_i a_i^T`` of a
-whole tile are one matrix product ``w @ outer6(A)``.
+whole tile are one matrix product ``w @ outer6(A)``. Also the robust per-pixel scale
+(:func:`pixel_scale`) that every solver divides by.
 """
 
 from __future__ import annotations
 
 import numpy as np
+
+# A pixel needs a usable 3x3 normal matrix: det >= this * (trace/3)^3 (conditioning).
+SOLVABLE_REL_DET = 1e-6
 
 
 def outer6(lights: np.ndarray) -> np.ndarray:
@@ -61,3 +65,31 @@ def apply6(inv: np.ndarray, t: np.ndarray) -> np.ndarray:
         ],
         axis=1,
     )
+
+
+def pixel_scale(y: np.ndarray, w: np.ndarray) -> np.ndarray:
+    """Robust scale of each pixel: the median of its usable observations' magnitudes.
+
+    Parameters
+    ----------
+    y : ndarray of shape (m, n)
+    w : ndarray of shape (m, n), bool
+
+    Returns
+    -------
+    ndarray of shape (m,), float64
+        The median of ``|y|`` over usable observations; when that is zero (a pixel dark under most
+        lights), the mean of ``|y|``; zero when the pixel has no usable non-zero observation.
+    """
+    a = np.where(w, np.abs(y), np.inf).astype(np.float64)
+    a.sort(axis=1)
+    k = w.sum(axis=1)
+    lo = np.clip((k - 1) // 2, 0, None)
+    hi = np.clip(k // 2, 0, None)
+    rows = np.arange(y.shape[0])
+    last = a.shape[1] - 1
+    mid = 0.5 * (a[rows, np.minimum(lo, last)] + a[rows, np.minimum(hi, last)])
+    med = np.where(k > 0, mid, 0.0)
+    a[~np.isfinite(a)] = 0.0
+    mean = a.sum(axis=1) / np.maximum(k, 1)
+    return np.where(med > 0, med, mean)

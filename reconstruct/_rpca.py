@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ._linalg import apply6, inverse6, outer6
+from ._linalg import SOLVABLE_REL_DET, apply6, inverse6, outer6, pixel_scale
 from ._solution import Solution
 
 
@@ -31,8 +31,6 @@ def _svt(x: np.ndarray, tau: float) -> np.ndarray:
 
 def solve_rpca(obs, lights, usable, params, used, progress) -> Solution:
     """Run R-PCA + LS on all pixels at once (called by :func:`solve`)."""
-    from ._solve import SOLVABLE_REL_DET, pixel_scale
-
     n, p = obs.shape
     y = np.ascontiguousarray(obs.T, dtype=np.float64)
     w = usable.T.copy()

@@ -10,7 +10,8 @@ from concurrent.futures import ThreadPoolExecutor
 import numpy as np
 
 from . import _kernels
-from ._linalg import inverse6, outer6
+from ._linalg import SOLVABLE_REL_DET, inverse6, outer6, pixel_scale
+from ._rpca import solve_rpca
 from ._solution import METHODS, Solution, SolverInputError
 
 # Defaults of each method's parameters (in units of the pixel's robust scale, see `pixel_scale`).
@@ -28,8 +29,6 @@ DEFAULT_TILE_SIZE = 4096
 LAMBDA_FLOOR = 1e-6
 # Smallest outlier threshold (relative to the pixel scale).
 MIN_OUTLIER_THRESHOLD = 0.05
-# A pixel needs a usable 3x3 normal matrix: det >= this * (trace/3)^3 (conditioning).
-SOLVABLE_REL_DET = 1e-6
 NOISE_SAMPLE_PIXELS = 4000
 # Observations below this share of the pixel scale are not used to estimate the noise.
 SHADOW_FRACTION = 0.1
@@ -38,34 +37,6 @@ SHADOW_FRACTION = 0.1
 # the 25% quantile of abs(r) is 0.3186 sigma.
 NOISE_QUANTILE = 0.25
 NOISE_QUANTILE_Z = 0.31864
-
-
-def pixel_scale(y: np.ndarray, w: np.ndarray) -> np.ndarray:
-    """Robust scale of each pixel: the median of its usable observations' magnitudes.
-
-    Parameters
-    ----------
-    y : ndarray of shape (m, n)
-    w : ndarray of shape (m, n), bool
-
-    Returns
-    -------
-    ndarray of shape (m,), float64
-        The median of ``|y|`` over usable observations; when that is zero (a pixel dark under most
-        lights), the mean of ``|y|``; zero when the pixel has no usable non-zero observation.
-    """
-    a = np.where(w, np.abs(y), np.inf).astype(np.float64)
-    a.sort(axis=1)
-    k = w.sum(axis=1)
-    lo = np.clip((k - 1) // 2, 0, None)
-    hi = np.clip(k // 2, 0, None)
-    rows = np.arange(y.shape[0])
-    last = a.shape[1] - 1
-    mid = 0.5 * (a[rows, np.minimum(lo, last)] + a[rows, np.minimum(hi, last)])
-    med = np.where(k > 0, mid, 0.0)
-    a[~np.isfinite(a)] = 0.0
-    mean = a.sum(axis=1) / np.maximum(k, 1)
-    return np.where(med > 0, med, mean)
 
 
 def _check_inputs(observations, light_directions, valid):
@@ -247,8 +218,6 @@ def solve(
     used.update({k: v for k, v in params.items() if k != "lam"})
 
     if method == "rpca":
-        from ._rpca import solve_rpca
-
         return solve_rpca(obs, lights, usable, params, used, progress)
 
     normals = np.zeros((p, 3))

@@ -10,8 +10,8 @@ import numpy as np
 import pytest
 from typer.testing import CliRunner
 
-from ps_lab.capture.render import random_light_directions, render_chrome_sphere
 from ps_lab.cli import app
+from ps_lab.render import random_light_directions, render_chrome_sphere
 
 runner = CliRunner()
 RIGS = Path(__file__).resolve().parents[1] / "rigs"

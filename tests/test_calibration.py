@@ -16,13 +16,13 @@ from ps_lab.calibration import (
     rig_circles,
     write_calibration,
 )
-from ps_lab.capture.render import (
+from ps_lab.errors import CalibrationError
+from ps_lab.render import (
     random_light_directions,
     render,
     render_chrome_sphere,
     sphere_surface,
 )
-from ps_lab.errors import CalibrationError
 
 
 def angular_errors(a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -149,8 +149,8 @@ def test_saturation_inferred_without_mask():
 
 
 def test_simulated_dng_half_size(tmp_path):
-    from ps_lab.capture.dng import write_dng
-    from ps_lab.capture.raw import load_raw
+    from ps_lab.io.dng import write_dng
+    from ps_lab.io.raw import load_raw
 
     rng = np.random.default_rng(11)
     lights = random_light_directions(24, rng, max_zenith_deg=55.0)

@@ -10,9 +10,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from ps_lab.capture.cameras import Camera, CapturedFrame, FolderCamera, SimulatedCamera
-from ps_lab.capture.raw import load_raw
+from ps_lab.capture.cameras import Camera, CapturedFrame, FolderCamera
+from ps_lab.capture.simulated.camera import SimulatedCamera
 from ps_lab.errors import CameraError, DatasetError
+from ps_lab.io.raw import load_raw
 
 
 @dataclass(frozen=True)
@@ -185,7 +186,7 @@ def test_renders_exactly_the_lit_lights_at_the_level(tmp_path, rng):
 
 
 def test_real_renderer_scene_round_trip(tmp_path):
-    render = pytest.importorskip("ps_lab.capture.render")
+    render = pytest.importorskip("ps_lab.render")
     scene = render.Scene(
         width=32,
         height=24,
@@ -218,8 +219,8 @@ def test_real_renderer_scene_round_trip(tmp_path):
 
 
 def test_driven_by_the_simulated_controller(tmp_path):
-    render = pytest.importorskip("ps_lab.capture.render")
-    sim_lights = pytest.importorskip("ps_lab.capture.sim_lights")
+    render = pytest.importorskip("ps_lab.render")
+    sim_lights = pytest.importorskip("ps_lab.capture.simulated.firmware")
     scene = render.Scene(
         width=24,
         height=16,
@@ -374,7 +375,7 @@ def test_folder_camera_takes_the_next_new_stable_file(tmp_path, rng):
 
 
 def test_folder_camera_copy_mode_and_raw_exposure(tmp_path, rng):
-    from ps_lab.capture.dng import write_dng
+    from ps_lab.io.dng import write_dng
 
     watched = tmp_path / "watched"
     watched.mkdir()
@@ -402,7 +403,7 @@ def test_folder_camera_copy_mode_and_raw_exposure(tmp_path, rng):
 # Gphoto2Camera against the API double
 # --------------------------------------------------------------------------------------------
 
-from gphoto2_double import GP_ERROR_IO_USB_CLAIM, Shot, make_gphoto2_double  # noqa: E402
+from helpers.gphoto2_double import GP_ERROR_IO_USB_CLAIM, Shot, make_gphoto2_double  # noqa: E402
 
 from ps_lab.capture.gphoto2_camera import Gphoto2Camera, parse_shutter_speed  # noqa: E402
 
@@ -465,7 +466,7 @@ def test_gphoto2_timeout_when_no_raw_arrives(tmp_path):
 
 def test_gphoto2_ignores_leftover_files_from_an_earlier_shot(tmp_path, rng):
     gp = make_gphoto2_double()
-    from gphoto2_double import GP_EVENT_FILE_ADDED, CameraFilePath
+    from helpers.gphoto2_double import GP_EVENT_FILE_ADDED, CameraFilePath
 
     gp.rig.storage[("/", "OLD.CR2")] = b"stale"
     gp.rig.leftover_events = [(GP_EVENT_FILE_ADDED, CameraFilePath("/", "OLD.CR2"))]
@@ -540,7 +541,7 @@ def test_parse_shutter_speed(text, seconds):
 
 
 def test_gphoto2_numeric_shortcuts_and_nikon_names(tmp_path, rng):
-    from gphoto2_double import GP_WIDGET_RADIO, GP_WIDGET_WINDOW, Widget
+    from helpers.gphoto2_double import GP_WIDGET_RADIO, GP_WIDGET_WINDOW, Widget
 
     gp = make_gphoto2_double()
     Gphoto2Camera(exposure_s=0.05, iso=200, aperture=11, gp_module=gp).close()

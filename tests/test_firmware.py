@@ -10,7 +10,7 @@ from pathlib import Path
 
 import pytest
 
-from ps_lab.capture.sim_lights import LineAssembler, ManualClock, SimulatedFirmware
+from ps_lab.capture.simulated.firmware import LineAssembler, ManualClock, SimulatedFirmware
 
 FIRMWARE = Path(__file__).resolve().parents[1] / "rigs" / "firmware"
 VECTORS = FIRMWARE / "protocol-vectors.txt"

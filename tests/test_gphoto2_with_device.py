@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from ps_lab.capture.gphoto2_camera import Gphoto2Camera
-from ps_lab.capture.raw import load_raw
+from ps_lab.io.raw import load_raw
 
 
 @pytest.fixture

@@ -15,10 +15,15 @@ import signal
 import threading
 
 import pytest
-from lights_doubles import CLOSE, LIGHTS, ExpectedProtocolPort, expected_protocol, handshake
+from helpers.lights_doubles import CLOSE, LIGHTS, ExpectedProtocolPort, expected_protocol, handshake
 
 from ps_lab.capture.lights import LightState, SerialLightController
-from ps_lab.capture.sim_lights import ManualClock, PtyServer, SimulatedFirmware, firmware_for
+from ps_lab.capture.simulated.firmware import (
+    ManualClock,
+    PtyServer,
+    SimulatedFirmware,
+    firmware_for,
+)
 from ps_lab.errors import RigError
 
 # No timeout expires in these tests (no faults), so a generous one costs nothing and keeps the pty

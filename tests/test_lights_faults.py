@@ -12,10 +12,10 @@ import time
 
 import pytest
 import serial
-from lights_doubles import CLOSE, expected_protocol, handshake
+from helpers.lights_doubles import CLOSE, expected_protocol, handshake
 
 from ps_lab.capture.lights import LightState, SerialLightController
-from ps_lab.capture.sim_lights import (
+from ps_lab.capture.simulated.firmware import (
     Fault,
     ManualClock,
     PtyServer,
@@ -314,7 +314,7 @@ def test_serve_sim_serves_a_pty_until_sigterm(tmp_path):
     import subprocess
     import sys
 
-    from ps_lab.capture.sim_lights import state_file_reader
+    from ps_lab.capture.simulated.firmware import state_file_reader
 
     state_file = tmp_path / "lights.json"
     process = subprocess.Popen(
@@ -384,7 +384,7 @@ def test_socket_url_reaches_a_controller_over_tcp():
     import socket
     import threading
 
-    from ps_lab.capture.sim_lights import LineAssembler
+    from ps_lab.capture.simulated.firmware import LineAssembler
 
     firmware = SimulatedFirmware(8, faults="drop@5", clock=ManualClock())
     listener = socket.create_server(("127.0.0.1", 0))

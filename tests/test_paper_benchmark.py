@@ -1,4 +1,4 @@
-"""The paper's experiments (ps_lab.bench_paper): the reduced run and its orderings.
+"""The paper's experiments (ps_lab.bench.paper): the reduced run and its orderings.
 
 The quick run renders 48x48 scenes with two light sets (the configuration CI uses) and checks the
 orderings the paper reports: in every row, SBL <= L1 <= LS in mean angular error (every row has
@@ -12,8 +12,8 @@ import numpy as np
 import pytest
 from typer.testing import CliRunner
 
-from ps_lab import bench_paper as bp
-from ps_lab.capture import render
+from ps_lab import render
+from ps_lab.bench import paper as bp
 
 
 @pytest.fixture(scope="module")

@@ -6,9 +6,9 @@ import numpy as np
 import pytest
 import rawpy
 
-from ps_lab.capture.dng import CFA_PATTERNS, write_dng
-from ps_lab.capture.raw import RAW_SUFFIXES, load_raw
 from ps_lab.errors import DatasetError
+from ps_lab.io.dng import CFA_PATTERNS, write_dng
+from ps_lab.io.raw import RAW_SUFFIXES, load_raw
 
 WHITE = 16383
 BLACKS = (510, 514, 506, 512)  # per CFA position, row by row

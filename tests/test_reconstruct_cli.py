@@ -10,11 +10,11 @@ import numpy as np
 import pytest
 from typer.testing import CliRunner
 
-from ps_lab import reconstruct as solvers
 from ps_lab.cli import app
 from ps_lab.errors import DatasetError
+from ps_lab.reconstruct import pipeline
 
-render = pytest.importorskip("ps_lab.capture.render")
+render = pytest.importorskip("ps_lab.render")
 
 runner = CliRunner()
 SHAPE = (24, 24)
@@ -168,7 +168,7 @@ def test_failed_solve_leaves_no_partial_output(tmp_path, monkeypatch):
         progress(observations.shape[1] // 2)
         raise DatasetError("solver blew up half way")
 
-    monkeypatch.setattr(solvers, "solve", broken_solve)
+    monkeypatch.setattr(pipeline, "solve", broken_solve)
     result = invoke(tmp_path / "d", "--method", "ls", "--out", out)
     assert result.exit_code == 2 and "blew up" in result.output
     assert tree(tmp_path) == before
@@ -179,7 +179,7 @@ def test_failed_rerun_keeps_the_previous_result(tmp_path, monkeypatch):
     assert invoke(tmp_path / "d", "--method", "ls").exit_code == 0
     before = tree(tmp_path)
     monkeypatch.setattr(
-        solvers, "solve", lambda *a, **k: (_ for _ in ()).throw(DatasetError("boom"))
+        pipeline, "solve", lambda *a, **k: (_ for _ in ()).throw(DatasetError("boom"))
     )
     assert invoke(tmp_path / "d", "--method", "ls").exit_code == 2
     assert tree(tmp_path) == before
@@ -216,7 +216,7 @@ def test_refine_lights_writes_refined_lights(tmp_path):
 
 
 def test_dng_folder_matches_float_images(tmp_path):
-    dng = pytest.importorskip("ps_lab.capture.dng")
+    dng = pytest.importorskip("ps_lab.io.dng")
     rng = np.random.default_rng(7)
     surface = render.sphere_surface(SHAPE, albedo=0.7)
     lights = render.random_light_directions(N_LIGHTS, rng)
@@ -278,7 +278,7 @@ def _break(kind: str, root: Path) -> tuple[Path, str]:
         (folder / "002.dng").write_bytes(b"II*\x00" + b"not really a raw file" * 50)
         return folder, "002.dng"
     if kind == "truncated raw":
-        dng = pytest.importorskip("ps_lab.capture.dng")
+        dng = pytest.importorskip("ps_lab.io.dng")
         (folder / "002.png").unlink()
         dng.write_dng(
             folder / "002.dng",

@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 from test_solvers import lights_upper, scene
 
-from ps_lab.capture.render import perturb_light_directions
 from ps_lab.reconstruct import SolverInputError, angular_errors_deg, refine_lights
+from ps_lab.render import perturb_light_directions
 
 
 @pytest.fixture(scope="module")

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 from scipy.ndimage import map_coordinates
 
-from ps_lab.capture.render import (
+from ps_lab.render import (
     Scene,
     SceneObject,
     Surface,

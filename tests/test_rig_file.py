@@ -9,12 +9,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from ps_lab.capture.connect import build_simulation, nominal_directions
 from ps_lab.capture.rig import (
     apply_overrides,
-    build_simulation,
     comparable_snapshot,
     load_rig,
-    nominal_directions,
     parse_light_selection,
     snapshot_differences,
 )

@@ -10,8 +10,8 @@ import pytest
 import tifffile
 from typer.testing import CliRunner
 
-from ps_lab.capture.render import PNG16_PEAK, relief_surface, render, sphere_surface
 from ps_lab.cli import app
+from ps_lab.render import PNG16_PEAK, relief_surface, render, sphere_surface
 
 runner = CliRunner()
 

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from solver_oracles import solve_oracle
+from helpers.solver_oracles import solve_oracle
 
 from ps_lab.errors import DatasetError
 from ps_lab.reconstruct import (
@@ -22,7 +22,7 @@ ORACLE_PARAMS = ("max_iter", "tol", "delta", "outlier_threshold", "sigma_x2", "g
 
 def lights_upper(n, rng, max_zenith_deg=60.0):
     try:
-        from ps_lab.capture.render import random_light_directions
+        from ps_lab.render import random_light_directions
     except ImportError:  # renderer not there yet: same distribution inline
         z = rng.uniform(np.cos(np.radians(max_zenith_deg)), 1.0, n)
         phi = rng.uniform(0, 2 * np.pi, n)
@@ -34,7 +34,7 @@ def lights_upper(n, rng, max_zenith_deg=60.0):
 def scene(kind, shape, lights, rng, *, specular=0.0):
     """Observations (n, P) of the masked pixels, true normals (P, 3), albedo (P,)."""
     try:
-        from ps_lab.capture.render import relief_surface, render, sphere_surface
+        from ps_lab.render import relief_surface, render, sphere_surface
     except ImportError:
         h, w = shape
         yy, xx = np.mgrid[0:h, 0:w]

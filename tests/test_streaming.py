@@ -11,15 +11,16 @@ import numpy as np
 import pytest
 
 from ps_lab import reconstruct as solvers
-from ps_lab.dataset import (
+from ps_lab.errors import DatasetError
+from ps_lab.io.dataset import (
     ObservationStore,
     load_dataset,
     open_dataset,
     plan_bands,
     stage_observations,
 )
-from ps_lab.errors import DatasetError
-from ps_lab.outputs import (
+from ps_lab.reconstruct import pipeline
+from ps_lab.reconstruct.pipeline import (
     BYTES_PER_OBSERVATION,
     BYTES_PER_PIXEL,
     OutputError,
@@ -28,7 +29,7 @@ from ps_lab.outputs import (
     reconstruct_to_folder,
 )
 
-render = pytest.importorskip("ps_lab.capture.render")
+render = pytest.importorskip("ps_lab.render")
 
 SHAPE = (30, 26)
 N_LIGHTS = 12
@@ -285,7 +286,7 @@ def test_staging_removed_after_success(capture, tmp_path, monkeypatch):
         seen.extend(p.name for p in out.parent.rglob("ps-lab-observations-*"))
         return original(observations, *args, **kwargs)
 
-    monkeypatch.setattr(solvers, "solve", spy)
+    monkeypatch.setattr(pipeline, "solve", spy)
     run(capture, out, method="ls", memory_budget=budget_for(50), staging="file")
     assert seen  # the store was a file in the staged output folder while solving
     assert listing(tmp_path / "results") == {
@@ -309,7 +310,7 @@ def test_staging_removed_after_failure(capture, tmp_path, monkeypatch, staging):
         return original(observations, *args, progress=progress, **kwargs)
 
     original = solvers.solve
-    monkeypatch.setattr(solvers, "solve", failing_solve)
+    monkeypatch.setattr(pipeline, "solve", failing_solve)
     with pytest.raises(DatasetError, match="band 3"):
         run(capture, out, method="ls", memory_budget=budget_for(60), staging=staging)
     assert len(calls) == 3

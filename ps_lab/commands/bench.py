@@ -9,6 +9,7 @@ from typing import Annotated
 import typer
 
 from ps_lab._cli_util import lab_command, progress_bar
+from ps_lab.bench import paper as bench_paper
 
 bench_app = typer.Typer(
     name="bench",
@@ -46,8 +47,6 @@ def paper(
     progress: Annotated[bool, typer.Option(help="Show a progress bar on stderr.")] = True,
 ) -> None:
     """Regenerate Tables 1, 3, 4 and 5 of Ikehata et al. (CVPR 2012) for LS, L1, R-PCA and SBL."""
-    from ps_lab import bench_paper
-
     try:
         config = bench_paper.make_config(
             quick=quick,

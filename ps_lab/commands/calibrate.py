@@ -8,7 +8,10 @@ from typing import Annotated
 import typer
 
 from ps_lab._cli_util import lab_command, progress_bar
+from ps_lab.calibration import calibrate as run_calibration
+from ps_lab.calibration import rig_circles, write_calibration
 from ps_lab.errors import CalibrationError
+from ps_lab.io.dataset import load_frames
 
 
 def _numbers(text: str | None, option: str, names: str) -> tuple[float, ...] | None:
@@ -72,10 +75,6 @@ def calibrate(
 
     Writes light_directions.txt, light_intensities.txt, calibration.json and calibration.png.
     """
-    from ps_lab.calibration import calibrate as run_calibration
-    from ps_lab.calibration import rig_circles, write_calibration
-    from ps_lab.dataset import load_frames
-
     sphere_c = _numbers(sphere, "--sphere", "CX,CY,R")
     matte_c = _numbers(matte, "--matte", "CX,CY,R")
     roi_v = _numbers(roi, "--roi", "X,Y,W,H")

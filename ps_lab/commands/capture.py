@@ -8,6 +8,8 @@ from typing import Annotated
 import typer
 
 from ps_lab._cli_util import EXIT_INTERRUPTED, fail, lab_command, progress_bar
+from ps_lab.capture.rig import apply_overrides, load_rig, parse_light_selection
+from ps_lab.capture.session import CaptureSession
 
 
 @lab_command
@@ -46,9 +48,6 @@ def capture(
     quiet: Annotated[bool, typer.Option("--quiet", "-q", help="No progress bar.")] = False,
 ) -> None:
     """Capture a photometric-stereo run: dark frame, then each light; resumable and crash-safe."""
-    from ps_lab.capture.rig import apply_overrides, load_rig, parse_light_selection
-    from ps_lab.capture.session import CaptureSession
-
     rig_config = apply_overrides(load_rig(rig), port=port, exposure_s=exposure)
     selection = parse_light_selection(lights, rig_config.n_lights) if lights is not None else None
     session = CaptureSession(

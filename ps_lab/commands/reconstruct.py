@@ -10,6 +10,7 @@ from typing import Annotated
 import typer
 
 from ps_lab._cli_util import lab_command, progress_bar
+from ps_lab.reconstruct.pipeline import parse_memory_size, reconstruct_to_folder
 
 
 class Method(str, Enum):  # noqa: UP042 - typer needs str-valued choices
@@ -68,8 +69,6 @@ def reconstruct(
     ] = "1GB",
 ) -> None:
     """Estimate surface normals and albedo; write normals.npy, normal.png, albedo, metrics.json."""
-    from ps_lab.outputs import parse_memory_size, reconstruct_to_folder
-
     out = out if out is not None else dataset / "recon" / method.value
     metrics = reconstruct_to_folder(
         dataset,

@@ -8,6 +8,8 @@ from typing import Annotated
 import typer
 
 from ps_lab._cli_util import lab_command, progress_bar
+from ps_lab.capture.lights import SerialLightController, walk_lights
+from ps_lab.capture.connect import parse_faults, serve_simulator
 
 rig_app = typer.Typer(
     help="Light-controller tools: a simulated controller on a pseudo-terminal, and a rig check.",
@@ -39,8 +41,6 @@ def serve_sim(
     ] = 1.0,
 ) -> None:
     """Print the device path of a simulated controller (protocol v1) and serve until Ctrl-C."""
-    from ps_lab.capture.sim_lights import parse_faults, serve_simulator
-
     faults = parse_faults(",".join(fault or []))
 
     def announce(server) -> None:
@@ -79,8 +79,6 @@ def check(
     timeout: Annotated[float, typer.Option(min=0.01, help="Seconds to wait for each reply.")] = 0.5,
 ) -> None:
     """Handshake with a light controller, light each light alone, check what it reports."""
-    from ps_lab.capture.lights import SerialLightController, walk_lights
-
     with SerialLightController(port, lights, reply_timeout=timeout) as controller:
         with progress_bar(lights, "lights") as advance:
             walk_lights(controller, dwell_s=dwell, progress=advance)

@@ -9,6 +9,7 @@ from typing import Annotated
 import typer
 
 from ps_lab._cli_util import lab_command, progress_bar
+from ps_lab.render import SimulationSettings, check_new_dataset_folder, write_simulated_dataset
 
 
 class SceneKind(str, Enum):
@@ -66,12 +67,6 @@ def simulate(
     Writes the images, filenames.txt, light_directions.txt, light_intensities.txt, mask.png and
     normal_gt.npy.
     """
-    from ps_lab.capture.render import (
-        SimulationSettings,
-        check_new_dataset_folder,
-        write_simulated_dataset,
-    )
-
     settings = SimulationSettings(
         scene=scene.value,
         lights=lights,

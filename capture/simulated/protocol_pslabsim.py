@@ -1,8 +1,8 @@
 """pyserial URL handler for ``pslabsim://``: a simulated light controller inside this process.
 
 pyserial resolves ``scheme://`` URLs by importing ``protocol_<scheme>`` from the packages listed in
-``serial.protocol_handler_packages``; importing :mod:`ps_lab.capture.lights` adds ``ps_lab.capture``
-to that list. URL options are described in :func:`ps_lab.capture.sim_lights.firmware_from_url`.
+``serial.protocol_handler_packages``; importing :mod:`ps_lab.capture.lights` adds
+``ps_lab.capture.simulated`` to that list. URL options are described in :func:`ps_lab.capture.simulated.firmware.firmware_from_url`.
 
 Opening the port behaves like opening an Arduino's USB serial port: the board resets and
 announces ``READY``.
@@ -16,7 +16,7 @@ from collections.abc import Callable
 
 from serial.serialutil import PortNotOpenError, SerialBase, SerialException, SerialTimeoutException
 
-from ps_lab.capture.sim_lights import (
+from ps_lab.capture.simulated.firmware import (
     LineAssembler,
     Reply,
     SimulatedFirmware,

@@ -36,9 +36,10 @@ from pathlib import Path
 
 import cv2
 import numpy as np
+import scipy.io
 
 from ps_lab.errors import DatasetError
-from ps_lab.imageio import (
+from ps_lab.io.images import (
     SUPPORTED_SUFFIXES,
     Image,
     is_supported,
@@ -47,7 +48,7 @@ from ps_lab.imageio import (
     read_npy_header,
 )
 
-log = logging.getLogger("ps_lab.dataset")
+log = logging.getLogger("ps_lab.io.dataset")
 
 CHANNELS = ("r", "g", "b", "mean")
 MANIFEST = "manifest.json"
@@ -823,8 +824,6 @@ def read_normal_gt(path: Path, shape: tuple[int, int] | None = None) -> np.ndarr
 
     """
     if path.suffix.lower() == ".mat":
-        import scipy.io
-
         try:
             content = scipy.io.loadmat(path)
         except Exception as exc:  # noqa: BLE001 - scipy raises several types for a bad .mat

@@ -15,6 +15,9 @@ import numpy as np
 import tifffile
 
 from ps_lab.errors import DatasetError
+from ps_lab.render.lights import random_light_directions
+from ps_lab.render.shading import render
+from ps_lab.render.surfaces import relief_surface, sphere_surface
 
 FORMATS = ("png16", "tiff32", "npy")
 SCENES = ("sphere", "relief")
@@ -93,14 +96,6 @@ def write_simulated_dataset(
     dict
         What was written: ``path``, ``images``, ``shape``, ``png16_scale`` (or None), ``pixels``.
     """
-    # Imported here: the render module re-exports this function.
-    from ps_lab.capture.render import (
-        random_light_directions,
-        relief_surface,
-        render,
-        sphere_surface,
-    )
-
     settings.validate()
     out = Path(out)
     check_new_dataset_folder(out)

@@ -31,7 +31,8 @@ from typing import Any
 import cv2
 import numpy as np
 
-from ps_lab.dataset import (
+from ps_lab.errors import PsLabError
+from ps_lab.io.dataset import (
     ObservationStore,
     open_dataset,
     open_normal_gt,
@@ -39,9 +40,12 @@ from ps_lab.dataset import (
     stage_observations,
     write_light_table,
 )
-from ps_lab.errors import PsLabError
+from ps_lab.reconstruct._refine import fit_lights, light_fit_sums
+from ps_lab.reconstruct._solution import Solution
+from ps_lab.reconstruct._solve import estimate_noise, solve
+from ps_lab.reconstruct.metrics import angular_errors_deg
 
-log = logging.getLogger("ps_lab.outputs")
+log = logging.getLogger("ps_lab.reconstruct.pipeline")
 
 RESULT_FORMAT = "ps-lab-reconstruction"
 METRICS = "metrics.json"
@@ -371,8 +375,6 @@ class _OutputWriter:
         self.outlier_count += int(outliers.sum())
         self.solved_count += int(solved.sum())
         if self.truth is not None:
-            from ps_lab.reconstruct.metrics import angular_errors_deg
-
             gt = self.truth.rows(band.row_start, band.row_stop)
             pixels = solved_map & inside & (np.linalg.norm(gt, axis=2) > 0.5)
             self.errors.add(angular_errors_deg(normals[pixels].astype(np.float64), gt[pixels]))
@@ -427,16 +429,14 @@ def _whole_image_parameters(store: ObservationStore, vectors: np.ndarray, method
     """The noise level a single whole-image solve would estimate, fixed for every band.
 
     ``solve`` estimates it from an evenly spaced sample of all pixels (at most ``max_pixels`` of
-    :func:`ps_lab.reconstruct.estimate_noise`); the store kept that very sample, so the estimate
+    :func:`ps_lab.estimate_noise`); the store kept that very sample, so the estimate
     on it is the whole-image one. Each band is solved with ``noise_sigma=`` it, from which
     ``solve`` derives the outlier threshold (and SBL's ``lam``), so results do not depend on the
     banding. Least squares takes no noise level.
     """
-    from ps_lab import reconstruct
-
     if method == "ls" or store.sample_index.size == 0:
         return {}
-    sigma = reconstruct.estimate_noise(
+    sigma = estimate_noise(
         store.sample_observations,
         vectors,
         store.sample_valid,
@@ -458,9 +458,6 @@ def _solve_pass(
     label: str,
 ) -> _PassResult:
     """Solve every band once with the light vectors ``vectors`` (n, 3)."""
-    from ps_lab import reconstruct
-    from ps_lab.reconstruct.metrics import angular_errors_deg
-
     fixed = _whole_image_parameters(store, vectors, method)
     n = store.n_lights
     result = _PassResult(params={})
@@ -474,7 +471,7 @@ def _solve_pass(
             continue
         advance(0, description=f"{label}: band {band.index + 1}/{count}")
         observations, valid = store.read(band)
-        solution = reconstruct.solve(
+        solution = solve(
             observations,
             vectors,
             method=method,
@@ -511,8 +508,6 @@ def _accumulate_fit(result: _PassResult, observations, valid, solution, chunk: i
 
     The sums add over pixels; taking the band in chunks of pixels bounds the float64 copies.
     """
-    from ps_lab.reconstruct import Solution, light_fit_sums
-
     for a in range(0, observations.shape[1], chunk):
         b = min(a + chunk, observations.shape[1])
         part = Solution(
@@ -548,7 +543,7 @@ def reconstruct_to_folder(
     """Reconstruct a dataset folder into ``out``, streamed by row bands in bounded memory.
 
     Pass 1 decodes each frame once and stores its mask pixels band by band
-    (:func:`ps_lab.dataset.stage_observations`); each solve pass then reads one band's
+    (:func:`ps_lab.io.dataset.stage_observations`); each solve pass then reads one band's
     ``(n, P_band)`` block, solves it (:func:`ps_lab.reconstruct.solve`) and, on the last pass,
     writes the band's rows of every output. Light refinement runs K + 1 passes, accumulating each
     light's least-squares sums band by band. Everything is written into a staged folder that
@@ -562,7 +557,7 @@ def reconstruct_to_folder(
     out : Path
         Output folder: absent, empty or an earlier result.
     channel, shadow_threshold
-        As for :func:`ps_lab.dataset.load_dataset`.
+        As for :func:`ps_lab.io.dataset.load_dataset`.
     method : {"ls", "l1", "sbl", "rpca"}
         Solver. Noise level and outlier threshold are estimated once for the whole image; R-PCA's
         low-rank model is fitted per band.
@@ -610,9 +605,7 @@ def reconstruct_to_folder(
     store_bytes = n * (4 * pixels + (pixels + 7 * len(bands)) // 8)
     small = store_bytes <= IN_MEMORY_SHARE * budget
     in_memory = staging == "memory" or (staging == "auto" and small)
-    from ps_lab import reconstruct
-
-    sample_pixels = _default(reconstruct.estimate_noise, "max_pixels", 20000)
+    sample_pixels = _default(estimate_noise, "max_pixels", 20000)
     timings: dict[str, float] = {}
     with staged_folder(out) as stage:
         with bars(n, "reading images") as advance:
@@ -689,8 +682,6 @@ def _solve_and_write(
     timings: dict,
     extra: dict,
 ) -> dict:
-    from ps_lab.reconstruct import fit_lights
-
     started = time.perf_counter()
     lights = np.asarray(header.light_directions, dtype=np.float64)
     directions = lights / np.linalg.norm(lights, axis=1, keepdims=True)

@@ -4,7 +4,7 @@ The paper evaluates its sparse-regression photometric stereo (SBL) against least
 L1 regression and R-PCA on a synthetic object with attached and cast shadows and Cook-Torrance
 speculars, with light directions drawn at random from the upper hemisphere (here: uniform over
 the cap of zenith angle <= ``max_zenith_deg`` = 60 degrees). This module renders
-its own scenes with :mod:`ps_lab.capture.render` (a sphere and the height-field "relief" object)
+its own scenes with :mod:`ps_lab.render` (a sphere and the height-field "relief" object)
 and rebuilds the paper's tables:
 
 * Table 1 -- number of images 5...40, **with** shadow removal: observations whose noise-free
@@ -35,18 +35,23 @@ counts use its first k lights.
 from __future__ import annotations
 
 import argparse
+import json
 import math
+import os
 import platform
+import subprocess
 import sys
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import asdict, dataclass, field, replace
 from datetime import UTC, datetime
+from pathlib import Path
 
 import numpy as np
 
-from ps_lab.capture import render as _render
+from ps_lab import render as _render
 from ps_lab.reconstruct import metrics as _metrics
+from ps_lab.reconstruct import refine_lights, solve
 
 __all__ = [
     "METHOD_LABELS",
@@ -411,8 +416,6 @@ def _stats(scene: _PreparedScene) -> SceneStats:
 
 
 def _solve(observations, lights, method, valid=None):
-    from ps_lab.reconstruct import solve
-
     # A private writable copy per solve: a solver must not be able to change the shared data.
     observations = np.array(observations, dtype=np.float64, order="C")
     start = time.perf_counter()
@@ -504,7 +507,7 @@ def table_noise(
 ) -> ErrorTable:
     """Table 4: error against the share of observations with additive Gaussian noise.
 
-    The noise is rendered by :func:`ps_lab.capture.render.render` (``noise_fraction`` = the
+    The noise is rendered by :func:`ps_lab.render.render` (``noise_fraction`` = the
     density, ``noise_sigma`` = sqrt(``noise_variance``) times the scene's largest Lambertian
     radiance), on top of the speculars and the shadows, with all ``n_lights`` images.
     """
@@ -628,8 +631,6 @@ def table_refinement(
 
 
 def _refine(config, light_set, lights, normal_gt, method):
-    from ps_lab.reconstruct import refine_lights
-
     observations = np.array(light_set.observations, dtype=np.float64, order="C")
     start = time.perf_counter()
     result = refine_lights(
@@ -664,8 +665,6 @@ def _solve_count(config: PaperConfig) -> int:
 
 def machine_description() -> str:
     """CPU model and core count of this machine (from /proc/cpuinfo where available)."""
-    import os
-
     model = platform.processor() or platform.machine()
     try:
         with open("/proc/cpuinfo", encoding="utf-8") as fh:
@@ -683,9 +682,6 @@ def machine_description() -> str:
 
 def source_revision() -> str:
     """``git describe``-style revision of the checkout ps-lab runs from ("unknown" if none)."""
-    import subprocess
-    from pathlib import Path
-
     root = Path(__file__).resolve().parent.parent
     try:
         out = subprocess.run(
@@ -997,8 +993,6 @@ def main(argv: Sequence[str] | None = None) -> int:
         with open(args.markdown_file, "w", encoding="utf-8") as fh:
             fh.write(format_markdown(results) + "\n")
     if args.json:
-        import json
-
         with open(args.json, "w", encoding="utf-8") as fh:
             json.dump(results_as_dict(results), fh, indent=1)
     return 0

@@ -16,7 +16,7 @@ DNG 1.4 specification closely enough for LibRaw (and so rawpy) to read them:
   ``AsShotNeutral`` (50728, 1 1 1): colour is irrelevant to photometric stereo, but LibRaw
   wants a colour description;
 * ``ExposureTime`` (33434) as a RATIONAL in IFD0 (TIFF/EP allows it there; LibRaw reads it
-  into ``rawpy.RawPy.other.shutter_speed`` and :func:`ps_lab.capture.raw.load_raw` reads the
+  into ``rawpy.RawPy.other.shutter_speed`` and :func:`ps_lab.io.raw.load_raw` reads the
   exact rational back with tifffile).
 
 LibRaw refuses images narrower or lower than 22 pixels, so :func:`write_dng` does too.

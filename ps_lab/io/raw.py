@@ -35,7 +35,10 @@ from dataclasses import dataclass
 from os import PathLike
 from pathlib import Path
 
+import cv2
 import numpy as np
+import rawpy
+import tifffile
 
 from ps_lab.errors import DatasetError
 
@@ -152,8 +155,6 @@ def read_exposure(path: str | PathLike[str]) -> float | None:
     exposure = _exposure_from_tiff(path)
     if exposure is not None:
         return exposure
-    import rawpy
-
     try:
         with rawpy.imread(str(path)) as handle:
             shutter = float(handle.other.shutter_speed)
@@ -165,8 +166,6 @@ def read_exposure(path: str | PathLike[str]) -> float | None:
 def _read_with_rawpy(
     path: Path,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, int, float | None]:
-    import rawpy
-
     try:
         with rawpy.imread(str(path)) as handle:
             raw = np.array(handle.raw_image_visible, copy=True)
@@ -218,8 +217,6 @@ def _quiet_tifffile() -> Iterator[None]:
 
 def _check_tiff_not_truncated(path: Path) -> None:
     """Fail early (and quietly: LibRaw prints to stderr) when image data runs past the file end."""
-    import tifffile
-
     size = path.stat().st_size
     try:
         with _quiet_tifffile(), tifffile.TiffFile(path) as tif:
@@ -240,8 +237,6 @@ def _check_tiff_not_truncated(path: Path) -> None:
 
 def _exposure_from_tiff(path: Path) -> float | None:
     """Read ExposureTime (33434) from IFD0 or the EXIF IFD as an exact rational."""
-    import tifffile
-
     try:
         with _quiet_tifffile(), tifffile.TiffFile(path) as tif:
             page = tif.pages.first
@@ -315,8 +310,6 @@ def _bin_half(
 def _demosaic_linear(
     raw: np.ndarray, tile: np.ndarray, blacks: np.ndarray, white: int
 ) -> tuple[np.ndarray, np.ndarray]:
-    import cv2
-
     height, width = raw.shape
     kernel = np.array([[1.0, 2.0, 1.0], [2.0, 4.0, 2.0], [1.0, 2.0, 1.0]], dtype=np.float32)
     image = np.empty((height, width, 3), dtype=np.float32)

@@ -25,6 +25,7 @@ import queue
 import random
 import re
 import select
+import signal
 import threading
 import time
 import tty
@@ -802,8 +803,6 @@ def serve_simulator(
     ``on_ready(server)`` is called once the device path exists (to print it). The state file, if
     any, is removed at the end, so a reader learns that the simulator is gone.
     """
-    import signal
-
     server = PtyServer(
         lights=lights, faults=faults, seed=seed, delay_s=delay_s, state_file=state_file
     )

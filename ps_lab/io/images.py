@@ -7,7 +7,7 @@ Every reader returns an :class:`Image`: linear values as float32 ``(H, W, C)`` w
   saturated where any channel equals the type maximum.
 - 32-bit float TIFF, PFM and float ``.npy``: values as stored; never saturated. Non-finite values
   are set to 0 and marked saturated, so the solvers drop them.
-- camera RAW (``.dng .cr2 .cr3 .nef .arw``): :func:`ps_lab.capture.raw.load_raw` — linear,
+- camera RAW (``.dng .cr2 .cr3 .nef .arw``): :func:`ps_lab.io.raw.load_raw` — linear,
   (raw − black) / (white − black), 2×2 binned; saturated where the raw value reached the white
   level.
 
@@ -27,6 +27,7 @@ import numpy as np
 import tifffile
 
 from ps_lab.errors import DatasetError, PsLabError
+from ps_lab.io.raw import load_raw
 
 # OpenCV logs decoder failures on stderr; we report them ourselves as one DatasetError line.
 cv2.utils.logging.setLogLevel(cv2.utils.logging.LOG_LEVEL_SILENT)
@@ -272,12 +273,6 @@ def _read_npy(path: Path) -> np.ndarray:
 
 
 def _read_raw(path: Path) -> Image:
-    try:
-        from ps_lab.capture.raw import load_raw
-    except ImportError:
-        raise DatasetError(
-            f"{path}: camera RAW support (ps_lab.capture.raw) is not available"
-        ) from None
     try:
         raw = load_raw(path)
     except PsLabError as exc:

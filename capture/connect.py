@@ -1,0 +1,326 @@
+"""Rig -> drivers: a light controller and a camera opened from a :class:`~ps_lab.capture.rig.Rig`.
+
+:func:`open_rig` turns a rig into live hardware. For a simulated controller it starts the simulated
+firmware on an in-process pseudo-terminal and opens the pty's device path through the OS serial
+layer, exactly as a real ``/dev/ttyACM0`` would be opened, and hands the firmware's light state to
+the simulated camera so that a driver bug that leaves the wrong light on shows up in the images.
+:func:`build_simulation` builds the renderer scene and true lights behind a simulated rig.
+
+This is the one production module that imports :mod:`ps_lab.capture.simulated` (an import-linter
+contract); the simulators run only when a rig file selects them.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from ps_lab import render
+from ps_lab.capture import cameras, gphoto2_camera, lights
+from ps_lab.capture.rig import Rig
+from ps_lab.capture.simulated import firmware as sim_lights
+from ps_lab.capture.simulated.camera import SimulatedCamera
+from ps_lab.capture.simulated.firmware import parse_faults, serve_simulator
+from ps_lab.errors import CameraError, PsLabError, RigError
+
+log = logging.getLogger("ps_lab.capture.rig")
+
+__all__ = [
+    "OpenRig",
+    "Simulation",
+    "build_simulation",
+    "nominal_directions",
+    "open_rig",
+    # A simulated controller served on its own pty (``ps-lab rig serve-sim``): the simulators are
+    # reached through this module only.
+    "parse_faults",
+    "serve_simulator",
+]
+
+# --------------------------------------------------------------------------------------------
+# Simulated scene
+# --------------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class Simulation:
+    """The true scene and lights behind a simulated rig."""
+
+    scene: Any  # ps_lab.render.Scene
+    light_directions: np.ndarray  # (N, 3) true unit directions
+    light_intensities: np.ndarray  # (N, 3) true per-channel intensities
+
+
+def build_simulation(rig: Rig) -> Simulation:
+    """Build the renderer scene and the true light layout of a simulated rig."""
+    if rig.scene is None:
+        raise RigError(f"rig {rig.name!r} has no [scene] to simulate")
+    sc = rig.scene
+    scene = render.Scene(
+        width=sc.width,
+        height=sc.height,
+        objects=tuple(
+            render.SceneObject(
+                kind=o.kind,
+                center=o.center,
+                radius=o.radius,
+                albedo=o.albedo,
+                specular=o.specular,
+                roughness=o.roughness,
+                seed=o.seed,
+            )
+            for o in sc.objects
+        ),
+        background=sc.background,
+    )
+    n = rig.n_lights
+    layout = sc.lights
+    if layout.directions is not None:
+        directions = np.asarray(layout.directions, dtype=np.float64)
+    else:
+        directions = render.random_light_directions(
+            n, np.random.default_rng(layout.seed), max_zenith_deg=layout.max_zenith_deg
+        )
+    if layout.intensities is not None:
+        intensities = np.asarray(layout.intensities, dtype=np.float64)
+    else:
+        rng = np.random.default_rng([layout.seed, 1])
+        scale = 1.0 + layout.intensity_spread * rng.uniform(-1.0, 1.0, size=(n, 1))
+        color = 1.0 + layout.color_spread * rng.uniform(-1.0, 1.0, size=(n, 3))
+        intensities = scale * color
+    return Simulation(scene=scene, light_directions=directions, light_intensities=intensities)
+
+
+def nominal_directions(rig: Rig, simulation: Simulation | None = None) -> np.ndarray | None:
+    """Return the rig's nominal light directions (N, 3), if it has any.
+
+    For a simulated rig without ``[controller] directions``, the nominal directions are the true
+    ones turned by ``[scene.lights] nominal_error_deg`` (when > 0) in a seeded random direction:
+    what a lab would know from measuring its rig with a ruler.
+    """
+    if rig.controller.directions is not None:
+        return np.asarray(rig.controller.directions, dtype=np.float64)
+    if simulation is None or rig.scene is None:
+        return None
+    true = simulation.light_directions
+    err = math.radians(rig.scene.lights.nominal_error_deg)
+    if err == 0.0:
+        return None
+    rng = np.random.default_rng([rig.scene.lights.seed, 2])
+    axis = np.cross(true, rng.normal(size=true.shape))
+    axis /= np.linalg.norm(axis, axis=1, keepdims=True)
+    # Rodrigues rotation about an axis perpendicular to each direction.
+    rotated = true * math.cos(err) + np.cross(axis, true) * math.sin(err)
+    return rotated / np.linalg.norm(rotated, axis=1, keepdims=True)
+
+
+# --------------------------------------------------------------------------------------------
+# Opening the hardware
+# --------------------------------------------------------------------------------------------
+
+
+class OpenRig:
+    """A rig with its controller and camera open; a context manager that closes both.
+
+    Closing switches the lights off (the controller's own close does that) and stops the
+    simulated controller's pty server, whatever happened before.
+    """
+
+    def __init__(self, rig: Rig) -> None:
+        self.rig = rig
+        self.controller: Any = None
+        self.camera: Any = None
+        self.simulation: Simulation | None = None
+        self.firmware: Any = None  # the simulated controller's firmware, when simulated
+        #: False when closing could not confirm that the lights are off (the controller's
+        #: watchdog switches them off then).
+        self.lights_off_confirmed = True
+        self._closers: list[Callable[[], None]] = []
+
+    def __enter__(self) -> OpenRig:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    def close(self) -> None:
+        """Close the camera, the controller (lights off) and any simulator, in that order."""
+        first_error: BaseException | None = None
+        while self._closers:
+            closer = self._closers.pop()
+            try:
+                closer()
+            except Exception as exc:  # keep closing the rest; report the first failure
+                log.info("while closing the rig: %s", exc)
+                if self.controller is not None and closer == self.controller.close:
+                    self.lights_off_confirmed = False
+                first_error = first_error or exc
+        if first_error is not None and not isinstance(first_error, PsLabError):
+            log.debug("close error", exc_info=first_error)
+
+
+def open_rig(
+    rig: Rig, *, open_camera: bool = True, prompt: Callable[[str], Any] | None = None
+) -> OpenRig:
+    """Open the controller (handshake) and the camera of ``rig``.
+
+    ``prompt`` tells the operator to press the shutter (folder camera with ``prompt = true``).
+
+    Returns
+    -------
+    OpenRig
+        Use it as a context manager; it closes everything (lights off) on exit.
+
+    Raises
+    ------
+    RigError, CameraError
+        With a one-line reason (port missing, busy, permission denied, no handshake, ...).
+
+    """
+    opened = OpenRig(rig)
+    try:
+        light_state = _open_controller(rig, opened)
+        if open_camera:
+            _open_camera(rig, opened, light_state, prompt)
+    except BaseException:
+        opened.close()
+        raise
+    return opened
+
+
+def _open_controller(rig: Rig, opened: OpenRig) -> Callable[[], Any] | None:
+    cfg = rig.controller
+    light_state: Callable[[], Any] | None = None
+    if cfg.driver == "simulated":
+        firmware = _make_firmware(sim_lights, rig)
+        server = sim_lights.PtyServer(firmware).start()
+        opened._closers.append(server.stop)
+        assert server.path is not None
+        port = server.path
+        light_state = firmware.state
+        opened.firmware = firmware
+        log.info("simulated controller on %s", port)
+    else:
+        port = cfg.port
+        assert port is not None
+        _check_port(port)
+    controller = _make_controller(lights, port, rig)
+    opened.controller = controller
+    opened._closers.append(controller.close)
+    return light_state
+
+
+def _make_firmware(sim_lights: Any, rig: Rig) -> Any:
+    faults = [
+        {"kind": f.kind, "at": f.at}
+        if f.at is not None
+        else {"kind": f.kind, "probability": f.probability}
+        for f in rig.faults.controller
+    ]
+    # A delayed reply arrives well after the driver has given up on it.
+    return sim_lights.SimulatedFirmware(
+        rig.n_lights,
+        faults=faults,
+        seed=rig.faults.seed,
+        delay_s=max(0.2, 3.0 * rig.controller.timeout_s),
+    )
+
+
+def _check_port(port: str) -> None:
+    """Turn the usual reasons a device port cannot be opened into one clear line."""
+    if "://" in port:
+        return
+    path = Path(port)
+    if not path.exists():
+        raise RigError(f"serial port {port} does not exist (is the controller plugged in?)")
+
+
+def _make_controller(lights: Any, port: str, rig: Rig) -> Any:
+    cfg = rig.controller
+    try:
+        return lights.SerialLightController(
+            port,
+            cfg.lights,
+            level=cfg.level,
+            watchdog_ms=cfg.watchdog_ms,
+            reply_timeout=cfg.timeout_s,
+            baudrate=cfg.baudrate,
+        )
+    except PermissionError:
+        raise RigError(_PERMISSION.format(port=port)) from None
+    except OSError as exc:
+        raise RigError(f"cannot open serial port {port}: {exc}") from None
+    except RigError as exc:
+        # Name the two everyday causes in the lab's words rather than in errno's.
+        text = str(exc)
+        if "exclusively lock" in text or "Errno 11" in text or "Device or resource busy" in text:
+            raise RigError(
+                f"serial port {port} is busy: another program has it open (close it and retry)"
+            ) from None
+        if "Errno 13" in text or "Permission denied" in text:
+            raise RigError(_PERMISSION.format(port=port)) from None
+        raise
+
+
+_PERMISSION = (
+    "permission denied opening serial port {port} (on Linux: add yourself to the 'dialout' group)"
+)
+
+
+def _open_camera(
+    rig: Rig,
+    opened: OpenRig,
+    light_state: Callable[[], Any] | None,
+    prompt: Callable[[str], Any] | None,
+) -> None:
+    cfg = rig.camera
+    if cfg.driver == "simulated":
+        if light_state is None:
+            assert cfg.light_state_file is not None
+            light_state = sim_lights.state_file_reader(Path(cfg.light_state_file))
+        simulation = build_simulation(rig)
+        opened.simulation = simulation
+        camera: Any = SimulatedCamera(
+            simulation.scene,
+            simulation.light_directions,
+            simulation.light_intensities,
+            light_state,
+            exposure_s=cfg.exposure_s,
+            black_level=cfg.black_level,
+            white_level=cfg.white_level,
+            gain=cfg.gain,
+            read_noise_dn=cfg.read_noise_dn,
+            shot_noise=cfg.shot_noise,
+            dn_per_electron=cfg.dn_per_electron,
+            seed=cfg.seed,
+            timeout_s=cfg.timeout_s,
+            faults=[{"kind": f.kind, "at": f.at} for f in rig.faults.camera],
+        )
+    elif cfg.driver == "folder":
+        assert cfg.folder is not None
+        camera = cameras.FolderCamera(
+            Path(cfg.folder),
+            timeout_s=cfg.timeout_s,
+            pattern=cfg.pattern,
+            prompt=prompt if cfg.prompt else None,
+            exposure_s=cfg.exposure_s,
+        )
+    elif cfg.driver == "gphoto2":
+        camera = gphoto2_camera.Gphoto2Camera(
+            cfg.port,
+            settings=dict(cfg.settings),
+            timeout_s=cfg.timeout_s,
+            exposure_s=cfg.exposure_s,
+            iso=cfg.iso,
+            aperture=cfg.aperture,
+        )
+    else:  # pragma: no cover - parse_rig rejects other drivers
+        raise CameraError(f"unknown camera driver {cfg.driver!r}")
+    opened.camera = camera
+    opened._closers.append(camera.close)

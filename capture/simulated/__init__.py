@@ -1,0 +1,10 @@
+"""Simulated devices a rig file can select (python-microscope's ``simulators/``).
+
+- :mod:`~ps_lab.capture.simulated.firmware`: the light controller's firmware (protocol v1), faults
+- :mod:`~ps_lab.capture.simulated.pty_server`: that firmware served on a pseudo-terminal
+- :mod:`~ps_lab.capture.simulated.protocol_pslabsim`: the pyserial ``pslabsim://`` URL handler
+- :mod:`~ps_lab.capture.simulated.camera`: :class:`SimulatedCamera`, rendering and writing DNG
+
+Production code imports this package only through :mod:`ps_lab.capture.connect` (checked by
+import-linter); test doubles live under ``tests/helpers``.
+"""

@@ -1,0 +1,1 @@
+"""The paper's experiments on rendered scenes and their report (``ps-lab bench paper``)."""

@@ -1,0 +1,1 @@
+"""Test doubles and reference implementations shared by the tests (never imported by ps_lab)."""
