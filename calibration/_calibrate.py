@@ -20,6 +20,7 @@ from ps_lab.calibration._geometry import light_directions_from_highlights
 from ps_lab.calibration._highlight import Highlight, locate_highlight
 from ps_lab.calibration._intensity import fit_light_intensities
 from ps_lab.errors import CalibrationError
+from ps_lab.io.run import calibration_target
 
 
 @dataclass
@@ -256,51 +257,82 @@ def calibrate(
         frames saturated, a degenerate matte fit.
 
     """
+    stack, saturated = _prepare_frames(images, saturated)
+    n, h, w, _ = stack.shape
+    summary = summary_image(stack)
+    warnings: list[str] = []
+    circle, residual, source = _chrome_sphere(summary, stack, sphere, sphere_hint, roi, warnings)
+    found = _highlights(stack, circle, saturated, safe_radius, names, progress)
+    highlights = np.array([[hl.x, hl.y] for hl in found])
+    warnings.extend(_second_blob_warnings(found, names))
+    if focal_length_px is not None and principal_point is None:
+        principal_point = ((w - 1) / 2.0, (h - 1) / 2.0)
+    directions = light_directions_from_highlights(
+        highlights, circle, focal_length_px=focal_length_px, principal_point=principal_point
+    )
+    matte_circle, intensities = _matte_intensities(
+        stack, summary, directions, saturated, matte_sphere, matte_hint, warnings
+    )
+    preview, preview_origin = _preview(stack, circle)
+    return Calibration(
+        circle=circle,
+        residual=float(residual),
+        circle_source=source,
+        highlights=highlights,
+        light_directions=directions,
+        light_intensities=intensities,
+        warnings=warnings,
+        matte_circle=matte_circle,
+        source_radius_deg=np.array([hl.source_radius_deg for hl in found]),
+        names=list(names) if names is not None else [f"frame {j + 1}" for j in range(n)],
+        preview=preview,
+        preview_origin=preview_origin,
+    )
+
+
+# --- the stages of calibrate() ----------------------------------------------------------------
+
+
+def _prepare_frames(
+    images: np.ndarray, saturated: np.ndarray | None
+) -> tuple[np.ndarray, np.ndarray | None]:
+    """Frames as a finite (n, H, W, C) stack, and their saturation mask (given or inferred)."""
     stack = _as_stack(images)
     n, h, w, _ = stack.shape
     if not np.all(np.isfinite(stack)):
         stack = np.nan_to_num(stack, nan=0.0, posinf=0.0, neginf=0.0)
-    if saturated is not None:
-        saturated = np.asarray(saturated, dtype=bool)
-        if saturated.shape != (n, h, w):
-            raise CalibrationError(f"saturation mask shape {saturated.shape} != frames {(n, h, w)}")
-    else:
-        saturated = _infer_saturated(stack)
-    summary = summary_image(stack)
-    warnings: list[str] = []
+    if saturated is None:
+        return stack, _infer_saturated(stack)
+    saturated = np.asarray(saturated, dtype=bool)
+    if saturated.shape != (n, h, w):
+        raise CalibrationError(f"saturation mask shape {saturated.shape} != frames {(n, h, w)}")
+    return stack, saturated
 
+
+def _chrome_sphere(
+    summary: np.ndarray,
+    stack: np.ndarray,
+    sphere: Sequence[float] | None,
+    sphere_hint: Sequence[float] | None,
+    roi: Sequence[int] | None,
+    warnings: list[str],
+) -> tuple[Circle, float, str]:
+    """The chrome sphere's circle, its outline residual and where it came from.
+
+    Given (``sphere``), else the rig's nominal circle refined and confirmed (``sphere_hint``),
+    else found automatically; then checked to be large enough and inside the image.
+    """
     if sphere is not None:
         circle = Circle(*map(float, sphere))
-        residual = circle_residual(summary, circle)
-        source = "given"
+        residual, source = circle_residual(summary, circle), "given"
     else:
-        fit = None
-        if sphere_hint is not None:
-            hint = Circle(*map(float, sphere_hint))
-            try:
-                fit = refine_circle(summary, hint, search_px=max(8.0, 0.15 * hint.radius))
-                if fit.coverage < 0.5 or chrome_score(stack, fit.circle) < 0.5:
-                    raise CalibrationError(
-                        f"no chrome sphere outline with highlights near ({hint.x:.1f}, "
-                        f"{hint.y:.1f}) r={hint.radius:.1f}"
-                    )
-                source = "rig"
-            except CalibrationError as exc:
-                fit = None
-                warnings.append(f"rig's nominal chrome sphere not confirmed ({exc}); searching")
-            if fit is not None and (
-                np.hypot(fit.circle.x - hint.x, fit.circle.y - hint.y) > 0.1 * hint.radius
-                or abs(fit.circle.radius - hint.radius) > 0.1 * hint.radius
-            ):
-                warnings.append(
-                    f"chrome sphere fitted at ({fit.circle.x:.1f}, {fit.circle.y:.1f}) "
-                    f"r={fit.circle.radius:.1f}, far from the rig's nominal "
-                    f"({hint.x:.1f}, {hint.y:.1f}) r={hint.radius:.1f}"
-                )
+        fit = None if sphere_hint is None else _confirm_hint(summary, stack, sphere_hint, warnings)
+        source = "rig"
         if fit is None:
             fit, _ = _find_sphere(summary, stack, roi)
             source = "auto"
         circle, residual = fit.circle, fit.residual
+    h, w = summary.shape[:2]
     if circle.radius <= 3:
         raise CalibrationError(f"chrome sphere radius {circle.radius:.1f} px is too small")
     if not circle_inside_image(circle, (h, w)):
@@ -312,7 +344,46 @@ def calibrate(
         warnings.append(
             f"sphere outline residual {residual:.2f} px is large: check calibration.png"
         )
+    return circle, residual, source
 
+
+def _confirm_hint(
+    summary: np.ndarray, stack: np.ndarray, sphere_hint: Sequence[float], warnings: list[str]
+):
+    """The rig's nominal chrome sphere refined on the images, or None (with a warning)."""
+    hint = Circle(*map(float, sphere_hint))
+    try:
+        fit = refine_circle(summary, hint, search_px=max(8.0, 0.15 * hint.radius))
+        if fit.coverage < 0.5 or chrome_score(stack, fit.circle) < 0.5:
+            raise CalibrationError(
+                f"no chrome sphere outline with highlights near ({hint.x:.1f}, "
+                f"{hint.y:.1f}) r={hint.radius:.1f}"
+            )
+    except CalibrationError as exc:
+        warnings.append(f"rig's nominal chrome sphere not confirmed ({exc}); searching")
+        return None
+    if (
+        np.hypot(fit.circle.x - hint.x, fit.circle.y - hint.y) > 0.1 * hint.radius
+        or abs(fit.circle.radius - hint.radius) > 0.1 * hint.radius
+    ):
+        warnings.append(
+            f"chrome sphere fitted at ({fit.circle.x:.1f}, {fit.circle.y:.1f}) "
+            f"r={fit.circle.radius:.1f}, far from the rig's nominal "
+            f"({hint.x:.1f}, {hint.y:.1f}) r={hint.radius:.1f}"
+        )
+    return fit
+
+
+def _highlights(
+    stack: np.ndarray,
+    circle: Circle,
+    saturated: np.ndarray | None,
+    safe_radius: float,
+    names: Sequence[str] | None,
+    progress: Callable[[int], None] | None,
+) -> list[Highlight]:
+    """One highlight per frame, or a CalibrationError naming the first frame without one."""
+    n, h, w, _ = stack.shape
     found: list[Highlight | None] = []
     problems: list[tuple[int, str]] = []
     saturated_frames = 0
@@ -345,29 +416,39 @@ def calibrate(
             f"all {n} frames are saturated over the chrome sphere: "
             "shorten the exposure or dim the lights"
         )
-    contrasts = np.array([hl.contrast for hl in found if hl is not None])
-    if len(contrasts):
-        typical = float(np.median(contrasts))
-        for j, hl in enumerate(found):
-            if hl is not None and hl.contrast < 0.05 * typical:
-                found[j] = None
-                problems.append(
-                    (
-                        j,
-                        f"no highlight: its peak is {hl.contrast / typical:.1%} of the typical "
-                        "highlight "
-                        "(light off or blocked?)",
-                    )
-                )
+    problems.extend(_dim_highlights(found))
     if problems:
         problems.sort()
         j, msg = problems[0]
         more = f" (and {len(problems) - 1} more frame(s) failed)" if len(problems) > 1 else ""
         raise CalibrationError(f"{_frame_label(j, names)}: {msg}{more}")
+    return found  # type: ignore[return-value]  # no None left: every one is a problem above
 
-    highlights = np.array([[hl.x, hl.y] for hl in found])  # type: ignore[union-attr]
+
+def _dim_highlights(found: list[Highlight | None]) -> list[tuple[int, str]]:
+    """Drop (set to None) highlights far dimmer than the typical one; return their problems."""
+    problems: list[tuple[int, str]] = []
+    contrasts = np.array([hl.contrast for hl in found if hl is not None])
+    if not len(contrasts):
+        return problems
+    typical = float(np.median(contrasts))
     for j, hl in enumerate(found):
-        assert hl is not None
+        if hl is not None and hl.contrast < 0.05 * typical:
+            found[j] = None
+            problems.append(
+                (
+                    j,
+                    f"no highlight: its peak is {hl.contrast / typical:.1%} of the typical "
+                    "highlight "
+                    "(light off or blocked?)",
+                )
+            )
+    return problems
+
+
+def _second_blob_warnings(found: list[Highlight], names: Sequence[str] | None) -> list[str]:
+    warnings = []
+    for j, hl in enumerate(found):
         if hl.second_blob is not None:
             sx, sy, share = hl.second_blob
             warnings.append(
@@ -375,42 +456,50 @@ def calibrate(
                 f"with {share:.0%} "
                 "of the highlight's energy ignored (inter-reflection?)"
             )
-    if focal_length_px is not None and principal_point is None:
-        principal_point = ((w - 1) / 2.0, (h - 1) / 2.0)
-    directions = light_directions_from_highlights(
-        highlights, circle, focal_length_px=focal_length_px, principal_point=principal_point
-    )
+    return warnings
 
-    matte_circle = None
-    intensities = np.ones((n, 3))
-    if matte_sphere is not None or matte_hint is not None:
-        if matte_sphere is not None:
-            matte_circle = Circle(*map(float, matte_sphere))
-        else:
-            hint = Circle(*map(float, matte_hint))  # type: ignore[arg-type]
-            try:
-                # A matte sphere's limb is dim in the median (grazing shading); the maximum over
-                # frames shows it as a step.
-                bright = summary_image(stack, reduce="max")
-                matte_circle = refine_circle(
-                    bright, hint, search_px=max(8.0, 0.15 * hint.radius)
-                ).circle
-            except CalibrationError as exc:
-                warnings.append(
-                    f"matte sphere outline not refined ({exc}); using the rig's nominal circle"
-                )
-                matte_circle = hint
-        if not circle_inside_image(matte_circle, (h, w), margin=0.0):
-            raise CalibrationError(
-                f"matte sphere at ({matte_circle.x:.1f}, {matte_circle.y:.1f}) "
-                f"r={matte_circle.radius:.1f} "
-                "is cut by the image border"
+
+def _matte_intensities(
+    stack: np.ndarray,
+    summary: np.ndarray,
+    directions: np.ndarray,
+    saturated: np.ndarray | None,
+    matte_sphere: Sequence[float] | None,
+    matte_hint: Sequence[float] | None,
+    warnings: list[str],
+) -> tuple[Circle | None, np.ndarray]:
+    """The matte sphere's circle and the lights' relative intensities (ones without a sphere)."""
+    n, h, w, _ = stack.shape
+    if matte_sphere is None and matte_hint is None:
+        return None, np.ones((n, 3))
+    if matte_sphere is not None:
+        matte_circle = Circle(*map(float, matte_sphere))
+    else:
+        hint = Circle(*map(float, matte_hint))  # type: ignore[arg-type]
+        try:
+            # A matte sphere's limb is dim in the median (grazing shading); the maximum over
+            # frames shows it as a step.
+            bright = summary_image(stack, reduce="max")
+            matte_circle = refine_circle(bright, hint, search_px=max(8.0, 0.15 * hint.radius)).circle
+        except CalibrationError as exc:
+            warnings.append(
+                f"matte sphere outline not refined ({exc}); using the rig's nominal circle"
             )
-        intensities, extra = fit_light_intensities(
-            stack, directions, matte_circle, saturated=saturated
+            matte_circle = hint
+    if not circle_inside_image(matte_circle, (h, w), margin=0.0):
+        raise CalibrationError(
+            f"matte sphere at ({matte_circle.x:.1f}, {matte_circle.y:.1f}) "
+            f"r={matte_circle.radius:.1f} "
+            "is cut by the image border"
         )
-        warnings.extend(extra)
+    intensities, extra = fit_light_intensities(stack, directions, matte_circle, saturated=saturated)
+    warnings.extend(extra)
+    return matte_circle, intensities
 
+
+def _preview(stack: np.ndarray, circle: Circle) -> tuple[np.ndarray, tuple[int, int]]:
+    """The brightest value over frames around the chrome sphere (for calibration.png)."""
+    n, h, w, _ = stack.shape
     pad = int(np.ceil(0.15 * circle.radius)) + 4
     x0, x1 = (
         max(0, int(circle.x - circle.radius) - pad),
@@ -423,21 +512,7 @@ def calibrate(
     preview = np.max(
         [_frame_luma(stack, j, slice(y0, y1), slice(x0, x1)) for j in range(n)], axis=0
     )
-
-    return Calibration(
-        circle=circle,
-        residual=float(residual),
-        circle_source=source,
-        highlights=highlights,
-        light_directions=directions,
-        light_intensities=intensities,
-        warnings=warnings,
-        matte_circle=matte_circle,
-        source_radius_deg=np.array([hl.source_radius_deg for hl in found]),  # type: ignore[union-attr]
-        names=list(names) if names is not None else [f"frame {j + 1}" for j in range(n)],
-        preview=preview,
-        preview_origin=(x0, y0),
-    )
+    return preview, (x0, y0)
 
 
 def _circle_from_record(record: object, what: str) -> Circle | None:
@@ -471,9 +546,7 @@ def rig_circles(manifest: dict | None) -> tuple[Circle | None, Circle | None]:
     chrome, matte : Circle or None
 
     """
-    if not manifest:
-        return None, None
-    cal = (manifest.get("rig") or {}).get("calibration") or {}
+    cal = calibration_target(manifest)
     if not isinstance(cal, dict):
         return None, None
     return (

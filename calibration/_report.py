@@ -8,9 +8,6 @@ calibration files stay untouched until the new ones are ready).
 from __future__ import annotations
 
 import json
-import os
-import shutil
-import tempfile
 from pathlib import Path
 
 import cv2
@@ -18,6 +15,7 @@ import numpy as np
 
 from ps_lab.calibration._calibrate import Calibration
 from ps_lab.errors import CalibrationError
+from ps_lab.io.files import staged_files
 
 CALIBRATION_FORMAT = "ps-lab-calibration"
 OUTPUT_FILES = (
@@ -244,10 +242,6 @@ def calibration_picture(calibration: Calibration, *, panel: int = 520) -> np.nda
     return np.vstack([header, body])
 
 
-def _atomic_json(path: Path, record: dict) -> None:
-    path.write_text(json.dumps(record, indent=2) + "\n", encoding="utf-8")
-
-
 def write_calibration(calibration: Calibration, out_dir: Path) -> dict[str, Path]:
     """Write the four calibration files into ``out_dir`` (created if needed), all or nothing.
 
@@ -272,25 +266,19 @@ def write_calibration(calibration: Calibration, out_dir: Path) -> dict[str, Path
     """
     out = Path(out_dir)
     try:
-        out.mkdir(parents=True, exist_ok=True)
-        staging = Path(tempfile.mkdtemp(prefix=".calibrate-", dir=out))
+        with staged_files(out, prefix=".calibrate-") as staging:
+            np.savetxt(staging / "light_directions.txt", calibration.light_directions, fmt="%.9f")
+            np.savetxt(
+                staging / "light_intensities.txt", calibration.light_intensities, fmt="%.9f"
+            )
+            record = calibration_record(calibration)
+            (staging / "calibration.json").write_text(
+                json.dumps(record, indent=2) + "\n", encoding="utf-8"
+            )
+            if not cv2.imwrite(str(staging / "calibration.png"), calibration_picture(calibration)):
+                raise OSError("PNG encoder failed")
     except OSError as exc:
         raise CalibrationError(
             f"{out}: cannot write calibration outputs ({exc.strerror or exc})"
         ) from None
-    try:
-        np.savetxt(staging / "light_directions.txt", calibration.light_directions, fmt="%.9f")
-        np.savetxt(staging / "light_intensities.txt", calibration.light_intensities, fmt="%.9f")
-        _atomic_json(staging / "calibration.json", calibration_record(calibration))
-        if not cv2.imwrite(str(staging / "calibration.png"), calibration_picture(calibration)):
-            raise OSError("PNG encoder failed")
-        for name in OUTPUT_FILES:
-            with open(staging / name, "rb") as fh:
-                os.fsync(fh.fileno())
-        for name in OUTPUT_FILES:
-            os.replace(staging / name, out / name)
-    except OSError as exc:
-        raise CalibrationError(f"{out}: cannot write calibration outputs ({exc})") from None
-    finally:
-        shutil.rmtree(staging, ignore_errors=True)
     return {name: out / name for name in OUTPUT_FILES}

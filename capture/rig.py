@@ -21,6 +21,7 @@ from pathlib import Path
 from typing import Any
 
 from ps_lab.errors import RigError
+from ps_lab.io.files import json_safe
 
 log = logging.getLogger(__name__)
 
@@ -195,7 +196,7 @@ class Rig:
 
     def snapshot(self) -> dict[str, Any]:
         """Return the rig as a JSON-ready dict (what a capture run's manifest stores)."""
-        snap = _jsonable(dataclasses.asdict(self))
+        snap = json_safe(dataclasses.asdict(self))
         snap.pop("source", None)
         snap["source"] = str(self.source) if self.source is not None else None
         cal: dict[str, Any] = {}
@@ -233,7 +234,7 @@ class Rig:
 
 def comparable_snapshot(snapshot: Mapping[str, Any]) -> dict[str, Any]:
     """Return ``snapshot`` without the :data:`OPERATIONAL_KEYS` a resumed run may change."""
-    snap = _jsonable(dict(snapshot))
+    snap = json_safe(dict(snapshot))
     for path in OPERATIONAL_KEYS:
         *tables, key = path
         node = snap
@@ -257,16 +258,6 @@ def snapshot_differences(
         elif a != b:
             diffs.append(name)
     return diffs
-
-
-def _jsonable(value: Any) -> Any:
-    if isinstance(value, dict):
-        return {str(k): _jsonable(v) for k, v in value.items()}
-    if isinstance(value, list | tuple):
-        return [_jsonable(v) for v in value]
-    if isinstance(value, Path):
-        return str(value)
-    return value
 
 
 # --------------------------------------------------------------------------------------------

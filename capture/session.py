@@ -24,9 +24,7 @@ controller error stops the run (the driver already retried what the protocol all
 from __future__ import annotations
 
 import contextlib
-import hashlib
 import io
-import json
 import logging
 import os
 import re
@@ -46,30 +44,31 @@ from ps_lab import __version__
 from ps_lab.capture.connect import OpenRig, build_simulation, nominal_directions, open_rig
 from ps_lab.capture.rig import Rig, comparable_snapshot, snapshot_differences
 from ps_lab.errors import CameraError, DatasetError, PsLabError, RigError
+from ps_lab.io.files import PARTIAL_PREFIX, json_safe, publish_file, sha256, write_bytes_atomic
 from ps_lab.io.raw import is_raw_file, load_raw
+from ps_lab.io.run import (
+    FRAMES_DIR,
+    MANIFEST_NAME,
+    NOMINAL_DIRECTIONS,
+    RUN_FORMAT,
+    RUN_VERSION,
+    SIMULATION_DIR,
+    read_manifest,
+    write_manifest,
+)
 from ps_lab.render import scene_ground_truth
 
 log = logging.getLogger(__name__)
 
-MANIFEST_NAME = "manifest.json"
-RUN_FORMAT = "ps-lab-run"
-RUN_VERSION = 1
-FRAMES_DIR = "frames"
-SIMULATION_DIR = "simulation"
-PARTIAL_PREFIX = ".partial-"
-NOMINAL_DIRECTIONS = "light_directions_nominal.txt"
 _FRAME_NAME = re.compile(r"^\d{4,}-(dark|L\d+-r\d+)\.\w+$")
 
 __all__ = [
-    "MANIFEST_NAME",
     "CapturePlan",
     "CaptureResult",
     "CaptureSession",
     "PlannedFrame",
     "ProgressCallback",
     "make_plan",
-    "read_manifest",
-    "write_json_atomic",
 ]
 
 
@@ -167,77 +166,8 @@ def make_plan(
 # --------------------------------------------------------------------------------------------
 
 
-def _fsync_dir(path: Path) -> None:
-    fd = os.open(path, os.O_RDONLY)
-    try:
-        os.fsync(fd)
-    finally:
-        os.close(fd)
-
-
-def _fsync_file(path: Path) -> None:
-    fd = os.open(path, os.O_RDONLY)
-    try:
-        os.fsync(fd)
-    finally:
-        os.close(fd)
-
-
-def write_bytes_atomic(path: Path, data: bytes) -> None:
-    """Write ``data`` to ``path`` so that ``path`` holds either the old or the new content."""
-    tmp = path.with_name(PARTIAL_PREFIX + path.name)
-    with open(tmp, "wb") as f:
-        f.write(data)
-        f.flush()
-        os.fsync(f.fileno())
-    os.replace(tmp, path)
-    _fsync_dir(path.parent)
-
-
-def write_json_atomic(path: Path, obj: Any) -> None:
-    """Write ``obj`` as JSON with :func:`write_bytes_atomic`."""
-    write_bytes_atomic(path, (json.dumps(obj, indent=1) + "\n").encode("utf-8"))
-
-
-def _sha256(path: Path) -> str:
-    digest = hashlib.sha256()
-    with open(path, "rb") as f:
-        for block in iter(lambda: f.read(1 << 20), b""):
-            digest.update(block)
-    return digest.hexdigest()
-
-
 def _iso(epoch_s: float) -> str:
     return datetime.fromtimestamp(epoch_s, tz=UTC).isoformat(timespec="milliseconds")
-
-
-def read_manifest(run_dir: Path) -> dict[str, Any]:
-    """Read and check the manifest of a capture run.
-
-    Raises
-    ------
-    DatasetError
-        No manifest, not JSON, or not a ps-lab run manifest.
-
-    """
-    path = Path(run_dir) / MANIFEST_NAME
-    try:
-        manifest = json.loads(path.read_text(encoding="utf-8"))
-    except FileNotFoundError:
-        raise DatasetError(f"{run_dir} is not a capture run (no {MANIFEST_NAME})") from None
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
-        raise DatasetError(f"{path} is unreadable: {exc}") from None
-    if not isinstance(manifest, dict) or manifest.get("format") != RUN_FORMAT:
-        raise DatasetError(f"{path} is not a ps-lab run manifest")
-    if manifest.get("version") != RUN_VERSION:
-        raise DatasetError(
-            f"{path}: run format version {manifest.get('version')} "
-            f"(this ps-lab reads {RUN_VERSION})"
-        )
-    for key in ("rig", "camera_settings", "plan", "frames"):
-        if key not in manifest:
-            raise DatasetError(f"{path}: missing {key!r}")
-    return manifest
 
 
 @contextlib.contextmanager
@@ -445,7 +375,7 @@ class CaptureSession:
             raise DatasetError(
                 f"cannot resume {run}: frame file {planned.file} listed in the manifest is missing"
             )
-        if _sha256(path) != record.get("sha256"):
+        if sha256(path) != record.get("sha256"):
             raise DatasetError(
                 f"cannot resume {run}: frame file {planned.file} changed since it was captured"
             )
@@ -625,11 +555,11 @@ class CaptureSession:
                 "started": _iso(time.time()),
                 "resumed": self.resume,
                 "controller_port": getattr(opened.controller, "port_name", None),
-                "camera": _json_safe(getattr(opened.camera, "settings", {})),
+                "camera": json_safe(getattr(opened.camera, "settings", {})),
             }
         )
         self.manifest["frames"] = self.records
-        write_json_atomic(run / MANIFEST_NAME, self.manifest)
+        write_manifest(run, self.manifest)
 
     def _write_simulation(self, opened: OpenRig) -> None:
         """Write the simulator's ground truth (normals, mask, true lights in plan order)."""
@@ -698,10 +628,8 @@ class CaptureSession:
                     ) from None
                 self.retries += 1
                 log.warning("frame %d (%s): %s; shooting it again", frame.index, frame.label, exc)
-        _fsync_file(temp)
-        digest = _sha256(temp)
-        os.replace(temp, final)
-        _fsync_dir(final.parent)
+        digest = sha256(temp)
+        publish_file(temp, final)
         record = {
             "index": frame.index,
             "kind": frame.kind,
@@ -717,16 +645,12 @@ class CaptureSession:
             record["attempts"] = attempt
         self.records.append(record)
         self.manifest["frames"] = self.records
-        write_json_atomic(self.run_dir / MANIFEST_NAME, self.manifest)
+        write_manifest(self.run_dir, self.manifest)
 
     def _shutdown(self, opened: OpenRig) -> None:
         # Closing the controller switches the lights off (and, if it does not answer any more,
         # its watchdog will); closing never raises.
         opened.close()
-
-
-def _json_safe(value: Any) -> Any:
-    return json.loads(json.dumps(value, default=str))
 
 
 def _reworded(exc: PsLabError, message: str) -> PsLabError:

@@ -19,3 +19,7 @@ class CalibrationError(PsLabError):
 
 class DatasetError(PsLabError):
     """A dataset folder is missing files, inconsistent, or holds unreadable images."""
+
+
+class OutputError(PsLabError):
+    """An output folder cannot be written or would overwrite something that is not a result."""

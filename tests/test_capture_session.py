@@ -23,15 +23,11 @@ import pytest
 
 from ps_lab.capture.connect import build_simulation
 from ps_lab.capture.rig import load_rig
-from ps_lab.capture.session import (
-    MANIFEST_NAME,
-    PARTIAL_PREFIX,
-    CaptureSession,
-    make_plan,
-    read_manifest,
-)
+from ps_lab.capture.session import CaptureSession, make_plan
 from ps_lab.errors import CameraError, DatasetError, PsLabError, RigError
+from ps_lab.io.files import PARTIAL_PREFIX
 from ps_lab.io.raw import load_raw
+from ps_lab.io.run import MANIFEST_NAME, read_manifest
 from ps_lab.render import render_scene
 
 N_LIGHTS = 8

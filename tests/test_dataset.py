@@ -14,8 +14,9 @@ import scipy.io
 import tifffile
 
 from ps_lab.errors import DatasetError
-from ps_lab.io.dataset import load_dataset, load_frames, read_light_directions
+from ps_lab.io.dataset import load_dataset, load_frames
 from ps_lab.io.images import read_image, read_pfm, write_pfm
+from ps_lab.io.lights import read_light_directions
 
 
 def write_png_rgb(path: Path, rgb: np.ndarray) -> None:

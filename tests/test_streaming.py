@@ -11,25 +11,20 @@ import numpy as np
 import pytest
 
 from ps_lab import reconstruct as solvers
+from ps_lab import render
 from ps_lab.errors import DatasetError
-from ps_lab.io.dataset import (
-    ObservationStore,
-    load_dataset,
-    open_dataset,
-    plan_bands,
-    stage_observations,
-)
+from ps_lab.io.bands import ObservationStore, plan_bands, stage_observations
+from ps_lab.io.dataset import load_dataset, open_dataset
 from ps_lab.reconstruct import pipeline
 from ps_lab.reconstruct.pipeline import (
     BYTES_PER_OBSERVATION,
     BYTES_PER_PIXEL,
     OutputError,
+    ReconstructOptions,
     _Histogram,
     parse_memory_size,
     reconstruct_to_folder,
 )
-
-render = pytest.importorskip("ps_lab.render")
 
 SHAPE = (30, 26)
 N_LIGHTS = 12
@@ -147,7 +142,7 @@ def test_store_in_system_temp_is_removed_on_close():
 
 def run(folder: Path, out: Path, **options) -> dict:
     options.setdefault("shadow_threshold", 0.005)
-    return reconstruct_to_folder(folder, out, **options)
+    return reconstruct_to_folder(folder, out, ReconstructOptions(**options)).metrics
 
 
 def outputs(out: Path) -> dict:

@@ -10,7 +10,11 @@ from typing import Annotated
 import typer
 
 from ps_lab._cli_util import lab_command, progress_bar
-from ps_lab.reconstruct.pipeline import parse_memory_size, reconstruct_to_folder
+from ps_lab.reconstruct.pipeline import (
+    ReconstructOptions,
+    parse_memory_size,
+    reconstruct_to_folder,
+)
 
 
 class Method(str, Enum):  # noqa: UP042 - typer needs str-valued choices
@@ -70,19 +74,16 @@ def reconstruct(
 ) -> None:
     """Estimate surface normals and albedo; write normals.npy, normal.png, albedo, metrics.json."""
     out = out if out is not None else dataset / "recon" / method.value
-    metrics = reconstruct_to_folder(
-        dataset,
-        out,
+    options = ReconstructOptions(
+        method=method.value,
         channel=channel.value,
         shadow_threshold=shadow_threshold,
-        method=method.value,
         threads=threads,
         refine_lights=refine_lights,
         fixed_intensities=fixed_intensities,
         memory_budget=parse_memory_size(memory_budget),
-        progress_bars=_terminal_bars,
-        extra={"channel": channel.value, "shadow_threshold": shadow_threshold},
     )
+    metrics = reconstruct_to_folder(dataset, out, options, progress_bars=_terminal_bars).metrics
     typer.echo(
         f"{metrics['pixels']} pixels, {metrics['lights']} lights, {method.value} "
         f"in {metrics['solve_seconds']:.2f} s"

@@ -8,8 +8,8 @@ from typing import Annotated
 import typer
 
 from ps_lab._cli_util import lab_command, progress_bar
-from ps_lab.capture.lights import SerialLightController, walk_lights
 from ps_lab.capture.connect import parse_faults, serve_simulator
+from ps_lab.capture.lights import SerialLightController, walk_lights
 
 rig_app = typer.Typer(
     help="Light-controller tools: a simulated controller on a pseudo-terminal, and a rig check.",

@@ -16,21 +16,15 @@ the solvers read). Every problem raises :class:`~ps_lab.errors.DatasetError` wit
 the file.
 
 For captures too large for memory, :func:`open_dataset` checks a folder without reading pixels,
-:func:`plan_bands` cuts the image into row bands, and :func:`stage_observations` reads each frame
-once and stores its mask pixels band by band in an :class:`ObservationStore` (same scaling as
-:func:`load_dataset`, bit for bit); :class:`NormalTruth` reads ground truth band by band.
+:mod:`ps_lab.io.bands` cuts it into row bands and stages its observations band by band; light
+tables are read and written by :mod:`ps_lab.io.lights`; the run format is :mod:`ps_lab.io.run`.
 """
 
 from __future__ import annotations
 
-import hashlib
-import io
-import json
 import logging
-import os
 import re
-import tempfile
-from collections.abc import Callable, Iterator
+from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -39,19 +33,20 @@ import numpy as np
 import scipy.io
 
 from ps_lab.errors import DatasetError
+from ps_lab.io.files import sha256
 from ps_lab.io.images import (
     SUPPORTED_SUFFIXES,
     Image,
     is_supported,
     read_image,
     read_image_size,
-    read_npy_header,
 )
+from ps_lab.io.lights import read_light_directions, read_light_intensities
+from ps_lab.io.run import MANIFEST_NAME, is_run, read_manifest
 
 log = logging.getLogger("ps_lab.io.dataset")
 
 CHANNELS = ("r", "g", "b", "mean")
-MANIFEST = "manifest.json"
 FILENAMES = "filenames.txt"
 LIGHT_DIRECTIONS = "light_directions.txt"
 LIGHT_INTENSITIES = "light_intensities.txt"
@@ -70,7 +65,6 @@ _NOT_FRAMES = {
 }
 _GT_NAME = re.compile(r".*[_-]gt(\.[^.]+)?$", re.IGNORECASE)
 _DARK_STEM = "dark"
-_UNIT_TOLERANCE = 1e-3
 
 
 @dataclass(frozen=True)
@@ -167,7 +161,7 @@ class FramePlan:
 
 def is_capture_run(path: Path) -> bool:
     """Tell whether ``path`` is a capture-run folder (it holds ``manifest.json``)."""
-    return (Path(path) / MANIFEST).is_file()
+    return is_run(path)
 
 
 def plan_frames(path: Path) -> FramePlan:
@@ -360,7 +354,7 @@ def observe(
     """Turn one linear frame into the solvers' observations and their validity.
 
     The single place where the colour rule and the validity rule are applied, shared by
-    :func:`load_dataset` and the streamed loader (:func:`stage_observations`).
+    :func:`load_dataset` and the streamed loader (:func:`ps_lab.io.bands.stage_observations`).
 
     Parameters
     ----------
@@ -500,106 +494,6 @@ def combine_channels(image: np.ndarray, intensity: np.ndarray, channel: str = "m
     return (image[..., k] / np.float32(intensity[k])).astype(np.float32)
 
 
-def read_light_directions(path: Path, count: int | None = None) -> np.ndarray:
-    """Read ``light_directions.txt``: one row ``x y z`` per light.
-
-    Rows that are not unit length are normalised (with a logged warning).
-
-    Parameters
-    ----------
-    path : Path
-        The text file.
-    count : int or None
-        Expected number of rows (the number of images).
-
-    Returns
-    -------
-    ndarray of shape (n, 3), float64, unit rows
-
-    """
-    rows = _read_table(path, (3,))
-    if count is not None and len(rows) != count:
-        raise DatasetError(
-            f"{path}: {len(rows)} light directions but the dataset has {count} images"
-        )
-    norms = np.linalg.norm(rows, axis=1)
-    for i, norm in enumerate(norms):
-        if norm < 1e-12:
-            raise DatasetError(f"{path}: light {i + 1} (row {i + 1}) has zero length")
-    off = np.abs(norms - 1.0) > _UNIT_TOLERANCE
-    if off.any():
-        log.warning(
-            "%s: %d light direction(s) not unit length (rows %s); normalised",
-            path,
-            int(off.sum()),
-            ", ".join(str(i + 1) for i in np.flatnonzero(off)[:10]),
-        )
-    return rows / norms[:, None]
-
-
-def read_light_intensities(path: Path, count: int | None = None) -> np.ndarray:
-    """Read ``light_intensities.txt``: one row per light, ``r g b`` or a single value.
-
-    Returns
-    -------
-    ndarray of shape (n, 3), float64, positive
-
-    """
-    rows = _read_table(path, (1, 3))
-    if count is not None and len(rows) != count:
-        raise DatasetError(
-            f"{path}: {len(rows)} light intensities but the dataset has {count} images"
-        )
-    bad = np.flatnonzero(np.any(rows <= 0, axis=1))
-    if bad.size:
-        raise DatasetError(f"{path}: row {bad[0] + 1}: intensities must be positive")
-    return np.repeat(rows, 3, axis=1) if rows.shape[1] == 1 else rows
-
-
-def write_light_table(path: Path, rows: np.ndarray) -> None:
-    """Write a light table (directions or intensities) in the DiLiGenT text format."""
-    rows = np.atleast_2d(np.asarray(rows, dtype=np.float64))
-    np.savetxt(path, rows, fmt="%.9f")
-
-
-def _read_table(path: Path, widths: tuple[int, ...]) -> np.ndarray:
-    """Parse a whitespace (or comma) separated numeric table; ``#`` starts a comment."""
-    try:
-        text = path.read_text(encoding="utf-8")
-    except FileNotFoundError:
-        raise DatasetError(f"{path}: file not found") from None
-    except (OSError, UnicodeDecodeError) as exc:
-        raise DatasetError(f"{path}: cannot read file ({exc})") from None
-    rows: list[list[float]] = []
-    width: int | None = None
-    for number, line in enumerate(text.splitlines(), start=1):
-        fields = line.split("#", 1)[0].replace(",", " ").split()
-        if not fields:
-            continue
-        try:
-            values = [float(field) for field in fields]
-        except ValueError:
-            raise DatasetError(
-                f"{path}: line {number}: not a row of numbers: {line.strip()!r}"
-            ) from None
-        if len(values) not in widths:
-            expected = " or ".join(str(w) for w in widths)
-            raise DatasetError(
-                f"{path}: line {number}: expected {expected} numbers, got {len(values)}"
-            )
-        if width is not None and len(values) != width:
-            raise DatasetError(
-                f"{path}: line {number}: {len(values)} numbers, earlier rows have {width}"
-            )
-        width = len(values)
-        if not all(np.isfinite(values)):
-            raise DatasetError(f"{path}: line {number}: value is NaN or infinite")
-        rows.append(values)
-    if not rows:
-        raise DatasetError(f"{path}: file is empty")
-    return np.asarray(rows, dtype=np.float64)
-
-
 def _natural_key(name: str) -> list:
     return [int(part) if part.isdigit() else part.lower() for part in re.split(r"(\d+)", name)]
 
@@ -656,15 +550,8 @@ def _plan_image_folder(root: Path) -> FramePlan:
 
 
 def _plan_run(root: Path) -> FramePlan:
-    manifest_file = root / MANIFEST
-    try:
-        manifest = json.loads(manifest_file.read_text(encoding="utf-8"))
-    except (OSError, UnicodeDecodeError) as exc:
-        raise DatasetError(f"{manifest_file}: cannot read file ({exc})") from None
-    except json.JSONDecodeError as exc:
-        raise DatasetError(f"{manifest_file}: not valid JSON ({exc})") from None
-    if not isinstance(manifest, dict) or manifest.get("format") != "ps-lab-run":
-        raise DatasetError(f"{manifest_file}: not a ps-lab run manifest (format != 'ps-lab-run')")
+    manifest_file = root / MANIFEST_NAME
+    manifest = read_manifest(root, complete=False)
     records = manifest.get("frames")
     if not isinstance(records, list):
         raise DatasetError(f"{manifest_file}: 'frames' is missing or not a list")
@@ -701,9 +588,9 @@ def _plan_run(root: Path) -> FramePlan:
     def file_of(record: dict) -> Path:
         file = root / record["file"]
         if not file.is_file():
-            raise DatasetError(f"{file}: frame file listed in {MANIFEST} is missing")
+            raise DatasetError(f"{file}: frame file listed in {MANIFEST_NAME} is missing")
         digest = record.get("sha256")
-        if digest and _sha256(file) != str(digest).lower():
+        if digest and sha256(file) != str(digest).lower():
             raise DatasetError(f"{file}: frame file changed since capture (sha256 mismatch)")
         return file
 
@@ -730,14 +617,6 @@ def _plan_run(root: Path) -> FramePlan:
         root=root,
         manifest=manifest,
     )
-
-
-def _sha256(path: Path) -> str:
-    digest = hashlib.sha256()
-    with path.open("rb") as stream:
-        for block in iter(lambda: stream.read(1 << 20), b""):
-            digest.update(block)
-    return digest.hexdigest()
 
 
 def _ratio(numerator: float | None, denominator: float | None) -> float:
@@ -876,302 +755,3 @@ def _normal_gt_path(root: Path) -> Path | None:
 def _find_normal_gt(root: Path, shape: tuple[int, int]) -> np.ndarray | None:
     path = _normal_gt_path(root)
     return None if path is None else read_normal_gt(path, shape)
-
-
-# --- streamed loading: captures of any size in bounded memory ---------------------------------
-
-
-@dataclass(frozen=True)
-class Band:
-    """A block of whole image rows solved together.
-
-    Attributes
-    ----------
-    index : int
-    row_start, row_stop : int
-        Image rows ``row_start:row_stop``.
-    pixel_start : int
-        Index of the band's first mask pixel among all mask pixels (row-major order).
-    pixel_count : int
-        Mask pixels in the band.
-
-    """
-
-    index: int
-    row_start: int
-    row_stop: int
-    pixel_start: int
-    pixel_count: int
-
-
-def plan_bands(mask: np.ndarray, max_pixels: int) -> list[Band]:
-    """Cut the image into row bands of at most ``max_pixels`` mask pixels each.
-
-    A band is closed before it would exceed ``max_pixels`` mask pixels or ``4 * max_pixels``
-    image pixels (so that per-band image buffers stay bounded when the mask is sparse); every band
-    holds at least one row.
-
-    Parameters
-    ----------
-    mask : ndarray of shape (H, W), bool
-    max_pixels : int
-        Positive.
-
-    Returns
-    -------
-    list of Band
-        Covering rows 0..H in order.
-
-    """
-    height, width = mask.shape
-    max_pixels = max(int(max_pixels), 1)
-    max_rows = max(4 * max_pixels // max(width, 1), 1)
-    per_row = np.count_nonzero(mask, axis=1)
-    bands: list[Band] = []
-    start, count, pixel_start = 0, 0, 0
-    for row in range(height):
-        rows = row - start
-        if rows > 0 and (count + per_row[row] > max_pixels or rows >= max_rows):
-            bands.append(Band(len(bands), start, row, pixel_start, count))
-            start, pixel_start, count = row, pixel_start + count, 0
-        count += int(per_row[row])
-    bands.append(Band(len(bands), start, height, pixel_start, count))
-    return bands
-
-
-class ObservationStore:
-    """Masked observations (float32) and their validity (packed bits), stored band by band.
-
-    Layout: for each band, the ``(n, P_band)`` float32 observations light after light, then the
-    packed validity bits of each light (``ceil(P_band / 8)`` bytes per light), so that one band's
-    block is read contiguously. The backing is a temporary file, or a bytes buffer in memory when
-    the store is small: the code is the same. Use as a context manager or call :meth:`close`,
-    which deletes the file.
-
-    Attributes
-    ----------
-    bands : list of Band
-    n_lights : int
-    shape : (H, W)
-    mask : ndarray of shape (H, W), bool
-    path : Path or None
-        The backing file (None in memory).
-    sample_observations : ndarray of shape (n, m), float32
-        Observations of ``m`` evenly spaced mask pixels (for the solvers' noise estimate).
-    sample_valid : ndarray of shape (n, m), bool
-
-    """
-
-    def __init__(
-        self,
-        bands: list[Band],
-        n_lights: int,
-        mask: np.ndarray,
-        *,
-        folder: Path | None = None,
-        in_memory: bool = False,
-        sample_pixels: int = 20000,
-    ) -> None:
-        self.bands = bands
-        self.n_lights = n_lights
-        self.mask = mask
-        self.shape = mask.shape
-        self.pixels = sum(band.pixel_count for band in bands)
-        self._offsets: list[tuple[int, int]] = []
-        offset = 0
-        for band in bands:
-            values = offset
-            offset += n_lights * band.pixel_count * 4
-            self._offsets.append((values, offset))
-            offset += n_lights * _packed_size(band.pixel_count)
-        self.nbytes = offset
-        self.path: Path | None = None
-        if in_memory:
-            self._stream = io.BytesIO()
-        else:
-            handle, name = tempfile.mkstemp(
-                prefix="ps-lab-observations-", suffix=".bin", dir=folder
-            )
-            self.path = Path(name)
-            self._stream = os.fdopen(handle, "w+b")
-        # The noise sample: the same pixels the solvers would pick among all mask pixels.
-        p = self.pixels
-        take = np.linspace(0, p - 1, min(p, sample_pixels)).round().astype(np.int64) if p else []
-        self.sample_index = np.unique(take).astype(np.int64)
-        self.sample_observations = np.zeros((n_lights, self.sample_index.size), np.float32)
-        self.sample_valid = np.zeros((n_lights, self.sample_index.size), bool)
-
-    def __enter__(self) -> ObservationStore:
-        return self
-
-    def __exit__(self, *exc_info) -> None:
-        self.close()
-
-    def close(self) -> None:
-        """Release the backing buffer and delete the backing file."""
-        self._stream.close()
-        if self.path is not None:
-            self.path.unlink(missing_ok=True)
-
-    def write(self, light: int, band: Band, observations: np.ndarray, valid: np.ndarray) -> None:
-        """Store one light's observations (P_band,) float32 and validity (P_band,) of a band."""
-        values, bits = self._offsets[band.index]
-        count = band.pixel_count
-        self._stream.seek(values + light * count * 4)
-        self._stream.write(np.ascontiguousarray(observations, dtype=np.float32).data)
-        self._stream.seek(bits + light * _packed_size(count))
-        self._stream.write(np.packbits(valid).data)
-        lo, hi = np.searchsorted(self.sample_index, [band.pixel_start, band.pixel_start + count])
-        local = self.sample_index[lo:hi] - band.pixel_start
-        self.sample_observations[light, lo:hi] = observations[local]
-        self.sample_valid[light, lo:hi] = valid[local]
-
-    def read(self, band: Band) -> tuple[np.ndarray, np.ndarray]:
-        """One band's observations (n, P_band) float32 and validity (n, P_band) bool."""
-        values, bits = self._offsets[band.index]
-        count = band.pixel_count
-        observations = np.empty((self.n_lights, count), np.float32)
-        packed = np.empty((self.n_lights, _packed_size(count)), np.uint8)
-        self._stream.seek(values)
-        self._read_exactly(observations)
-        self._stream.seek(bits)
-        self._read_exactly(packed)
-        valid = np.unpackbits(packed, axis=1, count=count).view(bool)
-        return observations, valid
-
-    def _read_exactly(self, array: np.ndarray) -> None:
-        if array.size == 0:
-            return
-        view = memoryview(array.reshape(-1).view(np.uint8))
-        done = 0
-        while done < len(view):
-            got = self._stream.readinto(view[done:])
-            if not got:
-                raise DatasetError(f"{self.path or 'observation store'}: staging data truncated")
-            done += got
-
-
-def _packed_size(count: int) -> int:
-    return (count + 7) // 8
-
-
-def stage_observations(
-    header: DatasetHeader,
-    mask: np.ndarray,
-    bands: list[Band],
-    *,
-    channel: str = "mean",
-    shadow_threshold: float | None = None,
-    folder: Path | None = None,
-    in_memory: bool = False,
-    sample_pixels: int = 20000,
-    progress: Callable[[int], None] | None = None,
-) -> ObservationStore:
-    """Read every frame once, one at a time, and store its mask pixels band by band.
-
-    The per-light scaling, colour rule and validity rule are those of :func:`load_dataset`
-    (:func:`iter_frames` then :func:`observe`), so ``store.read(band)`` equals
-    ``load_dataset(...).images[:, rows][:, mask]`` bit for bit.
-
-    Parameters
-    ----------
-    header : DatasetHeader
-        From :func:`open_dataset` (with the image size).
-    mask : ndarray of shape (H, W), bool
-    bands : list of Band
-        From :func:`plan_bands`.
-    channel, shadow_threshold
-        As for :func:`load_dataset`.
-    folder : Path or None
-        Where the temporary file goes (default: the system's temporary folder).
-    in_memory : bool
-        Keep the store in a memory buffer instead of a file.
-    sample_pixels : int
-        Size of the noise-estimation sample (see :class:`ObservationStore`).
-    progress : callable or None
-        ``progress(1)`` after each light.
-
-    Returns
-    -------
-    ObservationStore
-        The caller closes it (it is closed here if reading fails).
-
-    """
-    store = ObservationStore(
-        bands,
-        len(header.names),
-        mask,
-        folder=folder,
-        in_memory=in_memory,
-        sample_pixels=sample_pixels,
-    )
-    height, width = mask.shape
-    try:
-        for i, (frame, clipped) in enumerate(iter_frames(header.plan)):
-            if frame.shape[:2] != (height, width):
-                file = header.plan.light_files[i][0]
-                raise DatasetError(
-                    f"{file}: image size {frame.shape[1]}x{frame.shape[0]} differs from the "
-                    f"first image ({width}x{height})"
-                )
-            observations, valid = observe(
-                frame, clipped, header.light_intensities[i], channel, shadow_threshold
-            )
-            del frame, clipped
-            for band in bands:
-                rows = slice(band.row_start, band.row_stop)
-                inside = mask[rows]
-                store.write(i, band, observations[rows][inside], valid[rows][inside])
-            del observations, valid
-            if progress is not None:
-                progress(1)
-    except BaseException:
-        store.close()
-        raise
-    return store
-
-
-class NormalTruth:
-    """Ground-truth normals read band by band (``normal_gt.npy`` from disk, ``.mat`` in memory).
-
-    Use :func:`open_normal_gt`. ``rows(a, b)`` returns rows ``a:b`` as (b - a, W, 3) float64.
-    """
-
-    def __init__(self, path: Path, shape: tuple[int, int]) -> None:
-        self.path = path
-        self.shape = shape
-        self._array: np.ndarray | None = None
-        self._layout: tuple[np.dtype, int] | None = None
-        if path.suffix.lower() == ".npy":
-            try:
-                with path.open("rb") as stream:
-                    dims, fortran, dtype, offset = read_npy_header(stream)
-            except (OSError, ValueError) as exc:
-                raise DatasetError(f"{path}: corrupt or unreadable .npy file ({exc})") from None
-            _check_normal_gt_shape(path, tuple(dims), shape)
-            expected = offset + int(np.prod(dims)) * dtype.itemsize
-            if not fortran and dtype.kind == "f" and path.stat().st_size >= expected:
-                self._layout = (dtype, offset)
-        if self._layout is None:
-            self._array = read_normal_gt(path, shape)
-
-    def rows(self, start: int, stop: int) -> np.ndarray:
-        """Rows ``start:stop`` of the normals, shape (stop - start, W, 3), float64."""
-        if self._array is not None:
-            return self._array[start:stop]
-        assert self._layout is not None
-        dtype, offset = self._layout
-        width = self.shape[1]
-        count = (stop - start) * width * 3
-        with self.path.open("rb") as stream:
-            stream.seek(offset + start * width * 3 * dtype.itemsize)
-            data = np.fromfile(stream, dtype=dtype, count=count)
-        if data.size != count:
-            raise DatasetError(f"{self.path}: file is truncated")
-        return _finite_normals(self.path, data.reshape(stop - start, width, 3).astype(np.float64))
-
-
-def open_normal_gt(root: Path, shape: tuple[int, int]) -> NormalTruth | None:
-    """The dataset's ground-truth normals for band-wise reading, or None (as in load_dataset)."""
-    path = _normal_gt_path(root)
-    return None if path is None else NormalTruth(path, shape)

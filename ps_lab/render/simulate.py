@@ -3,9 +3,6 @@
 from __future__ import annotations
 
 import json
-import os
-import shutil
-import tempfile
 from collections.abc import Callable
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -15,6 +12,7 @@ import numpy as np
 import tifffile
 
 from ps_lab.errors import DatasetError
+from ps_lab.io.files import staged_folder
 from ps_lab.render.lights import random_light_directions
 from ps_lab.render.shading import render
 from ps_lab.render.surfaces import relief_surface, sphere_surface
@@ -130,8 +128,7 @@ def write_simulated_dataset(
     peak = float(images.max())
     scale = PNG16_PEAK * 65535.0 / peak if peak > 0 else 1.0
 
-    staging = Path(tempfile.mkdtemp(prefix=f".{out.name}.", suffix=".tmp", dir=parent))
-    try:
+    with staged_folder(out, check=check_new_dataset_folder, error=DatasetError) as staging:
         for name, image in zip(names, images, strict=True):
             path = staging / name
             if settings.image_format == "png16":
@@ -156,13 +153,6 @@ def write_simulated_dataset(
             "png16_scale": scale if settings.image_format == "png16" else None,
         }
         (staging / "simulation.json").write_text(json.dumps(meta, indent=2) + "\n")
-        check_new_dataset_folder(out)  # nobody wrote there meanwhile
-        if out.exists():
-            out.rmdir()
-        os.replace(staging, out)
-    except BaseException:
-        shutil.rmtree(staging, ignore_errors=True)
-        raise
     return {
         "path": out,
         "images": settings.lights,

@@ -1,0 +1,328 @@
+"""Streamed loading: captures of any size in bounded memory (``docs/scale.md``).
+
+:func:`plan_bands` cuts the image into row bands, and :func:`stage_observations` reads each frame
+once and stores its mask pixels band by band in an :class:`ObservationStore` (same scaling as
+:func:`ps_lab.io.dataset.load_dataset`, bit for bit); :class:`NormalTruth` reads ground truth band
+by band.
+"""
+
+from __future__ import annotations
+
+import io
+import logging
+import os
+import tempfile
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from ps_lab.errors import DatasetError
+from ps_lab.io.dataset import (
+    DatasetHeader,
+    _check_normal_gt_shape,
+    _finite_normals,
+    _normal_gt_path,
+    iter_frames,
+    observe,
+    read_normal_gt,
+)
+from ps_lab.io.images import read_npy_header
+
+log = logging.getLogger(__name__)
+
+@dataclass(frozen=True)
+class Band:
+    """A block of whole image rows solved together.
+
+    Attributes
+    ----------
+    index : int
+    row_start, row_stop : int
+        Image rows ``row_start:row_stop``.
+    pixel_start : int
+        Index of the band's first mask pixel among all mask pixels (row-major order).
+    pixel_count : int
+        Mask pixels in the band.
+
+    """
+
+    index: int
+    row_start: int
+    row_stop: int
+    pixel_start: int
+    pixel_count: int
+
+
+def plan_bands(mask: np.ndarray, max_pixels: int) -> list[Band]:
+    """Cut the image into row bands of at most ``max_pixels`` mask pixels each.
+
+    A band is closed before it would exceed ``max_pixels`` mask pixels or ``4 * max_pixels``
+    image pixels (so that per-band image buffers stay bounded when the mask is sparse); every band
+    holds at least one row.
+
+    Parameters
+    ----------
+    mask : ndarray of shape (H, W), bool
+    max_pixels : int
+        Positive.
+
+    Returns
+    -------
+    list of Band
+        Covering rows 0..H in order.
+
+    """
+    height, width = mask.shape
+    max_pixels = max(int(max_pixels), 1)
+    max_rows = max(4 * max_pixels // max(width, 1), 1)
+    per_row = np.count_nonzero(mask, axis=1)
+    bands: list[Band] = []
+    start, count, pixel_start = 0, 0, 0
+    for row in range(height):
+        rows = row - start
+        if rows > 0 and (count + per_row[row] > max_pixels or rows >= max_rows):
+            bands.append(Band(len(bands), start, row, pixel_start, count))
+            start, pixel_start, count = row, pixel_start + count, 0
+        count += int(per_row[row])
+    bands.append(Band(len(bands), start, height, pixel_start, count))
+    return bands
+
+
+class ObservationStore:
+    """Masked observations (float32) and their validity (packed bits), stored band by band.
+
+    Layout: for each band, the ``(n, P_band)`` float32 observations light after light, then the
+    packed validity bits of each light (``ceil(P_band / 8)`` bytes per light), so that one band's
+    block is read contiguously. The backing is a temporary file, or a bytes buffer in memory when
+    the store is small: the code is the same. Use as a context manager or call :meth:`close`,
+    which deletes the file.
+
+    Attributes
+    ----------
+    bands : list of Band
+    n_lights : int
+    shape : (H, W)
+    mask : ndarray of shape (H, W), bool
+    path : Path or None
+        The backing file (None in memory).
+    sample_observations : ndarray of shape (n, m), float32
+        Observations of ``m`` evenly spaced mask pixels (for the solvers' noise estimate).
+    sample_valid : ndarray of shape (n, m), bool
+
+    """
+
+    def __init__(
+        self,
+        bands: list[Band],
+        n_lights: int,
+        mask: np.ndarray,
+        *,
+        folder: Path | None = None,
+        in_memory: bool = False,
+        sample_pixels: int = 20000,
+    ) -> None:
+        self.bands = bands
+        self.n_lights = n_lights
+        self.mask = mask
+        self.shape = mask.shape
+        self.pixels = sum(band.pixel_count for band in bands)
+        self._offsets: list[tuple[int, int]] = []
+        offset = 0
+        for band in bands:
+            values = offset
+            offset += n_lights * band.pixel_count * 4
+            self._offsets.append((values, offset))
+            offset += n_lights * _packed_size(band.pixel_count)
+        self.nbytes = offset
+        self.path: Path | None = None
+        if in_memory:
+            self._stream = io.BytesIO()
+        else:
+            handle, name = tempfile.mkstemp(
+                prefix="ps-lab-observations-", suffix=".bin", dir=folder
+            )
+            self.path = Path(name)
+            self._stream = os.fdopen(handle, "w+b")
+        # The noise sample: the same pixels the solvers would pick among all mask pixels.
+        p = self.pixels
+        take = np.linspace(0, p - 1, min(p, sample_pixels)).round().astype(np.int64) if p else []
+        self.sample_index = np.unique(take).astype(np.int64)
+        self.sample_observations = np.zeros((n_lights, self.sample_index.size), np.float32)
+        self.sample_valid = np.zeros((n_lights, self.sample_index.size), bool)
+
+    def __enter__(self) -> ObservationStore:
+        return self
+
+    def __exit__(self, *exc_info) -> None:
+        self.close()
+
+    def close(self) -> None:
+        """Release the backing buffer and delete the backing file."""
+        self._stream.close()
+        if self.path is not None:
+            self.path.unlink(missing_ok=True)
+
+    def write(self, light: int, band: Band, observations: np.ndarray, valid: np.ndarray) -> None:
+        """Store one light's observations (P_band,) float32 and validity (P_band,) of a band."""
+        values, bits = self._offsets[band.index]
+        count = band.pixel_count
+        self._stream.seek(values + light * count * 4)
+        self._stream.write(np.ascontiguousarray(observations, dtype=np.float32).data)
+        self._stream.seek(bits + light * _packed_size(count))
+        self._stream.write(np.packbits(valid).data)
+        lo, hi = np.searchsorted(self.sample_index, [band.pixel_start, band.pixel_start + count])
+        local = self.sample_index[lo:hi] - band.pixel_start
+        self.sample_observations[light, lo:hi] = observations[local]
+        self.sample_valid[light, lo:hi] = valid[local]
+
+    def read(self, band: Band) -> tuple[np.ndarray, np.ndarray]:
+        """One band's observations (n, P_band) float32 and validity (n, P_band) bool."""
+        values, bits = self._offsets[band.index]
+        count = band.pixel_count
+        observations = np.empty((self.n_lights, count), np.float32)
+        packed = np.empty((self.n_lights, _packed_size(count)), np.uint8)
+        self._stream.seek(values)
+        self._read_exactly(observations)
+        self._stream.seek(bits)
+        self._read_exactly(packed)
+        valid = np.unpackbits(packed, axis=1, count=count).view(bool)
+        return observations, valid
+
+    def _read_exactly(self, array: np.ndarray) -> None:
+        if array.size == 0:
+            return
+        view = memoryview(array.reshape(-1).view(np.uint8))
+        done = 0
+        while done < len(view):
+            got = self._stream.readinto(view[done:])
+            if not got:
+                raise DatasetError(f"{self.path or 'observation store'}: staging data truncated")
+            done += got
+
+
+def _packed_size(count: int) -> int:
+    return (count + 7) // 8
+
+
+def stage_observations(
+    header: DatasetHeader,
+    mask: np.ndarray,
+    bands: list[Band],
+    *,
+    channel: str = "mean",
+    shadow_threshold: float | None = None,
+    folder: Path | None = None,
+    in_memory: bool = False,
+    sample_pixels: int = 20000,
+    progress: Callable[[int], None] | None = None,
+) -> ObservationStore:
+    """Read every frame once, one at a time, and store its mask pixels band by band.
+
+    The per-light scaling, colour rule and validity rule are those of :func:`load_dataset`
+    (:func:`iter_frames` then :func:`observe`), so ``store.read(band)`` equals
+    ``load_dataset(...).images[:, rows][:, mask]`` bit for bit.
+
+    Parameters
+    ----------
+    header : DatasetHeader
+        From :func:`open_dataset` (with the image size).
+    mask : ndarray of shape (H, W), bool
+    bands : list of Band
+        From :func:`plan_bands`.
+    channel, shadow_threshold
+        As for :func:`load_dataset`.
+    folder : Path or None
+        Where the temporary file goes (default: the system's temporary folder).
+    in_memory : bool
+        Keep the store in a memory buffer instead of a file.
+    sample_pixels : int
+        Size of the noise-estimation sample (see :class:`ObservationStore`).
+    progress : callable or None
+        ``progress(1)`` after each light.
+
+    Returns
+    -------
+    ObservationStore
+        The caller closes it (it is closed here if reading fails).
+
+    """
+    store = ObservationStore(
+        bands,
+        len(header.names),
+        mask,
+        folder=folder,
+        in_memory=in_memory,
+        sample_pixels=sample_pixels,
+    )
+    height, width = mask.shape
+    try:
+        for i, (frame, clipped) in enumerate(iter_frames(header.plan)):
+            if frame.shape[:2] != (height, width):
+                file = header.plan.light_files[i][0]
+                raise DatasetError(
+                    f"{file}: image size {frame.shape[1]}x{frame.shape[0]} differs from the "
+                    f"first image ({width}x{height})"
+                )
+            observations, valid = observe(
+                frame, clipped, header.light_intensities[i], channel, shadow_threshold
+            )
+            del frame, clipped
+            for band in bands:
+                rows = slice(band.row_start, band.row_stop)
+                inside = mask[rows]
+                store.write(i, band, observations[rows][inside], valid[rows][inside])
+            del observations, valid
+            if progress is not None:
+                progress(1)
+    except BaseException:
+        store.close()
+        raise
+    return store
+
+
+class NormalTruth:
+    """Ground-truth normals read band by band (``normal_gt.npy`` from disk, ``.mat`` in memory).
+
+    Use :func:`open_normal_gt`. ``rows(a, b)`` returns rows ``a:b`` as (b - a, W, 3) float64.
+    """
+
+    def __init__(self, path: Path, shape: tuple[int, int]) -> None:
+        self.path = path
+        self.shape = shape
+        self._array: np.ndarray | None = None
+        self._layout: tuple[np.dtype, int] | None = None
+        if path.suffix.lower() == ".npy":
+            try:
+                with path.open("rb") as stream:
+                    dims, fortran, dtype, offset = read_npy_header(stream)
+            except (OSError, ValueError) as exc:
+                raise DatasetError(f"{path}: corrupt or unreadable .npy file ({exc})") from None
+            _check_normal_gt_shape(path, tuple(dims), shape)
+            expected = offset + int(np.prod(dims)) * dtype.itemsize
+            if not fortran and dtype.kind == "f" and path.stat().st_size >= expected:
+                self._layout = (dtype, offset)
+        if self._layout is None:
+            self._array = read_normal_gt(path, shape)
+
+    def rows(self, start: int, stop: int) -> np.ndarray:
+        """Rows ``start:stop`` of the normals, shape (stop - start, W, 3), float64."""
+        if self._array is not None:
+            return self._array[start:stop]
+        assert self._layout is not None
+        dtype, offset = self._layout
+        width = self.shape[1]
+        count = (stop - start) * width * 3
+        with self.path.open("rb") as stream:
+            stream.seek(offset + start * width * 3 * dtype.itemsize)
+            data = np.fromfile(stream, dtype=dtype, count=count)
+        if data.size != count:
+            raise DatasetError(f"{self.path}: file is truncated")
+        return _finite_normals(self.path, data.reshape(stop - start, width, 3).astype(np.float64))
+
+
+def open_normal_gt(root: Path, shape: tuple[int, int]) -> NormalTruth | None:
+    """The dataset's ground-truth normals for band-wise reading, or None (as in load_dataset)."""
+    path = _normal_gt_path(root)
+    return None if path is None else NormalTruth(path, shape)

@@ -1,0 +1,116 @@
+"""Light tables: ``light_directions.txt`` (n rows ``x y z``) and ``light_intensities.txt``
+(n rows of 3, or 1), the DiLiGenT text format read by every command and written by calibration
+and light refinement."""
+
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+
+import numpy as np
+
+from ps_lab.errors import DatasetError
+
+log = logging.getLogger("ps_lab.io.dataset")
+
+_UNIT_TOLERANCE = 1e-3
+
+
+def read_light_directions(path: Path, count: int | None = None) -> np.ndarray:
+    """Read ``light_directions.txt``: one row ``x y z`` per light.
+
+    Rows that are not unit length are normalised (with a logged warning).
+
+    Parameters
+    ----------
+    path : Path
+        The text file.
+    count : int or None
+        Expected number of rows (the number of images).
+
+    Returns
+    -------
+    ndarray of shape (n, 3), float64, unit rows
+
+    """
+    rows = _read_table(path, (3,))
+    if count is not None and len(rows) != count:
+        raise DatasetError(
+            f"{path}: {len(rows)} light directions but the dataset has {count} images"
+        )
+    norms = np.linalg.norm(rows, axis=1)
+    for i, norm in enumerate(norms):
+        if norm < 1e-12:
+            raise DatasetError(f"{path}: light {i + 1} (row {i + 1}) has zero length")
+    off = np.abs(norms - 1.0) > _UNIT_TOLERANCE
+    if off.any():
+        log.warning(
+            "%s: %d light direction(s) not unit length (rows %s); normalised",
+            path,
+            int(off.sum()),
+            ", ".join(str(i + 1) for i in np.flatnonzero(off)[:10]),
+        )
+    return rows / norms[:, None]
+
+
+def read_light_intensities(path: Path, count: int | None = None) -> np.ndarray:
+    """Read ``light_intensities.txt``: one row per light, ``r g b`` or a single value.
+
+    Returns
+    -------
+    ndarray of shape (n, 3), float64, positive
+
+    """
+    rows = _read_table(path, (1, 3))
+    if count is not None and len(rows) != count:
+        raise DatasetError(
+            f"{path}: {len(rows)} light intensities but the dataset has {count} images"
+        )
+    bad = np.flatnonzero(np.any(rows <= 0, axis=1))
+    if bad.size:
+        raise DatasetError(f"{path}: row {bad[0] + 1}: intensities must be positive")
+    return np.repeat(rows, 3, axis=1) if rows.shape[1] == 1 else rows
+
+
+def write_light_table(path: Path, rows: np.ndarray) -> None:
+    """Write a light table (directions or intensities) in the DiLiGenT text format."""
+    rows = np.atleast_2d(np.asarray(rows, dtype=np.float64))
+    np.savetxt(path, rows, fmt="%.9f")
+
+
+def _read_table(path: Path, widths: tuple[int, ...]) -> np.ndarray:
+    """Parse a whitespace (or comma) separated numeric table; ``#`` starts a comment."""
+    try:
+        text = path.read_text(encoding="utf-8")
+    except FileNotFoundError:
+        raise DatasetError(f"{path}: file not found") from None
+    except (OSError, UnicodeDecodeError) as exc:
+        raise DatasetError(f"{path}: cannot read file ({exc})") from None
+    rows: list[list[float]] = []
+    width: int | None = None
+    for number, line in enumerate(text.splitlines(), start=1):
+        fields = line.split("#", 1)[0].replace(",", " ").split()
+        if not fields:
+            continue
+        try:
+            values = [float(field) for field in fields]
+        except ValueError:
+            raise DatasetError(
+                f"{path}: line {number}: not a row of numbers: {line.strip()!r}"
+            ) from None
+        if len(values) not in widths:
+            expected = " or ".join(str(w) for w in widths)
+            raise DatasetError(
+                f"{path}: line {number}: expected {expected} numbers, got {len(values)}"
+            )
+        if width is not None and len(values) != width:
+            raise DatasetError(
+                f"{path}: line {number}: {len(values)} numbers, earlier rows have {width}"
+            )
+        width = len(values)
+        if not all(np.isfinite(values)):
+            raise DatasetError(f"{path}: line {number}: value is NaN or infinite")
+        rows.append(values)
+    if not rows:
+        raise DatasetError(f"{path}: file is empty")
+    return np.asarray(rows, dtype=np.float64)

@@ -1,0 +1,253 @@
+"""Result files of a reconstruction, written band by band: normal and albedo maps, pictures.
+
+Files (see ``docs/datasets.md``): ``normals.npy``, ``normal.png``, ``albedo.npy``, ``albedo.png``,
+``corruption.png`` and, when lights were refined, ``light_directions.txt`` /
+``light_intensities.txt``. :mod:`ps_lab.reconstruct.pipeline` owns the flow and writes
+``metrics.json`` from the summary :meth:`_OutputWriter.finish` returns.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+
+from ps_lab.errors import OutputError
+from ps_lab.io.lights import write_light_table
+from ps_lab.reconstruct.metrics import angular_errors_deg
+
+# Angular errors are summarised from a histogram of this bin width (degrees): median and p90 are
+# within half a bin of the exact values, mean and max are exact.
+ERROR_BIN_DEG = 0.001
+
+
+def normal_picture(normals: np.ndarray, mask: np.ndarray) -> np.ndarray:
+    """Colour-code normals as 8-bit RGB = (n + 1) / 2 · 255, black outside the mask.
+
+    Returns
+    -------
+    ndarray of shape (H, W, 3), uint8, RGB
+
+    """
+    rgb = np.clip(np.rint((normals.astype(np.float64) + 1.0) * 127.5), 0, 255).astype(np.uint8)
+    rgb[~mask] = 0
+    return rgb
+
+
+def albedo_picture(albedo: np.ndarray, mask: np.ndarray) -> np.ndarray:
+    """Scale albedo to 8 bits by its 99th percentile inside the mask.
+
+    Returns
+    -------
+    ndarray of shape (H, W), uint8
+
+    """
+    inside = albedo[mask]
+    top = float(np.percentile(inside, 99)) if inside.size else 0.0
+    if not np.isfinite(top) or top <= 0:
+        return np.zeros(albedo.shape, dtype=np.uint8)
+    picture = np.clip(np.rint(albedo / top * 255.0), 0, 255).astype(np.uint8)
+    picture[~mask] = 0
+    return picture
+
+
+def corruption_picture(corruption: np.ndarray) -> np.ndarray:
+    """Map the outlier share 0..1 to 0..255 (uint8, shape (H, W))."""
+    return np.clip(np.rint(corruption * 255.0), 0, 255).astype(np.uint8)
+
+
+def write_png(path: Path, picture: np.ndarray) -> None:
+    """Write an 8-bit grey (H, W) or RGB (H, W, 3) picture as PNG."""
+    if picture.ndim == 3:
+        picture = np.ascontiguousarray(picture[:, :, ::-1])  # OpenCV stores BGR
+    ok, encoded = cv2.imencode(".png", picture)
+    if not ok:
+        raise OutputError(f"{path}: cannot encode PNG")
+    Path(path).write_bytes(encoded.tobytes())
+
+
+class _Histogram:
+    """Streamed summary of non-negative values: exact count/mean/max, binned quantiles."""
+
+    def __init__(self, bin_width: float, top: float) -> None:
+        self.width = bin_width
+        self.counts = np.zeros(int(np.ceil(top / bin_width)) + 1, np.int64)
+        self.total = 0.0
+        self.count = 0
+        self.max = -np.inf
+
+    def add(self, values: np.ndarray) -> None:
+        values = np.asarray(values, np.float64).ravel()
+        values = values[np.isfinite(values)]
+        if not values.size:
+            return
+        bins = np.minimum((values / self.width).astype(np.int64), self.counts.size - 1)
+        self.counts += np.bincount(bins, minlength=self.counts.size)
+        self.total += float(values.sum())
+        self.count += values.size
+        self.max = max(self.max, float(values.max()))
+
+    def quantile(self, q: float) -> float:
+        """Linear-interpolated quantile (numpy's default rule) with values at bin centres."""
+        rank = q * (self.count - 1)
+        cumulative = np.cumsum(self.counts)
+        lo, hi = int(np.floor(rank)), int(np.ceil(rank))
+        value_lo, value_hi = (
+            (int(np.searchsorted(cumulative, k, side="right")) + 0.5) * self.width for k in (lo, hi)
+        )
+        return min(value_lo + (rank - lo) * (value_hi - value_lo), self.max)
+
+    def summary(self) -> dict[str, float] | None:
+        if not self.count:
+            return None
+        return {
+            "mean": self.total / self.count,
+            "median": self.quantile(0.5),
+            "p90": self.quantile(0.9),
+            "max": self.max,
+        }
+
+
+def _iteration_statistics(counts: np.ndarray) -> dict[str, float]:
+    """Mean, exact median and max of non-negative integers given as a bincount."""
+    total = int(counts.sum())
+    if total == 0:
+        return {"mean": 0.0, "median": 0.0, "max": 0.0}
+    values = np.arange(counts.size)
+    cumulative = np.cumsum(counts)
+    middle = ((total - 1) // 2, total // 2)
+    lo, hi = (int(np.searchsorted(cumulative, k, side="right")) for k in middle)
+    return {
+        "mean": float((counts * values).sum() / total),
+        "median": float(0.5 * (lo + hi)),
+        "max": float(values[counts > 0].max()),
+    }
+
+
+class _OutputWriter:
+    """Result files written band by band: memory-mapped ``.npy`` rows and 8-bit pictures."""
+
+    def __init__(self, folder: Path, mask: np.ndarray, truth, n_lights: int) -> None:
+        self.folder = folder
+        self.mask = mask
+        self.truth = truth
+        height, width = mask.shape
+        self.offsets = {}
+        for name, shape in (("normals", (height, width, 3)), ("albedo", (height, width))):
+            array = np.lib.format.open_memmap(
+                folder / f"{name}.npy", mode="w+", dtype=np.float32, shape=shape
+            )
+            self.offsets[name] = (array.offset, shape[1:])
+            del array
+        self.normal_png = np.zeros((height, width, 3), np.uint8)
+        self.corruption_png = np.zeros((height, width), np.uint8)
+        self.albedo_values = np.zeros(int(mask.sum()), np.float32)
+        self.errors = _Histogram(ERROR_BIN_DEG, 180.0)
+        self.iterations = np.zeros(1, np.int64)
+        self.valid_count = 0
+        self.outlier_count = 0
+        self.solved_count = 0
+        self.observation_count = 0
+
+    def _write_rows(self, name: str, start: int, block: np.ndarray) -> None:
+        offset, row_shape = self.offsets[name]
+        row_bytes = int(np.prod(row_shape)) * 4
+        rows = np.memmap(
+            self.folder / f"{name}.npy",
+            dtype=np.float32,
+            mode="r+",
+            offset=offset + start * row_bytes,
+            shape=block.shape,
+        )
+        rows[...] = block
+        rows.flush()
+        del rows  # unmapped at once: written pages do not stay in the resident set
+
+    def add(self, band, solution, valid: np.ndarray) -> None:
+        rows = slice(band.row_start, band.row_stop)
+        inside = self.mask[rows]
+        height, width = inside.shape
+        pixel_normals = np.asarray(solution.normals, dtype=np.float64)
+        lengths = np.linalg.norm(pixel_normals, axis=1)
+        solved = np.isfinite(lengths) & (lengths > 0.5)
+        unit = np.zeros_like(pixel_normals)
+        unit[solved] = pixel_normals[solved] / lengths[solved, None]
+        normals = np.zeros((height, width, 3), np.float32)
+        normals[inside] = unit
+        albedo = np.zeros((height, width), np.float32)
+        pixel_albedo = np.nan_to_num(np.asarray(solution.albedo, np.float64))
+        albedo[inside] = np.where(solved, pixel_albedo, 0.0)
+        outliers = np.asarray(solution.outliers, dtype=bool)
+        used = valid.sum(axis=0)
+        corruption = np.zeros((height, width), np.float32)
+        corruption[inside] = outliers.sum(axis=0) / np.maximum(used, 1)
+        solved_map = np.zeros((height, width), bool)
+        solved_map[inside] = solved
+        self._write_rows("normals", band.row_start, normals)
+        self._write_rows("albedo", band.row_start, albedo)
+        self.normal_png[rows] = normal_picture(normals, solved_map)
+        self.corruption_png[rows] = corruption_picture(corruption)
+        self.albedo_values[band.pixel_start : band.pixel_start + band.pixel_count] = albedo[inside]
+        counts = np.bincount(np.asarray(solution.iterations, np.int64))
+        if counts.size > self.iterations.size:
+            counts[: self.iterations.size] += self.iterations
+            self.iterations = counts
+        else:
+            self.iterations[: counts.size] += counts
+        self.valid_count += int(used.sum())
+        self.observation_count += valid.size
+        self.outlier_count += int(outliers.sum())
+        self.solved_count += int(solved.sum())
+        if self.truth is not None:
+            gt = self.truth.rows(band.row_start, band.row_stop)
+            pixels = solved_map & inside & (np.linalg.norm(gt, axis=2) > 0.5)
+            self.errors.add(angular_errors_deg(normals[pixels].astype(np.float64), gt[pixels]))
+
+    def finish(self, header, params: dict, *, lights, intensities, seconds, result_format) -> dict:
+        """Write the pictures (and refined light tables); return the metrics of the result.
+
+        ``metrics.json`` itself is written by the pipeline, which adds its own entries.
+        """
+        folder = self.folder
+        mask = self.mask
+        write_png(folder / "normal.png", self.normal_png)
+        self.normal_png = None
+        write_png(folder / "corruption.png", self.corruption_png)
+        self.corruption_png = None
+        albedo_png = np.zeros(mask.shape, np.uint8)
+        values = self.albedo_values
+        top = float(np.percentile(values, 99)) if values.size else 0.0
+        if np.isfinite(top) and top > 0:
+            albedo_png[mask] = np.clip(np.rint(values / top * 255.0), 0, 255).astype(np.uint8)
+        write_png(folder / "albedo.png", albedo_png)
+        del albedo_png
+        if lights is not None:
+            write_light_table(folder / "light_directions.txt", lights)
+        if intensities is not None:
+            write_light_table(folder / "light_intensities.txt", intensities)
+        pixels = int(mask.sum())
+        metrics: dict[str, Any] = {
+            "format": result_format,
+            "method": params.get("method"),
+            "parameters": params,
+            "dataset": str(header.root),
+            "image_size": [int(mask.shape[1]), int(mask.shape[0])],
+            "pixels": pixels,
+            "lights": len(header.names),
+            "solve_seconds": float(seconds),
+            "iterations": _iteration_statistics(self.iterations),
+            "valid_observation_share": self.valid_count / max(self.observation_count, 1),
+            "outlier_share": self.outlier_count / max(self.valid_count, 1),
+            "unsolved_pixels": pixels - self.solved_count,
+        }
+        if self.truth is not None:
+            metrics["angular_error_deg"] = self.errors.summary()
+            metrics["angular_error_method"] = (
+                f"mean and max exact; median and p90 from a histogram of {ERROR_BIN_DEG} deg bins"
+            )
+            metrics["error_pixels"] = self.errors.count
+        return metrics
+
+
