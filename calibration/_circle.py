@@ -18,14 +18,7 @@ import numpy as np
 from scipy import ndimage
 
 from ps_lab.errors import CalibrationError
-
-
-class Circle(NamedTuple):
-    """A circle in pixel coordinates (x = column, y = row, origin at the top-left pixel centre)."""
-
-    x: float
-    y: float
-    radius: float
+from ps_lab.geometry import Circle
 
 
 class CircleFit(NamedTuple):

@@ -29,6 +29,7 @@ from pathlib import Path
 from types import TracebackType
 from typing import Any
 
+from ps_lab.capture.faults import CAMERA_FAULT_KINDS as FAULT_KINDS
 from ps_lab.errors import CameraError, PsLabError
 from ps_lab.io.raw import RAW_SUFFIXES, read_exposure
 
@@ -41,7 +42,6 @@ __all__ = [
 
 log = logging.getLogger(__name__)
 
-FAULT_KINDS = ("timeout", "truncated")
 
 
 @dataclass(frozen=True)

@@ -26,7 +26,8 @@ from ps_lab.capture import cameras, gphoto2_camera, lights
 from ps_lab.capture.rig import Rig
 from ps_lab.capture.simulated import firmware as sim_lights
 from ps_lab.capture.simulated.camera import SimulatedCamera
-from ps_lab.capture.simulated.firmware import parse_faults, serve_simulator
+from ps_lab.capture.simulated.firmware import parse_faults
+from ps_lab.capture.simulated.pty_server import PtyServer, serve_simulator, state_file_reader
 from ps_lab.errors import CameraError, PsLabError, RigError
 
 log = logging.getLogger("ps_lab.capture.rig")
@@ -65,18 +66,7 @@ def build_simulation(rig: Rig) -> Simulation:
     scene = render.Scene(
         width=sc.width,
         height=sc.height,
-        objects=tuple(
-            render.SceneObject(
-                kind=o.kind,
-                center=o.center,
-                radius=o.radius,
-                albedo=o.albedo,
-                specular=o.specular,
-                roughness=o.roughness,
-                seed=o.seed,
-            )
-            for o in sc.objects
-        ),
+        objects=sc.objects,
         background=sc.background,
     )
     n = rig.n_lights
@@ -199,7 +189,7 @@ def _open_controller(rig: Rig, opened: OpenRig) -> Callable[[], Any] | None:
     light_state: Callable[[], Any] | None = None
     if cfg.driver == "simulated":
         firmware = _make_firmware(sim_lights, rig)
-        server = sim_lights.PtyServer(firmware).start()
+        server = PtyServer(firmware).start()
         opened._closers.append(server.stop)
         assert server.path is not None
         port = server.path
@@ -217,16 +207,10 @@ def _open_controller(rig: Rig, opened: OpenRig) -> Callable[[], Any] | None:
 
 
 def _make_firmware(sim_lights: Any, rig: Rig) -> Any:
-    faults = [
-        {"kind": f.kind, "at": f.at}
-        if f.at is not None
-        else {"kind": f.kind, "probability": f.probability}
-        for f in rig.faults.controller
-    ]
     # A delayed reply arrives well after the driver has given up on it.
     return sim_lights.SimulatedFirmware(
         rig.n_lights,
-        faults=faults,
+        faults=rig.faults.controller,
         seed=rig.faults.seed,
         delay_s=max(0.2, 3.0 * rig.controller.timeout_s),
     )
@@ -283,7 +267,7 @@ def _open_camera(
     if cfg.driver == "simulated":
         if light_state is None:
             assert cfg.light_state_file is not None
-            light_state = sim_lights.state_file_reader(Path(cfg.light_state_file))
+            light_state = state_file_reader(Path(cfg.light_state_file))
         simulation = build_simulation(rig)
         opened.simulation = simulation
         camera: Any = SimulatedCamera(

@@ -20,17 +20,21 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from ps_lab.capture.faults import CAMERA_FAULT_KINDS, Fault
+from ps_lab.capture.faults import FAULT_KINDS as CONTROLLER_FAULT_KINDS
 from ps_lab.errors import RigError
+from ps_lab.geometry import Circle
 from ps_lab.io.files import json_safe
+from ps_lab.render.scene import OBJECT_KINDS, SceneObject
 
 log = logging.getLogger(__name__)
 
 CONTROLLER_DRIVERS = ("serial", "simulated")
 CAMERA_DRIVERS = ("simulated", "gphoto2", "folder")
-CONTROLLER_FAULT_KINDS = ("drop", "garble", "delay", "reboot", "silence")
-CAMERA_FAULT_KINDS = ("timeout", "truncated")
-OBJECT_KINDS = ("sphere", "relief", "chrome", "matte")
 #: File types a frame may have; RAW types are verified with ``load_raw``, the others with OpenCV.
+# A rig file's objects are grey card-like (0.8) unless they say otherwise; the renderer's own
+# default albedo is 1.
+RIG_ALBEDO = (0.8, 0.8, 0.8)
 FILE_TYPES = ("dng", "cr2", "cr3", "nef", "arw", "tif", "tiff", "png")
 
 #: Settings that cannot change what a frame contains: where a device is plugged in (a re-plugged
@@ -52,20 +56,6 @@ OPERATIONAL_KEYS = (
 # --------------------------------------------------------------------------------------------
 # Schema
 # --------------------------------------------------------------------------------------------
-
-
-@dataclass(frozen=True)
-class Fault:
-    """One injected fault of a simulated device.
-
-    ``at`` counts in the device's own units: protocol commands for the controller (1 = the first
-    command after the boot banner), capture calls for the camera (1 = the first capture of a
-    session, re-shoots included).
-    """
-
-    kind: str
-    at: int | None = None
-    probability: float = 0.0
 
 
 @dataclass(frozen=True)
@@ -110,32 +100,11 @@ class CameraConfig:
 
 
 @dataclass(frozen=True)
-class Circle:
-    """A circle in loaded-image pixels: x = column, y = row, origin at the top-left pixel centre."""
-
-    center: tuple[float, float]
-    radius: float
-
-
-@dataclass(frozen=True)
 class CalibrationConfig:
     """``[calibration]``: nominal position of the calibration targets."""
 
     chrome_sphere: Circle | None = None
     matte_sphere: Circle | None = None
-
-
-@dataclass(frozen=True)
-class SceneObjectConfig:
-    """One ``[[scene.objects]]`` entry of a simulated rig."""
-
-    kind: str
-    center: tuple[float, float]
-    radius: float
-    albedo: tuple[float, float, float] = (0.8, 0.8, 0.8)
-    specular: float = 0.0
-    roughness: float = 0.3
-    seed: int = 0
 
 
 @dataclass(frozen=True)
@@ -157,7 +126,7 @@ class SceneConfig:
 
     width: int
     height: int
-    objects: tuple[SceneObjectConfig, ...]
+    objects: tuple[SceneObject, ...]  # the renderer's own type, parsed from the rig file
     lights: LightLayoutConfig = field(default_factory=LightLayoutConfig)
     background: float = 0.0
 
@@ -590,7 +559,7 @@ def _parse_circle(t: _Table) -> Circle:
     center = t.vector("center", 2, required=True)
     radius = t.float("radius", required=True, lo=1.0)
     t.done()
-    return Circle(center=center, radius=radius)
+    return Circle(center[0], center[1], radius)
 
 
 def _parse_calibration(t: _Table) -> CalibrationConfig:
@@ -610,11 +579,11 @@ def _parse_scene(t: _Table, n_lights: int) -> SceneConfig:
     background = t.float("background", 0.0, lo=0.0)
     objects = []
     for ot in t.tables("objects"):
-        obj = SceneObjectConfig(
+        obj = SceneObject(
             kind=ot.str("kind", required=True, choices=OBJECT_KINDS),
             center=ot.vector("center", 2, required=True),
             radius=ot.float("radius", required=True, lo=1.0),
-            albedo=ot.vector("albedo", 3, (0.8, 0.8, 0.8)),
+            albedo=ot.vector("albedo", 3, RIG_ALBEDO),
             specular=ot.float("specular", 0.0, lo=0.0),
             roughness=ot.float("roughness", 0.3, lo=0.01, hi=1.0),
             seed=ot.int("seed", 0, lo=0),

@@ -35,9 +35,10 @@ from typing import Any
 import numpy as np
 
 from ps_lab.errors import OutputError
-from ps_lab.io.bands import ObservationStore, open_normal_gt, plan_bands, stage_observations
+from ps_lab.io.bands import ObservationStore, plan_bands, stage_observations
 from ps_lab.io.dataset import DatasetHeader, open_dataset
 from ps_lab.io.files import json_safe, staged_folder
+from ps_lab.io.truth import open_normal_gt
 from ps_lab.reconstruct._outputs import (
     ERROR_BIN_DEG,
     _Histogram,

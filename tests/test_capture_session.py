@@ -480,7 +480,7 @@ timeout_s = 10.0
 
 def test_simulator_in_another_process_via_state_file(tmp_path: Path, reference: dict) -> None:
     """`ps-lab rig serve-sim --state-file F` + a serial rig whose simulated camera reads F."""
-    from ps_lab.capture.simulated.firmware import PtyServer
+    from ps_lab.capture.simulated.pty_server import PtyServer
 
     state_file = tmp_path / "state.json"
     text = write_rig(tmp_path).read_text()

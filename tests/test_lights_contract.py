@@ -20,10 +20,10 @@ from helpers.lights_doubles import CLOSE, LIGHTS, ExpectedProtocolPort, expected
 from ps_lab.capture.lights import LightState, SerialLightController
 from ps_lab.capture.simulated.firmware import (
     ManualClock,
-    PtyServer,
     SimulatedFirmware,
     firmware_for,
 )
+from ps_lab.capture.simulated.pty_server import PtyServer
 from ps_lab.errors import RigError
 
 # No timeout expires in these tests (no faults), so a generous one costs nothing and keeps the pty

@@ -18,13 +18,13 @@ from ps_lab.capture.lights import LightState, SerialLightController
 from ps_lab.capture.simulated.firmware import (
     Fault,
     ManualClock,
-    PtyServer,
     SimulatedFirmware,
     firmware_for,
     firmware_from_url,
     parse_faults,
     register_firmware,
 )
+from ps_lab.capture.simulated.pty_server import PtyServer
 from ps_lab.errors import RigError
 
 FIRST = 5  # number of the first command after the handshake
@@ -314,7 +314,7 @@ def test_serve_sim_serves_a_pty_until_sigterm(tmp_path):
     import subprocess
     import sys
 
-    from ps_lab.capture.simulated.firmware import state_file_reader
+    from ps_lab.capture.simulated.pty_server import state_file_reader
 
     state_file = tmp_path / "lights.json"
     process = subprocess.Popen(

@@ -14,6 +14,7 @@ from typer.testing import CliRunner
 
 from ps_lab import render
 from ps_lab.bench import paper as bp
+from ps_lab.bench import report
 
 
 @pytest.fixture(scope="module")
@@ -85,8 +86,8 @@ def test_quick_run_refinement_never_worse(quick_results: bp.PaperResults) -> Non
 
 
 def test_tables_print_as_text_and_markdown(quick_results: bp.PaperResults) -> None:
-    text = bp.format_text(quick_results)
-    markdown = bp.format_markdown(quick_results)
+    text = report.format_text(quick_results)
+    markdown = report.format_markdown(quick_results)
     for number in (1, 3, 4, 5):
         for scene in quick_results.config.scenes:
             assert f"Table {number} ({scene})" in text
@@ -103,7 +104,7 @@ def test_tables_print_as_text_and_markdown(quick_results: bp.PaperResults) -> No
             header_cells = cells
         assert cells == header_cells
     assert "ps-lab bench paper --quick --size 48 --light-sets 2 --seed 0" in markdown
-    data = bp.results_as_dict(quick_results)
+    data = report.results_as_dict(quick_results)
     assert data["tables"][0]["cells"]["sphere/40/sbl"]["mean"] == pytest.approx(
         quick_results.tables[0].cell("sphere", 40, "sbl").mean
     )

@@ -6,9 +6,11 @@ exposed three ways:
 - in-process, as the pyserial URL ``pslabsim://NAME?lights=24&faults=garble@7&seed=1`` (the
   handler lives in ``protocol_pslabsim.py``; :func:`firmware_for` returns the firmware behind a
   name, so the simulated camera can ask what is lit);
-- as a real pseudo-terminal served by :class:`PtyServer` (``ps-lab rig serve-sim``), which the
-  driver opens through the operating system's serial layer like ``/dev/ttyACM0``;
-- across processes, through a JSON state file (:func:`state_file_reader`).
+- as a real pseudo-terminal served by :class:`~ps_lab.capture.simulated.pty_server.PtyServer`
+  (``ps-lab rig serve-sim``), which the driver opens through the operating system's serial layer
+  like ``/dev/ttyACM0``;
+- across processes, through a JSON state file
+  (:func:`~ps_lab.capture.simulated.pty_server.state_file_reader`).
 
 Faults (``drop``, ``garble``, ``delay``, ``reboot``, ``silence``) are tied to the 1-based count of
 command lines the controller received since it was created (reboots do not reset the count), or
@@ -18,23 +20,17 @@ drawn with a probability from a seeded generator.
 from __future__ import annotations
 
 import itertools
-import json
 import logging
-import os
-import queue
 import random
 import re
-import select
-import signal
 import threading
 import time
-import tty
 import urllib.parse
-from collections.abc import Callable, Iterable, Mapping
+from collections.abc import Callable
 from dataclasses import dataclass, field
-from pathlib import Path
 from typing import Any
 
+from ps_lab.capture.faults import FAULT_KINDS, Fault, parse_faults
 from ps_lab.capture.lights import (
     DEFAULT_WATCHDOG_MS,
     MAX_LEVEL,
@@ -51,136 +47,22 @@ __all__ = [
     "LightState",
     "LogEntry",
     "ManualClock",
-    "PtyServer",
     "Reply",
     "SimulatedFirmware",
     "firmware_for",
     "firmware_from_url",
     "parse_faults",
     "register_firmware",
-    "serve_simulator",
-    "state_file_reader",
-    "write_state_file",
 ]
 
 log = logging.getLogger(__name__)
 
-#: What can go wrong, in the controller's words:
-#: drop - the command is executed but its reply is lost;
-#: garble - the command is executed but one or two bits of its reply are flipped;
-#: delay - the command is executed and its reply arrives ``delay_s`` later (past the timeout);
-#: reboot - the controller resets instead of executing: sends READY, forgets lights/level/watchdog;
-#: silence - the controller hangs: it ignores this and every later command and never answers
-#: again; its watchdog still switches the lights off (on the Arduino the AVR hardware watchdog
-#: resets a hung sketch, and a reset switches every output off).
-FAULT_KINDS = ("drop", "garble", "delay", "reboot", "silence")
 
 #: Largest watchdog period a controller accepts (one hour).
 MAX_WATCHDOG_MS = 3_600_000
 # Numbers saturate here while parsing so the C++ core can use 32-bit arithmetic; any value this
 # large is out of range for every argument.
 _NUMBER_CAP = 100_000_000
-
-
-@dataclass(frozen=True)
-class Fault:
-    """One injected fault.
-
-    Attributes
-    ----------
-    kind : str
-        One of :data:`FAULT_KINDS`.
-    at : int or None
-        Fire at this 1-based command count (the N-th command line the controller receives).
-    probability : float
-        Otherwise, fire at each command with this probability (seeded generator).
-
-    """
-
-    kind: str
-    at: int | None = None
-    probability: float = 0.0
-
-    def __post_init__(self) -> None:
-        if self.kind not in FAULT_KINDS:
-            raise RigError(
-                f"unknown fault kind {self.kind!r}; choose from {', '.join(FAULT_KINDS)}"
-            )
-        if self.at is None and not 0.0 < self.probability <= 1.0:
-            raise RigError(
-                f"fault {self.kind!r} needs 'at' (command number) or 'probability' in (0, 1]"
-            )
-        if self.at is not None and (
-            isinstance(self.at, bool) or not isinstance(self.at, int) or self.at < 1
-        ):
-            raise RigError(
-                f"fault {self.kind!r}: 'at' must be a command number >= 1, got {self.at!r}"
-            )
-
-    def __str__(self) -> str:
-        return (
-            f"{self.kind}@{self.at}"
-            if self.at is not None
-            else f"{self.kind}@p{self.probability:g}"
-        )
-
-
-_FAULT_TEXT = re.compile(r"^\s*([a-z]+)\s*@\s*(p?)([0-9.eE+-]+)\s*$")
-
-
-def parse_faults(spec: Any) -> tuple[Fault, ...]:
-    """Read a fault specification in any of the forms a rig file, a URL or a CLI gives.
-
-    Parameters
-    ----------
-    spec : None, str, Fault, mapping, or iterable of those
-        ``"garble@7,drop@p0.05"`` (a fault at command 7, a fault with probability 0.05 per
-        command), ``{"kind": "garble", "at": 7}``, ``{"kind": "drop", "probability": 0.05}``,
-        or a list mixing these.
-
-    Returns
-    -------
-    tuple of Fault
-
-    """
-    if spec is None or spec == "":
-        return ()
-    if isinstance(spec, Fault):
-        return (spec,)
-    if isinstance(spec, str):
-        faults = []
-        for item in filter(None, (part.strip() for part in spec.split(","))):
-            match = _FAULT_TEXT.match(item)
-            if match is None:
-                raise RigError(
-                    f"cannot read fault {item!r}: write KIND@N or KIND@pP "
-                    "(e.g. garble@7, drop@p0.1)"
-                )
-            kind, is_probability, number = match.groups()
-            try:
-                if is_probability:
-                    faults.append(Fault(kind, probability=float(number)))
-                else:
-                    faults.append(Fault(kind, at=int(number)))
-            except ValueError:
-                raise RigError(f"cannot read fault {item!r}: {number!r} is not a number") from None
-        return tuple(faults)
-    if isinstance(spec, Mapping):
-        unknown = set(spec) - {"kind", "at", "probability"}
-        if unknown:
-            raise RigError(
-                f"unknown key {sorted(unknown)[0]!r} in fault {dict(spec)!r} "
-                "(kind, at, probability)"
-            )
-        if "kind" not in spec:
-            raise RigError(f"fault {dict(spec)!r} has no 'kind'")
-        probability = spec.get("probability", 0.0)
-        if isinstance(probability, bool) or not isinstance(probability, int | float):
-            raise RigError(f"fault {dict(spec)!r}: 'probability' must be a number")
-        return (Fault(str(spec["kind"]), at=spec.get("at"), probability=float(probability)),)
-    if isinstance(spec, Iterable):
-        return tuple(itertools.chain.from_iterable(parse_faults(item) for item in spec))
-    raise RigError(f"cannot read fault specification {spec!r}")
 
 
 @dataclass(frozen=True)
@@ -587,42 +469,7 @@ def firmware_from_url(url: str) -> tuple[str, SimulatedFirmware]:
         return name, firmware
 
 
-# -- state file (for a simulator in another process) -------------------------------------------
-
-
-def write_state_file(path: Path | str, state: LightState) -> None:
-    """Write ``{"lit": [...], "level": v}`` to ``path`` atomically (temporary file + rename)."""
-    path = Path(path)
-    temporary = path.with_name(f".{path.name}.{os.getpid()}.{threading.get_ident()}.tmp")
-    temporary.write_text(json.dumps({"lit": sorted(state.lit), "level": state.level}))
-    os.replace(temporary, path)
-
-
-def state_file_reader(path: Path | str) -> Callable[[], LightState]:
-    """Return a function that reads the simulator's current :class:`LightState` from ``path``.
-
-    Raises :class:`RigError` (when called) if the file is missing or unreadable: the simulator is
-    not running, and guessing "all off" would hide it.
-    """
-    path = Path(path)
-
-    def read() -> LightState:
-        try:
-            data = json.loads(path.read_text())
-            lit = frozenset(int(i) for i in data["lit"])
-            level = int(data["level"])
-        except FileNotFoundError:
-            raise RigError(
-                f"light state file {path} does not exist: is `ps-lab rig serve-sim` running?"
-            ) from None
-        except (OSError, ValueError, KeyError, TypeError) as exc:
-            raise RigError(f"cannot read light state file {path}: {exc}") from None
-        return LightState(lit, level)
-
-    return read
-
-
-# -- pseudo-terminal server --------------------------------------------------------------------
+# -- line handling shared by the URL handler and the pty server ------------------------------
 
 
 @dataclass
@@ -659,172 +506,3 @@ class LineAssembler:
         *lines, rest = self._buffer.split(b"\n")
         self._buffer = bytearray(rest[: MAX_LINE + 1])
         return [line[: MAX_LINE + 1].decode("latin-1") for line in lines]
-
-
-class PtyServer:
-    """Serve a simulated controller on a pseudo-terminal, so drivers open it as a serial device.
-
-    Parameters
-    ----------
-    firmware : SimulatedFirmware, optional
-        The controller to serve (default: a new one from ``lights``, ``faults``, ``seed``,
-        ``delay_s``).
-    state_file : path, optional
-        Publish the light state there (atomically) on every change, for a camera in another process.
-
-    Examples
-    --------
-    >>> with PtyServer(lights=24) as server:          # doctest: +SKIP
-    ...     controller = SerialLightController(server.path, lights=24)
-
-    """
-
-    def __init__(
-        self,
-        firmware: SimulatedFirmware | None = None,
-        *,
-        lights: int = 24,
-        faults: Any = (),
-        seed: int = 0,
-        delay_s: float = 1.0,
-        state_file: Path | str | None = None,
-    ) -> None:
-        self.firmware = (
-            firmware
-            if firmware is not None
-            else SimulatedFirmware(lights, faults=faults, seed=seed, delay_s=delay_s)
-        )
-        self.state_file = Path(state_file) if state_file is not None else None
-        self.path: str | None = None
-        self._master: int | None = None
-        self._slave: int | None = None
-        self._thread: threading.Thread | None = None
-        self._stop = threading.Event()
-        self._error: BaseException | None = None
-        self._unsolicited: queue.SimpleQueue[str] = queue.SimpleQueue()
-        self._detach: Callable[[], None] | None = None
-
-    def start(self) -> PtyServer:
-        """Open the pty pair, announce READY and serve in a background thread; return self."""
-        if self._thread is not None:
-            raise RigError("the simulated controller is already being served")
-        master, slave = os.openpty()
-        # Raw mode on the device side: no echo, no line editing, no CR/LF translation.
-        tty.setraw(slave)
-        self._master, self._slave = master, slave
-        self.path = os.ttyname(slave)
-        if self.state_file is not None:
-            target = self.state_file
-            self.firmware.add_listener(lambda state: write_state_file(target, state))
-        self._stop.clear()
-        outbox = _Outbox()
-        outbox.add(Reply([self.firmware.reboot()]))
-        self._detach = self.firmware.add_output(self._unsolicited.put)
-        self._thread = threading.Thread(
-            target=self._serve, args=(outbox,), name="ps-lab-pty-sim", daemon=True
-        )
-        self._thread.start()
-        log.info("simulated light controller (%d lights) on %s", self.firmware.lights, self.path)
-        return self
-
-    def stop(self) -> None:
-        """Stop serving and close the pty pair (idempotent)."""
-        self._stop.set()
-        if self._detach is not None:
-            self._detach()
-            self._detach = None
-        if self._thread is not None:
-            self._thread.join(timeout=5.0)
-            self._thread = None
-        for fd in (self._master, self._slave):
-            if fd is not None:
-                try:
-                    os.close(fd)
-                except OSError:
-                    pass
-        self._master = self._slave = None
-
-    def serve_forever(self) -> None:
-        """Block until interrupted (Ctrl-C) or until the server thread fails; then stop."""
-        try:
-            while self._thread is not None and self._thread.is_alive():
-                self._thread.join(timeout=0.2)
-        finally:
-            self.stop()
-        if self._error is not None:
-            raise RigError(f"simulated controller stopped: {self._error}")
-
-    def __enter__(self) -> PtyServer:
-        return self.start() if self._thread is None else self
-
-    def __exit__(self, *exc_info: object) -> None:
-        self.stop()
-
-    def _serve(self, outbox: _Outbox) -> None:
-        assert self._master is not None
-        master = self._master
-        assembler = LineAssembler()
-        try:
-            while not self._stop.is_set():
-                wait = 0.02
-                next_due = outbox.next_due()
-                if next_due is not None:
-                    wait = max(0.0, min(wait, next_due - time.monotonic()))
-                readable, _, _ = select.select([master], [], [], wait)
-                if readable:
-                    try:
-                        data = os.read(master, 4096)
-                    except OSError:  # no client side open at this instant
-                        data = b""
-                    for line in assembler.feed(data):
-                        outbox.add(self.firmware.respond(line))
-                self.firmware.poll()
-                while not self._unsolicited.empty():
-                    outbox.add(Reply([self._unsolicited.get()]))
-                data = outbox.due()
-                if data:
-                    os.write(master, data)
-        except BaseException as exc:  # surfaced by serve_forever
-            self._error = exc
-            log.exception("simulated light controller failed")
-
-
-def serve_simulator(
-    *,
-    lights: int = 24,
-    faults: Any = (),
-    seed: int = 0,
-    delay_s: float = 1.0,
-    state_file: Path | str | None = None,
-    on_ready: Callable[[PtyServer], None] | None = None,
-) -> None:
-    """Serve a simulated controller on a pty until Ctrl-C or SIGTERM, then stop cleanly.
-
-    ``on_ready(server)`` is called once the device path exists (to print it). The state file, if
-    any, is removed at the end, so a reader learns that the simulator is gone.
-    """
-    server = PtyServer(
-        lights=lights, faults=faults, seed=seed, delay_s=delay_s, state_file=state_file
-    )
-
-    def interrupt(signum: int, frame: object) -> None:
-        raise KeyboardInterrupt
-
-    previous = (
-        signal.signal(signal.SIGTERM, interrupt)
-        if threading.current_thread() is threading.main_thread()
-        else None
-    )
-    try:
-        with server:
-            if on_ready is not None:
-                on_ready(server)
-            try:
-                server.serve_forever()
-            except KeyboardInterrupt:
-                log.info("simulated light controller stopped")
-    finally:
-        if previous is not None:
-            signal.signal(signal.SIGTERM, previous)
-        if state_file is not None:
-            Path(state_file).unlink(missing_ok=True)

@@ -10,6 +10,7 @@ import typer
 
 from ps_lab._cli_util import lab_command, progress_bar
 from ps_lab.bench import paper as bench_paper
+from ps_lab.bench import report
 
 bench_app = typer.Typer(
     name="bench",
@@ -60,10 +61,10 @@ def paper(
     with progress_bar(bench_paper.total_steps(config), "paper tables", enabled=progress) as advance:
         results = bench_paper.run_paper(config, progress=advance)
     typer.echo(
-        bench_paper.format_markdown(results) if markdown else bench_paper.format_text(results)
+        report.format_markdown(results) if markdown else report.format_text(results)
     )
     if json_out is not None:
-        json_out.write_text(json.dumps(bench_paper.results_as_dict(results), indent=1))
+        json_out.write_text(json.dumps(report.results_as_dict(results), indent=1))
 
 
 def register(app: typer.Typer) -> None:

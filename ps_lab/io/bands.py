@@ -2,8 +2,8 @@
 
 :func:`plan_bands` cuts the image into row bands, and :func:`stage_observations` reads each frame
 once and stores its mask pixels band by band in an :class:`ObservationStore` (same scaling as
-:func:`ps_lab.io.dataset.load_dataset`, bit for bit); :class:`NormalTruth` reads ground truth band
-by band.
+:func:`ps_lab.io.dataset.load_dataset`, bit for bit); :class:`ps_lab.io.truth.NormalTruth` reads
+ground truth band by band.
 """
 
 from __future__ import annotations
@@ -21,14 +21,9 @@ import numpy as np
 from ps_lab.errors import DatasetError
 from ps_lab.io.dataset import (
     DatasetHeader,
-    _check_normal_gt_shape,
-    _finite_normals,
-    _normal_gt_path,
     iter_frames,
     observe,
-    read_normal_gt,
 )
-from ps_lab.io.images import read_npy_header
 
 log = logging.getLogger(__name__)
 
@@ -280,49 +275,3 @@ def stage_observations(
         store.close()
         raise
     return store
-
-
-class NormalTruth:
-    """Ground-truth normals read band by band (``normal_gt.npy`` from disk, ``.mat`` in memory).
-
-    Use :func:`open_normal_gt`. ``rows(a, b)`` returns rows ``a:b`` as (b - a, W, 3) float64.
-    """
-
-    def __init__(self, path: Path, shape: tuple[int, int]) -> None:
-        self.path = path
-        self.shape = shape
-        self._array: np.ndarray | None = None
-        self._layout: tuple[np.dtype, int] | None = None
-        if path.suffix.lower() == ".npy":
-            try:
-                with path.open("rb") as stream:
-                    dims, fortran, dtype, offset = read_npy_header(stream)
-            except (OSError, ValueError) as exc:
-                raise DatasetError(f"{path}: corrupt or unreadable .npy file ({exc})") from None
-            _check_normal_gt_shape(path, tuple(dims), shape)
-            expected = offset + int(np.prod(dims)) * dtype.itemsize
-            if not fortran and dtype.kind == "f" and path.stat().st_size >= expected:
-                self._layout = (dtype, offset)
-        if self._layout is None:
-            self._array = read_normal_gt(path, shape)
-
-    def rows(self, start: int, stop: int) -> np.ndarray:
-        """Rows ``start:stop`` of the normals, shape (stop - start, W, 3), float64."""
-        if self._array is not None:
-            return self._array[start:stop]
-        assert self._layout is not None
-        dtype, offset = self._layout
-        width = self.shape[1]
-        count = (stop - start) * width * 3
-        with self.path.open("rb") as stream:
-            stream.seek(offset + start * width * 3 * dtype.itemsize)
-            data = np.fromfile(stream, dtype=dtype, count=count)
-        if data.size != count:
-            raise DatasetError(f"{self.path}: file is truncated")
-        return _finite_normals(self.path, data.reshape(stop - start, width, 3).astype(np.float64))
-
-
-def open_normal_gt(root: Path, shape: tuple[int, int]) -> NormalTruth | None:
-    """The dataset's ground-truth normals for band-wise reading, or None (as in load_dataset)."""
-    path = _normal_gt_path(root)
-    return None if path is None else NormalTruth(path, shape)

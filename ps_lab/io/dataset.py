@@ -30,7 +30,6 @@ from pathlib import Path
 
 import cv2
 import numpy as np
-import scipy.io
 
 from ps_lab.errors import DatasetError
 from ps_lab.io.files import sha256
@@ -42,7 +41,8 @@ from ps_lab.io.images import (
     read_image_size,
 )
 from ps_lab.io.lights import read_light_directions, read_light_intensities
-from ps_lab.io.run import MANIFEST_NAME, is_run, read_manifest
+from ps_lab.io.run import MANIFEST_NAME, SIMULATION_DIR, is_run, read_manifest
+from ps_lab.io.truth import _find_normal_gt
 
 log = logging.getLogger("ps_lab.io.dataset")
 
@@ -51,7 +51,6 @@ FILENAMES = "filenames.txt"
 LIGHT_DIRECTIONS = "light_directions.txt"
 LIGHT_INTENSITIES = "light_intensities.txt"
 MASK = "mask.png"
-SIMULATION = "simulation"
 
 # Files in an image folder that are never light frames (outputs, calibration pictures, truth).
 _NOT_FRAMES = {
@@ -688,70 +687,7 @@ def read_mask(path: Path, shape: tuple[int, int] | None = None) -> np.ndarray:
 
 def _find_file(root: Path, name: str) -> Path | None:
     """``root/name``, else ``root/simulation/name`` (simulator ground truth), else None."""
-    for candidate in (root / name, root / SIMULATION / name):
+    for candidate in (root / name, root / SIMULATION_DIR / name):
         if candidate.is_file():
             return candidate
     return None
-
-
-def read_normal_gt(path: Path, shape: tuple[int, int] | None = None) -> np.ndarray:
-    """Read ground-truth normals from ``normal_gt.npy`` or DiLiGenT's ``Normal_gt.mat``.
-
-    Returns
-    -------
-    ndarray of shape (H, W, 3), float64
-
-    """
-    if path.suffix.lower() == ".mat":
-        try:
-            content = scipy.io.loadmat(path)
-        except Exception as exc:  # noqa: BLE001 - scipy raises several types for a bad .mat
-            raise DatasetError(f"{path}: cannot read MATLAB file ({exc})") from None
-        if "Normal_gt" not in content:
-            raise DatasetError(f"{path}: no variable 'Normal_gt' in the MATLAB file")
-        normals = np.asarray(content["Normal_gt"])
-    else:
-        try:
-            normals = np.load(path, allow_pickle=False)
-        except (OSError, ValueError, EOFError) as exc:
-            raise DatasetError(f"{path}: corrupt or unreadable .npy file ({exc})") from None
-    _check_normal_gt_shape(path, normals.shape, shape)
-    return _finite_normals(path, normals.astype(np.float64))
-
-
-def _check_normal_gt_shape(path: Path, dims: tuple, shape: tuple[int, int] | None) -> None:
-    """Raise DatasetError unless ``dims`` is (H, W, 3) with (H, W) == ``shape`` (when given)."""
-    if len(dims) != 3 or dims[2] != 3:
-        raise DatasetError(f"{path}: ground-truth normals must be H x W x 3, got {tuple(dims)}")
-    if shape is not None and tuple(dims[:2]) != tuple(shape):
-        raise DatasetError(
-            f"{path}: ground-truth size {dims[1]}x{dims[0]} differs from the "
-            f"image size {shape[1]}x{shape[0]}"
-        )
-
-
-def _finite_normals(path: Path, normals: np.ndarray) -> np.ndarray:
-    if not np.all(np.isfinite(normals)):
-        raise DatasetError(f"{path}: ground-truth normals contain NaN or infinite values")
-    return normals
-
-
-def _normal_gt_path(root: Path) -> Path | None:
-    """The dataset's ground-truth file, or None.
-
-    ``normal_gt.npy``, else DiLiGenT's ``Normal_gt.mat``, else the simulator's
-    ``simulation/normal_gt.npy``.
-    """
-    for candidate in (
-        root / "normal_gt.npy",
-        root / "Normal_gt.mat",
-        root / SIMULATION / "normal_gt.npy",
-    ):
-        if candidate.is_file():
-            return candidate
-    return None
-
-
-def _find_normal_gt(root: Path, shape: tuple[int, int]) -> np.ndarray | None:
-    path = _normal_gt_path(root)
-    return None if path is None else read_normal_gt(path, shape)

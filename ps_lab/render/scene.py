@@ -55,7 +55,7 @@ class Scene:
     background: float = 0.0
 
 
-_KINDS = ("sphere", "relief", "chrome", "matte")
+OBJECT_KINDS = ("sphere", "relief", "chrome", "matte")
 
 
 def _build_surfaces(scene: Scene) -> tuple[tuple[Surface | None, np.ndarray], ...]:
@@ -63,8 +63,8 @@ def _build_surfaces(scene: Scene) -> tuple[tuple[Surface | None, np.ndarray], ..
     shape = (scene.height, scene.width)
     surfaces: list[Surface | None] = []
     for obj in scene.objects:
-        if obj.kind not in _KINDS:
-            raise ValueError(f"unknown scene object kind {obj.kind!r}; expected one of {_KINDS}")
+        if obj.kind not in OBJECT_KINDS:
+            raise ValueError(f"unknown scene object kind {obj.kind!r}; expected one of {OBJECT_KINDS}")
         albedo = np.asarray(obj.albedo, dtype=np.float64)
         if obj.kind in ("sphere", "matte"):
             surfaces.append(sphere_surface(shape, obj.center, obj.radius, albedo=albedo))
