@@ -90,6 +90,8 @@ def locate_highlight(
         No highlight, highlight outside the safe radius, or the sphere saturated.
 
     """
+    # One pass over one frame (~85 lines): the blob, its centroid and the checks share the
+    # same local arrays; the steps are the docstring's, in order.
     h, w = frame.shape
     cx, cy, r = circle
     x0, x1 = max(0, int(np.floor(cx - r)) - 1), min(w, int(np.ceil(cx + r)) + 2)

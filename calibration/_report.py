@@ -137,6 +137,8 @@ def calibration_picture(calibration: Calibration, *, panel: int = 520) -> np.nda
     ndarray of shape (panel + 40, width, 3), uint8 (BGR)
 
     """
+    # One drawing routine (~100 lines): both panels share the scale, fonts and colours, and
+    # reading it top to bottom is reading the picture left to right.
     cal = calibration
     shift = 4  # sub-pixel drawing: coordinates in 1/16 px
     one = 1 << shift

@@ -161,6 +161,14 @@ class ReconstructOptions:
         elif budget <= 0:
             raise OutputError(f"memory budget must be positive, got {budget}")
 
+    def solver_parameters(self) -> dict[str, Any]:
+        """Keyword arguments for :func:`ps_lab.reconstruct.solve` that these options fix.
+
+        None yet: solver parameters added as fields (``lam``, ``sigma_x2``, ``max_iter``, ``tol``)
+        are returned here, and every band's solve receives them.
+        """
+        return {}
+
     def replace(self, **changes: Any) -> ReconstructOptions:
         """Return a copy with some fields changed (:func:`dataclasses.replace`)."""
         return dataclasses.replace(self, **changes)
@@ -543,6 +551,7 @@ def _solve_pass(
             threads=options.threads,
             progress=advance,
             **fixed,
+            **options.solver_parameters(),
         )
         if not result.params:
             result.params = dict(solution.params)

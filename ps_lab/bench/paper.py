@@ -47,6 +47,15 @@ from pathlib import Path
 import numpy as np
 
 from ps_lab import render as _render
+from ps_lab.bench.scenes import (
+    LightSet,
+    PreparedScene,
+    albedo_scale,
+    light_set_rng,
+    make_surface,
+    masked_observations,
+    roughness_for_specular_share,
+)
 from ps_lab.reconstruct import metrics as _metrics
 from ps_lab.reconstruct import refine_lights, solve
 
@@ -58,13 +67,10 @@ __all__ = [
     "RefinementTable",
     "SceneStats",
     "PaperResults",
-    "specular_share",
-    "roughness_for_specular_share",
     "run_paper",
     "table_images",
     "table_noise",
     "table_refinement",
-    "light_set_rng",
     "machine_description",
     "source_revision",
     "make_config",
@@ -191,163 +197,14 @@ class PaperResults:
 
 
 # --------------------------------------------------------------------------------------------
-# Scene preparation
+# Scene preparation (the pieces in ps_lab.bench.scenes)
 
 
-@dataclass(frozen=True)
-class _LightSet:
-    light_directions: np.ndarray  # (N, 3)
-    observations: np.ndarray  # (N, P) speculars, shadows, no noise
-    specular_share: float
-    shadow_share: float
-
-
-@dataclass(frozen=True)
-class _PreparedScene:
-    name: str
-    surface: _render.Surface
-    normals: np.ndarray  # (P, 3) ground truth
-    scale: float  # largest Lambertian radiance (max albedo under a unit light)
-    roughness: float
-    max_specular_ratio: float
-    light_sets: tuple[_LightSet, ...]
-
-
-def _make_surface(name: str, size: int, seed: int) -> _render.Surface:
-    if name == "sphere":
-        return _render.sphere_surface((size, size))
-    if name == "relief":
-        return _render.relief_surface((size, size), seed=seed)
-    raise ValueError(f"unknown scene {name!r} (sphere or relief)")
-
-
-def _observations(images: np.ndarray, mask: np.ndarray) -> np.ndarray:
-    """(n, H, W[, C]) rendered images -> (n, P) observations of the masked pixels (grey)."""
-    images = np.asarray(images, dtype=np.float64)
-    if images.ndim == 4:
-        images = images.mean(axis=-1)
-    observations = np.ascontiguousarray(images[:, mask])
-    # Shared by every table: nothing may change them in place.
-    observations.flags.writeable = False
-    return observations
-
-
-def _albedo_scale(surface: _render.Surface) -> float:
-    albedo = np.asarray(surface.albedo, dtype=np.float64)
-    if albedo.ndim == 3:
-        albedo = albedo.mean(axis=-1)
-    albedo = np.broadcast_to(albedo, surface.mask.shape)
-    return float(albedo[surface.mask].max())
-
-
-def light_set_rng(seed: int, index: int) -> np.random.Generator:
-    """The generator of light set ``index``: fixed by the run's seed, independent of the rest."""
-    return np.random.default_rng([seed, index])
-
-
-def specular_share(
-    surface: _render.Surface,
-    light_directions: np.ndarray,
-    *,
-    strength: float,
-    roughness: float,
-    threshold: float,
-) -> float:
-    """Share of observations whose Cook-Torrance part exceeds ``threshold``.
-
-    Parameters
-    ----------
-    surface : Surface
-        The rendered object.
-    light_directions : ndarray of shape (n, 3)
-        The lights.
-    strength, roughness : float
-        The renderer's ``specular`` and ``roughness``.
-    threshold : float
-        Radiance above which an observation counts as specular-corrupted.
-
-    Returns
-    -------
-    float
-        Share over all ``n x P`` observations of the object (shadowed ones included).
-    """
-    diffuse = _observations(_render.render(surface, light_directions), surface.mask)
-    full = _observations(
-        _render.render(surface, light_directions, specular=strength, roughness=roughness),
-        surface.mask,
-    )
-    return float(np.mean(full - diffuse > threshold))
-
-
-def roughness_for_specular_share(
-    surface: _render.Surface,
-    light_directions: np.ndarray,
-    *,
-    strength: float,
-    share: float,
-    threshold: float,
-    bounds: tuple[float, float] = (0.03, 0.5),
-    steps: int = 14,
-) -> float:
-    """Roughness of the Cook-Torrance lobe that corrupts ``share`` of the observations.
-
-    A narrower lobe (smaller roughness) is brighter but hits fewer observations; within
-    ``bounds`` the share above ``threshold`` grows with the roughness, so bisection (on the
-    logarithm of the roughness) finds it.
-
-    Parameters
-    ----------
-    surface : Surface
-        The rendered object.
-    light_directions : ndarray of shape (n, 3)
-        The lights the share is measured with.
-    strength : float
-        The renderer's ``specular`` (kept fixed).
-    share : float
-        Wanted share of observations with a specular part above ``threshold``.
-    threshold : float
-        Radiance above which an observation counts as specular-corrupted.
-    bounds : (float, float)
-        Search interval of the roughness.
-    steps : int
-        Bisection steps.
-
-    Returns
-    -------
-    float
-        The roughness.
-    """
-    if not 0.0 < share < 1.0:
-        raise ValueError(f"share must lie in (0, 1), got {share}")
-
-    diffuse = _observations(_render.render(surface, light_directions), surface.mask)
-
-    def measured(roughness: float) -> float:
-        full = _render.render(surface, light_directions, specular=strength, roughness=roughness)
-        return float(np.mean(_observations(full, surface.mask) - diffuse > threshold))
-
-    lo, hi = math.log(bounds[0]), math.log(bounds[1])
-    if measured(math.exp(hi)) < share:
-        raise ValueError(
-            f"the specular lobe cannot corrupt {share:.0%} of observations above {threshold:g} "
-            f"with strength {strength:g}; raise the strength"
-        )
-    if measured(math.exp(lo)) > share:
-        return math.exp(lo)
-    for _ in range(steps):
-        mid = 0.5 * (lo + hi)
-        if measured(math.exp(mid)) < share:
-            lo = mid
-        else:
-            hi = mid
-    return math.exp(0.5 * (lo + hi))
-
-
-def _prepare_scene(name: str, config: PaperConfig) -> _PreparedScene:
-    surface = _make_surface(name, config.size, config.seed)
+def _prepare_scene(name: str, config: PaperConfig) -> PreparedScene:
+    surface = make_surface(name, config.size, config.seed)
     mask = surface.mask
     normals = np.asarray(surface.normals, dtype=np.float64)[mask]
-    scale = _albedo_scale(surface)
+    scale = albedo_scale(surface)
     threshold = config.specular_threshold * scale
     roughness = None
     max_ratio = 0.0
@@ -365,8 +222,8 @@ def _prepare_scene(name: str, config: PaperConfig) -> _PreparedScene:
                 share=config.specular_share,
                 threshold=threshold,
             )
-        diffuse = _observations(_render.render(surface, lights), mask)
-        observed = _observations(
+        diffuse = masked_observations(_render.render(surface, lights), mask)
+        observed = masked_observations(
             _render.render(
                 surface, lights, specular=config.specular_strength, roughness=roughness
             ),
@@ -375,14 +232,14 @@ def _prepare_scene(name: str, config: PaperConfig) -> _PreparedScene:
         specular = observed - diffuse
         max_ratio = max(max_ratio, float(specular.max()) / scale)
         sets.append(
-            _LightSet(
+            LightSet(
                 light_directions=lights,
                 observations=observed,
                 specular_share=float(np.mean(specular > threshold)),
                 shadow_share=float(np.mean(observed <= config.shadow_threshold)),
             )
         )
-    return _PreparedScene(
+    return PreparedScene(
         name=name,
         surface=surface,
         normals=normals,
@@ -393,7 +250,7 @@ def _prepare_scene(name: str, config: PaperConfig) -> _PreparedScene:
     )
 
 
-def _stats(scene: _PreparedScene) -> SceneStats:
+def _stats(scene: PreparedScene) -> SceneStats:
     return SceneStats(
         scene=scene.name,
         pixels=int(scene.normals.shape[0]),
@@ -431,7 +288,7 @@ def table_images(
     config: PaperConfig,
     *,
     shadow_removal: bool,
-    scenes: Sequence[_PreparedScene] | None = None,
+    scenes: Sequence[PreparedScene] | None = None,
     progress: Progress = None,
 ) -> ErrorTable:
     """Table 1 (``shadow_removal=True``) or Table 3: error against the number of images.
@@ -495,7 +352,7 @@ def table_images(
 def table_noise(
     config: PaperConfig,
     *,
-    scenes: Sequence[_PreparedScene] | None = None,
+    scenes: Sequence[PreparedScene] | None = None,
     progress: Progress = None,
 ) -> ErrorTable:
     """Table 4: error against the share of observations with additive Gaussian noise.
@@ -527,7 +384,7 @@ def table_noise(
                     noise_fraction=density,
                     rng=rng,
                 )
-                obs = _observations(images, scene.surface.mask)
+                obs = masked_observations(images, scene.surface.mask)
                 shares.append(float(np.mean(obs != light_set.observations)))
                 for method in config.methods:
                     solution, seconds = _solve(obs, light_set.light_directions, method)
@@ -558,7 +415,7 @@ def table_noise(
 def table_refinement(
     config: PaperConfig,
     *,
-    scenes: Sequence[_PreparedScene] | None = None,
+    scenes: Sequence[PreparedScene] | None = None,
     progress: Progress = None,
 ) -> RefinementTable:
     """Table 5: normals from lights turned by ``light_error_deg``, refined 1...K times.
