@@ -4,9 +4,11 @@ from __future__ import annotations
 
 import json
 
+import cv2
 import numpy as np
 import pytest
 
+import ps_lab.calibration._report as report
 from ps_lab.calibration import (
     Circle,
     calibrate,
@@ -17,6 +19,8 @@ from ps_lab.calibration import (
     write_calibration,
 )
 from ps_lab.errors import CalibrationError
+from ps_lab.io.dng import write_dng
+from ps_lab.io.raw import load_raw
 from ps_lab.render import (
     random_light_directions,
     render,
@@ -149,9 +153,6 @@ def test_saturation_inferred_without_mask():
 
 
 def test_simulated_dng_half_size(tmp_path):
-    from ps_lab.io.dng import write_dng
-    from ps_lab.io.raw import load_raw
-
     rng = np.random.default_rng(11)
     lights = random_light_directions(24, rng, max_zenith_deg=55.0)
     full_radius, black, white = 200.0, 512, 16383
@@ -309,7 +310,6 @@ def test_write_calibration_outputs(tmp_path):
     np.testing.assert_allclose(
         [d["highlight"] for d in record["lights"]], cal.highlights, atol=1e-3
     )
-    import cv2
 
     picture = cv2.imread(str(paths["calibration.png"]))
     assert picture is not None and picture.shape[1] > picture.shape[0] > 300
@@ -321,7 +321,6 @@ def test_write_calibration_leaves_nothing_on_failure(tmp_path, monkeypatch):
     out = tmp_path / "run"
     out.mkdir()
     (out / "light_directions.txt").write_text("old\n")
-    import ps_lab.calibration._report as report
 
     monkeypatch.setattr(report.cv2, "imwrite", lambda *a, **k: False)
     with pytest.raises(CalibrationError, match="cannot write"):

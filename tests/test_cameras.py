@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import builtins
 import threading
 import time
 from dataclasses import dataclass
@@ -9,10 +10,21 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import rawpy
+from helpers.gphoto2_double import (
+    GP_EVENT_FILE_ADDED,
+    GP_WIDGET_RADIO,
+    GP_WIDGET_WINDOW,
+    CameraFilePath,
+    Widget,
+)
 
+from ps_lab import render
 from ps_lab.capture.cameras import Camera, CapturedFrame, FolderCamera
+from ps_lab.capture.simulated import firmware as sim_lights
 from ps_lab.capture.simulated.camera import SimulatedCamera
 from ps_lab.errors import CameraError, DatasetError
+from ps_lab.io.dng import write_dng
 from ps_lab.io.raw import load_raw
 
 
@@ -138,7 +150,6 @@ def test_noise_model_statistics(tmp_path):
         render=lambert_render,
     )
     camera.capture(tmp_path / "flat.dng", frame_index=3)
-    import rawpy
 
     with rawpy.imread(str(tmp_path / "flat.dng")) as raw:
         values = raw.raw_image_visible.astype(float) - 512
@@ -186,7 +197,6 @@ def test_renders_exactly_the_lit_lights_at_the_level(tmp_path, rng):
 
 
 def test_real_renderer_scene_round_trip(tmp_path):
-    render = pytest.importorskip("ps_lab.render")
     scene = render.Scene(
         width=32,
         height=24,
@@ -219,8 +229,6 @@ def test_real_renderer_scene_round_trip(tmp_path):
 
 
 def test_driven_by_the_simulated_controller(tmp_path):
-    render = pytest.importorskip("ps_lab.render")
-    sim_lights = pytest.importorskip("ps_lab.capture.simulated.firmware")
     scene = render.Scene(
         width=24,
         height=16,
@@ -375,8 +383,6 @@ def test_folder_camera_takes_the_next_new_stable_file(tmp_path, rng):
 
 
 def test_folder_camera_copy_mode_and_raw_exposure(tmp_path, rng):
-    from ps_lab.io.dng import write_dng
-
     watched = tmp_path / "watched"
     watched.mkdir()
     camera = FolderCamera(watched, timeout_s=5.0, poll_s=0.02, copy=True)
@@ -466,7 +472,6 @@ def test_gphoto2_timeout_when_no_raw_arrives(tmp_path):
 
 def test_gphoto2_ignores_leftover_files_from_an_earlier_shot(tmp_path, rng):
     gp = make_gphoto2_double()
-    from helpers.gphoto2_double import GP_EVENT_FILE_ADDED, CameraFilePath
 
     gp.rig.storage[("/", "OLD.CR2")] = b"stale"
     gp.rig.leftover_events = [(GP_EVENT_FILE_ADDED, CameraFilePath("/", "OLD.CR2"))]
@@ -507,8 +512,6 @@ def test_gphoto2_clear_errors(tmp_path):
 
 
 def test_gphoto2_missing_library_message(monkeypatch):
-    import builtins
-
     real_import = builtins.__import__
 
     def no_gphoto2(name, *args, **kwargs):
@@ -541,8 +544,6 @@ def test_parse_shutter_speed(text, seconds):
 
 
 def test_gphoto2_numeric_shortcuts_and_nikon_names(tmp_path, rng):
-    from helpers.gphoto2_double import GP_WIDGET_RADIO, GP_WIDGET_WINDOW, Widget
-
     gp = make_gphoto2_double()
     Gphoto2Camera(exposure_s=0.05, iso=200, aperture=11, gp_module=gp).close()
     config = gp.rig.config

@@ -24,7 +24,11 @@ import pytest
 from ps_lab.capture.connect import build_simulation
 from ps_lab.capture.rig import load_rig
 from ps_lab.capture.session import CaptureSession, make_plan
+from ps_lab.capture.simulated import camera as cameras
+from ps_lab.capture.simulated.pty_server import PtyServer
 from ps_lab.errors import CameraError, DatasetError, PsLabError, RigError
+from ps_lab.io.dataset import load_frames
+from ps_lab.io.dng import write_dng
 from ps_lab.io.files import PARTIAL_PREFIX
 from ps_lab.io.raw import load_raw
 from ps_lab.io.run import MANIFEST_NAME, read_manifest
@@ -179,7 +183,6 @@ def test_clean_capture_writes_every_frame_under_the_right_light(
     assert (run / "simulation" / "mask.png").stat().st_size > 0
     assert not (run / "light_directions_nominal.txt").exists()  # the tiny rig has none
     # The run is a dataset: the shared loader takes frames, dark frame and exposures from it.
-    from ps_lab.io.dataset import load_frames
 
     frames = load_frames(run)
     assert frames.images.shape == (N_LIGHTS, 48, 64, 3)
@@ -429,8 +432,6 @@ def test_stop_at_the_first_frame_leaves_a_resumable_run(tmp_path: Path, referenc
 
 def test_folder_camera_with_serial_url_controller(tmp_path: Path) -> None:
     """A real-rig path: serial driver on a pyserial URL, frames dropped into a watched folder."""
-    from ps_lab.io.dng import write_dng
-
     tether = tmp_path / "tether"
     tether.mkdir()
     rig_path = tmp_path / "folder.toml"
@@ -480,8 +481,6 @@ timeout_s = 10.0
 
 def test_simulator_in_another_process_via_state_file(tmp_path: Path, reference: dict) -> None:
     """`ps-lab rig serve-sim --state-file F` + a serial rig whose simulated camera reads F."""
-    from ps_lab.capture.simulated.pty_server import PtyServer
-
     state_file = tmp_path / "state.json"
     text = write_rig(tmp_path).read_text()
     text = text.replace(
@@ -510,8 +509,6 @@ def test_light_lost_during_the_exposure_is_shot_again(
 ) -> None:
     """A controller that resets, or whose watchdog fires, mid-exposure must not yield a dark frame
     under a light's name: the session notices (reboot count, STATE) and shoots the frame again."""
-    from ps_lab.capture.simulated import camera as cameras
-
     k = int(np.random.default_rng(len(mishap)).integers(2, N_FRAMES))
     original = cameras.SimulatedCamera._do_capture
     calls: list[int] = []

@@ -15,6 +15,7 @@ import tifffile
 
 from ps_lab.errors import DatasetError
 from ps_lab.io.dataset import load_dataset, load_frames
+from ps_lab.io.dng import write_dng
 from ps_lab.io.images import read_image, read_pfm, write_pfm
 from ps_lab.io.lights import read_light_directions
 
@@ -138,8 +139,6 @@ def write_test_dng(
     path: Path, scene: np.ndarray, *, black: int = 512, white: int = 16383, exposure_s=None
 ):
     """A DNG whose 2x2 RGGB blocks all sample the (H, W, 3) linear scene (values in 0..1)."""
-    from ps_lab.io.dng import write_dng
-
     counts = np.clip(np.rint(black + scene * (white - black)), 0, white).astype(np.uint16)
     h, w = scene.shape[:2]
     mosaic = np.empty((2 * h, 2 * w), dtype=np.uint16)
@@ -152,7 +151,6 @@ def write_test_dng(
 
 
 def test_dng_through_read_image(tmp_path, rng):
-    pytest.importorskip("ps_lab.io.dng")
     scene = rng.random((12, 16, 3)) * 0.9
     scene[2, 2, 1] = 1.5  # clips at the white level
     expected = write_test_dng(tmp_path / "f.dng", scene, exposure_s=0.25)
@@ -415,7 +413,6 @@ def test_capture_run_dataset_needs_calibration_then_loads(tmp_path, rng):
 
 
 def test_capture_run_with_dng_frames(tmp_path, rng):
-    pytest.importorskip("ps_lab.io.dng")
     truth = make_run(tmp_path / "run", rng, n=3, repeat=2, shape=(12, 12), writer="dng")
     frames = load_frames(tmp_path / "run")
     np.testing.assert_allclose(frames.images, truth["expected"], atol=1e-5)

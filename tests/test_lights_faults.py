@@ -8,15 +8,24 @@ Commands are counted from 1 since the simulated controller was created; opening 
 from __future__ import annotations
 
 import itertools
+import os
+import select
+import signal
+import socket
+import subprocess
+import sys
+import threading
 import time
 
 import pytest
 import serial
 from helpers.lights_doubles import CLOSE, expected_protocol, handshake
+from typer.testing import CliRunner
 
 from ps_lab.capture.lights import LightState, SerialLightController
 from ps_lab.capture.simulated.firmware import (
     Fault,
+    LineAssembler,
     ManualClock,
     SimulatedFirmware,
     firmware_for,
@@ -24,7 +33,8 @@ from ps_lab.capture.simulated.firmware import (
     parse_faults,
     register_firmware,
 )
-from ps_lab.capture.simulated.pty_server import PtyServer
+from ps_lab.capture.simulated.pty_server import PtyServer, state_file_reader
+from ps_lab.cli import app
 from ps_lab.errors import RigError
 
 FIRST = 5  # number of the first command after the handshake
@@ -308,13 +318,6 @@ def test_url_options_reach_the_firmware():
 
 
 def test_serve_sim_serves_a_pty_until_sigterm(tmp_path):
-    import os
-    import select
-    import signal
-    import subprocess
-    import sys
-
-    from ps_lab.capture.simulated.pty_server import state_file_reader
 
     state_file = tmp_path / "lights.json"
     process = subprocess.Popen(
@@ -355,10 +358,6 @@ def test_serve_sim_serves_a_pty_until_sigterm(tmp_path):
 
 
 def test_rig_check_walks_every_light_and_reports_errors_in_one_line():
-    from typer.testing import CliRunner
-
-    from ps_lab.cli import app
-
     name = f"check-{next(_names)}"
     firmware = SimulatedFirmware(5, clock=ManualClock())
     register_firmware(name, firmware)
@@ -381,10 +380,7 @@ def test_rig_check_walks_every_light_and_reports_errors_in_one_line():
 
 def test_socket_url_reaches_a_controller_over_tcp():
     # A controller behind a TCP serial bridge (ser2net and the like): pyserial's socket:// URL.
-    import socket
-    import threading
 
-    from ps_lab.capture.simulated.firmware import LineAssembler
 
     firmware = SimulatedFirmware(8, faults="drop@5", clock=ManualClock())
     listener = socket.create_server(("127.0.0.1", 0))

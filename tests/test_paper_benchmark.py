@@ -14,7 +14,8 @@ from typer.testing import CliRunner
 
 from ps_lab import render
 from ps_lab.bench import paper as bp
-from ps_lab.bench import report
+from ps_lab.bench import report, scenes
+from ps_lab.cli import app
 
 
 @pytest.fixture(scope="module")
@@ -126,18 +127,16 @@ def test_roughness_tuning_hits_the_requested_share() -> None:
     surface = render.relief_surface((40, 40), seed=2)
     lights = render.random_light_directions(30, np.random.default_rng(7))
     for share in (0.05, 0.15):
-        roughness = bp.roughness_for_specular_share(
+        roughness = scenes.roughness_for_specular_share(
             surface, lights, strength=1.0, share=share, threshold=0.1
         )
-        measured = bp.specular_share(
+        measured = scenes.specular_share(
             surface, lights, strength=1.0, roughness=roughness, threshold=0.1
         )
         assert measured == pytest.approx(share, abs=0.005)
 
 
 def test_cli_runs_a_small_refinement_table() -> None:
-    from ps_lab.cli import app
-
     result = CliRunner().invoke(
         app,
         ["bench", "paper", "--size", "24", "--light-sets", "1", "--tables", "5", "--no-progress"],
@@ -149,8 +148,6 @@ def test_cli_runs_a_small_refinement_table() -> None:
 
 
 def test_cli_rejects_unknown_table() -> None:
-    from ps_lab.cli import app
-
     result = CliRunner().invoke(app, ["bench", "paper", "--tables", "2", "--no-progress"])
     assert result.exit_code == 2
     assert "1, 3, 4, 5" in result.output

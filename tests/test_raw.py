@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import rawpy
+import tifffile
 
 from ps_lab.errors import DatasetError
 from ps_lab.io.dng import CFA_PATTERNS, write_dng
@@ -165,8 +166,6 @@ def test_write_dng_rejects_bad_input(tmp_path, kwargs, mosaic):
 
 
 def test_linear_raw_dng_is_rejected_clearly(tmp_path, rng):
-    import tifffile
-
     rgb = rng.integers(0, 4000, (32, 32, 3)).astype(np.uint16)
     identity = tuple(x for v in (1, 0, 0, 0, 1, 0, 0, 0, 1) for x in (v * 10000, 10000))
     tags = [

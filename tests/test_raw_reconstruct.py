@@ -10,11 +10,10 @@ import numpy as np
 import pytest
 from typer.testing import CliRunner
 
+from ps_lab import render
 from ps_lab.capture.simulated.camera import SimulatedCamera
 from ps_lab.cli import app
-
-render = pytest.importorskip("ps_lab.render")
-pytest.importorskip("ps_lab.io.dataset")
+from ps_lab.io.raw import load_raw
 
 runner = CliRunner()
 N_LIGHTS = 16
@@ -94,8 +93,6 @@ def test_dng_folder_reconstructs_like_the_float_images(tmp_path, method):
 
 
 def test_dng_pixels_equal_the_scaled_radiance(tmp_path):
-    from ps_lab.io.raw import load_raw
-
     pair = write_pair(tmp_path)
     scale = pair["camera"].linear_scale
     radiance = np.load(pair["floats"] / "img_05.npy")

@@ -10,11 +10,11 @@ import numpy as np
 import pytest
 from typer.testing import CliRunner
 
+from ps_lab import render
 from ps_lab.cli import app
 from ps_lab.errors import DatasetError
+from ps_lab.io import dng
 from ps_lab.reconstruct import pipeline
-
-render = pytest.importorskip("ps_lab.render")
 
 runner = CliRunner()
 SHAPE = (24, 24)
@@ -216,7 +216,6 @@ def test_refine_lights_writes_refined_lights(tmp_path):
 
 
 def test_dng_folder_matches_float_images(tmp_path):
-    dng = pytest.importorskip("ps_lab.io.dng")
     rng = np.random.default_rng(7)
     surface = render.sphere_surface(SHAPE, albedo=0.7)
     lights = render.random_light_directions(N_LIGHTS, rng)
@@ -278,7 +277,6 @@ def _break(kind: str, root: Path) -> tuple[Path, str]:
         (folder / "002.dng").write_bytes(b"II*\x00" + b"not really a raw file" * 50)
         return folder, "002.dng"
     if kind == "truncated raw":
-        dng = pytest.importorskip("ps_lab.io.dng")
         (folder / "002.png").unlink()
         dng.write_dng(
             folder / "002.dng",

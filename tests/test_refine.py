@@ -6,7 +6,14 @@ import numpy as np
 import pytest
 from test_solvers import lights_upper, scene
 
-from ps_lab.reconstruct import SolverInputError, angular_errors_deg, refine_lights
+from ps_lab.reconstruct import (
+    SolverInputError,
+    angular_errors_deg,
+    fit_lights,
+    light_fit_sums,
+    refine_lights,
+    solve,
+)
 from ps_lab.render import perturb_light_directions
 
 
@@ -62,8 +69,6 @@ def test_refinement_rejects_bad_lights():
 
 
 def test_band_sums_reproduce_refine_lights(perturbed):
-    from ps_lab.reconstruct import fit_lights, light_fit_sums, solve
-
     y, lights, wrong, _ = perturbed
     valid = y > 0
     expected = refine_lights(y, wrong, iterations=1, valid=valid)

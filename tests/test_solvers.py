@@ -15,34 +15,18 @@ from ps_lab.reconstruct import (
     estimate_noise,
     solve,
 )
+from ps_lab.render import random_light_directions, relief_surface, render, sphere_surface
 
 ORACLE_PARAMS = ("max_iter", "tol", "delta", "outlier_threshold", "sigma_x2", "gamma_floor",
                  "lam_sparse", "rho")
 
 
 def lights_upper(n, rng, max_zenith_deg=60.0):
-    try:
-        from ps_lab.render import random_light_directions
-    except ImportError:  # renderer not there yet: same distribution inline
-        z = rng.uniform(np.cos(np.radians(max_zenith_deg)), 1.0, n)
-        phi = rng.uniform(0, 2 * np.pi, n)
-        r = np.sqrt(1 - z**2)
-        return np.stack([r * np.cos(phi), r * np.sin(phi), z], axis=1)
     return random_light_directions(n, rng, max_zenith_deg=max_zenith_deg)
 
 
 def scene(kind, shape, lights, rng, *, specular=0.0):
     """Observations (n, P) of the masked pixels, true normals (P, 3), albedo (P,)."""
-    try:
-        from ps_lab.render import relief_surface, render, sphere_surface
-    except ImportError:
-        h, w = shape
-        yy, xx = np.mgrid[0:h, 0:w]
-        nx, ny = (xx - (w - 1) / 2) / (0.45 * w), -(yy - (h - 1) / 2) / (0.45 * h)
-        mask = nx**2 + ny**2 < 1
-        normals = np.stack([nx, ny, np.sqrt(np.clip(1 - nx**2 - ny**2, 0, None))], -1)[mask]
-        images = np.maximum(lights @ normals.T, 0.0)
-        return images, normals, np.ones(len(normals))
     surface = sphere_surface(shape) if kind == "sphere" else relief_surface(shape, seed=3)
     images = render(surface, lights, specular=specular, rng=rng)
     albedo = surface.albedo if surface.albedo.ndim == 2 else surface.albedo.mean(axis=-1)

@@ -9,9 +9,11 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
+from typer.testing import CliRunner
 
 from ps_lab import reconstruct as solvers
 from ps_lab import render
+from ps_lab.cli import app
 from ps_lab.errors import DatasetError
 from ps_lab.io.bands import ObservationStore, plan_bands, stage_observations
 from ps_lab.io.dataset import load_dataset, open_dataset
@@ -349,10 +351,6 @@ def test_error_histogram_matches_numpy_within_a_bin():
 
 
 def test_cli_memory_budget(capture, tmp_path):
-    from typer.testing import CliRunner
-
-    from ps_lab.cli import app
-
     runner = CliRunner()
     args = ["reconstruct", str(capture), "--method", "ls", "--shadow-threshold", "0.005"]
     result = runner.invoke(app, [*args, "--out", str(tmp_path / "a"), "--memory-budget", "20KB"])
