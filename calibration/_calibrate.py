@@ -480,7 +480,8 @@ def _matte_intensities(
             # A matte sphere's limb is dim in the median (grazing shading); the maximum over
             # frames shows it as a step.
             bright = summary_image(stack, reduce="max")
-            matte_circle = refine_circle(bright, hint, search_px=max(8.0, 0.15 * hint.radius)).circle
+            search = max(8.0, 0.15 * hint.radius)
+            matte_circle = refine_circle(bright, hint, search_px=search).circle
         except CalibrationError as exc:
             warnings.append(
                 f"matte sphere outline not refined ({exc}); using the rig's nominal circle"

@@ -1,5 +1,8 @@
-"""Typed, validated access to the tables of a rig file (every key read is recorded, so a key
-nobody read is an error naming the file, the table and the key)."""
+"""Typed, validated access to the tables of a rig file.
+
+Every key read is recorded, so a key nobody read is an error naming the file, the table and the
+key.
+"""
 
 from __future__ import annotations
 

@@ -1,5 +1,8 @@
-"""Injected faults of the simulated devices: one :class:`Fault` type, and the parser of the
-``KIND@N`` / ``KIND@pP`` specifications that URLs and ``ps-lab rig serve-sim --fault`` give."""
+"""Injected faults of the simulated devices: one :class:`Fault` type.
+
+Also the parser of the ``KIND@N`` / ``KIND@pP`` specifications that URLs and
+``ps-lab rig serve-sim --fault`` give.
+"""
 
 from __future__ import annotations
 

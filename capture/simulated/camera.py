@@ -1,5 +1,7 @@
-"""The simulated camera: renders the scene under exactly the lights the simulated controller has
-lit and writes real 14-bit DNG files, with injectable faults (timeouts, truncated files)."""
+"""The simulated camera: renders the scene under the lights the simulated controller has lit.
+
+It writes real 14-bit DNG files, with injectable faults (timeouts, truncated files).
+"""
 
 from __future__ import annotations
 

@@ -2,7 +2,8 @@
 
 pyserial resolves ``scheme://`` URLs by importing ``protocol_<scheme>`` from the packages listed in
 ``serial.protocol_handler_packages``; importing :mod:`ps_lab.capture.lights` adds
-``ps_lab.capture.simulated`` to that list. URL options are described in :func:`ps_lab.capture.simulated.firmware.firmware_from_url`.
+``ps_lab.capture.simulated`` to that list. URL options are described in
+:func:`ps_lab.capture.simulated.firmware.firmware_from_url`.
 
 Opening the port behaves like opening an Arduino's USB serial port: the board resets and
 announces ``READY``.

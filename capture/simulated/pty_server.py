@@ -1,5 +1,7 @@
-"""The simulated controller served on a pseudo-terminal (``ps-lab rig serve-sim``), and the JSON
-state file through which a simulated camera in another process sees what is lit."""
+"""The simulated controller served on a pseudo-terminal (``ps-lab rig serve-sim``).
+
+Also the JSON state file through which a simulated camera in another process sees what is lit.
+"""
 
 from __future__ import annotations
 

@@ -80,8 +80,10 @@ def sha256(path: Path) -> str:
 
 
 def json_safe(value: Any) -> Any:
-    """``value`` with numpy scalars and arrays as Python values, non-finite floats as None,
-    paths as strings and anything else unknown as its ``repr``: always accepted by ``json.dumps``.
+    """Return ``value`` in a form ``json.dumps`` always accepts.
+
+    Numpy scalars and arrays become Python values, non-finite floats None, paths strings and
+    anything else unknown its ``repr``.
     """
     if isinstance(value, dict):
         return {str(k): json_safe(v) for k, v in value.items()}
@@ -152,9 +154,12 @@ def staged_folder(
 
 @contextmanager
 def staged_files(out: Path, *, prefix: str = ".staged-") -> Iterator[Path]:
-    """Yield a hidden sub-folder of ``out`` (created if needed); when the block succeeds, every
-    file written there is fsynced and then renamed into ``out``. The sub-folder is removed in
-    every case, so a failure leaves ``out`` as it was. Raises ``OSError`` as it comes."""
+    """Yield a hidden sub-folder of ``out`` whose files move into ``out`` when the block succeeds.
+
+    ``out`` is created if needed; every file is fsynced, then renamed into ``out``. The sub-folder
+    is removed in every case, so a failure leaves ``out`` as it was. Raises ``OSError`` as it
+    comes.
+    """
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     staging = Path(tempfile.mkdtemp(prefix=prefix, dir=out))

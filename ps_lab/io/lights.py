@@ -1,6 +1,8 @@
-"""Light tables: ``light_directions.txt`` (n rows ``x y z``) and ``light_intensities.txt``
-(n rows of 3, or 1), the DiLiGenT text format read by every command and written by calibration
-and light refinement."""
+"""Light tables: ``light_directions.txt`` and ``light_intensities.txt``.
+
+``light_directions.txt`` has n rows ``x y z``, ``light_intensities.txt`` n rows of 3 (or 1): the
+DiLiGenT text format read by every command and written by calibration and light refinement.
+"""
 
 from __future__ import annotations
 

@@ -1,6 +1,8 @@
-"""Ground-truth normals: ``normal_gt.npy``, DiLiGenT's ``Normal_gt.mat`` or a simulated run's
-``simulation/normal_gt.npy``, read whole (:func:`read_normal_gt`) or band by band
-(:class:`NormalTruth`). Angular errors are reported wherever they exist."""
+"""Ground-truth normals, read whole (:func:`read_normal_gt`) or band by band (:class:`NormalTruth`).
+
+The file is ``normal_gt.npy``, DiLiGenT's ``Normal_gt.mat`` or a simulated run's
+``simulation/normal_gt.npy``. Angular errors are reported wherever it exists.
+"""
 
 from __future__ import annotations
 

@@ -1,7 +1,8 @@
 """The synthetic world: an orthographic photometric-stereo renderer with ground-truth normals.
 
 Used by ``ps-lab simulate``, the simulated camera, the benchmarks and the tests; a layer below the
-stage packages (capture, calibration, reconstruct) and above ``ps_lab.io``. See ``docs/renderer.md``.
+stage packages (capture, calibration, reconstruct) and above ``ps_lab.io``. See
+``docs/renderer.md``.
 
 - :mod:`~ps_lab.render.lights`: random and perturbed light directions
 - :mod:`~ps_lab.render.surfaces`: :class:`Surface`, :func:`sphere_surface`, :func:`relief_surface`

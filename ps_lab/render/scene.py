@@ -64,7 +64,9 @@ def _build_surfaces(scene: Scene) -> tuple[tuple[Surface | None, np.ndarray], ..
     surfaces: list[Surface | None] = []
     for obj in scene.objects:
         if obj.kind not in OBJECT_KINDS:
-            raise ValueError(f"unknown scene object kind {obj.kind!r}; expected one of {OBJECT_KINDS}")
+            raise ValueError(
+                f"unknown scene object kind {obj.kind!r}; expected one of {OBJECT_KINDS}"
+            )
         albedo = np.asarray(obj.albedo, dtype=np.float64)
         if obj.kind in ("sphere", "matte"):
             surfaces.append(sphere_surface(shape, obj.center, obj.radius, albedo=albedo))
