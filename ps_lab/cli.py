@@ -1,25 +1,51 @@
-"""The ``ps-lab`` command line: thin wiring of the library, one module per command."""
+"""The ``ps-lab`` command line: thin wiring of the library, one module per command.
+
+Commands are registered here, in :data:`COMMANDS`. Their modules are loaded lazily, in this one
+place: ``ps-lab reconstruct`` imports only ``ps_lab.commands.reconstruct`` (so reading a dataset
+loads no pyserial, no capture package and no renderer), while ``ps-lab --help``, an unknown
+command and ``ps_lab.cli.app`` (the tests' CliRunner) load them all.
+"""
 
 from __future__ import annotations
 
+import importlib
 import logging
-from typing import Annotated
+import sys
+from collections.abc import Iterable, Sequence
+from typing import Annotated, Any
 
 import typer
 
 from ps_lab import __version__
-from ps_lab.commands import bench, calibrate, capture, reconstruct, rig, simulate
 
-app = typer.Typer(
-    name="ps-lab",
-    help=(
-        "Photometric stereo in the lab: capture one frame per light on a rig, calibrate the "
-        "light directions from a chrome sphere, and reconstruct surface normals robustly (SBL)."
-    ),
-    no_args_is_help=True,
-    add_completion=False,
-    pretty_exceptions_enable=False,
-)
+#: Command name -> module with ``register(app)``, in the order of ``ps-lab --help``.
+COMMANDS = {
+    "simulate": "ps_lab.commands.simulate",
+    "reconstruct": "ps_lab.commands.reconstruct",
+    "capture": "ps_lab.commands.capture",
+    "calibrate": "ps_lab.commands.calibrate",
+    "rig": "ps_lab.commands.rig",
+    "bench": "ps_lab.commands.bench",
+}
+
+
+def make_app(commands: Iterable[str] = tuple(COMMANDS)) -> typer.Typer:
+    """Build the ``ps-lab`` app with the named commands (all by default)."""
+    app = typer.Typer(
+        name="ps-lab",
+        help=(
+            "Photometric stereo in the lab: capture one frame per light on a rig, calibrate the "
+            "light directions from a chrome sphere, and reconstruct surface normals robustly "
+            "(SBL)."
+        ),
+        no_args_is_help=True,
+        add_completion=False,
+        pretty_exceptions_enable=False,
+    )
+    app.callback()(_root)
+    for name in commands:
+        importlib.import_module(COMMANDS[name]).register(app)
+    return app
 
 
 def _version(value: bool) -> None:
@@ -28,10 +54,10 @@ def _version(value: bool) -> None:
         raise typer.Exit()
 
 
-@app.callback()
 def _root(
     verbose: Annotated[
-        int, typer.Option("--verbose", "-v", count=True, help="-v: info, -vv: debug (serial traffic).")
+        int,
+        typer.Option("--verbose", "-v", count=True, help="-v: info, -vv: debug (serial traffic)."),
     ] = 0,
     version: Annotated[
         bool, typer.Option("--version", callback=_version, is_eager=True, help="Print the version.")
@@ -42,10 +68,17 @@ def _root(
     logging.basicConfig(level=level, format="%(levelname)s %(name)s: %(message)s")
 
 
-for _module in (simulate, reconstruct, capture, calibrate, rig, bench):
-    _module.register(app)
+def __getattr__(name: str) -> Any:
+    # ``ps_lab.cli.app``: the app with every command, built on first use (PEP 562).
+    if name == "app":
+        app = make_app()
+        globals()["app"] = app
+        return app
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 
 
-def main() -> None:
-    """Console-script entry point."""
-    app(prog_name="ps-lab")
+def main(argv: Sequence[str] | None = None) -> None:
+    """Console-script entry point: load only the command that is run."""
+    args = list(sys.argv[1:] if argv is None else argv)
+    command = next((arg for arg in args if not arg.startswith("-")), None)
+    make_app([command] if command in COMMANDS else COMMANDS)(args=args, prog_name="ps-lab")

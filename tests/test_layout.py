@@ -21,16 +21,15 @@ from ps_lab.io.dng import write_dng
 
 ROOT = Path(__file__).resolve().parents[1]
 
-# Import the `ps-lab reconstruct` command, read the dataset the way it does (header, then every
-# frame), and list what got loaded.
-_RECONSTRUCT_READ = """
+# Run `ps-lab reconstruct` through the console-script entry point (so the CLI's lazy command
+# loading is part of what is checked), then list what got loaded.
+_RECONSTRUCT_RUN = """
 import json, sys
-from pathlib import Path
-import ps_lab.commands.reconstruct
-from ps_lab.io.dataset import load_dataset, open_dataset
-folder = Path(sys.argv[1])
-open_dataset(folder).read_mask()
-load_dataset(folder)
+from ps_lab.cli import main
+try:
+    main(["reconstruct", sys.argv[1], "--method", "ls", "--out", sys.argv[2]])
+except SystemExit as exc:
+    assert not exc.code, exc.code
 print(json.dumps(sorted(sys.modules)))
 """
 
@@ -65,13 +64,14 @@ def _dng_dataset(folder: Path, n: int = 4) -> Path:
 def test_reading_a_dataset_for_reconstruct_loads_no_capture_code(make, tmp_path):
     folder = make(tmp_path / "data")
     out = subprocess.run(
-        [sys.executable, "-c", _RECONSTRUCT_READ, str(folder)],
+        [sys.executable, "-c", _RECONSTRUCT_RUN, str(folder), str(tmp_path / "out")],
         capture_output=True,
         text=True,
         check=True,
     )
-    loaded = set(json.loads(out.stdout))
-    assert "ps_lab.io.dataset" in loaded
+    loaded = set(json.loads(out.stdout.splitlines()[-1]))
+    assert {"ps_lab.io.dataset", "ps_lab.reconstruct.pipeline"} <= loaded
+    assert (tmp_path / "out" / "normals.npy").is_file()
     forbidden = {
         m
         for m in loaded
