@@ -86,6 +86,16 @@ class _Table:
             raise self.error(key, f"expected a list of {length}-vectors, got {_kind(value)}")
         return tuple(self._vector(f"{key}[{i}]", v, length) for i, v in enumerate(value))
 
+    def ints(self, key: str) -> tuple[int, ...] | None:
+        value = self._get(key, None, False)
+        if value is None:
+            return None
+        if not isinstance(value, list) or not all(
+            isinstance(v, int) and not isinstance(v, bool) for v in value
+        ):
+            raise self.error(key, f"expected a list of integers, got {_kind(value)}")
+        return tuple(value)
+
     def table(self, key: str) -> _Table | None:
         value = self._get(key, None, False)
         if value is None:

@@ -4,7 +4,10 @@
 firmware on an in-process pseudo-terminal and opens the pty's device path through the OS serial
 layer, exactly as a real ``/dev/ttyACM0`` would be opened, and hands the firmware's light state to
 the simulated camera so that a driver bug that leaves the wrong light on shows up in the images.
-:func:`build_simulation` builds the renderer scene and true lights behind a simulated rig.
+For ``driver = "firmware"`` the controller is the compiled Arduino sketch running in simavr
+(:mod:`~ps_lab.capture.simulated.avr_firmware`), and the camera sees the lights whose pins the
+emulated MCU drives. :func:`build_simulation` builds the renderer scene and true lights behind
+a simulated rig.
 
 This is the one production module that imports :mod:`ps_lab.capture.simulated` (an import-linter
 contract); the simulators run only when a rig file selects them.
@@ -25,6 +28,7 @@ from ps_lab import render
 from ps_lab.capture import cameras, gphoto2_camera, lights
 from ps_lab.capture.rig import Rig
 from ps_lab.capture.simulated import firmware as sim_lights
+from ps_lab.capture.simulated.avr_firmware import EmulatedFirmware, serve_firmware
 from ps_lab.capture.simulated.camera import SimulatedCamera
 from ps_lab.capture.simulated.firmware import parse_faults
 from ps_lab.capture.simulated.pty_server import PtyServer, serve_simulator, state_file_reader
@@ -42,6 +46,8 @@ __all__ = [
     # reached through this module only.
     "parse_faults",
     "serve_simulator",
+    # The compiled sketch in simavr on its own pty (``ps-lab rig serve-firmware``).
+    "serve_firmware",
 ]
 
 # --------------------------------------------------------------------------------------------
@@ -128,6 +134,7 @@ class OpenRig:
         self.camera: Any = None
         self.simulation: Simulation | None = None
         self.firmware: Any = None  # the simulated controller's firmware, when simulated
+        self.board: EmulatedFirmware | None = None  # the emulated MCU, for driver = "firmware"
         #: False when closing could not confirm that the lights are off (the controller's
         #: watchdog switches them off then).
         self.lights_off_confirmed = True
@@ -196,6 +203,14 @@ def _open_controller(rig: Rig, opened: OpenRig) -> Callable[[], Any] | None:
         light_state = firmware.state
         opened.firmware = firmware
         log.info("simulated controller on %s", port)
+    elif cfg.driver == "firmware":
+        # The compiled sketch in simavr: the camera sees the lights whose pins are driven.
+        board = EmulatedFirmware(cfg.elf, pins=cfg.pins).start()
+        opened._closers.append(board.stop)
+        assert board.path is not None
+        port = board.path
+        light_state = board.light_state
+        opened.board = board
     else:
         port = cfg.port
         assert port is not None

@@ -30,7 +30,7 @@ from ps_lab.render.scene import OBJECT_KINDS, SceneObject
 
 log = logging.getLogger(__name__)
 
-CONTROLLER_DRIVERS = ("serial", "simulated")
+CONTROLLER_DRIVERS = ("serial", "simulated", "firmware")
 CAMERA_DRIVERS = ("simulated", "gphoto2", "folder")
 #: File types a frame may have; RAW types are verified with ``load_raw``, the others with OpenCV.
 # A rig file's objects are grey card-like (0.8) unless they say otherwise; the renderer's own
@@ -72,6 +72,10 @@ class ControllerConfig:
     baudrate: int = 115200
     settle_ms: int = 0
     directions: tuple[tuple[float, float, float], ...] | None = None
+    #: ``driver = "firmware"``: the wiring (Arduino pin of light 1, 2, ...) and the sketch's ELF
+    #: (default: rigs/firmware/ps_lab_lights, built with arduino-mk).
+    pins: tuple[int, ...] | None = None
+    elf: str | None = None
 
 
 @dataclass(frozen=True)
@@ -168,6 +172,9 @@ class Rig:
         """Return the rig as a JSON-ready dict (what a capture run's manifest stores)."""
         snap = json_safe(dataclasses.asdict(self))
         snap.pop("source", None)
+        for key in ("pins", "elf"):  # firmware-only keys: absent elsewhere, as in older runs
+            if snap["controller"].get(key) is None:
+                snap["controller"].pop(key, None)
         snap["source"] = str(self.source) if self.source is not None else None
         cal: dict[str, Any] = {}
         for key in ("chrome_sphere", "matte_sphere"):
@@ -336,8 +343,10 @@ def _parse_controller(t: _Table) -> ControllerConfig:
     driver = t.str("driver", required=True, choices=CONTROLLER_DRIVERS)
     lights = t.int("lights", required=True, lo=1, hi=999)
     port = t.str("port", None, required=driver == "serial")
-    if driver == "simulated" and port is not None:
-        raise t.error("port", "a simulated controller is served on its own pty; remove the port")
+    if driver != "serial" and port is not None:
+        raise t.error("port", f"a {driver} controller is served on its own pty; remove the port")
+    pins = _pins(t, lights) if driver == "firmware" else None
+    elf = t.str("elf", None) if driver == "firmware" else None
     cfg = ControllerConfig(
         driver=driver,
         lights=lights,
@@ -348,9 +357,22 @@ def _parse_controller(t: _Table) -> ControllerConfig:
         baudrate=t.int("baudrate", 115200, lo=300),
         settle_ms=t.int("settle_ms", 0, lo=0, hi=60_000),
         directions=_unit_vectors(t, "directions", lights),
+        pins=pins,
+        elf=elf,
     )
     t.done()
     return cfg
+
+
+def _pins(t: _Table, lights: int) -> tuple[int, ...] | None:
+    pins = t.ints("pins")
+    if pins is None:
+        return None
+    if len(pins) != lights:
+        raise t.error("pins", f"{len(pins)} pins for {lights} lights")
+    if any(not 2 <= p <= 19 for p in pins) or len(set(pins)) != len(pins):
+        raise t.error("pins", "each light needs its own Uno pin 2-19 (0 and 1 are the serial port)")
+    return pins
 
 
 def _unit_vectors(t: _Table, key: str, count: int) -> tuple[tuple[float, float, float], ...] | None:

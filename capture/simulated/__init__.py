@@ -4,6 +4,7 @@
 - :mod:`~ps_lab.capture.simulated.pty_server`: that firmware served on a pseudo-terminal
 - :mod:`~ps_lab.capture.simulated.protocol_pslabsim`: the pyserial ``pslabsim://`` URL handler
 - :mod:`~ps_lab.capture.simulated.camera`: :class:`SimulatedCamera`, rendering and writing DNG
+- :mod:`~ps_lab.capture.simulated.avr_firmware`: the real sketch, compiled, running in simavr
 
 Production code imports this package only through :mod:`ps_lab.capture.connect` (checked by
 import-linter); test doubles live under ``tests/helpers``.

@@ -1,4 +1,4 @@
-"""`ps-lab rig`: serve a simulated light controller on a pty, and check a light controller."""
+"""`ps-lab rig`: a simulated controller or the emulated firmware on a pty; check a controller."""
 
 from __future__ import annotations
 
@@ -8,11 +8,12 @@ from typing import Annotated
 import typer
 
 from ps_lab._cli_util import lab_command, progress_bar
-from ps_lab.capture.connect import parse_faults, serve_simulator
+from ps_lab.capture.connect import parse_faults, serve_firmware, serve_simulator
 from ps_lab.capture.lights import SerialLightController, walk_lights
 
 rig_app = typer.Typer(
-    help="Light-controller tools: a simulated controller on a pseudo-terminal, and a rig check.",
+    help="Light-controller tools: a simulated controller or the compiled sketch in simavr on a "
+    "pseudo-terminal, and a rig check.",
     no_args_is_help=True,
 )
 
@@ -61,6 +62,36 @@ def serve_sim(
         state_file=state_file,
         on_ready=announce,
     )
+
+
+@rig_app.command("serve-firmware")
+@lab_command
+def serve_firmware_command(
+    elf: Annotated[
+        Path | None,
+        typer.Option(help="The sketch's ELF (default: build rigs/firmware/ps_lab_lights)."),
+    ] = None,
+    state_file: Annotated[
+        Path | None,
+        typer.Option(help="Publish the lights whose pins are driven here as JSON on every change."),
+    ] = None,
+    pins: Annotated[
+        str | None,
+        typer.Option(help="Wiring: Arduino pin of light 1,2,... (default: the sketch's table)."),
+    ] = None,
+) -> None:
+    """Print the device path of the compiled sketch running in simavr and serve until Ctrl-C."""
+
+    def announce(board) -> None:
+        typer.echo(board.path)
+        typer.echo(
+            f"emulated firmware {board.elf}: {board.lights} lights on {board.path}"
+            + (f", state in {state_file}" if state_file else "")
+            + "; Ctrl-C stops",
+            err=True,
+        )
+
+    serve_firmware(elf=elf, state_file=state_file, pins=pins, on_ready=announce)
 
 
 @rig_app.command("check")
