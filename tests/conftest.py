@@ -2,8 +2,12 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import pytest
+
+from ps_lab.capture.simulated.avr_firmware import build_harness, build_sketch, missing_packages
 
 
 def pytest_addoption(parser: pytest.Parser) -> None:
@@ -36,3 +40,21 @@ def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item
 @pytest.fixture
 def rng() -> np.random.Generator:
     return np.random.default_rng(12345)
+
+
+@pytest.fixture(scope="session")
+def firmware_cache(tmp_path_factory) -> Path:
+    """Build the Arduino sketch and the simavr harness once; return the cache (``PS_LAB_CACHE``).
+
+    Skips, naming the Debian packages, where the toolchain is not installed (`.ci/run` installs
+    it); nothing else skips these tests.
+    """
+    missing = " ".join(missing_packages())
+    if missing:
+        pytest.skip(
+            f"the emulated firmware needs Debian packages: {missing} (apt-get install {missing})"
+        )
+    cache = tmp_path_factory.mktemp("ps-lab-cache")
+    build_sketch(build_dir=cache / "firmware")
+    build_harness(build_dir=cache / "firmware")
+    return cache

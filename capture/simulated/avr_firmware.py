@@ -401,6 +401,8 @@ class EmulatedFirmware:
         if self._reader is not None:
             self._reader.join(timeout=5)
             self._reader = None
+        if process is not None and process.stdout is not None:
+            process.stdout.close()
         if self._own_state_dir is not None:
             shutil.rmtree(self._own_state_dir, ignore_errors=True)
             self._own_state_dir = None
