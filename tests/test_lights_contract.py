@@ -1,9 +1,11 @@
 """One contract for every light-controller transport.
 
 The same tests run against the simulated controller in-process (``pslabsim://``), over a real
-pseudo-terminal through the OS serial layer, and against a double that replays exact byte
+pseudo-terminal through the OS serial layer, against the compiled Arduino sketch running in simavr
+behind a pty (``firmware``: the real firmware, its lights read from its pins; skipped, naming the
+Debian packages, where the toolchain is missing), and against a double that replays exact byte
 exchanges. Each test declares with ``@exchanges`` the bytes it expects between the handshake and
-the final OFF; the double enforces them, the simulators answer them for real.
+the final OFF; the double enforces them, the simulators and the firmware answer them for real.
 """
 
 from __future__ import annotations
@@ -18,6 +20,7 @@ import pytest
 from helpers.lights_doubles import CLOSE, LIGHTS, ExpectedProtocolPort, expected_protocol, handshake
 
 from ps_lab.capture.lights import LightState, SerialLightController
+from ps_lab.capture.simulated.avr_firmware import EmulatedFirmware
 from ps_lab.capture.simulated.firmware import (
     ManualClock,
     SimulatedFirmware,
@@ -50,11 +53,18 @@ class Backend:
     def __init__(self, kind: str, request: pytest.FixtureRequest) -> None:
         self.kind = kind
         self.firmware: SimulatedFirmware | None = None
+        self.board: EmulatedFirmware | None = None
+        self.firmware_cache = None  # set for "firmware": where the sketch and harness are built
         self._server: PtyServer | None = None
         self._double: ExpectedProtocolPort | None = None
         self._script = list(getattr(request.function, "exchanges", []))
 
     def open(self, lights: int = LIGHTS) -> SerialLightController:
+        if self.kind == "firmware":
+            # No bootloader wait: the driver's ID, sent as the port opens, is answered after READY.
+            self.board = EmulatedFirmware(build_dir=self.firmware_cache / "firmware", boot_ms=0)
+            self.board.start()
+            return SerialLightController(self.board.path, lights, **TIMEOUT)
         if self.kind == "url":
             name = f"contract-{next(_names)}"
             url = f"pslabsim://{name}?lights={LIGHTS}&clock=manual"
@@ -72,25 +82,33 @@ class Backend:
 
     def lit(self) -> frozenset[int] | None:
         """What the simulated controller has lit (None for the double: it has no state)."""
+        if self.board is not None:
+            return self.board.pin_state().lit
         return None if self.firmware is None else self.firmware.state().lit
 
     def assert_ended_safely(self) -> None:
-        if self.firmware is not None:
+        if self.board is not None:
+            assert self.board.pin_state().lit == frozenset()  # every light pin off
+        elif self.firmware is not None:
             assert self.firmware.ended_safely(), self.firmware.log[-5:]
             assert self.firmware.commands()[-1] == "OFF"
         else:
             assert self._double is not None and not self._double.remaining()
 
     def finish(self) -> None:
+        if self.board is not None:
+            self.board.stop()
         if self._server is not None:
             self._server.stop()
         if self._double is not None:
             self._context.__exit__(None, None, None)
 
 
-@pytest.fixture(params=["url", "pty", "double"])
+@pytest.fixture(params=["url", "pty", "firmware", "double"])
 def backend(request: pytest.FixtureRequest):
     b = Backend(request.param, request)
+    if request.param == "firmware":
+        b.firmware_cache = request.getfixturevalue("firmware_cache")
     yield b
     b.finish()
 
@@ -117,15 +135,15 @@ def test_switch_lights_one_light(backend):
 
 @exchanges(
     (b"ON 5\n", b"OK ON 5\n"),
-    (b"ON 2 9 24\n", b"OK ON 2 9 24\n"),
-    (b"STATE\n", b"STATE 2 9 24\n"),
+    (b"ON 2 9 12\n", b"OK ON 2 9 12\n"),
+    (b"STATE\n", b"STATE 2 9 12\n"),
 )
 def test_switch_a_set_lights_exactly_that_set(backend):
     with backend.open() as controller:
         controller.switch(5)
-        controller.switch({24, 9, 2})
-        assert backend.lit() in (None, frozenset({2, 9, 24}))
-        assert controller.state().lit == {2, 9, 24}
+        controller.switch({12, 9, 2})
+        assert backend.lit() in (None, frozenset({2, 9, 12}))
+        assert controller.state().lit == {2, 9, 12}
     backend.assert_ended_safely()
 
 
@@ -155,6 +173,8 @@ def test_set_level_applies_to_lit_lights(backend):
         assert controller.state() == LightState(frozenset({1}), 40)
         if backend.firmware is not None:
             assert backend.firmware.state() == LightState(frozenset({1}), 40)
+        if backend.board is not None:  # light 1 is on a PWM pin: it dims
+            assert backend.board.light_state() == LightState(frozenset({1}), 40)
     backend.assert_ended_safely()
 
 
@@ -240,10 +260,10 @@ def test_context_in_another_thread_leaves_signal_handlers_alone(backend):
 
 
 # A wrong identity could be line noise: the driver believes it when the controller says it twice.
-@exchanges(*[(b"ID\n", b"ID ps-lab-lights 1 24\n")] * 2, handshake_=False, close=False)
+@exchanges(*[(b"ID\n", b"ID ps-lab-lights 1 12\n")] * 2, handshake_=False, close=False)
 def test_light_count_must_match_the_rig(backend):
-    with pytest.raises(RigError, match=r"has 24 lights, expected 12"):
-        backend.open(lights=12)
+    with pytest.raises(RigError, match=r"has 12 lights, expected 24"):
+        backend.open(lights=24)
     if backend.firmware is not None:
         assert backend.firmware.commands() == ["ID", "ID"]
 
