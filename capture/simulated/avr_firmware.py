@@ -31,6 +31,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from ps_lab.capture.lights import LightState
+from ps_lab.capture.simulated.pty_server import serve_until_interrupted
 from ps_lab.errors import RigError
 from ps_lab.io.files import staged_folder
 
@@ -453,23 +454,5 @@ def serve_firmware(
     """
     if isinstance(pins, str):
         pins = parse_pins(pins)
-
-    def interrupt(signum: int, frame: object) -> None:
-        raise KeyboardInterrupt
-
-    previous = (
-        signal.signal(signal.SIGTERM, interrupt)
-        if threading.current_thread() is threading.main_thread()
-        else None
-    )
-    try:
-        with EmulatedFirmware(elf, pins=pins, state_file=state_file) as board:
-            if on_ready is not None:
-                on_ready(board)
-            try:
-                board.serve_forever()
-            except KeyboardInterrupt:
-                log.info("emulated firmware stopped")
-    finally:
-        if previous is not None:
-            signal.signal(signal.SIGTERM, previous)
+    board = EmulatedFirmware(elf, pins=pins, state_file=state_file)
+    serve_until_interrupted(board, on_ready, "emulated firmware")

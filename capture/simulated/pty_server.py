@@ -24,7 +24,13 @@ from ps_lab.errors import RigError
 
 log = logging.getLogger("ps_lab.capture.simulated.firmware")
 
-__all__ = ["PtyServer", "serve_simulator", "state_file_reader", "write_state_file"]
+__all__ = [
+    "PtyServer",
+    "serve_simulator",
+    "serve_until_interrupted",
+    "state_file_reader",
+    "write_state_file",
+]
 
 
 # -- state file (for a simulator in another process) -------------------------------------------
@@ -207,6 +213,20 @@ def serve_simulator(
     server = PtyServer(
         lights=lights, faults=faults, seed=seed, delay_s=delay_s, state_file=state_file
     )
+    try:
+        serve_until_interrupted(server, on_ready, "simulated light controller")
+    finally:
+        if state_file is not None:
+            Path(state_file).unlink(missing_ok=True)
+
+
+def serve_until_interrupted(server: Any, on_ready: Callable[[Any], None] | None, what: str) -> None:
+    """Start ``server``, call ``on_ready(server)``, serve until Ctrl-C or SIGTERM, then stop it.
+
+    ``server`` is a context manager that starts on entry, stops on exit and has
+    ``serve_forever()`` (:class:`PtyServer`, the emulated firmware). SIGTERM raises
+    KeyboardInterrupt meanwhile (main thread only), so both end the same clean way.
+    """
 
     def interrupt(signum: int, frame: object) -> None:
         raise KeyboardInterrupt
@@ -223,9 +243,7 @@ def serve_simulator(
             try:
                 server.serve_forever()
             except KeyboardInterrupt:
-                log.info("simulated light controller stopped")
+                log.info("%s stopped", what)
     finally:
         if previous is not None:
             signal.signal(signal.SIGTERM, previous)
-        if state_file is not None:
-            Path(state_file).unlink(missing_ok=True)
