@@ -195,7 +195,7 @@ def solve_near(
     obs, vectors, usable = _check(observations, light_vectors, valid)
     params = _method_params(method, method_params)
     n, p = obs.shape
-    used: dict = {"method": method, "lights": "near"}
+    used: dict = {"method": method, "light_model": "near"}
     if method != "ls":
         noise = params.pop("noise_sigma")
         if noise is None:
