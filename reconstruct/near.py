@@ -73,6 +73,8 @@ _KERNELS = {
 # The integrator's guard for grazing normals: slopes are clipped where n_z is below this.
 _MIN_NZ = 0.1
 _MAX_SLOPE = 10.0
+# At most this many parabola steps of the depth-offset search.
+_OFFSET_STEPS = 8
 
 
 @dataclass(frozen=True)
@@ -318,9 +320,9 @@ def fit_depth_offset(observations, use, points, lights: NearLights, *, step=None
     """The constant depth shift that best explains the inlier observations.
 
     A wrong offset turns every pixel's light vectors by a pixel-dependent amount, so the inlier
-    least-squares residual, as a function of the offset, has a clear minimum: found by two rounds
-    of a three-point parabola (steps ``step`` then ``step / 4``; default 0.5 % of the median LED
-    distance), each move at most two steps.
+    least-squares residual, as a function of the offset, has a clear minimum: found by three-point
+    parabolas (step ``step``, default 0.5 % of the median LED distance; each move at most two
+    steps; the step shrinks 4x once the minimum is bracketed, down to ``step / 16``).
 
     Parameters
     ----------
@@ -347,12 +349,17 @@ def fit_depth_offset(observations, use, points, lights: NearLights, *, step=None
     def residual(shift: float) -> float:
         return _inlier_residual(obs, use, lights.vectors(points + np.array([0.0, 0.0, shift])))
 
-    centre = 0.0
-    for h in (step, step / 4):
+    centre, h = 0.0, step
+    for _ in range(_OFFSET_STEPS):
         f0, fm, fp = residual(centre), residual(centre - h), residual(centre + h)
         curvature = fp + fm - 2.0 * f0
         move = 0.5 * h * (fm - fp) / curvature if curvature > 0 else (h if fp < fm else -h)
-        centre += float(np.clip(move, -2.0 * h, 2.0 * h))
+        move = float(np.clip(move, -2.0 * h, 2.0 * h))
+        centre += move
+        if abs(move) < h:  # the minimum is bracketed: refine around it
+            h /= 4.0
+            if h < step / 16.0:
+                break
     return centre
 
 
