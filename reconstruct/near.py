@@ -36,13 +36,11 @@ from ._solve import (
     DEFAULT_TILE_SIZE,
     LAMBDA_FLOOR,
     MIN_OUTLIER_THRESHOLD,
-    NOISE_QUANTILE,
-    NOISE_QUANTILE_Z,
     NOISE_SAMPLE_PIXELS,
-    SHADOW_FRACTION,
     SOLVABLE_REL_DET,
     _method_params,
     pixel_scale,
+    residual_noise,
 )
 
 try:  # the depth integration of issue 14, when it has landed
@@ -153,11 +151,7 @@ def estimate_noise_near(observations, light_vectors, valid=None, *,
         return 0.0
     res = _near_kernels.l1_tile_pp(y, w, lights, max_iter=30, tol=1e-6, delta=1e-6,
                                    outlier_threshold=np.inf)
-    model = np.einsum("mk,mnk->mn", res.x, lights)
-    r = np.abs(y - model)
-    keep = (w > 0) & (y > SHADOW_FRACTION) & (model > SHADOW_FRACTION) & (r > 1e-12)
-    r = r[keep]
-    return float(np.quantile(r, NOISE_QUANTILE) / NOISE_QUANTILE_Z) if r.size else 0.0
+    return residual_noise(y, w, np.einsum("mk,mnk->mn", res.x, lights))
 
 
 def solve_near(
