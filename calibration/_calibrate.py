@@ -430,7 +430,7 @@ def _other_spheres(
         others.append(_chrome_sphere(summary, stack, None, hint, None, warnings)[0])
     if source == "auto" and not given and not hints:
         fits = _find_spheres(summary, stack, None if roi is None else tuple(roi))
-        others = [fit.circle for fit, _ in fits[1:] if circle_inside_image(fit.circle, summary.shape)]
+        others = [f.circle for f, _ in fits[1:] if circle_inside_image(f.circle, summary.shape)]
     for c in others:
         if np.hypot(c.x - first.x, c.y - first.y) < first.radius + c.radius:
             raise CalibrationError(

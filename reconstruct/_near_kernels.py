@@ -32,7 +32,7 @@ def _outer6_pixel(lights, p, aa):
 
 @njit(nogil=True, cache=True)
 def _weighted_fit_pp(y, v, lights, aa, p):
-    """x minimising sum_i v_i (y_pi - a_pi.x)^2."""
+    """X minimising sum_i v_i (y_pi - a_pi.x)^2."""
     xx = yy = zz = xy = xz = yz = 0.0
     t0 = t1 = t2 = 0.0
     for i in range(lights.shape[1]):
@@ -79,7 +79,8 @@ def _l1_kernel_pp(y, w, lights, max_iter, tol, delta, threshold, x_out, outliers
                 break
         x_out[p, 0], x_out[p, 1], x_out[p, 2] = x0, x1, x2
         for i in range(n):
-            outliers[p, i] = w[p, i] > 0.0 and abs(_residual(y, lights, p, i, x0, x1, x2)) > threshold
+            r = _residual(y, lights, p, i, x0, x1, x2)
+            outliers[p, i] = w[p, i] > 0.0 and abs(r) > threshold
 
 
 @njit(nogil=True, cache=True)

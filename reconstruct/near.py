@@ -29,7 +29,6 @@ from scipy.sparse.linalg import spsolve
 from ps_lab.geometry import near_light_vectors, scene_points
 
 from . import _near_kernels
-
 from ._linalg import inverse6
 from ._solution import Solution, SolverInputError
 from ._solve import (
@@ -175,8 +174,11 @@ def solve_near(
     Parameters
     ----------
     observations : ndarray of shape (n, P)
+        Observations (divided by the light intensities).
     light_vectors : ndarray of shape (P, n, 3)
+        Each pixel's light vectors.
     method : {"ls", "l1", "sbl"}
+        Solver.
     valid, threads, tile_size, progress, **method_params
         As for :func:`ps_lab.reconstruct.solve`.
 
@@ -327,6 +329,9 @@ def fit_depth_offset(observations, use, points, lights: NearLights, *, step=None
     points : ndarray of shape (m, 3)
         The pixels' current scene-frame points.
     lights : NearLights
+        The LEDs.
+    step : float, optional
+        First step of the search (pixels).
 
     Returns
     -------
@@ -407,7 +412,9 @@ def near_light_rounds(
         ``solve_normals(depth (H, W)) -> normals (H, W, 3)``: every mask pixel solved with its
         light vectors at ``depth`` (the caller decides how: whole, or band by band).
     mask : ndarray of shape (H, W), bool
+        The object.
     lights : NearLights
+        The LEDs.
     sample : (observations (n, m), valid (n, m), pixel index (m,))
         Evenly spaced mask pixels (index into the mask's row-major pixels) for the depth offset.
     sample_solve : callable
@@ -417,6 +424,7 @@ def near_light_rounds(
     tolerance : float
         Stop once no depth moved more than this (pixels).
     max_rounds : int
+        At most this many rounds.
     integrate : callable, optional
         ``integrate(normals, mask, method="poisson", focal_length=None) -> depth``; default issue
         14's integration when present, else a built-in least-squares Poisson solve.
@@ -473,7 +481,9 @@ def near_light_reconstruct(
     observations : ndarray of shape (n, P)
         The mask's pixels in row-major order, divided by the light intensities (at the origin).
     mask : ndarray of shape (H, W), bool
+        The object.
     lights : NearLights
+        The LEDs.
     method, valid, threads, **method_params
         As for :func:`solve_near`.
     outline_depth, tolerance, max_rounds, integrate

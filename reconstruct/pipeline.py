@@ -376,7 +376,8 @@ def _stage(source: _Input, options: ReconstructOptions, stage: Path, bars) -> Ob
     header, mask = source.header, source.mask
     n = len(header.names)
     budget = options.memory_budget
-    per_light = n if source.near is None else n * (1 + NEAR_BYTES_PER_OBSERVATION // BYTES_PER_OBSERVATION)
+    extra = 0 if source.near is None else NEAR_BYTES_PER_OBSERVATION // BYTES_PER_OBSERVATION
+    per_light = n * (1 + extra)
     bands = plan_bands(mask, band_pixels(budget, per_light))
     pixels = int(mask.sum())
     store_bytes = n * (4 * pixels + (pixels + 7 * len(bands)) // 8)

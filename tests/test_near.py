@@ -42,8 +42,8 @@ def test_near_light_vectors_tend_to_directional() -> None:
     directions = render.random_light_directions(6, rng)
     points = rng.uniform(-50, 50, size=(40, 3))
     far = near_light_vectors(points, 1e9 * directions, directions, np.arange(1, 7))
-    np.testing.assert_allclose(far, np.broadcast_to(directions * np.arange(1, 7)[:, None], far.shape),
-                               atol=1e-6)
+    expected = np.broadcast_to(directions * np.arange(1, 7)[:, None], far.shape)
+    np.testing.assert_allclose(far, expected, atol=1e-6)
     # at the origin every light has its intensity, whatever the anisotropy
     near = near_light_vectors(np.zeros((1, 3)), 300 * directions, directions, anisotropy=2.0)
     np.testing.assert_allclose(np.linalg.norm(near[0], axis=1), 1.0)
@@ -157,7 +157,8 @@ def test_near_rig_end_to_end(tmp_path: Path) -> None:
     # the same object lit from the same directions at infinity, calibrated from one sphere
     far_rig = tmp_path / "far.toml"
     text = (RIGS / "simulated-near.toml").read_text()
-    far_rig.write_text("\n".join(ln for ln in text.splitlines() if not ln.startswith("dome_radius")))
+    lines = [line for line in text.splitlines() if not line.startswith("dome_radius")]
+    far_rig.write_text("\n".join(lines))
     _invoke(["capture", "--rig", str(far_rig), "--out", str(far_run), "--quiet"])
     _invoke(["calibrate", str(far_run), "--sphere", "55,55,50"])
     assert not (far_run / "light_positions.txt").exists()

@@ -1,5 +1,6 @@
-"""Light tables: ``light_directions.txt``, ``light_intensities.txt`` and, for LEDs at a finite
-distance, ``light_positions.txt`` (+ ``light_anisotropy.txt``).
+"""Light tables: directions, intensities and, for LEDs at a finite distance, positions.
+
+``light_positions.txt`` (+ ``light_anisotropy.txt``) come from a two-sphere calibration.
 
 ``light_directions.txt`` has n rows ``x y z``, ``light_intensities.txt`` n rows of 3 (or 1): the
 DiLiGenT text format read by every command and written by calibration and light refinement.
@@ -88,7 +89,9 @@ def read_light_positions(path: Path, count: int | None = None) -> np.ndarray:
     """
     rows = _read_table(path, (3,), allow_nan=True)
     if count is not None and len(rows) != count:
-        raise DatasetError(f"{path}: {len(rows)} light positions but the dataset has {count} images")
+        raise DatasetError(
+            f"{path}: {len(rows)} light positions but the dataset has {count} images"
+        )
     partial = np.isnan(rows).any(axis=1) & ~np.isnan(rows).all(axis=1)
     if partial.any():
         raise DatasetError(f"{path}: row {np.flatnonzero(partial)[0] + 1}: NaN in part of the row")

@@ -79,14 +79,16 @@ def _march_point_lights(height, mask, lit, light_cols, light_rows, light_z, bias
                     y0 = int(np.floor(y))
                     if x0 < 0 or y0 < 0 or x0 >= w - 1 or y0 >= h - 1:
                         break
-                    if mask[y0, x0] and mask[y0, x0 + 1] and mask[y0 + 1, x0] and mask[y0 + 1, x0 + 1]:
+                    on_object = mask[y0, x0] and mask[y0, x0 + 1]
+                    if on_object and mask[y0 + 1, x0] and mask[y0 + 1, x0 + 1]:
                         fx = x - x0
                         fy = y - y0
                         h00 = height[y0, x0]
                         h01 = height[y0, x0 + 1]
                         h10 = height[y0 + 1, x0]
                         h11 = height[y0 + 1, x0 + 1]
-                        value = h00 + fx * (h01 - h00) + fy * ((h10 - h00) + fx * (h11 - h10 - h01 + h00))
+                        value = h00 + fx * (h01 - h00)
+                        value += fy * ((h10 - h00) + fx * (h11 - h10 - h01 + h00))
                         if value > ray:
                             shadow[i, r, c] = True
                             break
@@ -166,7 +168,8 @@ def render_near(
     radiance = shading[:, :, None] * albedo_p[:, None, :]
     if specular > 0:
         lobe = np.stack(
-            [_cook_torrance(normals, unit[:, j], n_dot_l[:, j], roughness) for j in range(n)], axis=1
+            [_cook_torrance(normals, unit[:, j], n_dot_l[:, j], roughness) for j in range(n)],
+            axis=1,
         )
         radiance = radiance + (specular * np.where(lit, lobe, 0.0))[:, :, None]
     radiance = radiance * irradiance[:, :, None] * intensities[None, :, :]
@@ -188,7 +191,11 @@ def mirror_normal(
     sphere_center : ndarray of shape (3,)
         Scene-frame centre.
     radius : float
+        Sphere radius (pixels).
     light_position : ndarray of shape (3,)
+        Scene-frame LED position.
+    iterations : int
+        At most this many fixed-point steps.
 
     Returns
     -------
@@ -229,6 +236,7 @@ def render_chrome_near(
     Parameters
     ----------
     shape : (H, W)
+        Image size.
     center : (x, y)
         Circle centre in pixels (column, row).
     radius : float
@@ -266,7 +274,8 @@ def render_chrome_near(
         sx = p[0] - (centre3[0] + radius * dx)
         sy = p[1] - (centre3[1] + radius * dy)
         sz = p[2] - (centre3[2] + radius * nz)
-        cos_angle = (2 * nz * (dx * sx + dy * sy + nz * sz) - sz) / np.sqrt(sx * sx + sy * sy + sz * sz)
+        length = np.sqrt(sx * sx + sy * sy + sz * sz)
+        cos_angle = (2 * nz * (dx * sx + dy * sy + nz * sz) - sz) / length
         values = grid.pixel_share(np.arccos(np.clip(cos_angle, -1.0, 1.0)), disc)
         out[i, grid.box[0], grid.box[1]] += light_radiance * values
     return out

@@ -170,7 +170,11 @@ def render_scene(
         else:
             spec = obj.specular if obj.kind != "matte" else 0.0
             # A sphere is convex: only a relief can shadow itself.
-            shading = dict(cast_shadows=obj.kind == "relief", specular=spec, roughness=obj.roughness)
+            shading = {
+                "cast_shadows": obj.kind == "relief",
+                "specular": spec,
+                "roughness": obj.roughness,
+            }
             if point_lights is None:
                 images = render(surface, lights, intensities, **shading)
             else:
