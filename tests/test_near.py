@@ -16,7 +16,13 @@ import pytest
 from typer.testing import CliRunner
 
 from ps_lab import render
-from ps_lab.calibration import Circle, locate_highlight, reflected_rays, triangulate_lights
+from ps_lab.calibration import (
+    Circle,
+    calibrate,
+    locate_highlight,
+    reflected_rays,
+    triangulate_lights,
+)
 from ps_lab.cli import app
 from ps_lab.geometry import near_light_vectors, scene_points
 from ps_lab.io.lights import read_light_positions
@@ -75,6 +81,31 @@ def test_led_positions_from_two_chrome_spheres() -> None:
     close = triangulate_lights(np.array([origins[0], origins[0] + 0.01]), np.array([rays[0]] * 2))
     assert close.too_far.all()
     np.testing.assert_allclose(close.light_directions, rays[0], atol=1e-9)
+
+
+def test_calibrate_finds_both_spheres_and_the_intensities() -> None:
+    """No circles given: the automatic search keeps both chrome spheres; near-light intensities."""
+    rng = np.random.default_rng(8)
+    directions = render.random_light_directions(10, rng, max_zenith_deg=50)
+    leds = render.PointLights(400.0 * directions, anisotropy=1.0)
+    intensities = np.repeat(1 + 0.1 * rng.uniform(-1, 1, (10, 1)), 3, axis=1)
+    scene = render.Scene(260, 180, (
+        render.SceneObject("chrome", (45.0, 45.0), 38.0, (0.9, 0.9, 0.9)),
+        render.SceneObject("chrome", (214.0, 134.0), 38.0, (0.9, 0.9, 0.9)),
+        render.SceneObject("matte", (214.0, 45.0), 38.0, (0.7, 0.7, 0.7)),
+    ))
+    frames = np.array([
+        render.render_scene(scene, directions[j : j + 1], intensities[j : j + 1],
+                            point_lights=leds.select([j]))
+        for j in range(10)
+    ])
+    frames += rng.normal(0.0, 1e-3, frames.shape)
+    cal = calibrate(frames, matte_sphere=(214.0, 45.0, 38.0), anisotropy=1.0)
+    assert len(cal.circles) == 2 and cal.triangulation is not None
+    error = np.linalg.norm(cal.light_positions - leds.positions, axis=1) / 400.0
+    assert error.max() < 0.01, error
+    relative = cal.light_intensities[:, 0] / intensities[:, 0]
+    assert np.std(relative / relative.mean()) < 0.01
 
 
 def test_per_pixel_kernels_equal_the_directional_ones() -> None:
