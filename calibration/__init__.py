@@ -10,6 +10,8 @@ from ps_lab.calibration._calibrate import (
     calibrate,
     chrome_score,
     circle_residual,
+    rig_anisotropy,
+    rig_chrome_spheres,
     rig_circles,
 )
 from ps_lab.calibration._circle import (
@@ -27,6 +29,7 @@ from ps_lab.calibration._geometry import (
 )
 from ps_lab.calibration._highlight import Highlight, locate_highlight
 from ps_lab.calibration._intensity import fit_light_intensities
+from ps_lab.calibration._positions import Triangulation, reflected_rays, triangulate_lights
 from ps_lab.calibration._report import (
     OUTPUT_FILES,
     calibration_picture,
@@ -41,6 +44,7 @@ __all__ = [
     "Circle",
     "CircleFit",
     "Highlight",
+    "Triangulation",
     "calibrate",
     "calibration_picture",
     "calibration_record",
@@ -53,9 +57,13 @@ __all__ = [
     "highlights_from_light_directions",
     "light_directions_from_highlights",
     "locate_highlight",
+    "reflected_rays",
     "refine_circle",
+    "rig_anisotropy",
+    "rig_chrome_spheres",
     "rig_circles",
     "summary_image",
+    "triangulate_lights",
     "write_calibration",
     "zenith_azimuth_deg",
 ]

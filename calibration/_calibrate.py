@@ -19,6 +19,7 @@ from ps_lab.calibration._circle import (
 from ps_lab.calibration._geometry import light_directions_from_highlights
 from ps_lab.calibration._highlight import Highlight, locate_highlight
 from ps_lab.calibration._intensity import fit_light_intensities
+from ps_lab.calibration._positions import Triangulation, reflected_rays, triangulate_lights
 from ps_lab.errors import CalibrationError
 from ps_lab.io.run import calibration_target
 
@@ -51,6 +52,17 @@ class Calibration:
         Per-pixel maximum over frames of the sphere's surroundings (for the picture).
     preview_origin : (int, int)
         ``(x0, y0)`` of ``preview`` in the image.
+    circles : list of Circle
+        Every chrome sphere used (``circle`` first).
+    triangulation : Triangulation or None
+        With two or more chrome spheres: the rays, LED positions (scene frame of
+        :mod:`ps_lab.geometry`, pixel units), miss distances; ``light_directions`` then point
+        from the scene origin toward the positions.
+    anisotropy : float
+        The LEDs' ``cos^mu`` exponent used for the near-light intensities.
+    image_shape : (H, W) or None
+    pixel_size : float or None
+        Millimetres per pixel (for reports only; positions stay in pixels).
 
     """
 
@@ -66,6 +78,16 @@ class Calibration:
     names: list[str] = field(default_factory=list)
     preview: np.ndarray | None = None
     preview_origin: tuple[int, int] = (0, 0)
+    circles: list[Circle] = field(default_factory=list)
+    triangulation: Triangulation | None = None
+    anisotropy: float = 0.0
+    image_shape: tuple[int, int] | None = None
+    pixel_size: float | None = None
+
+    @property
+    def light_positions(self) -> np.ndarray | None:
+        """(n, 3) LED positions (scene frame, pixels; NaN rows: too far), None with one sphere."""
+        return None if self.triangulation is None else self.triangulation.positions
 
 
 def _as_stack(images: np.ndarray) -> np.ndarray:
@@ -158,6 +180,14 @@ def chrome_score(images: np.ndarray, circle: Circle, *, max_frames: int = 12) ->
 def _find_sphere(
     summary: np.ndarray, stack: np.ndarray, roi: tuple[int, int, int, int] | None
 ) -> tuple[CircleFit, float]:
+    """The best chrome sphere of the automatic search and its chrome score."""
+    return _find_spheres(summary, stack, roi)[0]
+
+
+def _find_spheres(
+    summary: np.ndarray, stack: np.ndarray, roi: tuple[int, int, int, int] | None
+) -> list[tuple[CircleFit, float]]:
+    """Every distinct chrome sphere of the automatic search, best (score, coverage) first."""
     h, w = summary.shape
     ox, oy = 0, 0
     sub = summary
@@ -173,7 +203,7 @@ def _find_sphere(
             "no chrome sphere found: no circular outline in the images "
             "(pass --sphere CX,CY,R or --roi)"
         )
-    best: tuple[float, float, CircleFit] | None = None
+    found: list[tuple[float, float, CircleFit]] = []
     for cand in candidates:
         start = Circle(cand.x + ox, cand.y + oy, cand.radius)
         try:
@@ -187,15 +217,20 @@ def _find_sphere(
         score = chrome_score(stack, fit.circle)
         if score < 0.5:
             continue
-        key = (score, fit.coverage)
-        if best is None or key > best[:2]:
-            best = (*key, fit)
-    if best is None:
+        found.append((score, fit.coverage, fit))
+    if not found:
         raise CalibrationError(
             f"no chrome sphere found: {len(candidates)} circular outline(s) checked, none shows a "
             "single small highlight in most frames (pass --sphere CX,CY,R or --roi)"
         )
-    return best[2], best[0]
+    found.sort(key=lambda item: item[:2], reverse=True)
+    distinct: list[tuple[CircleFit, float]] = []
+    for score, _, fit in found:
+        c = fit.circle
+        # candidates of one sphere refine to (nearly) the same circle
+        if all(np.hypot(c.x - o.circle.x, c.y - o.circle.y) > 0.5 * c.radius for o, _ in distinct):
+            distinct.append((fit, score))
+    return distinct
 
 
 def _frame_label(j: int, names: Sequence[str] | None) -> str:
@@ -218,8 +253,17 @@ def calibrate(
     principal_point: tuple[float, float] | None = None,
     names: Sequence[str] | None = None,
     progress: Callable[[int], None] | None = None,
+    extra_spheres: Sequence[Sequence[float]] = (),
+    extra_sphere_hints: Sequence[Sequence[float]] = (),
+    anisotropy: float = 0.0,
+    pixel_size: float | None = None,
 ) -> Calibration:
     """Calibrate light directions (and intensities) from a chrome sphere seen in every frame.
+
+    With two or more chrome spheres (``extra_spheres`` / ``extra_sphere_hints``, or several found
+    by the automatic search) each light is also placed in 3-D: the least-squares intersection of
+    its reflected rays (:func:`triangulate_lights`); directions then point from the scene origin
+    to the positions and the matte sphere is fitted under the near-light model.
 
     Parameters
     ----------
@@ -244,7 +288,13 @@ def calibrate(
     names : sequence of str, optional
         Frame names for messages.
     progress : callable, optional
-        Called with 1 after each frame's highlight.
+        Called with 1 after each frame's highlight (of every sphere).
+    extra_spheres, extra_sphere_hints : sequence of (cx, cy, r)
+        More chrome spheres, used as given / refined.
+    anisotropy : float
+        The LEDs' ``cos^mu`` exponent (near-light intensities).
+    pixel_size : float, optional
+        Millimetres per pixel, recorded for the report.
 
     Returns
     -------
@@ -262,6 +312,9 @@ def calibrate(
     summary = summary_image(stack)
     warnings: list[str] = []
     circle, residual, source = _chrome_sphere(summary, stack, sphere, sphere_hint, roi, warnings)
+    others = _other_spheres(
+        summary, stack, circle, source, extra_spheres, extra_sphere_hints, roi, warnings
+    )
     found = _highlights(stack, circle, saturated, safe_radius, names, progress)
     highlights = np.array([[hl.x, hl.y] for hl in found])
     warnings.extend(_second_blob_warnings(found, names))
@@ -270,8 +323,17 @@ def calibrate(
     directions = light_directions_from_highlights(
         highlights, circle, focal_length_px=focal_length_px, principal_point=principal_point
     )
+    triangulation = None
+    if others:
+        if focal_length_px is not None:
+            raise CalibrationError("LED positions from several spheres need an orthographic camera")
+        triangulation = _triangulate(
+            stack, circle, highlights, others, saturated, safe_radius, names, progress, warnings
+        )
+        directions = triangulation.light_directions
     matte_circle, intensities = _matte_intensities(
-        stack, summary, directions, saturated, matte_sphere, matte_hint, warnings
+        stack, summary, directions, saturated, matte_sphere, matte_hint, warnings,
+        None if triangulation is None else triangulation.positions, anisotropy,
     )
     preview, preview_origin = _preview(stack, circle)
     return Calibration(
@@ -287,6 +349,11 @@ def calibrate(
         names=list(names) if names is not None else [f"frame {j + 1}" for j in range(n)],
         preview=preview,
         preview_origin=preview_origin,
+        circles=[circle, *others],
+        triangulation=triangulation,
+        anisotropy=float(anisotropy),
+        image_shape=(h, w),
+        pixel_size=pixel_size,
     )
 
 
@@ -345,6 +412,63 @@ def _chrome_sphere(
             f"sphere outline residual {residual:.2f} px is large: check calibration.png"
         )
     return circle, residual, source
+
+
+def _other_spheres(
+    summary: np.ndarray,
+    stack: np.ndarray,
+    first: Circle,
+    source: str,
+    given: Sequence[Sequence[float]],
+    hints: Sequence[Sequence[float]],
+    roi: Sequence[int] | None,
+    warnings: list[str],
+) -> list[Circle]:
+    """The chrome spheres beyond the first: given, refined from hints, or found automatically."""
+    others = [_chrome_sphere(summary, stack, c, None, None, warnings)[0] for c in given]
+    for hint in hints:
+        others.append(_chrome_sphere(summary, stack, None, hint, None, warnings)[0])
+    if source == "auto" and not given and not hints:
+        fits = _find_spheres(summary, stack, None if roi is None else tuple(roi))
+        others = [f.circle for f, _ in fits[1:] if circle_inside_image(f.circle, summary.shape)]
+    for c in others:
+        if np.hypot(c.x - first.x, c.y - first.y) < first.radius + c.radius:
+            raise CalibrationError(
+                f"chrome spheres at ({first.x:.1f}, {first.y:.1f}) and ({c.x:.1f}, {c.y:.1f}) "
+                "overlap: give each sphere once"
+            )
+    return others
+
+
+def _triangulate(
+    stack: np.ndarray,
+    circle: Circle,
+    highlights: np.ndarray,
+    others: list[Circle],
+    saturated: np.ndarray | None,
+    safe_radius: float,
+    names: Sequence[str] | None,
+    progress: Callable[[int], None] | None,
+    warnings: list[str],
+) -> Triangulation:
+    """Every light's reflected ray on every sphere, intersected; warnings for far lights."""
+    shape = stack.shape[1:3]
+    origins, directions = [], []
+    for c, hl in [(circle, highlights), *((c, None) for c in others)]:
+        if hl is None:
+            found = _highlights(stack, c, saturated, safe_radius, names, progress)
+            hl = np.array([[f.x, f.y] for f in found])
+        o, d = reflected_rays(hl, c, shape)
+        origins.append(o)
+        directions.append(d)
+    result = triangulate_lights(np.array(origins), np.array(directions))
+    for j in np.flatnonzero(result.too_far):
+        warnings.append(
+            f"{_frame_label(j, names)}: its rays are {result.spread_deg[j]:.2f} deg apart, too "
+            "close to parallel to place the light (too far for the spheres' baseline); it is "
+            "treated as a directional light"
+        )
+    return result
 
 
 def _confirm_hint(
@@ -467,6 +591,8 @@ def _matte_intensities(
     matte_sphere: Sequence[float] | None,
     matte_hint: Sequence[float] | None,
     warnings: list[str],
+    light_positions: np.ndarray | None = None,
+    anisotropy: float = 0.0,
 ) -> tuple[Circle | None, np.ndarray]:
     """The matte sphere's circle and the lights' relative intensities (ones without a sphere)."""
     n, h, w, _ = stack.shape
@@ -493,7 +619,14 @@ def _matte_intensities(
             f"r={matte_circle.radius:.1f} "
             "is cut by the image border"
         )
-    intensities, extra = fit_light_intensities(stack, directions, matte_circle, saturated=saturated)
+    intensities, extra = fit_light_intensities(
+        stack,
+        directions,
+        matte_circle,
+        saturated=saturated,
+        light_positions=light_positions,
+        anisotropy=anisotropy,
+    )
     warnings.extend(extra)
     return matte_circle, intensities
 
@@ -532,6 +665,25 @@ def _circle_from_record(record: object, what: str) -> Circle | None:
             f"manifest rig snapshot: calibration.{what} is not a valid circle: {record!r}"
         )
     return circle
+
+
+def rig_chrome_spheres(manifest: dict | None) -> list[Circle]:
+    """Every nominal chrome sphere of a capture run's rig snapshot (first = ``chrome_sphere``)."""
+    cal = calibration_target(manifest)
+    if not isinstance(cal, dict):
+        return []
+    records = cal.get("chrome_spheres")
+    if isinstance(records, list) and records:
+        return [_circle_from_record(r, "chrome_spheres") for r in records]  # type: ignore[misc]
+    first = _circle_from_record(cal.get("chrome_sphere"), "chrome_sphere")
+    return [] if first is None else [first]
+
+
+def rig_anisotropy(manifest: dict | None) -> float:
+    """The LEDs' ``cos^mu`` exponent from a capture run's rig snapshot (0 when absent)."""
+    controller = ((manifest or {}).get("rig") or {}).get("controller") or {}
+    value = controller.get("anisotropy", 0.0) if isinstance(controller, dict) else 0.0
+    return float(value) if isinstance(value, int | float) else 0.0
 
 
 def rig_circles(manifest: dict | None) -> tuple[Circle | None, Circle | None]:

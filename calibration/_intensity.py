@@ -6,6 +6,7 @@ import numpy as np
 
 from ps_lab.calibration._circle import Circle
 from ps_lab.errors import CalibrationError
+from ps_lab.geometry import near_light_vectors, scene_points
 
 
 def sphere_normals(
@@ -48,6 +49,8 @@ def fit_light_intensities(
     saturated: np.ndarray | None = None,
     min_shading: float = 0.15,
     min_pixels: int = 50,
+    light_positions: np.ndarray | None = None,
+    anisotropy: float = 0.0,
 ) -> tuple[np.ndarray, list[str]]:
     """Relative intensity per light and channel from a matte sphere.
 
@@ -71,6 +74,13 @@ def fit_light_intensities(
         Smallest ``n · l`` used (attached shadows and the terminator are excluded).
     min_pixels : int
         A light with fewer usable pixels gets the mean intensity and a warning.
+    light_positions : ndarray of shape (n, 3), optional
+        LED positions (scene frame of :mod:`ps_lab.geometry`; NaN rows: directional). Then
+        ``n . l_j`` becomes ``n . L_j(X)`` of :func:`ps_lab.geometry.near_light_vectors` at each
+        pixel's sphere point X (the sphere's centre in the spheres' plane): ``e`` is the
+        intensity at the scene origin, as the near-light solvers use it.
+    anisotropy : float
+        The LEDs' ``cos^mu`` exponent (with ``light_positions``).
 
     Returns
     -------
@@ -86,9 +96,17 @@ def fit_light_intensities(
         )
     out = np.full((n, c), np.nan)
     warnings: list[str] = []
+    if light_positions is None:
+        vectors = np.broadcast_to(np.asarray(light_directions, dtype=np.float64), (len(rows), n, 3))
+    else:
+        cx, cy, r = circle
+        points = scene_points((h, w), [cy], [cx], 0.0) + r * normals
+        vectors = near_light_vectors(
+            points, light_positions, light_directions, anisotropy=anisotropy
+        )
     for j in range(n):
-        shading = normals @ np.asarray(light_directions[j], dtype=np.float64)
-        use = shading >= min_shading
+        shading = np.einsum("mk,mk->m", normals, vectors[:, j])
+        use = shading >= min_shading * np.linalg.norm(vectors[:, j], axis=1)
         if saturated is not None:
             use &= ~saturated[j][rows, cols]
         if use.sum() < min_pixels:

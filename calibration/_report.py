@@ -24,6 +24,10 @@ OUTPUT_FILES = (
     "calibration.json",
     "calibration.png",
 )
+# Written with two or more chrome spheres (LED positions); removed from the output folder otherwise,
+# so an earlier near-light calibration cannot outlive a new one.
+POSITION_FILES = ("light_positions.txt", "light_anisotropy.txt")
+_RAY_COLOURS = ((255, 170, 60), (60, 170, 255), (200, 90, 230), (90, 230, 200))
 
 _GREEN = (80, 220, 80)
 _RED = (60, 60, 255)
@@ -97,7 +101,44 @@ def calibration_record(calibration: Calibration) -> dict:
         "lights": lights,
         "warnings": list(cal.warnings),
     }
+    if cal.triangulation is not None:
+        record["light_positions"] = _positions_record(cal)
     return record
+
+
+def _positions_record(cal: Calibration) -> dict:
+    """LED positions, per light ray miss and spread, in pixels (and mm with a pixel size)."""
+    tri = cal.triangulation
+    assert tri is not None
+
+    def rounded(values) -> list:
+        return [None if not np.isfinite(v) else round(float(v), 4) for v in np.ravel(values)]
+
+    per_light = []
+    for j in range(len(tri.positions)):
+        entry = {
+            "light": j + 1,
+            "position": rounded(tri.positions[j]),
+            "ray_miss_px": rounded([tri.miss[j]])[0],
+            "ray_spread_deg": round(float(tri.spread_deg[j]), 4),
+            "too_far": bool(tri.too_far[j]),
+        }
+        if cal.pixel_size:
+            entry["position_mm"] = rounded(tri.positions[j] * cal.pixel_size)
+        per_light.append(entry)
+    return {
+        "frame": "scene: x right, y up, z toward the camera, pixel units; origin at the image "
+        "centre in the spheres' plane (through the chrome spheres' centres)",
+        "chrome_spheres": [
+            {"center": [round(c.x, 4), round(c.y, 4)], "radius": round(c.radius, 4)}
+            for c in cal.circles
+        ],
+        "pixel_size_mm": cal.pixel_size,
+        "anisotropy": cal.anisotropy,
+        "mean_ray_miss_px": rounded([np.nanmean(tri.miss)])[0] if np.isfinite(tri.miss).any()
+        else None,
+        "lights": per_light,
+    }
 
 
 def _tone_map(image: np.ndarray) -> np.ndarray:
@@ -277,10 +318,97 @@ def write_calibration(calibration: Calibration, out_dir: Path) -> dict[str, Path
             (staging / "calibration.json").write_text(
                 json.dumps(record, indent=2) + "\n", encoding="utf-8"
             )
-            if not cv2.imwrite(str(staging / "calibration.png"), calibration_picture(calibration)):
+            picture = calibration_picture(calibration)
+            names = list(OUTPUT_FILES)
+            if calibration.triangulation is not None:
+                picture = _stack_pictures(picture, positions_picture(calibration))
+                np.savetxt(
+                    staging / POSITION_FILES[0], calibration.triangulation.positions, fmt="%.6f"
+                )
+                names.append(POSITION_FILES[0])
+                if calibration.anisotropy:
+                    count = len(calibration.light_directions)
+                    anisotropy = np.full((count, 1), calibration.anisotropy)
+                    np.savetxt(staging / POSITION_FILES[1], anisotropy, fmt="%.6f")
+                    names.append(POSITION_FILES[1])
+            if not cv2.imwrite(str(staging / "calibration.png"), picture):
                 raise OSError("PNG encoder failed")
+        for name in POSITION_FILES:
+            if name not in names:
+                (out / name).unlink(missing_ok=True)
     except OSError as exc:
         raise CalibrationError(
             f"{out}: cannot write calibration outputs ({exc.strerror or exc})"
         ) from None
-    return {name: out / name for name in OUTPUT_FILES}
+    return {name: out / name for name in names}
+
+
+def _stack_pictures(top: np.ndarray, bottom: np.ndarray) -> np.ndarray:
+    width = max(top.shape[1], bottom.shape[1])
+
+    def pad(img: np.ndarray) -> np.ndarray:
+        return np.pad(img, ((0, 0), (0, width - img.shape[1]), (0, 0)))
+
+    return np.vstack([pad(top), np.zeros((8, width, 3), np.uint8), pad(bottom)])
+
+
+def positions_picture(calibration: Calibration, *, panel: int = 520) -> np.ndarray:
+    """The rays and LED positions seen from above (x, y) and from the side (x, z).
+
+    Each chrome sphere's rays in its own colour run from its highlight points to the positions
+    (yellow, numbered); a light too far to place keeps its rays only, drawn long. The grey
+    rectangle is the image's footprint in the spheres' plane; the scale bar is in mm with a pixel
+    size, else in pixels.
+
+    Returns
+    -------
+    ndarray of shape (panel + 24, 2 * panel + 8, 3), uint8 (BGR)
+    """
+    cal = calibration
+    tri = cal.triangulation
+    assert tri is not None and cal.image_shape is not None
+    h, w = cal.image_shape
+    pos, ok = tri.positions, ~tri.too_far
+    corners = np.array([[-(w - 1) / 2, -(h - 1) / 2, 0.0], [(w - 1) / 2, (h - 1) / 2, 0.0]])
+    extent = 1.1 * float(np.abs(np.vstack([corners, pos[ok]])).max())
+    unit, factor = ("mm", float(cal.pixel_size)) if cal.pixel_size else ("px", 1.0)
+    panels = []
+    for title, axis, label in (("from above (x, y)", 1, "+y"), ("from the side (x, z)", 2, "+z")):
+        img = np.full((panel, panel, 3), 24, np.uint8)
+        scale = (panel / 2.0 - 24) / extent
+        base = panel / 2.0
+        if axis == 2:  # the side view starts at the spheres' plane, near the bottom
+            base = panel - 40.0
+            top = max(float(pos[ok, 2].max()) if ok.any() else 1.0, 1.0)
+            scale = min(scale, (base - 20.0) / top)
+
+        def at(p, base=base, scale=scale, axis=axis) -> tuple[int, int]:
+            return (round(panel / 2 + scale * p[0]), round(base - scale * p[axis]))
+
+        cv2.line(img, (0, round(base)), (panel, round(base)), (70, 70, 70), 1)
+        cv2.line(img, (panel // 2, 0), (panel // 2, panel), (70, 70, 70), 1)
+        _text(img, "+x", (panel - 24, round(base) - 6), _GREY, 0.4)
+        _text(img, label, (panel // 2 + 6, 14), _GREY, 0.4)
+        cv2.rectangle(img, at(corners[0]), at(corners[1]), _GREY, 1)
+        for c in cal.circles:
+            centre = (c.x - (w - 1) / 2, (h - 1) / 2 - c.y, 0.0)
+            cv2.circle(img, at(centre), max(2, round(c.radius * scale)), _GREEN, 1, cv2.LINE_AA)
+        for k in range(tri.origins.shape[0]):
+            colour = _RAY_COLOURS[k % len(_RAY_COLOURS)]
+            for j in range(tri.origins.shape[1]):
+                end = pos[j] if ok[j] else tri.origins[k, j] + 2 * extent * tri.directions[k, j]
+                cv2.line(img, at(tri.origins[k, j]), at(end), colour, 1, cv2.LINE_AA)
+        for j in np.flatnonzero(ok):
+            x, y = at(pos[j])
+            cv2.circle(img, (x, y), 3, _YELLOW, -1, cv2.LINE_AA)
+            _text(img, str(j + 1), (x + 5, y - 4), _WHITE, 0.35)
+        target = extent * factor / 3
+        step = 10 ** np.floor(np.log10(target))
+        bar = max(m * step for m in (1, 2, 5) if m * step <= target)
+        length = round(bar / factor * scale)
+        cv2.line(img, (10, panel - 12), (10 + length, panel - 12), _WHITE, 2)
+        _text(img, f"{bar:g} {unit}", (14 + length, panel - 8), _WHITE, 0.38)
+        head = np.zeros((24, panel, 3), np.uint8)
+        _text(head, title, (8, 16), _WHITE, 0.45)
+        panels.append(np.vstack([head, img]))
+    return np.hstack([panels[0], np.zeros((panel + 24, 8, 3), np.uint8), panels[1]])

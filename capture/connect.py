@@ -60,8 +60,9 @@ class Simulation:
     """The true scene and lights behind a simulated rig."""
 
     scene: Any  # ps_lab.render.Scene
-    light_directions: np.ndarray  # (N, 3) true unit directions
-    light_intensities: np.ndarray  # (N, 3) true per-channel intensities
+    light_directions: np.ndarray  # (N, 3) true unit directions (from the scene origin for LEDs)
+    light_intensities: np.ndarray  # (N, 3) true per-channel intensities (at the scene origin)
+    point_lights: Any = None  # ps_lab.render.PointLights (N LEDs) on a near-light rig, else None
 
 
 def build_simulation(rig: Rig) -> Simulation:
@@ -83,6 +84,11 @@ def build_simulation(rig: Rig) -> Simulation:
         directions = render.random_light_directions(
             n, np.random.default_rng(layout.seed), max_zenith_deg=layout.max_zenith_deg
         )
+    point_lights = None
+    if layout.dome_radius is not None:
+        point_lights = render.PointLights(
+            layout.dome_radius * directions, rig.controller.anisotropy, layout.led_radius
+        )
     if layout.intensities is not None:
         intensities = np.asarray(layout.intensities, dtype=np.float64)
     else:
@@ -90,7 +96,12 @@ def build_simulation(rig: Rig) -> Simulation:
         scale = 1.0 + layout.intensity_spread * rng.uniform(-1.0, 1.0, size=(n, 1))
         color = 1.0 + layout.color_spread * rng.uniform(-1.0, 1.0, size=(n, 3))
         intensities = scale * color
-    return Simulation(scene=scene, light_directions=directions, light_intensities=intensities)
+    return Simulation(
+        scene=scene,
+        light_directions=directions,
+        light_intensities=intensities,
+        point_lights=point_lights,
+    )
 
 
 def nominal_directions(rig: Rig, simulation: Simulation | None = None) -> np.ndarray | None:
@@ -298,6 +309,7 @@ def _open_camera(
             shot_noise=cfg.shot_noise,
             dn_per_electron=cfg.dn_per_electron,
             seed=cfg.seed,
+            point_lights=simulation.point_lights,
             timeout_s=cfg.timeout_s,
             faults=[{"kind": f.kind, "at": f.at} for f in rig.faults.camera],
         )

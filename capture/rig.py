@@ -76,6 +76,9 @@ class ControllerConfig:
     #: (default: rigs/firmware/ps_lab_lights, built with arduino-mk).
     pins: tuple[int, ...] | None = None
     elf: str | None = None
+    # LED emission: radiance ∝ cos^anisotropy of the angle to the LED's axis (aimed at the scene
+    # centre); 0 = isotropic. Used by the near-light model (calibration and reconstruction).
+    anisotropy: float = 0.0
 
 
 @dataclass(frozen=True)
@@ -110,6 +113,8 @@ class CalibrationConfig:
 
     chrome_sphere: Circle | None = None
     matte_sphere: Circle | None = None
+    # Every chrome sphere (``chrome_sphere`` is the first): two or more give LED positions.
+    chrome_spheres: tuple[Circle, ...] = ()
 
 
 @dataclass(frozen=True)
@@ -123,6 +128,10 @@ class LightLayoutConfig:
     intensity_spread: float = 0.0
     color_spread: float = 0.0
     nominal_error_deg: float = 0.0
+    # LEDs at a finite distance: on a dome of this radius (pixel units) around the scene origin
+    # (image centre, spheres' plane); None = lights at infinity. ``led_radius``: emitting disc.
+    dome_radius: float | None = None
+    led_radius: float = 15.0
 
 
 @dataclass(frozen=True)
@@ -181,6 +190,11 @@ class Rig:
             circle = getattr(self.calibration, key)
             if circle is not None:
                 cal[key] = {"center": list(circle.center), "radius": circle.radius}
+        if len(self.calibration.chrome_spheres) > 1:
+            cal["chrome_spheres"] = [
+                {"center": list(c.center), "radius": c.radius}
+                for c in self.calibration.chrome_spheres
+            ]
         snap["calibration"] = cal
         return snap
 
@@ -359,6 +373,7 @@ def _parse_controller(t: _Table) -> ControllerConfig:
         directions=_unit_vectors(t, "directions", lights),
         pins=pins,
         elf=elf,
+        anisotropy=t.float("anisotropy", 0.0, lo=0.0, hi=100.0),
     )
     t.done()
     return cfg
@@ -466,9 +481,15 @@ def _parse_circle(t: _Table) -> Circle:
 def _parse_calibration(t: _Table) -> CalibrationConfig:
     chrome = t.table("chrome_sphere")
     matte = t.table("matte_sphere")
+    spheres = tuple(_parse_circle(c) for c in t.tables("chrome_spheres"))
+    if chrome is not None and spheres:
+        raise t.error("chrome_spheres", "give chrome_sphere or chrome_spheres, not both")
+    if chrome is not None:
+        spheres = (_parse_circle(chrome),)
     cfg = CalibrationConfig(
-        chrome_sphere=_parse_circle(chrome) if chrome is not None else None,
+        chrome_sphere=spheres[0] if spheres else None,
         matte_sphere=_parse_circle(matte) if matte is not None else None,
+        chrome_spheres=spheres,
     )
     t.done()
     return cfg
@@ -515,6 +536,8 @@ def _parse_scene(t: _Table, n_lights: int) -> SceneConfig:
             intensity_spread=lt.float("intensity_spread", 0.0, lo=0.0, hi=0.9),
             color_spread=lt.float("color_spread", 0.0, lo=0.0, hi=0.9),
             nominal_error_deg=lt.float("nominal_error_deg", 0.0, lo=0.0, hi=20.0),
+            dome_radius=lt.float("dome_radius", None, lo=1.0),
+            led_radius=lt.float("led_radius", 15.0, lo=0.01),
         )
         lt.done()
     t.done()

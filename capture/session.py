@@ -496,6 +496,10 @@ class CaptureSession:
         write_bytes_atomic(
             folder / "light_intensities_true.txt", _table(sim.light_intensities[rows])
         )
+        if sim.point_lights is not None:
+            # the frame and units of light_positions.txt (scene frame, pixel units)
+            positions = np.asarray(sim.point_lights.positions)[rows]
+            write_bytes_atomic(folder / "light_positions_true.txt", _table(positions))
 
     def _write_nominal_directions(self, opened: OpenRig) -> None:
         """Write ``light_directions_nominal.txt`` (plan order) when the rig knows them."""

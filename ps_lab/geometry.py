@@ -1,8 +1,14 @@
-"""Pixel geometry shared by the rig file, the run format and calibration: one :class:`Circle`."""
+"""Pixel geometry shared by the rig file, the run format, calibration, the renderer and the solvers.
+
+One :class:`Circle`; the scene frame of near lights (:func:`frame_origin`, :func:`scene_points`)
+and the light vectors of LEDs at a finite distance (:func:`near_light_vectors`).
+"""
 
 from __future__ import annotations
 
 from typing import NamedTuple
+
+import numpy as np
 
 
 class Circle(NamedTuple):
@@ -16,3 +22,118 @@ class Circle(NamedTuple):
     def center(self) -> tuple[float, float]:
         """``(x, y)``, as rig files write it."""
         return (self.x, self.y)
+
+
+# --- the scene frame and lights at a finite distance ---------------------------------------------
+#
+# Scene frame (pixel units): x right, y up, z toward the camera (the camera frame of the light
+# directions), with its origin at the image centre ((W - 1) / 2, (H - 1) / 2) lying in the spheres'
+# plane, the plane through the chrome spheres' centres (z = 0). The orthographic camera cannot see
+# depth, so that plane is the reference every height and light position is measured from.
+
+
+def frame_origin(shape: tuple[int, int]) -> tuple[float, float]:
+    """Pixel ``(x, y)`` (column, row) of the scene frame's origin: the image centre.
+
+    Parameters
+    ----------
+    shape : (H, W)
+        Image size.
+
+    Returns
+    -------
+    (float, float)
+    """
+    h, w = shape
+    return (w - 1) / 2.0, (h - 1) / 2.0
+
+
+def scene_points(
+    shape: tuple[int, int], rows: np.ndarray, cols: np.ndarray, heights: np.ndarray
+) -> np.ndarray:
+    """Scene-frame points of pixels at given heights above the spheres' plane.
+
+    Parameters
+    ----------
+    shape : (H, W)
+        Image size.
+    rows, cols : ndarray of shape (m,)
+        Pixel rows and columns (may be fractional).
+    heights : ndarray of shape (m,) or float
+        z of each point (pixel units).
+
+    Returns
+    -------
+    ndarray of shape (m, 3)
+        ``(col - (W-1)/2, (H-1)/2 - row, z)``.
+    """
+    ox, oy = frame_origin(shape)
+    cols = np.asarray(cols, dtype=np.float64)
+    rows = np.asarray(rows, dtype=np.float64)
+    z = np.broadcast_to(np.asarray(heights, dtype=np.float64), cols.shape)
+    return np.column_stack([cols - ox, oy - rows, z])
+
+
+def near_light_vectors(
+    points: np.ndarray,
+    light_positions: np.ndarray,
+    light_directions: np.ndarray,
+    light_intensities: np.ndarray | None = None,
+    *,
+    anisotropy: float | np.ndarray | None = None,
+) -> np.ndarray:
+    """Per-point light vectors of LEDs at a finite distance (direction times relative irradiance).
+
+    Light ``j`` at ``P_j`` gives the surface point ``X`` the vector
+
+        L_j(X) = e_j u_j(X) (|P_j - O| / |P_j - X|)^2 (c_j(X) / c_j(O))^mu_j
+
+    with ``u_j(X) = (P_j - X) / |P_j - X|``, ``O`` the scene origin, ``c_j(X)`` the cosine between
+    the LED's axis (it points at ``O``) and the ray from the LED to ``X`` (radiance ∝ cos^mu of
+    that angle; ``mu_j = 0``: isotropic), and ``e_j`` the light's intensity *at the origin* — the
+    intensity of the directional model, so ``light_intensities.txt`` keeps its meaning. A light
+    whose position is NaN (too far to triangulate) is directional: ``L_j = e_j d_j``.
+
+    Parameters
+    ----------
+    points : ndarray of shape (m, 3)
+        Surface points (scene frame, pixel units).
+    light_positions : ndarray of shape (n, 3)
+        LED positions (scene frame); NaN rows for lights at infinity.
+    light_directions : ndarray of shape (n, 3)
+        Unit directions toward the lights from the origin (used for the NaN rows).
+    light_intensities : ndarray of shape (n,), optional
+        Intensity at the origin (default ones).
+    anisotropy : float or ndarray of shape (n,), optional
+        Exponent ``mu`` of each LED's emission (default 0).
+
+    Returns
+    -------
+    ndarray of shape (m, n, 3), float64
+    """
+    pts = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    pos = np.asarray(light_positions, dtype=np.float64).reshape(-1, 3)
+    n = pos.shape[0]
+    e = (
+        np.ones(n)
+        if light_intensities is None
+        else np.asarray(light_intensities, dtype=np.float64).reshape(n)
+    )
+    far = ~np.all(np.isfinite(pos), axis=1)
+    pos = np.where(far[:, None], 1.0, pos)
+    d = pos[None, :, :] - pts[:, None, :]  # (m, n, 3)
+    dist2 = np.einsum("mnk,mnk->mn", d, d)
+    dist = np.sqrt(dist2)
+    ref2 = np.einsum("nk,nk->n", pos, pos)
+    gain = e[None, :] * ref2[None, :] / (dist2 * dist)
+    mu = np.broadcast_to(np.asarray(0.0 if anisotropy is None else anisotropy, float), (n,))
+    if np.any(mu != 0):
+        ref = np.sqrt(ref2)
+        # cos of the angle between the axis (-P/|P|) and the ray P -> X: ((X - P) . (-P)) / ...
+        cos = np.einsum("mnk,nk->mn", d, pos) / (dist * ref[None, :])
+        gain = gain * np.clip(cos, 0.0, None) ** mu[None, :]
+    out = d * gain[:, :, None]
+    if far.any():
+        dirs = np.asarray(light_directions, dtype=np.float64).reshape(-1, 3)[far]
+        out[:, far] = (e[far, None] * dirs / np.linalg.norm(dirs, axis=1, keepdims=True))[None]
+    return out

@@ -127,11 +127,17 @@ def _noise_level(obs, lights, usable, max_pixels=NOISE_SAMPLE_PIXELS):
         return 0.0
     res = _kernels.l1_tile(y, w, lights, max_iter=30, tol=1e-6, delta=1e-6,
                            outlier_threshold=np.inf)
-    model = res.x @ lights.T
+    return residual_noise(y, w, res.x @ lights.T)
+
+
+def residual_noise(y: np.ndarray, w: np.ndarray, model: np.ndarray) -> float:
+    """Noise level from the residuals of scaled observations ``y`` (m, n) against a robust fit.
+
+    Attached and cast shadows are the bulk of the corruptions (often half the observations of a
+    pixel), so only observations that are lit and predicted lit count; the L1 fit interpolates
+    three observations per pixel exactly, which are not residual samples either.
+    """
     r = np.abs(y - model)
-    # Attached and cast shadows are the bulk of the corruptions (often half the observations of a
-    # pixel), so keep only observations that are lit and predicted lit; the L1 fit interpolates
-    # three observations per pixel exactly, which are not residual samples either.
     keep = (w > 0) & (y > SHADOW_FRACTION) & (model > SHADOW_FRACTION) & (r > 1e-12)
     r = r[keep]
     return float(np.quantile(r, NOISE_QUANTILE) / NOISE_QUANTILE_Z) if r.size else 0.0

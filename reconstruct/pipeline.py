@@ -34,7 +34,8 @@ from typing import Any
 
 import numpy as np
 
-from ps_lab.errors import OutputError
+from ps_lab.errors import DatasetError, OutputError
+from ps_lab.geometry import scene_points
 from ps_lab.io.bands import ObservationStore, plan_bands, stage_observations
 from ps_lab.io.dataset import DatasetHeader, open_dataset
 from ps_lab.io.files import json_safe, staged_folder
@@ -52,6 +53,13 @@ from ps_lab.reconstruct._refine import fit_lights, light_fit_sums
 from ps_lab.reconstruct._solution import Solution
 from ps_lab.reconstruct._solve import estimate_noise, solve
 from ps_lab.reconstruct.metrics import angular_errors_deg
+from ps_lab.reconstruct.near import (
+    NearLights,
+    NearRounds,
+    estimate_noise_near,
+    near_light_rounds,
+    solve_near,
+)
 
 __all__ = [
     "BYTES_PER_OBSERVATION",
@@ -88,6 +96,9 @@ BYTES_PER_PIXEL = 200
 IN_MEMORY_SHARE = 0.25
 _SIZE_UNITS = {"": 1 << 20, "k": 1 << 10, "m": 1 << 20, "g": 1 << 30, "t": 1 << 40}
 STAGING = ("auto", "memory", "file")
+LIGHT_MODELS = ("auto", "near", "directional")
+# Per-pixel light vectors (float64 x 3) held beside a band's observations in near-light mode.
+NEAR_BYTES_PER_OBSERVATION = 24
 
 ProgressBars = Callable[[int, str], Any]
 
@@ -141,6 +152,11 @@ class ReconstructOptions:
         band's solve may use; sets the band height.
     staging : {"auto", "memory", "file"}
         Backing of the observation store: in memory when small (``auto``), or forced.
+    lights : {"auto", "near", "directional"}
+        Light model: ``near`` solves with per-pixel light vectors from ``light_positions.txt``
+        (LEDs at a finite distance, alternating normals and depth; :mod:`ps_lab.reconstruct.near`),
+        ``directional`` with ``light_directions.txt`` alone; ``auto`` is near when the dataset
+        has ``light_positions.txt``.
     """
 
     method: str = "sbl"
@@ -151,10 +167,13 @@ class ReconstructOptions:
     fixed_intensities: bool = False
     memory_budget: int = DEFAULT_MEMORY_BUDGET
     staging: str = "auto"
+    lights: str = "auto"
 
     def __post_init__(self) -> None:
         if self.staging not in STAGING:
             raise OutputError(f"staging must be auto, memory or file, got {self.staging!r}")
+        if self.lights not in LIGHT_MODELS:
+            raise OutputError(f"lights must be auto, near or directional, got {self.lights!r}")
         budget = self.memory_budget
         if not isinstance(budget, int):
             object.__setattr__(self, "memory_budget", parse_memory_size(budget))
@@ -254,6 +273,7 @@ class _Input:
     header: DatasetHeader
     mask: np.ndarray
     truth: Any
+    near: NearLights | None = None  # lights at a finite distance, when the options choose them
 
 
 @dataclass
@@ -265,6 +285,7 @@ class _Solved:
     intensities: np.ndarray | None
     history: list[dict]
     seconds: float
+    near: NearRounds | None = None
 
 
 def reconstruct_to_folder(
@@ -306,7 +327,10 @@ def reconstruct_to_folder(
         timings["read_seconds"] = time.perf_counter() - started
         with store:
             writer = _OutputWriter(stage, store.mask, source.truth, store.n_lights)
-            solved = _solve_bands(store, source, options, writer, bars)
+            if source.near is None:
+                solved = _solve_bands(store, source, options, writer, bars)
+            else:
+                solved = _solve_near_bands(store, source, options, writer, bars, stage)
             timings["solve_seconds"] = solved.seconds
             written = time.perf_counter()
             metrics = _write_results(writer, stage, source, options, store, solved, timings)
@@ -321,7 +345,29 @@ def _read(dataset: Path, options: ReconstructOptions) -> _Input:
     """Stage 1: the dataset's header, mask and ground truth."""
     header = open_dataset(dataset, channel=options.channel)
     assert header.shape is not None
-    return _Input(header, header.read_mask(), open_normal_gt(header.root, header.shape))
+    near = _near_lights(header, options)
+    return _Input(header, header.read_mask(), open_normal_gt(header.root, header.shape), near)
+
+
+def _near_lights(header: DatasetHeader, options: ReconstructOptions) -> NearLights | None:
+    """The near-light model the options ask for (None: directional)."""
+    positions = header.light_positions
+    if options.lights == "directional" or (options.lights == "auto" and positions is None):
+        return None
+    if positions is None:
+        raise DatasetError(
+            f"{header.root}: --lights near needs light_positions.txt "
+            "(calibrate with two chrome spheres)"
+        )
+    if options.refine_lights:
+        raise DatasetError(
+            "--refine-lights refines directional lights: add --lights directional"
+        )
+    if options.method == "rpca":
+        raise DatasetError("rpca needs one light matrix for all pixels: add --lights directional")
+    n = len(header.names)
+    anisotropy = header.light_anisotropy if header.light_anisotropy is not None else np.zeros(n)
+    return NearLights(positions, header.light_directions, anisotropy)
 
 
 def _stage(source: _Input, options: ReconstructOptions, stage: Path, bars) -> ObservationStore:
@@ -330,7 +376,9 @@ def _stage(source: _Input, options: ReconstructOptions, stage: Path, bars) -> Ob
     header, mask = source.header, source.mask
     n = len(header.names)
     budget = options.memory_budget
-    bands = plan_bands(mask, band_pixels(budget, n))
+    extra = 0 if source.near is None else NEAR_BYTES_PER_OBSERVATION // BYTES_PER_OBSERVATION
+    per_light = n * (1 + extra)
+    bands = plan_bands(mask, band_pixels(budget, per_light))
     pixels = int(mask.sum())
     store_bytes = n * (4 * pixels + (pixels + 7 * len(bands)) // 8)
     small = store_bytes <= IN_MEMORY_SHARE * budget
@@ -440,6 +488,77 @@ def _solve_bands(
     return _Solved(params, directions, intensities, history, time.perf_counter() - started)
 
 
+def _solve_near_bands(
+    store: ObservationStore,
+    source: _Input,
+    options: ReconstructOptions,
+    writer: _OutputWriter,
+    bars: ProgressBars,
+    stage: Path,
+) -> _Solved:
+    """Stage 3 with lights at a finite distance: rounds of band solves and depth, then the last.
+
+    Each round solves every band with per-pixel light vectors at the current depth
+    (:func:`ps_lab.reconstruct.near.solve_near`) into a whole-image normal map, which
+    :func:`ps_lab.reconstruct.near.near_light_rounds` integrates to depth; the noise level is
+    estimated once, on the store's sample at the starting plane, so bands agree. The final pass
+    at the settled depth hands every band to ``writer``; ``depth.npy`` (heights above the spheres'
+    plane, pixel units, NaN off the mask) is written beside the normals.
+    """
+    started = time.perf_counter()
+    lights, mask = source.near, store.mask
+    assert lights is not None
+    rows, cols = np.nonzero(mask)
+    method = options.method
+    fixed: dict = {}
+    sample = (store.sample_observations, store.sample_valid, store.sample_index)
+    if method != "ls" and store.sample_index.size:
+        index = store.sample_index
+        plane = scene_points(mask.shape, rows[index], cols[index], np.zeros(index.size))
+        fixed["noise_sigma"] = estimate_noise_near(
+            store.sample_observations, lights.vectors(plane), store.sample_valid
+        )
+    params: dict = {}
+
+    def solve_pass(depth: np.ndarray, advance, final: bool) -> np.ndarray:
+        normals = np.zeros((*mask.shape, 3))
+        for band in store.bands:
+            if band.pixel_count == 0:
+                continue
+            observations, valid = store.read(band)
+            pixels = slice(band.pixel_start, band.pixel_start + band.pixel_count)
+            r, c = rows[pixels], cols[pixels]
+            vectors = lights.vectors(scene_points(mask.shape, r, c, depth[r, c]))
+            solution = solve_near(
+                observations, vectors, method=method, valid=valid, threads=options.threads,
+                progress=advance, **fixed, **options.solver_parameters(),
+            )
+            params.update(solution.params)
+            normals[r, c] = solution.normals
+            if final:
+                writer.add(band, solution, valid)
+        return normals
+
+    def sample_solve(observations, valid, vectors):
+        return solve_near(observations, vectors, method=method, valid=valid,
+                          threads=options.threads, **fixed, **options.solver_parameters())
+
+    with bars(store.pixels, f"{method} (near lights): round 1") as advance:
+        round_count = [0]
+
+        def round_normals(depth: np.ndarray) -> np.ndarray:
+            round_count[0] += 1
+            advance(0, description=f"{method} (near lights): round {round_count[0]}")
+            return solve_pass(depth, advance, final=False)
+
+        rounds = near_light_rounds(round_normals, mask, lights, sample, sample_solve)
+        advance(0, description=f"{method} (near lights): final pass")
+        solve_pass(rounds.depth, advance, final=True)
+    np.save(stage / "depth.npy", np.where(mask, rounds.depth, np.nan).astype(np.float32))
+    log.info("near lights: %d rounds, depth changes %s px", len(rounds.changes), rounds.changes)
+    return _Solved(params, None, None, [], time.perf_counter() - started, rounds)
+
+
 def _write_results(
     writer: _OutputWriter,
     stage: Path,
@@ -463,6 +582,9 @@ def _write_results(
         raise OutputError(f"{stage}: cannot write results ({exc.strerror or exc})") from None
     metrics["channel"] = options.channel
     metrics["shadow_threshold"] = options.shadow_threshold
+    metrics["light_model"] = "directional" if source.near is None else "near"
+    if solved.near is not None:
+        metrics["near"] = solved.near.record()
     metrics["streaming"] = {
         "bands": len(store.bands),
         "max_band_pixels": max(band.pixel_count for band in store.bands),

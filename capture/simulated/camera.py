@@ -17,7 +17,7 @@ import numpy as np
 from ps_lab.capture.cameras import FAULT_KINDS, Camera
 from ps_lab.errors import CameraError
 from ps_lab.io.dng import write_dng
-from ps_lab.render import render_scene
+from ps_lab.render import PointLights, render_scene
 
 __all__ = ["SimulatedCamera"]
 
@@ -35,11 +35,15 @@ RenderFunction = Callable[[Any, np.ndarray, np.ndarray], np.ndarray]
 
 
 def _default_render(
-    scene: Any, light_directions: np.ndarray, light_intensities: np.ndarray
+    scene: Any,
+    light_directions: np.ndarray,
+    light_intensities: np.ndarray,
+    *,
+    point_lights: PointLights | None = None,
 ) -> np.ndarray:
     if len(light_directions) == 0:  # the dark frame: no light, no intensities to pass
         return render_scene(scene, np.zeros((0, 3)))
-    return render_scene(scene, light_directions, light_intensities)
+    return render_scene(scene, light_directions, light_intensities, point_lights=point_lights)
 
 
 def _parse_faults(faults: Iterable[Mapping[str, Any]]) -> dict[int, str]:
@@ -108,6 +112,9 @@ class SimulatedCamera(Camera):
     render : callable, optional
         ``render(scene, directions (k, 3), intensities (k, 3)) -> (H, W, 3)``; defaults to
         :func:`ps_lab.render.render_scene` (tests inject a stand-in).
+    point_lights : PointLights, optional
+        The N lights as LEDs at a finite distance (row i - 1 is light i); the renderer then
+        receives ``point_lights=`` the lit ones.
 
     """
 
@@ -131,6 +138,7 @@ class SimulatedCamera(Camera):
         faults: Iterable[Mapping[str, Any]] = (),
         timeout_s: float = 10.0,
         render: RenderFunction | None = None,
+        point_lights: PointLights | None = None,
     ) -> None:
         super().__init__(timeout_s=timeout_s)
         directions = np.asarray(light_directions, dtype=np.float64)
@@ -158,6 +166,7 @@ class SimulatedCamera(Camera):
         self.scene = scene
         self.light_directions = directions
         self.light_intensities = intensities
+        self.point_lights = point_lights
         self.light_state = light_state
         self.exposure_s = float(exposure_s)
         self.black_level = int(black_level)
@@ -205,7 +214,12 @@ class SimulatedCamera(Camera):
         zero_based = np.array([i - 1 for i in indices], dtype=np.intp)
         directions = self.light_directions[zero_based].reshape(-1, 3)
         intensities = self.light_intensities[zero_based].reshape(-1, 3) * (int(level) / 255.0)
-        radiance = np.asarray(self._render(self.scene, directions, intensities), dtype=np.float64)
+        if self.point_lights is None:
+            radiance = self._render(self.scene, directions, intensities)
+        else:
+            lit_leds = self.point_lights.select(zero_based)
+            radiance = self._render(self.scene, directions, intensities, point_lights=lit_leds)
+        radiance = np.asarray(radiance, dtype=np.float64)
         if radiance.ndim == 2:
             radiance = np.repeat(radiance[..., None], 3, axis=2)
         if radiance.ndim != 3 or radiance.shape[2] != 3:

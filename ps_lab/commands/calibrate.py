@@ -5,11 +5,17 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Annotated
 
+import numpy as np
 import typer
 
 from ps_lab._cli_util import lab_command, progress_bar
 from ps_lab.calibration import calibrate as run_calibration
-from ps_lab.calibration import rig_circles, write_calibration
+from ps_lab.calibration import (
+    rig_anisotropy,
+    rig_chrome_spheres,
+    rig_circles,
+    write_calibration,
+)
 from ps_lab.errors import CalibrationError
 from ps_lab.io.dataset import load_frames
 
@@ -36,9 +42,10 @@ def calibrate(
         ),
     ],
     sphere: Annotated[
-        str | None,
+        list[str] | None,
         typer.Option(
-            help="Chrome sphere circle CX,CY,R in pixels (x = column, y = row), used as given."
+            help="Chrome sphere circle CX,CY,R in pixels (x = column, y = row), used as given; "
+            "give it twice (two spheres) for LED positions."
         ),
     ] = None,
     roi: Annotated[
@@ -70,12 +77,18 @@ def calibrate(
             min=0.1, max=0.99, help="Reject highlights beyond this share of the sphere radius."
         ),
     ] = 0.9,
+    pixel_size: Annotated[
+        float | None,
+        typer.Option(min=0.0, help="Millimetres per pixel: LED positions also reported in mm."),
+    ] = None,
 ) -> None:
     """Find the chrome sphere and its highlight in every frame; calibrate the lights.
 
-    Writes light_directions.txt, light_intensities.txt, calibration.json and calibration.png.
+    Writes light_directions.txt, light_intensities.txt, calibration.json and calibration.png;
+    with two or more chrome spheres also light_positions.txt (scene frame, pixels).
     """
-    sphere_c = _numbers(sphere, "--sphere", "CX,CY,R")
+    spheres = [_numbers(text, "--sphere", "CX,CY,R") for text in sphere or []]
+    sphere_c = spheres[0] if spheres else None
     matte_c = _numbers(matte, "--matte", "CX,CY,R")
     roi_v = _numbers(roi, "--roi", "X,Y,W,H")
     if (focal_length is None) != (pixel_pitch is None):
@@ -85,13 +98,19 @@ def calibrate(
     focal_px = None if focal_length is None else focal_length / (pixel_pitch * 1e-3)  # type: ignore[operator]
 
     frames = load_frames(data)
-    rig_chrome, rig_matte = rig_circles(frames.manifest)
+    _, rig_matte = rig_circles(frames.manifest)
+    rig_chrome = rig_chrome_spheres(frames.manifest)
+    hints = [] if sphere_c is not None or roi_v is not None else rig_chrome
     n = frames.images.shape[0]
-    with progress_bar(n, "highlights") as advance:
+    with progress_bar(n * max(len(spheres), len(hints), 1), "highlights") as advance:
         result = run_calibration(
             frames.images,
             sphere=sphere_c,
-            sphere_hint=None if sphere_c is not None or roi_v is not None else rig_chrome,
+            sphere_hint=hints[0] if hints else None,
+            extra_spheres=spheres[1:],
+            extra_sphere_hints=hints[1:],
+            anisotropy=rig_anisotropy(frames.manifest),
+            pixel_size=pixel_size,
             roi=None if roi_v is None else tuple(int(round(v)) for v in roi_v),
             matte_sphere=matte_c,
             matte_hint=None if matte_c is not None else rig_matte,
@@ -112,6 +131,14 @@ def calibrate(
         "matte sphere" if result.matte_circle is not None else "all ones (no matte target)"
     )
     typer.echo(f"{n} lights calibrated; intensities: {intensities}")
+    if result.triangulation is not None:
+        tri = result.triangulation
+        typer.echo(
+            f"LED positions from {len(result.circles)} chrome spheres: "
+            f"{int((~tri.too_far).sum())} placed, mean ray miss {np.nanmean(tri.miss):.2f} px"
+            if (~tri.too_far).any()
+            else "LED positions: every light too far to place (directional)"
+        )
     for warning in result.warnings:
         typer.secho(f"warning: {warning}", fg=typer.colors.YELLOW, err=True)
     for path in paths.values():

@@ -26,6 +26,14 @@ class Method(str, Enum):  # noqa: UP042 - typer needs str-valued choices
     rpca = "rpca"
 
 
+class Lights(str, Enum):  # noqa: UP042
+    """Light model: LEDs at a finite distance or lights at infinity."""
+
+    auto = "auto"
+    near = "near"
+    directional = "directional"
+
+
 class Channel(str, Enum):  # noqa: UP042
     """How colour observations become one value per light and pixel."""
 
@@ -71,6 +79,13 @@ def reconstruct(
             help="Memory for one row band's solve, e.g. 800MB or 2GB (sets the band height)."
         ),
     ] = "1GB",
+    lights: Annotated[
+        Lights,
+        typer.Option(
+            help="near: per-pixel lights from light_positions.txt (LEDs at a finite distance); "
+            "directional: light_directions.txt only; auto: near when light_positions.txt exists."
+        ),
+    ] = Lights.auto,
 ) -> None:
     """Estimate surface normals and albedo; write normals.npy, normal.png, albedo, metrics.json."""
     out = out if out is not None else dataset / "recon" / method.value
@@ -82,6 +97,7 @@ def reconstruct(
         refine_lights=refine_lights,
         fixed_intensities=fixed_intensities,
         memory_budget=parse_memory_size(memory_budget),
+        lights=lights.value,
     )
     metrics = reconstruct_to_folder(dataset, out, options, progress_bars=_terminal_bars).metrics
     typer.echo(
@@ -93,6 +109,12 @@ def reconstruct(
         typer.echo(
             f"normal error vs ground truth: mean {errors['mean']:.2f} deg, "
             f"median {errors['median']:.2f} deg, p90 {errors['p90']:.2f} deg"
+        )
+    if "near" in metrics:
+        typer.echo(
+            f"near lights: {metrics['near']['rounds']} rounds, depth changes "
+            + ", ".join(f"{c:.2f}" for c in metrics["near"]["depth_change_px"])
+            + " px"
         )
     for step in metrics.get("refinement", {}).get("history", [])[1:]:
         line = (

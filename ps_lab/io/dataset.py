@@ -37,7 +37,12 @@ from ps_lab.io.images import (
     read_image,
     read_image_size,
 )
-from ps_lab.io.lights import read_light_directions, read_light_intensities
+from ps_lab.io.lights import (
+    read_light_anisotropy,
+    read_light_directions,
+    read_light_intensities,
+    read_light_positions,
+)
 from ps_lab.io.run import SIMULATION_DIR
 from ps_lab.io.truth import _find_normal_gt
 
@@ -47,6 +52,8 @@ CHANNELS = ("r", "g", "b", "mean")
 FILENAMES = "filenames.txt"
 LIGHT_DIRECTIONS = "light_directions.txt"
 LIGHT_INTENSITIES = "light_intensities.txt"
+LIGHT_POSITIONS = "light_positions.txt"
+LIGHT_ANISOTROPY = "light_anisotropy.txt"
 MASK = "mask.png"
 
 @dataclass(frozen=True)
@@ -312,6 +319,10 @@ class DatasetHeader:
     names : list of str
     shape : (H, W) or None
         Image size read from the first light frame's header (None when not asked for).
+    light_positions : ndarray of shape (n, 3) or None
+        LED positions from ``light_positions.txt`` (two-sphere calibration), else None.
+    light_anisotropy : ndarray of shape (n,) or None
+        The LEDs' ``cos^mu`` exponents from ``light_anisotropy.txt``, else None.
 
     """
 
@@ -322,6 +333,8 @@ class DatasetHeader:
     mask_file: Path | None
     names: list[str]
     shape: tuple[int, int] | None
+    light_positions: np.ndarray | None = None
+    light_anisotropy: np.ndarray | None = None
 
     def read_mask(self) -> np.ndarray:
         """The object mask of shape (H, W), bool (all pixels when there is no mask file)."""
@@ -371,6 +384,7 @@ def open_dataset(path: Path, *, channel: str = "mean", read_size: bool = True) -
         light_intensities = read_light_intensities(intensities_file, n)
     else:
         light_intensities = np.ones((n, 3))
+    positions_file, anisotropy_file = root / LIGHT_POSITIONS, root / LIGHT_ANISOTROPY
     shape = read_image_size(plan.light_files[0][0]) if read_size else None
     return DatasetHeader(
         root=root,
@@ -380,6 +394,12 @@ def open_dataset(path: Path, *, channel: str = "mean", read_size: bool = True) -
         mask_file=_find_file(root, MASK),
         names=plan.names,
         shape=shape,
+        light_positions=read_light_positions(positions_file, n)
+        if positions_file.is_file()
+        else None,
+        light_anisotropy=read_light_anisotropy(anisotropy_file, n)
+        if anisotropy_file.is_file()
+        else None,
     )
 
 

@@ -1,4 +1,6 @@
-"""Light tables: ``light_directions.txt`` and ``light_intensities.txt``.
+"""Light tables: directions, intensities and, for LEDs at a finite distance, positions.
+
+``light_positions.txt`` (+ ``light_anisotropy.txt``) come from a two-sphere calibration.
 
 ``light_directions.txt`` has n rows ``x y z``, ``light_intensities.txt`` n rows of 3 (or 1): the
 DiLiGenT text format read by every command and written by calibration and light refinement.
@@ -74,13 +76,45 @@ def read_light_intensities(path: Path, count: int | None = None) -> np.ndarray:
     return np.repeat(rows, 3, axis=1) if rows.shape[1] == 1 else rows
 
 
+def read_light_positions(path: Path, count: int | None = None) -> np.ndarray:
+    """Read ``light_positions.txt``: one row ``x y z`` per light, or ``nan nan nan``.
+
+    Scene frame of :mod:`ps_lab.geometry` (pixel units: x right, y up, z toward the camera, origin
+    at the image centre in the spheres' plane); a NaN row is a light too far to place
+    (directional).
+
+    Returns
+    -------
+    ndarray of shape (n, 3), float64
+    """
+    rows = _read_table(path, (3,), allow_nan=True)
+    if count is not None and len(rows) != count:
+        raise DatasetError(
+            f"{path}: {len(rows)} light positions but the dataset has {count} images"
+        )
+    partial = np.isnan(rows).any(axis=1) & ~np.isnan(rows).all(axis=1)
+    if partial.any():
+        raise DatasetError(f"{path}: row {np.flatnonzero(partial)[0] + 1}: NaN in part of the row")
+    return rows
+
+
+def read_light_anisotropy(path: Path, count: int | None = None) -> np.ndarray:
+    """Read ``light_anisotropy.txt``: each LED's ``cos^mu`` exponent, one value per row (>= 0)."""
+    rows = _read_table(path, (1,))[:, 0]
+    if count is not None and len(rows) != count:
+        raise DatasetError(f"{path}: {len(rows)} values but the dataset has {count} images")
+    if np.any(rows < 0):
+        raise DatasetError(f"{path}: anisotropy exponents must be >= 0")
+    return rows
+
+
 def write_light_table(path: Path, rows: np.ndarray) -> None:
     """Write a light table (directions or intensities) in the DiLiGenT text format."""
     rows = np.atleast_2d(np.asarray(rows, dtype=np.float64))
     np.savetxt(path, rows, fmt="%.9f")
 
 
-def _read_table(path: Path, widths: tuple[int, ...]) -> np.ndarray:
+def _read_table(path: Path, widths: tuple[int, ...], *, allow_nan: bool = False) -> np.ndarray:
     """Parse a whitespace (or comma) separated numeric table; ``#`` starts a comment."""
     try:
         text = path.read_text(encoding="utf-8")
@@ -110,7 +144,7 @@ def _read_table(path: Path, widths: tuple[int, ...]) -> np.ndarray:
                 f"{path}: line {number}: {len(values)} numbers, earlier rows have {width}"
             )
         width = len(values)
-        if not all(np.isfinite(values)):
+        if not all(np.isfinite(values)) and not (allow_nan and all(np.isnan(values))):
             raise DatasetError(f"{path}: line {number}: value is NaN or infinite")
         rows.append(values)
     if not rows:

@@ -7,6 +7,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ps_lab.render.near import PointLights, render_chrome_near, render_near
 from ps_lab.render.shading import _chrome_coverage, render, render_chrome_sphere
 from ps_lab.render.surfaces import Surface, relief_surface, sphere_surface
 
@@ -113,7 +114,11 @@ def _object_alpha(scene: Scene, obj: SceneObject, surface: Surface | None) -> np
 
 
 def render_scene(
-    scene: Scene, light_directions: np.ndarray, light_intensities: np.ndarray | None = None
+    scene: Scene,
+    light_directions: np.ndarray,
+    light_intensities: np.ndarray | None = None,
+    *,
+    point_lights: PointLights | None = None,
 ) -> np.ndarray:
     """Render the frame seen with the given lights lit together.
 
@@ -124,7 +129,11 @@ def render_scene(
     light_directions : ndarray of shape (k, 3)
         The lit lights; ``k = 0`` gives the dark frame.
     light_intensities : ndarray of shape (k, 3), optional
-        Per-channel intensities; default ones.
+        Per-channel intensities; default ones (at the scene origin for point lights).
+    point_lights : PointLights, optional
+        The same k lights as LEDs at a finite distance (fall-off, anisotropy, parallax): then
+        ``light_directions`` is not used for shading. Objects' heights are measured from the
+        spheres' plane (the relief's outline and the spheres' centres lie in it).
 
     Returns
     -------
@@ -150,19 +159,29 @@ def render_scene(
         if k == 0:
             continue
         if obj.kind == "chrome":
-            grey = render_chrome_sphere((h, w), obj.center, obj.radius, lights)  # (k, H, W)
+            if point_lights is None:
+                grey = render_chrome_sphere((h, w), obj.center, obj.radius, lights)  # (k, H, W)
+            else:
+                grey = render_chrome_near(
+                    (h, w), obj.center, obj.radius, point_lights.positions,
+                    light_radius=point_lights.radius,
+                )
             frame += np.einsum("khw,kc->hwc", grey, intensities) * np.asarray(obj.albedo)
         else:
             spec = obj.specular if obj.kind != "matte" else 0.0
             # A sphere is convex: only a relief can shadow itself.
-            images = render(
-                surface,
-                lights,
-                intensities,
-                cast_shadows=obj.kind == "relief",
-                specular=spec,
-                roughness=obj.roughness,
-            )
+            shading = {
+                "cast_shadows": obj.kind == "relief",
+                "specular": spec,
+                "roughness": obj.roughness,
+            }
+            if point_lights is None:
+                images = render(surface, lights, intensities, **shading)
+            else:
+                images = render_near(
+                    surface, point_lights.positions, intensities,
+                    anisotropy=point_lights.anisotropy, **shading,
+                )
             frame += images.sum(axis=0)
     return frame
 

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import functools
 from collections.abc import Callable
+from dataclasses import dataclass
 
 import cv2
 import numpy as np
@@ -229,16 +230,18 @@ def _cook_torrance(
     """Cook-Torrance specular radiance per unit strength and irradiance, (P,) for (P, 3) normals.
 
     ``D F G / (4 (n.v))`` times the Fresnel normalisation ``1 / F0`` (see ``docs/renderer.md``); the
-    ``n.l`` of the rendering equation cancels that of the BRDF denominator.
+    ``n.l`` of the rendering equation cancels that of the BRDF denominator. ``light`` is one unit
+    vector (3,) or one per pixel (P, 3) (a light at a finite distance).
     """
-    half = light + _VIEW
-    length = float(np.linalg.norm(half))
-    if length < 1e-9:  # light straight from behind: no visible point can reflect it
+    half = np.asarray(light, dtype=np.float64) + _VIEW
+    length = np.linalg.norm(half, axis=-1, keepdims=True)
+    if half.ndim == 1 and float(length[0]) < 1e-9:
+        # light straight from behind: no visible point can reflect it
         return np.zeros(normals.shape[0])
-    half = half / length
-    n_dot_h = np.clip(normals @ half, 1e-6, 1.0)
+    half = half / np.maximum(length, 1e-9)
+    n_dot_h = np.clip(np.sum(normals * half, axis=-1), 1e-6, 1.0)
     n_dot_v = np.clip(normals[:, 2], 1e-6, 1.0)
-    v_dot_h = max(float(half[2]), 1e-6)
+    v_dot_h = np.maximum(half[..., 2], 1e-6)
     m2 = roughness * roughness
     cos2 = n_dot_h * n_dot_h
     tan2 = (1.0 - cos2) / cos2
@@ -482,16 +485,56 @@ def _chrome_highlight(
     pixels and its centroid would snap to pixel centres, as it would on a real sensor with no blur.
     Returns the pixel box and its (bh, bw) values, or None when the highlight is off the sphere.
     """
-    h, w = shape
     half = light + _VIEW
     half = half / np.linalg.norm(half)
     if half[2] <= 1e-6:
         return None
+    grid = _highlight_grid(shape, center, radius, half, disc, supersample)
+    if grid is None:
+        return None
+    dx, dy, nz = grid.normals
+    # Reflected view vector r = 2 (n.v) n - v, v = (0, 0, 1).
+    cos_angle = 2.0 * nz * (dx * light[0] + dy * light[1] + nz * light[2]) - light[2]
+    return grid.box, grid.pixel_share(np.arccos(np.clip(cos_angle, -1.0, 1.0)), disc)
+
+
+@dataclass(frozen=True)
+class _HighlightGrid:
+    """The fine sub-pixel grid around a mirror point (see :func:`_chrome_highlight`)."""
+
+    box: tuple[slice, slice]
+    fine: int
+    ramp: float
+    inside: np.ndarray
+    normals: tuple[np.ndarray, np.ndarray, np.ndarray]  # sphere normal (dx, dy, nz) per sample
+
+    def pixel_share(self, angle: np.ndarray, disc: float) -> np.ndarray:
+        """Each pixel's share of samples within ``disc`` (linear ramp, lens blur), (bh, bw)."""
+        weight = np.where(self.inside, np.clip((disc - angle) / self.ramp + 0.5, 0.0, 1.0), 0.0)
+        sigma = _HIGHLIGHT_PSF_SIGMA * self.fine
+        weight = cv2.GaussianBlur(
+            weight, (0, 0), sigmaX=sigma, sigmaY=sigma, borderType=cv2.BORDER_CONSTANT
+        )
+        rows, cols = self.box
+        shape = (rows.stop - rows.start, self.fine, cols.stop - cols.start, self.fine)
+        return weight.reshape(shape).mean(axis=(1, 3))
+
+
+def _highlight_grid(
+    shape: tuple[int, int],
+    center: tuple[float, float],
+    radius: float,
+    mirror_normal: np.ndarray,
+    disc: float,
+    supersample: int,
+) -> _HighlightGrid | None:
+    """Sub-pixel grid over the highlight of a disc of angular radius ``disc`` (None: off image)."""
+    h, w = shape
     # The mirror point and the reflected vector's angular change per pixel there: a normal turns by
     # 1/radius per pixel (1/(radius nz) radially), the reflection by twice that.
-    px = center[0] + radius * half[0]
-    py = center[1] - radius * half[1]
-    per_pixel = 2.0 / (radius * half[2])
+    px = center[0] + radius * mirror_normal[0]
+    py = center[1] - radius * mirror_normal[1]
+    per_pixel = 2.0 / (radius * mirror_normal[2])
     fine = int(np.clip(np.ceil(4.0 * per_pixel / disc), supersample, 32))
     # Inside the disc the normal stays within half the disc (plus the ramp) of the bisector; the
     # orthographic projection moves the sphere point by at most radius times that angle.
@@ -503,19 +546,11 @@ def _chrome_highlight(
     offsets = _subpixel_offsets(fine)
     xs = (np.arange(x0, x1)[:, None] + offsets[None, :]).ravel()  # (bw * fine,)
     ys = (np.arange(y0, y1)[:, None] + offsets[None, :]).ravel()
-    dx = (xs[None, :] - center[0]) / radius
-    dy = -(ys[:, None] - center[1]) / radius
-    d2 = dx * dx + dy * dy
-    inside = d2 < 1.0
-    nz = np.sqrt(np.clip(1.0 - d2, 0.0, None))
-    # Reflected view vector r = 2 (n.v) n - v, v = (0, 0, 1).
-    cos_angle = 2.0 * nz * (dx * light[0] + dy * light[1] + nz * light[2]) - light[2]
-    angle = np.arccos(np.clip(cos_angle, -1.0, 1.0))
-    ramp = per_pixel / fine
-    weight = np.where(inside, np.clip((disc - angle) / ramp + 0.5, 0.0, 1.0), 0.0)
-    sigma = _HIGHLIGHT_PSF_SIGMA * fine
-    weight = cv2.GaussianBlur(
-        weight, (0, 0), sigmaX=sigma, sigmaY=sigma, borderType=cv2.BORDER_CONSTANT
+    dx, dy = np.broadcast_arrays(
+        (xs[None, :] - center[0]) / radius, -(ys[:, None] - center[1]) / radius
     )
-    values = weight.reshape(y1 - y0, fine, x1 - x0, fine).mean(axis=(1, 3))
-    return (slice(y0, y1), slice(x0, x1)), values
+    d2 = dx * dx + dy * dy
+    nz = np.sqrt(np.clip(1.0 - d2, 0.0, None))
+    return _HighlightGrid(
+        (slice(y0, y1), slice(x0, x1)), fine, per_pixel / fine, d2 < 1.0, (dx, dy, nz)
+    )

@@ -1,0 +1,177 @@
+"""Near lights: normal error against the dome radius, and the cost of per-pixel lights.
+
+Usage (from the repository root):
+
+    .venv/bin/python benchmarks/near.py sweep [--ratios 2 3 5 10 20]
+    .venv/bin/python benchmarks/near.py speed
+
+``sweep`` renders the scene of ``rigs/simulated-near.toml`` (400x300, a glossy relief of 200 px,
+two chrome spheres and a matte sphere of radius 50) with 24 LEDs on a dome of ``ratio`` x 200 px
+(zenith <= 55 deg, intensities 1 +- 10 %, cos^1 emission, LED radius 15 px) as float frames with
+Gaussian noise (sigma 2e-3), calibrates them with ``ps_lab.calibration.calibrate`` (two spheres:
+positions; matte sphere: intensities) and solves SBL directionally (each light's direction from
+the scene centre) and with near lights; the "far rig" is the same object lit from the same
+directions at infinity, calibrated from one sphere. Every solve drops observations <= 0.02
+(``--shadow-threshold 0.02``); ``--no-threshold`` keeps them.
+
+``speed`` times the SBL kernels per pixel-iteration (directional vs per-pixel light vectors, the
+same problems) and the seconds per near-light round on the sweep's scene at 3x.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import platform
+import time
+
+import numpy as np
+
+from ps_lab import render
+from ps_lab.calibration import calibrate
+from ps_lab.geometry import Circle
+from ps_lab.reconstruct import angular_errors_deg, solve
+from ps_lab.reconstruct._kernels import sbl_tile
+from ps_lab.reconstruct._near_kernels import sbl_tile_pp
+from ps_lab.reconstruct.near import NearLights, near_light_reconstruct
+
+SHAPE = (300, 400)
+CHROME = (Circle(55.0, 55.0, 50.0), Circle(344.0, 244.0, 50.0))
+MATTE = Circle(344.0, 55.0, 50.0)
+OBJECT_SIZE = 200.0
+N_LIGHTS = 24
+THRESHOLD = 0.02
+
+
+def _scene() -> render.Scene:
+    objects = [render.SceneObject("chrome", c.center, c.radius, (0.9, 0.9, 0.9)) for c in CHROME]
+    objects.append(render.SceneObject("matte", MATTE.center, MATTE.radius, (0.7, 0.7, 0.7)))
+    objects.append(render.SceneObject("relief", (199.5, 149.5), 100.0, (0.75, 0.65, 0.55),
+                                      specular=0.25, roughness=0.12, seed=3))
+    return render.Scene(SHAPE[1], SHAPE[0], tuple(objects))
+
+
+def _frames(scene, directions, intensities, leds, rng) -> np.ndarray:
+    frames = []
+    for j in range(len(directions)):
+        lit = None if leds is None else leds.select([j])
+        frames.append(render.render_scene(scene, directions[j : j + 1], intensities[j : j + 1],
+                                          point_lights=lit))
+    frames = np.array(frames)
+    return frames + rng.normal(0.0, 2e-3, frames.shape)
+
+
+def _observations(frames, intensities, mask, threshold):
+    images = (frames / intensities[:, None, None, :]).mean(axis=-1)
+    rows, cols = np.nonzero(mask)
+    obs = images[:, rows, cols]
+    return obs, (obs > threshold) if threshold is not None else None
+
+
+def run_ratio(ratio: float, threshold: float | None, rng_seed: int = 0) -> dict:
+    scene = _scene()
+    truth = render.scene_ground_truth(scene)
+    mask, gt = truth["mask"], truth["normals"][truth["mask"]]
+    radius = ratio * OBJECT_SIZE
+    layout = np.random.default_rng(11)
+    directions = render.random_light_directions(N_LIGHTS, layout, max_zenith_deg=55.0)
+    intensities = np.repeat(1.0 + 0.1 * layout.uniform(-1, 1, (N_LIGHTS, 1)), 3, axis=1)
+    leds = render.PointLights(radius * directions, anisotropy=1.0, radius=15.0)
+    rng = np.random.default_rng(rng_seed)
+    frames = _frames(scene, directions, intensities, leds, rng)
+    cal = calibrate(frames, sphere=CHROME[0], extra_spheres=[CHROME[1]], matte_sphere=MATTE,
+                    anisotropy=1.0)
+    tri = cal.triangulation
+    placed = ~tri.too_far
+    position_error = np.linalg.norm(tri.positions[placed] - leds.positions[placed], axis=1)
+    obs, valid = _observations(frames, cal.light_intensities, mask, threshold)
+    directional = solve(obs, cal.light_directions, valid=valid)
+    lights = NearLights(tri.positions, cal.light_directions, np.full(N_LIGHTS, 1.0))
+    started = time.perf_counter()
+    near, rounds = near_light_reconstruct(obs, mask, lights, valid=valid, threads=2)
+    near_seconds = time.perf_counter() - started
+    far_frames = _frames(scene, directions, intensities, None, rng)
+    far_cal = calibrate(far_frames, sphere=CHROME[0], matte_sphere=MATTE)
+    far_obs, far_valid = _observations(far_frames, far_cal.light_intensities, mask, threshold)
+    far = solve(far_obs, far_cal.light_directions, valid=far_valid)
+    return {
+        "ratio": ratio,
+        "dome_px": radius,
+        "position_error_pct": (100 * position_error.mean() / radius,
+                               100 * position_error.max() / radius) if placed.any() else None,
+        "too_far": int((~placed).sum()),
+        "directional": float(angular_errors_deg(directional.normals, gt).mean()),
+        "near": float(angular_errors_deg(near.normals, gt).mean()),
+        "far": float(angular_errors_deg(far.normals, gt).mean()),
+        "rounds": len(rounds.changes),
+        "seconds_per_round": float(np.mean(rounds.seconds)),
+        "near_seconds": near_seconds,
+    }
+
+
+def sweep(ratios: list[float], threshold: float | None) -> None:
+    print(f"# near-light sweep ({platform.node()}, {os.cpu_count()} cores), threshold {threshold}")
+    print("| dome / object | positions: mean / max error (% of dome) | directional SBL | "
+          "near SBL (rounds) | far rig SBL | near / directional | near / far |")
+    print("|---|---|---|---|---|---|---|")
+    for ratio in ratios:
+        r = run_ratio(ratio, threshold)
+        pos = ("-" if r["position_error_pct"] is None
+               else "{:.2f} / {:.2f}".format(*r["position_error_pct"]))
+        if r["too_far"]:
+            pos += f" ({r['too_far']} too far)"
+        print(f"| {ratio:g}x | {pos} | {r['directional']:.2f} | {r['near']:.3f} ({r['rounds']}) | "
+              f"{r['far']:.3f} | {r['near'] / r['directional']:.3f} | "
+              f"{r['near'] / r['far']:.2f} |", flush=True)
+
+
+def speed() -> None:
+    rng = np.random.default_rng(0)
+    print("| lights | directional ns / pixel-iteration | per-pixel lights | ratio |")
+    print("|---|---|---|---|")
+    params = dict(lam=1e-4, sigma_x2=1e6, max_iter=100, tol=1e-4, gamma_floor=1e-10,
+                  outlier_threshold=0.05)
+    for n in (24, 40, 96):
+        m = 20000
+        lights = render.random_light_directions(n, rng)
+        normals = render.random_light_directions(m, rng)
+        y = np.clip(normals @ lights.T, 0.0, None)
+        y += (rng.random(y.shape) < 0.1) * rng.random(y.shape)
+        w = (y > 0).astype(float)
+        y /= np.maximum(np.median(y, axis=1, keepdims=True), 1e-3)
+        per_pixel = np.ascontiguousarray(np.broadcast_to(lights, (m, n, 3)))
+        sbl_tile(y[:8], w[:8], lights, **params)
+        sbl_tile_pp(y[:8], w[:8], per_pixel[:8], **params)
+        cost = {}
+        for name, kernel, a in (("dir", sbl_tile, lights), ("pp", sbl_tile_pp, per_pixel)):
+            best = np.inf
+            for _ in range(3):
+                started = time.process_time()
+                result = kernel(y, w, a, **params)
+                best = min(best, time.process_time() - started)
+            cost[name] = 1e9 * best / result.iterations.sum()
+        print(f"| {n} | {cost['dir']:.0f} | {cost['pp']:.0f} | {cost['pp'] / cost['dir']:.2f} |")
+    r = run_ratio(3.0, THRESHOLD)
+    scene = _scene()
+    mask = render.scene_ground_truth(scene)["mask"]
+    print(f"\nnear-light rounds at 3x: {r['rounds']} rounds, {r['seconds_per_round']:.2f} s per "
+          f"round, {r['near_seconds']:.1f} s in all ({int(mask.sum())} pixels, {N_LIGHTS} lights, "
+          "2 threads, wall time)")
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    sub = parser.add_subparsers(dest="command", required=True)
+    p = sub.add_parser("sweep")
+    p.add_argument("--ratios", type=float, nargs="+", default=[2, 3, 5, 10, 20])
+    p.add_argument("--no-threshold", action="store_true")
+    sub.add_parser("speed")
+    args = parser.parse_args()
+    if args.command == "sweep":
+        sweep(args.ratios, None if args.no_threshold else THRESHOLD)
+    else:
+        speed()
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,138 @@
+"""LED positions from the highlights of two or more chrome spheres (orthographic camera).
+
+Positions are in the scene frame of :mod:`ps_lab.geometry` (pixel units; x right, y up, z toward
+the camera; origin at the image centre in the spheres' plane, the plane through the chrome spheres'
+centres). With the view direction v = (0, 0, 1), the highlight at pixel (x, y) of a sphere with
+circle (cx, cy, r) lies at the surface point S = C + r n, with
+
+    n = ((x - cx) / r, -(y - cy) / r, sqrt(1 - nx² - ny²)),   C = (cx, cy, 0) in the scene frame,
+
+and the light lies on the reflected ray S + t (2 (n·v) n - v), t > 0. Each light's position is the
+least-squares intersection of its rays from all spheres.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from ps_lab.calibration._circle import Circle
+from ps_lab.geometry import scene_points
+
+_VIEW = np.array([0.0, 0.0, 1.0])
+# Rays of one light closer than this to parallel cannot place it: it is too far for the baseline
+# between the spheres (position error ~ direction error / angle between the rays).
+MIN_RAY_ANGLE_DEG = 1.0
+
+
+@dataclass(frozen=True)
+class Triangulation:
+    """LED positions from the rays of several chrome spheres (see :func:`triangulate_lights`).
+
+    Attributes
+    ----------
+    origins, directions : ndarray of shape (s, n, 3)
+        Each sphere's highlight points and unit reflected rays (scene frame).
+    positions : ndarray of shape (n, 3)
+        Least-squares intersections; NaN rows for lights whose rays are nearly parallel.
+    miss : ndarray of shape (n,)
+        RMS distance (pixels) of each position from its rays (NaN where not triangulated).
+    spread_deg : ndarray of shape (n,)
+        Largest angle between two of a light's rays.
+    light_directions : ndarray of shape (n, 3)
+        Unit directions from the scene origin toward each position; for lights too far to
+        triangulate, the mean of their rays' directions.
+    """
+
+    origins: np.ndarray
+    directions: np.ndarray
+    positions: np.ndarray
+    miss: np.ndarray
+    spread_deg: np.ndarray
+    light_directions: np.ndarray
+
+    @property
+    def too_far(self) -> np.ndarray:
+        """(n,) bool: lights with no position (directional fall-back)."""
+        return ~np.all(np.isfinite(self.positions), axis=1)
+
+
+def reflected_rays(
+    highlights: np.ndarray, circle: Circle, shape: tuple[int, int]
+) -> tuple[np.ndarray, np.ndarray]:
+    """Rays from a chrome sphere's highlight points toward the lights.
+
+    Parameters
+    ----------
+    highlights : ndarray of shape (n, 2)
+        Highlight ``(x, y)`` pixels.
+    circle : Circle
+        The sphere's outline; its centre lies in the spheres' plane.
+    shape : (H, W)
+        Image size (the frame's origin is the image centre).
+
+    Returns
+    -------
+    origins : ndarray of shape (n, 3)
+        The sphere surface points (scene frame).
+    directions : ndarray of shape (n, 3)
+        Unit mirror reflections of the view vector, ``2 (n.v) n - v``.
+    """
+    hl = np.asarray(highlights, dtype=np.float64).reshape(-1, 2)
+    cx, cy, r = circle
+    nx = (hl[:, 0] - cx) / r
+    ny = -(hl[:, 1] - cy) / r
+    # A highlight measured just outside the outline is put on it (grazing normal).
+    shrink = 1.0 / np.maximum(np.hypot(nx, ny), 1.0)
+    nx, ny = nx * shrink, ny * shrink
+    nz = np.sqrt(np.clip(1.0 - nx * nx - ny * ny, 0.0, 1.0))
+    normals = np.column_stack([nx, ny, nz])
+    centre = scene_points(shape, [cy], [cx], 0.0)[0]
+    directions = 2.0 * nz[:, None] * normals - _VIEW[None, :]
+    directions /= np.linalg.norm(directions, axis=1, keepdims=True)
+    return centre[None, :] + r * normals, directions
+
+
+def triangulate_lights(
+    origins: np.ndarray, directions: np.ndarray, *, min_angle_deg: float = MIN_RAY_ANGLE_DEG
+) -> Triangulation:
+    """Least-squares intersection of each light's rays.
+
+    The point minimising the sum of squared distances to rays ``o_k + t d_k`` solves
+    ``(sum_k (I - d_k d_k^T)) P = sum_k (I - d_k d_k^T) o_k``.
+
+    Parameters
+    ----------
+    origins, directions : ndarray of shape (s, n, 3)
+        Ray origins and unit directions from s >= 2 spheres for n lights.
+    min_angle_deg : float
+        A light whose rays all lie within this angle of each other is too far to place: its
+        position is NaN and its direction the mean of its rays.
+
+    Returns
+    -------
+    Triangulation
+    """
+    o = np.asarray(origins, dtype=np.float64)
+    d = np.asarray(directions, dtype=np.float64)
+    if o.ndim != 3 or o.shape[0] < 2 or o.shape != d.shape or o.shape[2] != 3:
+        raise ValueError(f"need rays of shape (s >= 2, n, 3), got {o.shape} and {d.shape}")
+    n = o.shape[1]
+    projector = np.eye(3) - d[..., :, None] * d[..., None, :]  # (s, n, 3, 3)
+    system = projector.sum(axis=0)
+    target = np.einsum("snij,snj->ni", projector, o)
+    cosines = np.clip(np.einsum("snk,tnk->nst", d, d), -1.0, 1.0)
+    spread = np.degrees(np.arccos(cosines.min(axis=(1, 2))))
+    ok = spread >= min_angle_deg
+    positions = np.full((n, 3), np.nan)
+    if ok.any():
+        positions[ok] = np.linalg.solve(system[ok], target[ok][..., None])[..., 0]
+    offset = positions[None] - o
+    along = np.einsum("snk,snk->sn", offset, d)
+    perp = offset - along[..., None] * d
+    miss = np.sqrt(np.mean(np.einsum("snk,snk->sn", perp, perp), axis=0))
+    light_directions = d.mean(axis=0)
+    light_directions[ok] = positions[ok]
+    light_directions /= np.linalg.norm(light_directions, axis=1, keepdims=True)
+    return Triangulation(o, d, positions, miss, spread, light_directions)
