@@ -35,10 +35,11 @@ from typing import Any
 import numpy as np
 
 from ps_lab.errors import OutputError
-from ps_lab.io.bands import ObservationStore, plan_bands, stage_observations
+from ps_lab.io.bands import ObservationStore, plan_bands
 from ps_lab.io.dataset import DatasetHeader, open_dataset
 from ps_lab.io.files import json_safe, staged_folder
 from ps_lab.io.truth import open_normal_gt
+from ps_lab.reconstruct._bands import BandResult, LocalBands
 from ps_lab.reconstruct._outputs import (
     ERROR_BIN_DEG,
     _Histogram,
@@ -48,10 +49,8 @@ from ps_lab.reconstruct._outputs import (
     normal_picture,
     write_png,
 )
-from ps_lab.reconstruct._refine import fit_lights, light_fit_sums
-from ps_lab.reconstruct._solution import Solution
-from ps_lab.reconstruct._solve import estimate_noise, solve
-from ps_lab.reconstruct.metrics import angular_errors_deg
+from ps_lab.reconstruct._refine import fit_lights
+from ps_lab.reconstruct._solve import estimate_noise
 
 __all__ = [
     "BYTES_PER_OBSERVATION",
@@ -141,6 +140,10 @@ class ReconstructOptions:
         band's solve may use; sets the band height.
     staging : {"auto", "memory", "file"}
         Backing of the observation store: in memory when small (``auto``), or forced.
+    scheduler : str or None
+        Address of a Dask scheduler (``tcp://host:8786``): the frames are staged and the bands
+        solved as tasks on its workers (:mod:`ps_lab.reconstruct.distributed`; the dataset and
+        the output folder must be on a filesystem the workers share). None: in this process.
     """
 
     method: str = "sbl"
@@ -151,6 +154,7 @@ class ReconstructOptions:
     fixed_intensities: bool = False
     memory_budget: int = DEFAULT_MEMORY_BUDGET
     staging: str = "auto"
+    scheduler: str | None = None
 
     def __post_init__(self) -> None:
         if self.staging not in STAGING:
@@ -301,12 +305,14 @@ def reconstruct_to_folder(
     started = time.perf_counter()
     timings: dict[str, float] = {}
     source = _read(dataset, options)
-    with staged_folder(out, check=check_output_folder, error=OutputError) as stage:
-        store = _stage(source, options, stage, bars)
+    with _band_executor(options) as executor, staged_folder(
+        out, check=check_output_folder, error=OutputError
+    ) as stage:
+        store = _stage(source, options, stage, bars, executor)
         timings["read_seconds"] = time.perf_counter() - started
         with store:
             writer = _OutputWriter(stage, store.mask, source.truth, store.n_lights)
-            solved = _solve_bands(store, source, options, writer, bars)
+            solved = _solve_bands(store, source, options, writer, bars, executor)
             timings["solve_seconds"] = solved.seconds
             written = time.perf_counter()
             metrics = _write_results(writer, stage, source, options, store, solved, timings)
@@ -324,7 +330,25 @@ def _read(dataset: Path, options: ReconstructOptions) -> _Input:
     return _Input(header, header.read_mask(), open_normal_gt(header.root, header.shape))
 
 
-def _stage(source: _Input, options: ReconstructOptions, stage: Path, bars) -> ObservationStore:
+@contextmanager
+def _band_executor(options: ReconstructOptions) -> Iterator[Any]:
+    """The executor of the band work: this process, or the Dask cluster ``options.scheduler``.
+
+    The one place that loads :mod:`ps_lab.reconstruct.distributed` (and so Dask): a run without
+    a scheduler never imports it.
+    """
+    if options.scheduler is None:
+        yield LocalBands(options.threads)
+        return
+    from ps_lab.reconstruct import distributed
+
+    with distributed.connect(options.scheduler) as client:
+        yield distributed.DaskBands(client)
+
+
+def _stage(
+    source: _Input, options: ReconstructOptions, stage: Path, bars, executor
+) -> ObservationStore:
     """Stage 2: decode every frame once into a row-band store (in memory or a file in ``stage``)."""
     started = time.perf_counter()
     header, mask = source.header, source.mask
@@ -336,7 +360,7 @@ def _stage(source: _Input, options: ReconstructOptions, stage: Path, bars) -> Ob
     small = store_bytes <= IN_MEMORY_SHARE * budget
     in_memory = options.staging == "memory" or (options.staging == "auto" and small)
     with bars(n, "reading images") as advance:
-        store = stage_observations(
+        store = executor.stage(
             header,
             mask,
             bands,
@@ -376,6 +400,7 @@ def _solve_bands(
     options: ReconstructOptions,
     writer: _OutputWriter,
     bars: ProgressBars,
+    executor,
 ) -> _Solved:
     """Stage 3: K + 1 solve passes over the bands (K = ``options.refine_lights``).
 
@@ -396,6 +421,8 @@ def _solve_bands(
             final = k == refine
             result = _solve_pass(
                 store,
+                source.header,
+                executor,
                 directions * factor[:, None],
                 options,
                 truth=source.truth if refine else None,
@@ -520,6 +547,8 @@ def _whole_image_parameters(store: ObservationStore, vectors: np.ndarray, method
 
 def _solve_pass(
     store: ObservationStore,
+    header: DatasetHeader,
+    executor,
     vectors: np.ndarray,
     options: ReconstructOptions,
     *,
@@ -529,42 +558,31 @@ def _solve_pass(
     advance: Callable[..., None],
     label: str,
 ) -> _PassResult:
-    """Solve every band once with the light vectors ``vectors`` (n, 3)."""
+    """Solve every band once with the light vectors ``vectors`` (n, 3), on ``executor``.
+
+    Band results may arrive in any order (Dask); the writer takes them as they come, and the
+    parameters, error sums and refinement sums are combined in band order, as one process would.
+    """
     fixed = _whole_image_parameters(store, vectors, options.method)
-    n = store.n_lights
-    result = _PassResult(params={})
-    if fit:
-        result.normal_matrices = np.zeros((n, 6))
-        result.normal_targets = np.zeros((n, 3))
     count = len(store.bands)
     started = time.perf_counter()
-    for band in store.bands:
-        if band.pixel_count == 0:
-            continue
-        advance(0, description=f"{label}: band {band.index + 1}/{count}")
-        observations, valid = store.read(band)
-        solution = solve(
-            observations,
-            vectors,
-            method=options.method,
-            valid=valid,
-            threads=options.threads,
-            progress=advance,
-            **fixed,
-            **options.solver_parameters(),
-        )
-        if not result.params:
-            result.params = dict(solution.params)
+    done: dict[int, BandResult] = {}
+    for band_result in executor.solve(
+        store,
+        header,
+        vectors,
+        method=options.method,
+        parameters={**fixed, **options.solver_parameters()},
+        final=writer is not None,
+        truth=truth,
+        advance=advance,
+        label=label,
+    ):
+        band = store.bands[band_result.index]
         if writer is not None:
-            writer.add(band, solution, valid)
-        if truth is not None:
-            rows = slice(band.row_start, band.row_stop)
-            gt = truth.rows(band.row_start, band.row_stop)[store.mask[rows]]
-            result.all_have_truth &= bool(np.all(np.linalg.norm(gt, axis=1) > 0.5))
-            result.error_sum += float(angular_errors_deg(solution.normals, gt).sum())
-        if fit:
-            _accumulate_fit(result, observations, valid, solution)
-        del observations, valid, solution
+            writer.add(band, band_result)
+            band_result.normals = band_result.albedo = band_result.corruption = None
+        done[band.index] = band_result
         log.info(
             "%s: band %d/%d done (%d pixels, %.1f s since the pass began)",
             label,
@@ -573,26 +591,22 @@ def _solve_pass(
             band.pixel_count,
             time.perf_counter() - started,
         )
+    return _combine(done, store.n_lights, fit)
+
+
+def _combine(done: dict[int, BandResult], n: int, fit: bool) -> _PassResult:
+    """Add up a pass's band results in band order (the order of a single-process run)."""
+    ordered = [done[index] for index in sorted(done)]
+    result = _PassResult(params=dict(ordered[0].params) if ordered else {})
+    if fit:
+        result.normal_matrices = np.zeros((n, 6))
+        result.normal_targets = np.zeros((n, 3))
+    for band_result in ordered:
+        result.all_have_truth &= band_result.all_have_truth
+        result.error_sum += band_result.error_sum
+        for matrices, targets, inliers, usable in band_result.fit_sums if fit else ():
+            result.normal_matrices += matrices
+            result.normal_targets += targets
+            result.inliers += inliers
+            result.usable += usable
     return result
-
-
-def _accumulate_fit(result: _PassResult, observations, valid, solution, chunk: int = 65536) -> None:
-    """Add one band's per-light least-squares sums (:func:`ps_lab.reconstruct.light_fit_sums`).
-
-    The sums add over pixels; taking the band in chunks of pixels bounds the float64 copies.
-    """
-    for a in range(0, observations.shape[1], chunk):
-        b = min(a + chunk, observations.shape[1])
-        part = Solution(
-            solution.normals[a:b],
-            solution.albedo[a:b],
-            solution.outliers[:, a:b],
-            solution.iterations[a:b],
-        )
-        normal_matrices, normal_targets, used = light_fit_sums(
-            observations[:, a:b], valid[:, a:b], part
-        )
-        result.normal_matrices += normal_matrices
-        result.normal_targets += normal_targets
-        result.inliers += used
-        result.usable += int((valid[:, a:b] & np.isfinite(observations[:, a:b])).sum())

@@ -17,7 +17,7 @@ from ps_lab.cli import app
 from ps_lab.errors import DatasetError
 from ps_lab.io.bands import ObservationStore, plan_bands, stage_observations
 from ps_lab.io.dataset import load_dataset, open_dataset
-from ps_lab.reconstruct import pipeline
+from ps_lab.reconstruct import _bands
 from ps_lab.reconstruct.pipeline import (
     BYTES_PER_OBSERVATION,
     BYTES_PER_PIXEL,
@@ -283,7 +283,7 @@ def test_staging_removed_after_success(capture, tmp_path, monkeypatch):
         seen.extend(p.name for p in out.parent.rglob("ps-lab-observations-*"))
         return original(observations, *args, **kwargs)
 
-    monkeypatch.setattr(pipeline, "solve", spy)
+    monkeypatch.setattr(_bands, "solve", spy)
     run(capture, out, method="ls", memory_budget=budget_for(50), staging="file")
     assert seen  # the store was a file in the staged output folder while solving
     assert listing(tmp_path / "results") == {
@@ -307,7 +307,7 @@ def test_staging_removed_after_failure(capture, tmp_path, monkeypatch, staging):
         return original(observations, *args, progress=progress, **kwargs)
 
     original = solvers.solve
-    monkeypatch.setattr(pipeline, "solve", failing_solve)
+    monkeypatch.setattr(_bands, "solve", failing_solve)
     with pytest.raises(DatasetError, match="band 3"):
         run(capture, out, method="ls", memory_budget=budget_for(60), staging=staging)
     assert len(calls) == 3
