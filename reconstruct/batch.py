@@ -11,8 +11,10 @@ others; a worker that dies has its dataset run again elsewhere by Dask.
 from __future__ import annotations
 
 import json
+import os
 import time
 from collections.abc import Callable, Sequence
+from contextlib import nullcontext
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -153,3 +155,79 @@ def reconstruct_batch(
         if progress is not None:
             progress(1, description=f"{row.dataset.name}: {row.status}")
     return [rows[index] for index in range(len(datasets))]
+
+
+def run_batch(
+    datasets: Sequence[Path],
+    out_root: Path,
+    options: ReconstructOptions,
+    *,
+    scheduler: str | None = None,
+    workers: int | None = None,
+    progress_bars: Callable[[int, str], Any] | None = None,
+) -> list[BatchRow]:
+    """Reconstruct many datasets on the Dask scheduler ``scheduler``, else on a local cluster.
+
+    Parameters
+    ----------
+    datasets, out_root, options
+        As for :func:`reconstruct_batch`.
+    scheduler : str or None
+        Address of a running Dask scheduler; None starts a cluster of ``workers`` processes on
+        this machine for the batch (the embedded default).
+    workers : int or None
+        Local worker processes (default: one per core); ignored with ``scheduler``.
+    progress_bars : callable or None
+        ``progress_bars(total, description)`` (see :func:`ps_lab.reconstruct.pipeline.
+        reconstruct_to_folder`): one bar over the datasets.
+
+    Returns
+    -------
+    list of BatchRow
+
+    Raises
+    ------
+    ClusterError
+        Dask not installed, the scheduler unreachable or lost.
+    DatasetError
+        Two datasets with the same folder name.
+
+    """
+    result_folders(datasets, out_root)  # name clashes fail before any cluster starts
+    distributed.require_dask()
+    if scheduler is not None:
+        cluster = distributed.connect(scheduler)
+    else:
+        cluster = distributed.local_cluster(workers or os.cpu_count() or 1)
+    bar = (
+        progress_bars(len(datasets), "datasets")
+        if progress_bars is not None
+        else nullcontext(lambda n=1, description=None: None)
+    )
+    with cluster as client, bar as advance:
+        return reconstruct_batch(datasets, out_root, options, client, progress=advance)
+
+
+def summary_table(rows: Sequence[BatchRow]) -> str:
+    """The batch summary: dataset, pixels, seconds, mean error (when ground truth), status."""
+    header = ("dataset", "pixels", "seconds", "error (deg)", "status")
+    lines = [header]
+    for row in rows:
+        status = row.status if row.message is None else f"{row.status}: {row.message}"
+        lines.append(
+            (
+                str(row.dataset),
+                "-" if row.pixels is None else str(row.pixels),
+                "-" if row.seconds is None else f"{row.seconds:.1f}",
+                "-" if row.error_deg is None else f"{row.error_deg:.2f}",
+                status,
+            )
+        )
+    widths = [max(len(line[k]) for line in lines) for k in range(len(header) - 1)]
+    return "\n".join(
+        "  ".join(
+            [cell.ljust(width) if k == 0 else cell.rjust(width) for k, (cell, width) in
+             enumerate(zip(line[:-1], widths, strict=True))] + [line[-1]]
+        )
+        for line in lines
+    )

@@ -78,18 +78,18 @@ def connect(address: str, *, timeout: float | None = None) -> Iterator[Any]:
 
 
 @contextmanager
-def local_cluster(workers: int, *, dashboard: bool = True) -> Iterator[Any]:
+def local_cluster(workers: int) -> Iterator[Any]:
     """A Dask cluster of ``workers`` processes (one thread each) on this machine, and its client.
 
-    The embedded default of ``ps-lab batch``: nothing to install or start. Worker logs are
-    silenced (errors come back through the futures).
+    The embedded default of ``ps-lab batch``: nothing to install or start. The dashboard takes a
+    free port (logged at ``-v``); worker logs are silenced (errors come back through the futures).
     """
     dask = require_dask()
     cluster = dask.LocalCluster(
         n_workers=workers,
         threads_per_worker=1,
         processes=True,
-        dashboard_address=":0" if dashboard else None,
+        dashboard_address=":0",
         silence_logs=logging.CRITICAL,
     )
     try:

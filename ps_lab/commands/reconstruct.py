@@ -71,6 +71,15 @@ def reconstruct(
             help="Memory for one row band's solve, e.g. 800MB or 2GB (sets the band height)."
         ),
     ] = "1GB",
+    scheduler: Annotated[
+        str | None,
+        typer.Option(
+            envvar="PS_LAB_SCHEDULER",
+            help="Dask scheduler address (tcp://host:8786): solve the row bands on its workers "
+            "(dataset and output on a shared filesystem; pip install 'ps-lab[distributed]').",
+            show_default=False,
+        ),
+    ] = None,
 ) -> None:
     """Estimate surface normals and albedo; write normals.npy, normal.png, albedo, metrics.json."""
     out = out if out is not None else dataset / "recon" / method.value
@@ -82,6 +91,7 @@ def reconstruct(
         refine_lights=refine_lights,
         fixed_intensities=fixed_intensities,
         memory_budget=parse_memory_size(memory_budget),
+        scheduler=scheduler,
     )
     metrics = reconstruct_to_folder(dataset, out, options, progress_bars=_terminal_bars).metrics
     typer.echo(
