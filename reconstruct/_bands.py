@@ -198,6 +198,10 @@ class LocalBands:
     def __init__(self, threads: int | None = None) -> None:
         self.threads = threads
 
+    def band_pixels(self, budget_pixels: int, pixels: int, method: str) -> int:
+        """Most mask pixels per band: what the memory budget allows."""
+        return budget_pixels
+
     def stage(
         self,
         header: DatasetHeader,

@@ -42,6 +42,8 @@ except ImportError:  # pragma: no cover - exercised by the missing-Dask test
 log = logging.getLogger(__name__)
 
 INSTALL_HINT = "Dask is not installed: pip install 'ps-lab[distributed]'"
+# Bands per worker at least (for load balance and a finer progress bar), memory budget permitting.
+BANDS_PER_WORKER = 4
 # Stage tasks per worker when a dark frame makes each task re-read it (else one light per task).
 STAGE_TASKS_PER_WORKER = 4
 
@@ -161,6 +163,16 @@ class DaskBands:
 
     def _workers(self) -> int:
         return max(len(self.client.scheduler_info().get("workers", {})), 1)
+
+    def band_pixels(self, budget_pixels: int, pixels: int, method: str) -> int:
+        """Most mask pixels per band: the memory budget's, and small enough to feed every worker.
+
+        At least :data:`BANDS_PER_WORKER` bands per worker, except for R-PCA, whose low-rank model
+        is fitted per band: it keeps the in-process band plan, and so the in-process result.
+        """
+        if method == "rpca":
+            return budget_pixels
+        return max(1, min(budget_pixels, -(-pixels // (BANDS_PER_WORKER * self._workers()))))
 
     def stage(
         self,

@@ -354,8 +354,8 @@ def _stage(
     header, mask = source.header, source.mask
     n = len(header.names)
     budget = options.memory_budget
-    bands = plan_bands(mask, band_pixels(budget, n))
     pixels = int(mask.sum())
+    bands = plan_bands(mask, executor.band_pixels(band_pixels(budget, n), pixels, options.method))
     store_bytes = n * (4 * pixels + (pixels + 7 * len(bands)) // 8)
     small = store_bytes <= IN_MEMORY_SHARE * budget
     in_memory = options.staging == "memory" or (options.staging == "auto" and small)

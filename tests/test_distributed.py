@@ -30,8 +30,9 @@ from ps_lab.reconstruct.pipeline import ReconstructOptions, reconstruct_to_folde
 
 TOLERANCE = 1e-6
 BUDGET = budget_for(60)  # about 10 bands of the 30 x 26 sphere
-# Entries of metrics.json that describe the run, not the result.
-RUN_ENTRIES = ("timings", "solve_seconds", "out", "threads")
+# Entries of metrics.json that describe the run, not the result (with a scheduler the bands are
+# cut finer when the method allows: results of LS, L1 and SBL do not depend on the band plan).
+RUN_ENTRIES = ("timings", "solve_seconds", "out", "threads", "streaming")
 
 
 @pytest.fixture(scope="module")
@@ -113,10 +114,23 @@ def test_cluster_result_equals_the_in_process_run(
         capture, tmp_path / "there", options.replace(scheduler=cluster.scheduler_address)
     )
     assert here.metrics["streaming"]["bands"] >= 8
+    if method == "rpca":  # fitted per band: the cluster keeps the in-process band plan
+        assert there.metrics["streaming"] == here.metrics["streaming"]
     assert_same_result(tmp_path / "here", tmp_path / "there")
     if refine:
         assert len(there.refinement_history) == refine + 1
     assert sorted(p.name for p in tmp_path.iterdir()) == ["here", "there"]  # no staging left
+
+
+def test_one_band_in_process_is_cut_for_the_workers(capture, cluster, tmp_path):
+    options = ReconstructOptions(method="sbl", refine_lights=1)  # 1 GB: one band here
+    here = reconstruct_to_folder(capture, tmp_path / "here", options)
+    there = reconstruct_to_folder(
+        capture, tmp_path / "there", options.replace(scheduler=cluster.scheduler_address)
+    )
+    assert here.metrics["streaming"]["bands"] == 1
+    assert there.metrics["streaming"]["bands"] >= 8  # 4 per worker
+    assert_same_result(tmp_path / "here", tmp_path / "there")
 
 
 def test_a_worker_killed_mid_run_changes_nothing(capture, cluster, client, tmp_path):
