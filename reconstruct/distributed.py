@@ -67,16 +67,38 @@ def connect(address: str, *, timeout: float | None = None) -> Iterator[Any]:
 
     """
     dask = require_dask()
+    with _quiet_dask():
+        try:
+            limit = {} if timeout is None else {"timeout": timeout}
+            client = dask.Client(address, set_as_default=False, **limit)
+        except (OSError, TimeoutError, ValueError, TypeError) as exc:
+            raise ClusterError(f"cannot reach the Dask scheduler at {address}: {exc}") from None
+        log.info("Dask scheduler %s, dashboard %s", address, client.dashboard_link)
+        try:
+            yield client
+        finally:
+            client.close()
+
+
+@contextmanager
+def _quiet_dask() -> Iterator[None]:
+    """Keep Dask's own log records (tracebacks of a lost connection) off the terminal.
+
+    What goes wrong reaches the user as one :class:`ClusterError` line; ``-vv`` shows them.
+    """
+    logger = logging.getLogger("distributed")
+    if logging.getLogger().isEnabledFor(logging.DEBUG):
+        yield
+        return
+    silent = logging.NullHandler()
+    propagate = logger.propagate
+    logger.addHandler(silent)
+    logger.propagate = False
     try:
-        limit = {} if timeout is None else {"timeout": timeout}
-        client = dask.Client(address, set_as_default=False, **limit)
-    except (OSError, TimeoutError, ValueError, TypeError) as exc:
-        raise ClusterError(f"cannot reach the Dask scheduler at {address}: {exc}") from None
-    log.info("Dask scheduler %s, dashboard %s", address, client.dashboard_link)
-    try:
-        yield client
+        yield
     finally:
-        client.close()
+        logger.propagate = propagate
+        logger.removeHandler(silent)
 
 
 @contextmanager
@@ -87,22 +109,15 @@ def local_cluster(workers: int) -> Iterator[Any]:
     free port (logged at ``-v``); worker logs are silenced (errors come back through the futures).
     """
     dask = require_dask()
-    cluster = dask.LocalCluster(
+    with _quiet_dask(), dask.LocalCluster(
         n_workers=workers,
         threads_per_worker=1,
         processes=True,
         dashboard_address=":0",
         silence_logs=logging.CRITICAL,
-    )
-    try:
-        client = dask.Client(cluster, set_as_default=False)
+    ) as cluster, dask.Client(cluster, set_as_default=False) as client:
         log.info("local Dask cluster of %d workers, dashboard %s", workers, client.dashboard_link)
-        try:
-            yield client
-        finally:
-            client.close()
-    finally:
-        cluster.close()
+        yield client
 
 
 def completed(

@@ -382,7 +382,7 @@ def _stage(
         len(bands),
         max(band.pixel_count for band in bands),
         store.nbytes / 1e9,
-        "memory" if in_memory else "a file",
+        "memory" if store.path is None else "a file",
     )
     return store
 
