@@ -61,7 +61,8 @@ class BatchRow:
 
 def result_folders(datasets: Sequence[Path], out_root: Path) -> list[Path]:
     """``out_root / <name>`` for each dataset; raises DatasetError if two names collide."""
-    outs = [Path(out_root) / Path(dataset).resolve().name for dataset in datasets]
+    # The name as given (a link keeps its own name), made absolute so that "." has one.
+    outs = [Path(out_root) / Path(os.path.abspath(dataset)).name for dataset in datasets]
     seen: dict[Path, Path] = {}
     for dataset, out in zip(datasets, outs, strict=True):
         if out in seen:
