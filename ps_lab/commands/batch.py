@@ -28,14 +28,17 @@ def batch(
         str | None,
         typer.Option(
             envvar="PS_LAB_SCHEDULER",
-            help="Dask scheduler address (tcp://host:8786) [default: a local cluster].",
+            help="Dask scheduler address (tcp://host:8786); without it, a local cluster.",
             show_default=False,
         ),
     ] = None,
     workers: Annotated[
         int | None,
-        typer.Option(min=1, help="Local worker processes without --scheduler [default: cores].",
-                     show_default=False),
+        typer.Option(
+            min=1,
+            help="Local worker processes without --scheduler (default: one per core).",
+            show_default=False,
+        ),
     ] = None,
     method: Annotated[
         Method, typer.Option(help="Solver: ls (Woodham), l1 (IRLS), sbl (robust, default), rpca.")
