@@ -144,6 +144,13 @@ def solve_band(
     return result
 
 
+def reduce_solution(index: int, solution: Solution, valid: np.ndarray) -> BandResult:
+    """A band's :class:`BandResult` for the writer from its solution and validity (n, P)."""
+    result = BandResult(index, dict(solution.params))
+    _reduce_for_writer(result, solution, valid)
+    return result
+
+
 def _reduce_for_writer(result: BandResult, solution: Solution, valid: np.ndarray) -> None:
     pixel_normals = np.asarray(solution.normals, dtype=np.float64)
     lengths = np.linalg.norm(pixel_normals, axis=1)

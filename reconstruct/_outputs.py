@@ -16,6 +16,7 @@ import numpy as np
 
 from ps_lab.errors import OutputError
 from ps_lab.io.lights import write_light_table
+from ps_lab.reconstruct._bands import reduce_solution
 from ps_lab.reconstruct.metrics import angular_errors_deg
 
 # Angular errors are summarised from a histogram of this bin width (degrees): median and p90 are
@@ -165,8 +166,15 @@ class _OutputWriter:
         rows.flush()
         del rows  # unmapped at once: written pages do not stay in the resident set
 
-    def add(self, band, result) -> None:
-        """Write a band's rows from its :class:`ps_lab.reconstruct._bands.BandResult`."""
+    def add(self, band, result, valid: np.ndarray | None = None) -> None:
+        """Write a band's rows from its :class:`ps_lab.reconstruct._bands.BandResult`.
+
+        A :class:`ps_lab.reconstruct.Solution` with its ``valid`` (n, P) is reduced here first
+        (:func:`ps_lab.reconstruct._bands.reduce_solution`), for callers that solve bands
+        themselves.
+        """
+        if valid is not None:
+            result = reduce_solution(band.index, result, valid)
         rows = slice(band.row_start, band.row_stop)
         inside = self.mask[rows]
         height, width = inside.shape
