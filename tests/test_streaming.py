@@ -17,7 +17,7 @@ from ps_lab.cli import app
 from ps_lab.errors import DatasetError
 from ps_lab.io.bands import ObservationStore, plan_bands, stage_observations
 from ps_lab.io.dataset import load_dataset, open_dataset
-from ps_lab.reconstruct import _bands
+from ps_lab.reconstruct import _bands, _outputs
 from ps_lab.reconstruct.pipeline import (
     OutputError,
     ReconstructOptions,
@@ -342,3 +342,23 @@ def test_rpca_bands_share_the_whole_image_noise_level(capture, tmp_path):
     assert single["parameters"]["noise_sigma"] > 0
     errors = banded["angular_error_deg"]
     assert errors["mean"] == pytest.approx(single["angular_error_deg"]["mean"], rel=0.25)
+
+
+def test_writer_takes_a_solution_or_its_band_result(capture, tmp_path):
+    header = open_dataset(capture)
+    mask = header.read_mask()
+    bands = plan_bands(mask, 10_000)
+    store = stage_observations(header, mask, bands, in_memory=True)
+    with store:
+        observations, valid = store.read(bands[0])
+    solution = solvers.solve(observations, header.light_directions, method="l1", valid=valid)
+    written = {}
+    for name, args in (("solution", (solution, valid)),
+                       ("result", (_bands.reduce_solution(0, solution, valid),))):  # fmt: skip
+        folder = tmp_path / name
+        folder.mkdir()
+        writer = _outputs._OutputWriter(folder, mask, None, len(header.names))
+        writer.add(bands[0], *args)
+        written[name] = (np.load(folder / "normals.npy"), writer.iterations, writer.outlier_count)
+    a, b = written["solution"], written["result"]
+    assert np.array_equal(a[0], b[0]) and np.array_equal(a[1], b[1]) and a[2] == b[2]
