@@ -76,7 +76,7 @@ def reconstruct(
         typer.Option(
             envvar="PS_LAB_SCHEDULER",
             help="Dask scheduler address (tcp://host:8786): solve the row bands on its workers "
-            "(dataset and output on a shared filesystem; pip install 'ps-lab[distributed]').",
+            "(dataset and output on a shared filesystem; needs the 'distributed' extra).",
             show_default=False,
         ),
     ] = None,
