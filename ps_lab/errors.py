@@ -23,3 +23,7 @@ class DatasetError(PsLabError):
 
 class OutputError(PsLabError):
     """An output folder cannot be written or would overwrite something that is not a result."""
+
+
+class ClusterError(PsLabError):
+    """A Dask cluster is unusable: Dask not installed, no scheduler at the address, or lost."""

@@ -16,6 +16,7 @@ import numpy as np
 
 from ps_lab.errors import OutputError
 from ps_lab.io.lights import write_light_table
+from ps_lab.reconstruct._bands import reduce_solution
 from ps_lab.reconstruct.metrics import angular_errors_deg
 
 # Angular errors are summarised from a histogram of this bin width (degrees): median and p90 are
@@ -165,41 +166,42 @@ class _OutputWriter:
         rows.flush()
         del rows  # unmapped at once: written pages do not stay in the resident set
 
-    def add(self, band, solution, valid: np.ndarray) -> None:
+    def add(self, band, result, valid: np.ndarray | None = None) -> None:
+        """Write a band's rows from its :class:`ps_lab.reconstruct._bands.BandResult`.
+
+        A :class:`ps_lab.reconstruct.Solution` with its ``valid`` (n, P) is reduced here first
+        (:func:`ps_lab.reconstruct._bands.reduce_solution`), for callers that solve bands
+        themselves.
+        """
+        if valid is not None:
+            result = reduce_solution(band.index, result, valid)
         rows = slice(band.row_start, band.row_stop)
         inside = self.mask[rows]
         height, width = inside.shape
-        pixel_normals = np.asarray(solution.normals, dtype=np.float64)
-        lengths = np.linalg.norm(pixel_normals, axis=1)
-        solved = np.isfinite(lengths) & (lengths > 0.5)
-        unit = np.zeros_like(pixel_normals)
-        unit[solved] = pixel_normals[solved] / lengths[solved, None]
         normals = np.zeros((height, width, 3), np.float32)
-        normals[inside] = unit
+        normals[inside] = result.normals
         albedo = np.zeros((height, width), np.float32)
-        pixel_albedo = np.nan_to_num(np.asarray(solution.albedo, np.float64))
-        albedo[inside] = np.where(solved, pixel_albedo, 0.0)
-        outliers = np.asarray(solution.outliers, dtype=bool)
-        used = valid.sum(axis=0)
+        albedo[inside] = result.albedo
         corruption = np.zeros((height, width), np.float32)
-        corruption[inside] = outliers.sum(axis=0) / np.maximum(used, 1)
+        corruption[inside] = result.corruption
         solved_map = np.zeros((height, width), bool)
-        solved_map[inside] = solved
+        solved_map[inside] = result.solved
         self._write_rows("normals", band.row_start, normals)
         self._write_rows("albedo", band.row_start, albedo)
         self.normal_png[rows] = normal_picture(normals, solved_map)
         self.corruption_png[rows] = corruption_picture(corruption)
         self.albedo_values[band.pixel_start : band.pixel_start + band.pixel_count] = albedo[inside]
-        counts = np.bincount(np.asarray(solution.iterations, np.int64))
+        counts = result.iteration_counts
         if counts.size > self.iterations.size:
+            counts = counts.copy()
             counts[: self.iterations.size] += self.iterations
             self.iterations = counts
         else:
             self.iterations[: counts.size] += counts
-        self.valid_count += int(used.sum())
-        self.observation_count += valid.size
-        self.outlier_count += int(outliers.sum())
-        self.solved_count += int(solved.sum())
+        self.valid_count += result.valid_count
+        self.observation_count += result.observation_count
+        self.outlier_count += result.outlier_count
+        self.solved_count += int(result.solved.sum())
         if self.truth is not None:
             gt = self.truth.rows(band.row_start, band.row_stop)
             pixels = solved_map & inside & (np.linalg.norm(gt, axis=2) > 0.5)

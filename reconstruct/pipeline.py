@@ -36,10 +36,11 @@ import numpy as np
 
 from ps_lab.errors import DatasetError, OutputError
 from ps_lab.geometry import scene_points
-from ps_lab.io.bands import ObservationStore, plan_bands, stage_observations
+from ps_lab.io.bands import ObservationStore, plan_bands
 from ps_lab.io.dataset import DatasetHeader, open_dataset
 from ps_lab.io.files import json_safe, staged_folder
 from ps_lab.io.truth import open_normal_gt
+from ps_lab.reconstruct._bands import BandResult, LocalBands
 from ps_lab.reconstruct._outputs import (
     ERROR_BIN_DEG,
     _Histogram,
@@ -49,10 +50,8 @@ from ps_lab.reconstruct._outputs import (
     normal_picture,
     write_png,
 )
-from ps_lab.reconstruct._refine import fit_lights, light_fit_sums
-from ps_lab.reconstruct._solution import Solution
-from ps_lab.reconstruct._solve import estimate_noise, solve
-from ps_lab.reconstruct.metrics import angular_errors_deg
+from ps_lab.reconstruct._refine import fit_lights
+from ps_lab.reconstruct._solve import estimate_noise
 from ps_lab.reconstruct.near import (
     NearLights,
     NearRounds,
@@ -157,6 +156,10 @@ class ReconstructOptions:
         (LEDs at a finite distance, alternating normals and depth; :mod:`ps_lab.reconstruct.near`),
         ``directional`` with ``light_directions.txt`` alone; ``auto`` is near when the dataset
         has ``light_positions.txt``.
+    scheduler : str or None
+        Address of a Dask scheduler (``tcp://host:8786``): the frames are staged and the bands
+        solved as tasks on its workers (:mod:`ps_lab.reconstruct.distributed`; the dataset and
+        the output folder must be on a filesystem the workers share). None: in this process.
     """
 
     method: str = "sbl"
@@ -168,6 +171,7 @@ class ReconstructOptions:
     memory_budget: int = DEFAULT_MEMORY_BUDGET
     staging: str = "auto"
     lights: str = "auto"
+    scheduler: str | None = None
 
     def __post_init__(self) -> None:
         if self.staging not in STAGING:
@@ -322,13 +326,15 @@ def reconstruct_to_folder(
     started = time.perf_counter()
     timings: dict[str, float] = {}
     source = _read(dataset, options)
-    with staged_folder(out, check=check_output_folder, error=OutputError) as stage:
-        store = _stage(source, options, stage, bars)
+    with _band_executor(options) as executor, staged_folder(
+        out, check=check_output_folder, error=OutputError
+    ) as stage:
+        store = _stage(source, options, stage, bars, executor)
         timings["read_seconds"] = time.perf_counter() - started
         with store:
             writer = _OutputWriter(stage, store.mask, source.truth, store.n_lights)
             if source.near is None:
-                solved = _solve_bands(store, source, options, writer, bars)
+                solved = _solve_bands(store, source, options, writer, bars, executor)
             else:
                 solved = _solve_near_bands(store, source, options, writer, bars, stage)
             timings["solve_seconds"] = solved.seconds
@@ -365,12 +371,32 @@ def _near_lights(header: DatasetHeader, options: ReconstructOptions) -> NearLigh
         )
     if options.method == "rpca":
         raise DatasetError("rpca needs one light matrix for all pixels: add --lights directional")
+    if options.scheduler is not None:
+        raise DatasetError("--scheduler solves directional lights only: add --lights directional")
     n = len(header.names)
     anisotropy = header.light_anisotropy if header.light_anisotropy is not None else np.zeros(n)
     return NearLights(positions, header.light_directions, anisotropy)
 
 
-def _stage(source: _Input, options: ReconstructOptions, stage: Path, bars) -> ObservationStore:
+@contextmanager
+def _band_executor(options: ReconstructOptions) -> Iterator[Any]:
+    """The executor of the band work: this process, or the Dask cluster ``options.scheduler``.
+
+    The one place that loads :mod:`ps_lab.reconstruct.distributed` (and so Dask): a run without
+    a scheduler never imports it.
+    """
+    if options.scheduler is None:
+        yield LocalBands(options.threads)
+        return
+    from ps_lab.reconstruct import distributed
+
+    with distributed.connect(options.scheduler) as client:
+        yield distributed.DaskBands(client)
+
+
+def _stage(
+    source: _Input, options: ReconstructOptions, stage: Path, bars, executor
+) -> ObservationStore:
     """Stage 2: decode every frame once into a row-band store (in memory or a file in ``stage``)."""
     started = time.perf_counter()
     header, mask = source.header, source.mask
@@ -378,13 +404,14 @@ def _stage(source: _Input, options: ReconstructOptions, stage: Path, bars) -> Ob
     budget = options.memory_budget
     extra = 0 if source.near is None else NEAR_BYTES_PER_OBSERVATION // BYTES_PER_OBSERVATION
     per_light = n * (1 + extra)
-    bands = plan_bands(mask, band_pixels(budget, per_light))
     pixels = int(mask.sum())
+    limit = executor.band_pixels(band_pixels(budget, per_light), pixels, options.method)
+    bands = plan_bands(mask, limit)
     store_bytes = n * (4 * pixels + (pixels + 7 * len(bands)) // 8)
     small = store_bytes <= IN_MEMORY_SHARE * budget
     in_memory = options.staging == "memory" or (options.staging == "auto" and small)
     with bars(n, "reading images") as advance:
-        store = stage_observations(
+        store = executor.stage(
             header,
             mask,
             bands,
@@ -406,7 +433,7 @@ def _stage(source: _Input, options: ReconstructOptions, stage: Path, bars) -> Ob
         len(bands),
         max(band.pixel_count for band in bands),
         store.nbytes / 1e9,
-        "memory" if in_memory else "a file",
+        "memory" if store.path is None else "a file",
     )
     return store
 
@@ -424,6 +451,7 @@ def _solve_bands(
     options: ReconstructOptions,
     writer: _OutputWriter,
     bars: ProgressBars,
+    executor,
 ) -> _Solved:
     """Stage 3: K + 1 solve passes over the bands (K = ``options.refine_lights``).
 
@@ -444,6 +472,8 @@ def _solve_bands(
             final = k == refine
             result = _solve_pass(
                 store,
+                source.header,
+                executor,
                 directions * factor[:, None],
                 options,
                 truth=source.truth if refine else None,
@@ -642,6 +672,8 @@ def _whole_image_parameters(store: ObservationStore, vectors: np.ndarray, method
 
 def _solve_pass(
     store: ObservationStore,
+    header: DatasetHeader,
+    executor,
     vectors: np.ndarray,
     options: ReconstructOptions,
     *,
@@ -651,42 +683,31 @@ def _solve_pass(
     advance: Callable[..., None],
     label: str,
 ) -> _PassResult:
-    """Solve every band once with the light vectors ``vectors`` (n, 3)."""
+    """Solve every band once with the light vectors ``vectors`` (n, 3), on ``executor``.
+
+    Band results may arrive in any order (Dask); the writer takes them as they come, and the
+    parameters, error sums and refinement sums are combined in band order, as one process would.
+    """
     fixed = _whole_image_parameters(store, vectors, options.method)
-    n = store.n_lights
-    result = _PassResult(params={})
-    if fit:
-        result.normal_matrices = np.zeros((n, 6))
-        result.normal_targets = np.zeros((n, 3))
     count = len(store.bands)
     started = time.perf_counter()
-    for band in store.bands:
-        if band.pixel_count == 0:
-            continue
-        advance(0, description=f"{label}: band {band.index + 1}/{count}")
-        observations, valid = store.read(band)
-        solution = solve(
-            observations,
-            vectors,
-            method=options.method,
-            valid=valid,
-            threads=options.threads,
-            progress=advance,
-            **fixed,
-            **options.solver_parameters(),
-        )
-        if not result.params:
-            result.params = dict(solution.params)
+    done: dict[int, BandResult] = {}
+    for band_result in executor.solve(
+        store,
+        header,
+        vectors,
+        method=options.method,
+        parameters={**fixed, **options.solver_parameters()},
+        final=writer is not None,
+        truth=truth,
+        advance=advance,
+        label=label,
+    ):
+        band = store.bands[band_result.index]
         if writer is not None:
-            writer.add(band, solution, valid)
-        if truth is not None:
-            rows = slice(band.row_start, band.row_stop)
-            gt = truth.rows(band.row_start, band.row_stop)[store.mask[rows]]
-            result.all_have_truth &= bool(np.all(np.linalg.norm(gt, axis=1) > 0.5))
-            result.error_sum += float(angular_errors_deg(solution.normals, gt).sum())
-        if fit:
-            _accumulate_fit(result, observations, valid, solution)
-        del observations, valid, solution
+            writer.add(band, band_result)
+            band_result.normals = band_result.albedo = band_result.corruption = None
+        done[band.index] = band_result
         log.info(
             "%s: band %d/%d done (%d pixels, %.1f s since the pass began)",
             label,
@@ -695,26 +716,22 @@ def _solve_pass(
             band.pixel_count,
             time.perf_counter() - started,
         )
+    return _combine(done, store.n_lights, fit)
+
+
+def _combine(done: dict[int, BandResult], n: int, fit: bool) -> _PassResult:
+    """Add up a pass's band results in band order (the order of a single-process run)."""
+    ordered = [done[index] for index in sorted(done)]
+    result = _PassResult(params=dict(ordered[0].params) if ordered else {})
+    if fit:
+        result.normal_matrices = np.zeros((n, 6))
+        result.normal_targets = np.zeros((n, 3))
+    for band_result in ordered:
+        result.all_have_truth &= band_result.all_have_truth
+        result.error_sum += band_result.error_sum
+        for matrices, targets, inliers, usable in band_result.fit_sums if fit else ():
+            result.normal_matrices += matrices
+            result.normal_targets += targets
+            result.inliers += inliers
+            result.usable += usable
     return result
-
-
-def _accumulate_fit(result: _PassResult, observations, valid, solution, chunk: int = 65536) -> None:
-    """Add one band's per-light least-squares sums (:func:`ps_lab.reconstruct.light_fit_sums`).
-
-    The sums add over pixels; taking the band in chunks of pixels bounds the float64 copies.
-    """
-    for a in range(0, observations.shape[1], chunk):
-        b = min(a + chunk, observations.shape[1])
-        part = Solution(
-            solution.normals[a:b],
-            solution.albedo[a:b],
-            solution.outliers[:, a:b],
-            solution.iterations[a:b],
-        )
-        normal_matrices, normal_targets, used = light_fit_sums(
-            observations[:, a:b], valid[:, a:b], part
-        )
-        result.normal_matrices += normal_matrices
-        result.normal_targets += normal_targets
-        result.inliers += used
-        result.usable += int((valid[:, a:b] & np.isfinite(observations[:, a:b])).sum())

@@ -14,7 +14,7 @@ from ps_lab import render
 from ps_lab.cli import app
 from ps_lab.errors import DatasetError
 from ps_lab.io import dng
-from ps_lab.reconstruct import pipeline
+from ps_lab.reconstruct import _bands
 
 runner = CliRunner()
 SHAPE = (24, 24)
@@ -168,7 +168,7 @@ def test_failed_solve_leaves_no_partial_output(tmp_path, monkeypatch):
         progress(observations.shape[1] // 2)
         raise DatasetError("solver blew up half way")
 
-    monkeypatch.setattr(pipeline, "solve", broken_solve)
+    monkeypatch.setattr(_bands, "solve", broken_solve)
     result = invoke(tmp_path / "d", "--method", "ls", "--out", out)
     assert result.exit_code == 2 and "blew up" in result.output
     assert tree(tmp_path) == before
@@ -179,7 +179,7 @@ def test_failed_rerun_keeps_the_previous_result(tmp_path, monkeypatch):
     assert invoke(tmp_path / "d", "--method", "ls").exit_code == 0
     before = tree(tmp_path)
     monkeypatch.setattr(
-        pipeline, "solve", lambda *a, **k: (_ for _ in ()).throw(DatasetError("boom"))
+        _bands, "solve", lambda *a, **k: (_ for _ in ()).throw(DatasetError("boom"))
     )
     assert invoke(tmp_path / "d", "--method", "ls").exit_code == 2
     assert tree(tmp_path) == before

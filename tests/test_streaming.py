@@ -9,18 +9,16 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
+from helpers.captures import SHAPE, budget_for, write_capture
 from typer.testing import CliRunner
 
 from ps_lab import reconstruct as solvers
-from ps_lab import render
 from ps_lab.cli import app
 from ps_lab.errors import DatasetError
 from ps_lab.io.bands import ObservationStore, plan_bands, stage_observations
 from ps_lab.io.dataset import load_dataset, open_dataset
-from ps_lab.reconstruct import pipeline
+from ps_lab.reconstruct import _bands, _outputs
 from ps_lab.reconstruct.pipeline import (
-    BYTES_PER_OBSERVATION,
-    BYTES_PER_PIXEL,
     OutputError,
     ReconstructOptions,
     _Histogram,
@@ -28,45 +26,12 @@ from ps_lab.reconstruct.pipeline import (
     reconstruct_to_folder,
 )
 
-SHAPE = (30, 26)
-N_LIGHTS = 12
-
-
-def write_capture(folder: Path, *, seed: int = 0, colour: bool = False, n: int = N_LIGHTS) -> dict:
-    """A rendered glossy sphere as 16-bit PNGs with lights, intensities, dark, mask and truth."""
-    rng = np.random.default_rng(seed)
-    folder.mkdir(parents=True)
-    surface = render.sphere_surface(SHAPE, albedo=(0.8, 0.6, 0.4) if colour else 0.7)
-    lights = render.random_light_directions(n, rng)
-    images = render.render(surface, lights, specular=0.4, noise_sigma=0.002, rng=rng)
-    scale = 0.8 / float(images.max())
-    dark = rng.uniform(0.0, 0.01, images.shape[1:]).astype(np.float32)
-    for i, image in enumerate(images):
-        counts = np.clip(np.rint((image * scale + dark) * 65535), 0, 65535).astype(np.uint16)
-        if counts.ndim == 3:
-            counts = np.ascontiguousarray(counts[..., ::-1])
-        assert cv2.imwrite(str(folder / f"{i:03d}.png"), counts)
-    dark_counts = np.rint(dark * 65535).astype(np.uint16)
-    if dark_counts.ndim == 3:
-        dark_counts = np.ascontiguousarray(dark_counts[..., ::-1])
-    cv2.imwrite(str(folder / "dark.png"), dark_counts)
-    np.savetxt(folder / "light_directions.txt", lights)
-    np.savetxt(folder / "light_intensities.txt", rng.uniform(0.8, 1.2, (n, 3)))
-    cv2.imwrite(str(folder / "mask.png"), surface.mask.astype(np.uint8) * 255)
-    np.save(folder / "normal_gt.npy", surface.normals)
-    return {"surface": surface, "lights": lights}
-
 
 @pytest.fixture(scope="module")
 def capture(tmp_path_factory) -> Path:
     folder = tmp_path_factory.mktemp("streaming") / "sphere"
     write_capture(folder)
     return folder
-
-
-def budget_for(rows_of_pixels: int, n: int = N_LIGHTS) -> int:
-    """A memory budget whose bands hold about this many mask pixels."""
-    return rows_of_pixels * (n * BYTES_PER_OBSERVATION + BYTES_PER_PIXEL)
 
 
 # --- band plan and staging store ---------------------------------------------------------------
@@ -283,7 +248,7 @@ def test_staging_removed_after_success(capture, tmp_path, monkeypatch):
         seen.extend(p.name for p in out.parent.rglob("ps-lab-observations-*"))
         return original(observations, *args, **kwargs)
 
-    monkeypatch.setattr(pipeline, "solve", spy)
+    monkeypatch.setattr(_bands, "solve", spy)
     run(capture, out, method="ls", memory_budget=budget_for(50), staging="file")
     assert seen  # the store was a file in the staged output folder while solving
     assert listing(tmp_path / "results") == {
@@ -307,7 +272,7 @@ def test_staging_removed_after_failure(capture, tmp_path, monkeypatch, staging):
         return original(observations, *args, progress=progress, **kwargs)
 
     original = solvers.solve
-    monkeypatch.setattr(pipeline, "solve", failing_solve)
+    monkeypatch.setattr(_bands, "solve", failing_solve)
     with pytest.raises(DatasetError, match="band 3"):
         run(capture, out, method="ls", memory_budget=budget_for(60), staging=staging)
     assert len(calls) == 3
@@ -377,3 +342,23 @@ def test_rpca_bands_share_the_whole_image_noise_level(capture, tmp_path):
     assert single["parameters"]["noise_sigma"] > 0
     errors = banded["angular_error_deg"]
     assert errors["mean"] == pytest.approx(single["angular_error_deg"]["mean"], rel=0.25)
+
+
+def test_writer_takes_a_solution_or_its_band_result(capture, tmp_path):
+    header = open_dataset(capture)
+    mask = header.read_mask()
+    bands = plan_bands(mask, 10_000)
+    store = stage_observations(header, mask, bands, in_memory=True)
+    with store:
+        observations, valid = store.read(bands[0])
+    solution = solvers.solve(observations, header.light_directions, method="l1", valid=valid)
+    written = {}
+    for name, args in (("solution", (solution, valid)),
+                       ("result", (_bands.reduce_solution(0, solution, valid),))):  # fmt: skip
+        folder = tmp_path / name
+        folder.mkdir()
+        writer = _outputs._OutputWriter(folder, mask, None, len(header.names))
+        writer.add(bands[0], *args)
+        written[name] = (np.load(folder / "normals.npy"), writer.iterations, writer.outlier_count)
+    a, b = written["solution"], written["result"]
+    assert np.array_equal(a[0], b[0]) and np.array_equal(a[1], b[1]) and a[2] == b[2]

@@ -86,6 +86,15 @@ def reconstruct(
             "directional: light_directions.txt only; auto: near when light_positions.txt exists."
         ),
     ] = Lights.auto,
+    scheduler: Annotated[
+        str | None,
+        typer.Option(
+            envvar="PS_LAB_SCHEDULER",
+            help="Dask scheduler address (tcp://host:8786): solve the row bands on its workers "
+            "(dataset and output on a shared filesystem; needs the 'distributed' extra).",
+            show_default=False,
+        ),
+    ] = None,
 ) -> None:
     """Estimate surface normals and albedo; write normals.npy, normal.png, albedo, metrics.json."""
     out = out if out is not None else dataset / "recon" / method.value
@@ -98,6 +107,7 @@ def reconstruct(
         fixed_intensities=fixed_intensities,
         memory_budget=parse_memory_size(memory_budget),
         lights=lights.value,
+        scheduler=scheduler,
     )
     metrics = reconstruct_to_folder(dataset, out, options, progress_bars=_terminal_bars).metrics
     typer.echo(

@@ -117,6 +117,7 @@ class ObservationStore:
         folder: Path | None = None,
         in_memory: bool = False,
         sample_pixels: int = 20000,
+        path: Path | None = None,
     ) -> None:
         self.bands = bands
         self.n_lights = n_lights
@@ -132,13 +133,26 @@ class ObservationStore:
             offset += n_lights * _packed_size(band.pixel_count)
         self.nbytes = offset
         self.path: Path | None = None
-        if in_memory:
+        self._owned = path is None
+        if path is not None:
+            # Another process's store (a worker of ps-lab reconstruct --scheduler): opened for
+            # update, never created, so a late task cannot recreate a store already removed.
+            self.path = Path(path)
+            try:
+                self._stream = open(self.path, "r+b")  # noqa: SIM115 - closed by close()
+            except OSError as exc:
+                raise DatasetError(
+                    f"{self.path}: cannot open the staging file ({exc.strerror}); "
+                    "workers need the output folder on a filesystem they share"
+                ) from None
+        elif in_memory:
             self._stream = io.BytesIO()
         else:
             handle, name = tempfile.mkstemp(
                 prefix="ps-lab-observations-", suffix=".bin", dir=folder
             )
             self.path = Path(name)
+            os.ftruncate(handle, self.nbytes)  # full size: other processes may fill any band
             self._stream = os.fdopen(handle, "w+b")
         # The noise sample: the same pixels the solvers would pick among all mask pixels.
         p = self.pixels
@@ -154,9 +168,9 @@ class ObservationStore:
         self.close()
 
     def close(self) -> None:
-        """Release the backing buffer and delete the backing file."""
+        """Release the backing buffer and delete the backing file (when this store made it)."""
         self._stream.close()
-        if self.path is not None:
+        if self.path is not None and self._owned:
             self.path.unlink(missing_ok=True)
 
     def write(self, light: int, band: Band, observations: np.ndarray, valid: np.ndarray) -> None:
@@ -171,6 +185,13 @@ class ObservationStore:
         local = self.sample_index[lo:hi] - band.pixel_start
         self.sample_observations[light, lo:hi] = observations[local]
         self.sample_valid[light, lo:hi] = valid[local]
+
+    def write_frame(self, light: int, observations: np.ndarray, valid: np.ndarray) -> None:
+        """Store one light's observations and validity, both (H, W), band by band (mask pixels)."""
+        for band in self.bands:
+            rows = slice(band.row_start, band.row_stop)
+            inside = self.mask[rows]
+            self.write(light, band, observations[rows][inside], valid[rows][inside])
 
     def read(self, band: Band) -> tuple[np.ndarray, np.ndarray]:
         """One band's observations (n, P_band) float32 and validity (n, P_band) bool."""
@@ -251,27 +272,75 @@ def stage_observations(
         in_memory=in_memory,
         sample_pixels=sample_pixels,
     )
-    height, width = mask.shape
     try:
-        for i, (frame, clipped) in enumerate(iter_frames(header.plan)):
-            if frame.shape[:2] != (height, width):
-                file = header.plan.light_files[i][0]
-                raise DatasetError(
-                    f"{file}: image size {frame.shape[1]}x{frame.shape[0]} differs from the "
-                    f"first image ({width}x{height})"
-                )
-            observations, valid = observe(
-                frame, clipped, header.light_intensities[i], channel, shadow_threshold
-            )
-            del frame, clipped
-            for band in bands:
-                rows = slice(band.row_start, band.row_stop)
-                inside = mask[rows]
-                store.write(i, band, observations[rows][inside], valid[rows][inside])
-            del observations, valid
-            if progress is not None:
-                progress(1)
+        _stage_frames(store, header, iter_frames(header.plan), channel, shadow_threshold, progress)
     except BaseException:
         store.close()
         raise
     return store
+
+
+def stage_lights(
+    header: DatasetHeader,
+    mask: np.ndarray,
+    bands: list[Band],
+    lights: list[int],
+    path: Path,
+    *,
+    common_exposure: float | None,
+    channel: str = "mean",
+    shadow_threshold: float | None = None,
+    sample_pixels: int = 20000,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Stage some lights into an existing store file (one task of a distributed pass 1).
+
+    The frames are read as :func:`stage_observations` reads them (same bits) and written into
+    the file another process created with :class:`ObservationStore` (``path``); lights go to
+    disjoint parts of the file, so several processes can stage at once, and staging a light twice
+    writes the same bytes.
+
+    Parameters
+    ----------
+    header, mask, bands, channel, shadow_threshold, sample_pixels
+        As for :func:`stage_observations` (the same values as the process that made the store).
+    lights : list of int
+        Light indices to stage.
+    path : Path
+        The store file.
+    common_exposure : float or None
+        :func:`ps_lab.io.dataset.reference_exposure` of the plan, found once by the caller.
+
+    Returns
+    -------
+    sample_observations : ndarray of shape (len(lights), m), float32
+    sample_valid : ndarray of shape (len(lights), m), bool
+        These lights' rows of the store's noise sample.
+
+    """
+    frames = iter_frames(header.plan, lights, common_exposure=common_exposure)
+    with ObservationStore(
+        bands, len(header.names), mask, sample_pixels=sample_pixels, path=path
+    ) as store:
+        _stage_frames(store, header, frames, channel, shadow_threshold, None, lights)
+        return store.sample_observations[lights], store.sample_valid[lights]
+
+
+def _stage_frames(store, header, frames, channel, shadow_threshold, progress, lights=None) -> None:
+    """Observe each frame of ``frames`` (lights ``lights``, default all) and store it."""
+    height, width = store.shape
+    indices = range(store.n_lights) if lights is None else lights
+    for i, (frame, clipped) in zip(indices, frames, strict=True):
+        if frame.shape[:2] != (height, width):
+            file = header.plan.light_files[i][0]
+            raise DatasetError(
+                f"{file}: image size {frame.shape[1]}x{frame.shape[0]} differs from the "
+                f"first image ({width}x{height})"
+            )
+        observations, valid = observe(
+            frame, clipped, header.light_intensities[i], channel, shadow_threshold
+        )
+        del frame, clipped
+        store.write_frame(i, observations, valid)
+        del observations, valid
+        if progress is not None:
+            progress(1)

@@ -23,7 +23,7 @@ tables are read and written by :mod:`ps_lab.io.lights`; the run format is :mod:`
 from __future__ import annotations
 
 import logging
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -33,6 +33,7 @@ import numpy as np
 from ps_lab.errors import DatasetError
 from ps_lab.io.frames import FramePlan, is_capture_run, plan_frames
 from ps_lab.io.images import (
+    RAW_SUFFIXES,
     Image,
     read_image,
     read_image_size,
@@ -151,8 +152,23 @@ def load_frames(path: Path) -> Frames:
     )
 
 
-def iter_frames(plan: FramePlan) -> Iterator[tuple[np.ndarray, np.ndarray]]:
+def iter_frames(
+    plan: FramePlan,
+    lights: Sequence[int] | None = None,
+    *,
+    common_exposure: float | None | str = "first light",
+) -> Iterator[tuple[np.ndarray, np.ndarray]]:
     """Yield each light's frame in light order, one at a time (bounded memory).
+
+    Parameters
+    ----------
+    plan : FramePlan
+        The dataset's frame files.
+    lights : sequence of int or None
+        Indices of the lights to read (default: all, in order).
+    common_exposure : float or None or "first light"
+        The exposure frames are scaled to; by default :func:`reference_exposure` (the first
+        light's). A process reading some of the lights passes the value found once for all.
 
     Yields
     ------
@@ -177,32 +193,80 @@ def iter_frames(plan: FramePlan) -> Iterator[tuple[np.ndarray, np.ndarray]]:
     dark, dark_exposure = None, None
     if plan.dark_files:
         dark, dark_exposure = _average_dark(plan, read_checked)
+    if common_exposure == "first light":
+        common_exposure = reference_exposure(plan, read_checked)
+    for i in range(len(plan.light_files)) if lights is None else lights:
+        yield read_light_frame(plan, i, common_exposure, dark, dark_exposure, read_checked)
 
-    # A frame's exposure is the manifest's, else the file's own (RAW metadata); frames are scaled
-    # only when both exposures are known.
-    common_exposure: float | None = None
-    for i, (files, exposures) in enumerate(
-        zip(plan.light_files, plan.light_exposures, strict=True)
-    ):
-        total: np.ndarray | None = None
-        clipped: np.ndarray | None = None
-        for file, exposure in zip(files, exposures, strict=True):
-            image = read_checked(file)
-            exposure = exposure if exposure is not None else image.exposure_s
-            if i == 0 and common_exposure is None:
-                common_exposure = exposure
-            data = image.data
-            if dark is not None:
-                data = data - dark * np.float32(_ratio(exposure, dark_exposure))
-            gain = _ratio(common_exposure, exposure)
-            if gain != 1.0:
-                data = data * np.float32(gain)
-            total = data if total is None else total + data
-            clipped = image.saturated if clipped is None else clipped | image.saturated
-        assert total is not None and clipped is not None
-        if len(files) > 1:
-            total = total / np.float32(len(files))
-        yield total, clipped
+
+def reference_exposure(plan: FramePlan, read: Callable[[Path], Image] = read_image) -> float | None:
+    """The exposure every frame is scaled to: the first known exposure among light 1's repeats.
+
+    A frame's exposure is the manifest's, else the file's own (RAW metadata, so only RAW files are
+    read here); None when no exposure is known (frames are then not scaled).
+    """
+    for file, exposure in zip(plan.light_files[0], plan.light_exposures[0], strict=True):
+        if exposure is None and file.suffix.lower() in RAW_SUFFIXES:
+            exposure = read(file).exposure_s
+        if exposure is not None:
+            return exposure
+    return None
+
+
+def read_light_frame(
+    plan: FramePlan,
+    light: int,
+    common_exposure: float | None,
+    dark: np.ndarray | None,
+    dark_exposure: float | None,
+    read: Callable[[Path], Image] = read_image,
+) -> tuple[np.ndarray, np.ndarray]:
+    """One light's frame: repeats averaged, dark frame subtracted, scaled to ``common_exposure``.
+
+    What :func:`iter_frames` yields for that light, bit for bit, so that the frames of a capture
+    can be read in any order and by several processes (``ps-lab reconstruct --scheduler``).
+
+    Parameters
+    ----------
+    plan : FramePlan
+        The dataset's frame files.
+    light : int
+        Index of the light (0-based, light order).
+    common_exposure : float or None
+        From :func:`reference_exposure`.
+    dark : ndarray of shape (H, W, C), float32, or None
+        The averaged dark frame (:func:`_average_dark`).
+    dark_exposure : float or None
+        Its exposure.
+    read : callable
+        ``read(path) -> Image`` (:func:`ps_lab.io.images.read_image`, or one that also checks the
+        geometry).
+
+    Returns
+    -------
+    image : ndarray of shape (H, W, C), float32
+    saturated : ndarray of shape (H, W), bool
+        Saturated in any repeat.
+
+    """
+    total: np.ndarray | None = None
+    clipped: np.ndarray | None = None
+    files = plan.light_files[light]
+    for file, exposure in zip(files, plan.light_exposures[light], strict=True):
+        image = read(file)
+        exposure = exposure if exposure is not None else image.exposure_s
+        data = image.data
+        if dark is not None:
+            data = data - dark * np.float32(_ratio(exposure, dark_exposure))
+        gain = _ratio(common_exposure, exposure)
+        if gain != 1.0:
+            data = data * np.float32(gain)
+        total = data if total is None else total + data
+        clipped = image.saturated if clipped is None else clipped | image.saturated
+    assert total is not None and clipped is not None
+    if len(files) > 1:
+        total = total / np.float32(len(files))
+    return total, clipped
 
 
 def load_dataset(

@@ -1,0 +1,88 @@
+"""`ps-lab batch`: many datasets on a Dask cluster, one result folder each, and a summary."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Annotated
+
+import typer
+
+from ps_lab._cli_util import fail, lab_command
+from ps_lab.commands.reconstruct import Channel, Method, _terminal_bars
+from ps_lab.reconstruct.batch import run_batch, summary_table
+from ps_lab.reconstruct.pipeline import ReconstructOptions, parse_memory_size
+
+
+@lab_command
+def batch(
+    datasets: Annotated[
+        list[Path],
+        typer.Argument(help="Image folders or capture runs (distinct folder names).",
+                       show_default=False),
+    ],
+    out_root: Annotated[
+        Path,
+        typer.Option(help="Results go to OUT_ROOT/<dataset folder name>.", show_default=False),
+    ],
+    scheduler: Annotated[
+        str | None,
+        typer.Option(
+            envvar="PS_LAB_SCHEDULER",
+            help="Dask scheduler address (tcp://host:8786); without it, a local cluster.",
+            show_default=False,
+        ),
+    ] = None,
+    workers: Annotated[
+        int | None,
+        typer.Option(
+            min=1,
+            help="Local worker processes without --scheduler (default: one per core).",
+            show_default=False,
+        ),
+    ] = None,
+    method: Annotated[
+        Method, typer.Option(help="Solver: ls (Woodham), l1 (IRLS), sbl (robust, default), rpca.")
+    ] = Method.sbl,
+    shadow_threshold: Annotated[
+        float | None,
+        typer.Option(help="Drop observations at or below this value (after intensity division)."),
+    ] = None,
+    channel: Annotated[
+        Channel, typer.Option(help="Colour rule: mean of the channels, or one of r, g, b.")
+    ] = Channel.mean,
+    refine_lights: Annotated[
+        int, typer.Option(min=0, help="Iterations of light refinement (0 = none).")
+    ] = 0,
+    fixed_intensities: Annotated[
+        bool, typer.Option(help="With --refine-lights: refine directions only.")
+    ] = False,
+    memory_budget: Annotated[
+        str, typer.Option(help="Memory for one row band's solve on a worker, e.g. 800MB or 2GB.")
+    ] = "1GB",
+) -> None:
+    """Reconstruct many datasets on a Dask cluster; skip those already done; print a summary."""
+    options = ReconstructOptions(
+        method=method.value,
+        channel=channel.value,
+        shadow_threshold=shadow_threshold,
+        refine_lights=refine_lights,
+        fixed_intensities=fixed_intensities,
+        memory_budget=parse_memory_size(memory_budget),
+    )
+    rows = run_batch(
+        datasets,
+        out_root,
+        options,
+        scheduler=scheduler,
+        workers=workers,
+        progress_bars=_terminal_bars,
+    )
+    typer.echo(summary_table(rows))
+    failed = sum(row.status == "failed" for row in rows)
+    if failed:
+        raise fail(f"{failed} of {len(rows)} datasets failed (see the summary)")
+
+
+def register(app: typer.Typer) -> None:
+    """Add ``batch`` to the app."""
+    app.command("batch")(batch)

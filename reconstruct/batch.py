@@ -1,0 +1,234 @@
+"""Many datasets on a Dask cluster: one task per dataset, one result folder each (``ps-lab batch``).
+
+Each dataset is reconstructed whole by one worker, with the in-process pipeline
+(:func:`ps_lab.reconstruct.pipeline.reconstruct_to_folder`, one thread) writing its own staged
+output folder ``OUT_ROOT/<dataset name>`` (a shared filesystem is assumed, as for
+``--scheduler``). A dataset whose folder already holds a complete result is skipped, so a batch
+can be run again after an interruption; a dataset that fails is reported and does not stop the
+others; a worker that dies has its dataset run again elsewhere by Dask.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import time
+from collections.abc import Callable, Sequence
+from contextlib import nullcontext
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from ps_lab.errors import DatasetError, PsLabError
+from ps_lab.reconstruct import distributed
+from ps_lab.reconstruct.pipeline import (
+    METRICS,
+    RESULT_FORMAT,
+    ReconstructOptions,
+    reconstruct_to_folder,
+)
+
+
+@dataclass(frozen=True)
+class BatchRow:
+    """One dataset of a batch.
+
+    Attributes
+    ----------
+    dataset : Path
+    out : Path
+        Its result folder.
+    status : {"done", "skipped", "failed"}
+        ``skipped``: a complete result was already there.
+    pixels : int or None
+    seconds : float or None
+        Wall time of its reconstruction on the worker (None when skipped or failed).
+    error_deg : float or None
+        Mean angular error against ground truth, when the dataset has it.
+    message : str or None
+        Why it failed.
+
+    """
+
+    dataset: Path
+    out: Path
+    status: str
+    pixels: int | None = None
+    seconds: float | None = None
+    error_deg: float | None = None
+    message: str | None = None
+
+
+def result_folders(datasets: Sequence[Path], out_root: Path) -> list[Path]:
+    """``out_root / <name>`` for each dataset; raises DatasetError if two names collide."""
+    # The name as given (a link keeps its own name), made absolute so that "." has one.
+    outs = [Path(out_root) / Path(os.path.abspath(dataset)).name for dataset in datasets]
+    seen: dict[Path, Path] = {}
+    for dataset, out in zip(datasets, outs, strict=True):
+        if out in seen:
+            raise DatasetError(
+                f"{dataset} and {seen[out]} would both write {out} (datasets need distinct names)"
+            )
+        seen[out] = Path(dataset)
+    return outs
+
+
+def finished_metrics(out: Path) -> dict | None:
+    """The metrics of a complete result in ``out``, or None."""
+    try:
+        metrics = json.loads((Path(out) / METRICS).read_text(encoding="utf-8"))
+    except (OSError, ValueError):
+        return None
+    if not isinstance(metrics, dict) or metrics.get("format") != RESULT_FORMAT:
+        return None
+    return metrics
+
+
+def _row(dataset: Path, out: Path, status: str, metrics: dict, seconds=None) -> BatchRow:
+    errors = metrics.get("angular_error_deg") or {}
+    return BatchRow(
+        Path(dataset), Path(out), status, metrics.get("pixels"), seconds, errors.get("mean")
+    )
+
+
+def reconstruct_one(dataset: Path, out: Path, options: ReconstructOptions) -> BatchRow:
+    """Reconstruct one dataset in this process (the task of a batch); errors become a row."""
+    started = time.perf_counter()
+    try:
+        metrics = reconstruct_to_folder(dataset, out, options).metrics
+    except PsLabError as exc:
+        return BatchRow(Path(dataset), Path(out), "failed", message=str(exc))
+    return _row(dataset, out, "done", metrics, time.perf_counter() - started)
+
+
+def reconstruct_batch(
+    datasets: Sequence[Path],
+    out_root: Path,
+    options: ReconstructOptions,
+    client: Any,
+    *,
+    progress: Callable[..., None] | None = None,
+) -> list[BatchRow]:
+    """Reconstruct every dataset as one task on ``client``'s cluster; rows in input order.
+
+    Parameters
+    ----------
+    datasets : sequence of Path
+        Image folders or capture runs, with distinct folder names.
+    out_root : Path
+        Result folders are ``out_root / <dataset folder name>``.
+    options : ReconstructOptions
+        Used for every dataset (its ``scheduler`` and ``threads`` are replaced: each task solves
+        in its worker with one thread).
+    client : distributed.Client
+        From :func:`ps_lab.reconstruct.distributed.connect` or ``local_cluster``.
+    progress : callable or None
+        ``progress(1, description=name)`` after each dataset (done, skipped or failed).
+
+    Returns
+    -------
+    list of BatchRow
+
+    """
+    outs = result_folders(datasets, out_root)
+    task_options = options.replace(scheduler=None, threads=1)
+    rows: dict[int, BatchRow] = {}
+    futures = {}
+    for index, (dataset, out) in enumerate(zip(datasets, outs, strict=True)):
+        metrics = finished_metrics(out)
+        if metrics is not None:
+            rows[index] = _row(dataset, out, "skipped", metrics)
+            if progress is not None:
+                progress(1, description=f"{Path(dataset).name}: already done")
+            continue
+        key = f"ps-lab-dataset-{index}-{out.name}"
+        future = client.submit(reconstruct_one, Path(dataset), out, task_options, key=key)
+        futures[future.key] = (index, future)
+    keys = {future.key: index for index, future in futures.values()}
+    pending = [future for _, future in futures.values()]
+    lost = "finished datasets are kept: run the batch again to do the rest"
+    for future, row, exc in distributed.completed(client, pending, lost=lost):
+        index = keys[future.key]
+        if exc is not None:  # the task itself raised: a bug, or a worker that died too often
+            message = f"{type(exc).__name__}: {exc}"
+            row = BatchRow(Path(datasets[index]), outs[index], "failed", message=message)
+        rows[index] = row
+        if progress is not None:
+            progress(1, description=f"{row.dataset.name}: {row.status}")
+    return [rows[index] for index in range(len(datasets))]
+
+
+def run_batch(
+    datasets: Sequence[Path],
+    out_root: Path,
+    options: ReconstructOptions,
+    *,
+    scheduler: str | None = None,
+    workers: int | None = None,
+    progress_bars: Callable[[int, str], Any] | None = None,
+) -> list[BatchRow]:
+    """Reconstruct many datasets on the Dask scheduler ``scheduler``, else on a local cluster.
+
+    Parameters
+    ----------
+    datasets, out_root, options
+        As for :func:`reconstruct_batch`.
+    scheduler : str or None
+        Address of a running Dask scheduler; None starts a cluster of ``workers`` processes on
+        this machine for the batch (the embedded default).
+    workers : int or None
+        Local worker processes (default: one per core); ignored with ``scheduler``.
+    progress_bars : callable or None
+        ``progress_bars(total, description)`` (see :func:`ps_lab.reconstruct.pipeline.
+        reconstruct_to_folder`): one bar over the datasets.
+
+    Returns
+    -------
+    list of BatchRow
+
+    Raises
+    ------
+    ClusterError
+        Dask not installed, the scheduler unreachable or lost.
+    DatasetError
+        Two datasets with the same folder name.
+
+    """
+    result_folders(datasets, out_root)  # name clashes fail before any cluster starts
+    distributed.require_dask()
+    if scheduler is not None:
+        cluster = distributed.connect(scheduler)
+    else:
+        cluster = distributed.local_cluster(workers or os.cpu_count() or 1)
+    bar = (
+        progress_bars(len(datasets), "datasets")
+        if progress_bars is not None
+        else nullcontext(lambda n=1, description=None: None)
+    )
+    with cluster as client, bar as advance:
+        return reconstruct_batch(datasets, out_root, options, client, progress=advance)
+
+
+def summary_table(rows: Sequence[BatchRow]) -> str:
+    """The batch summary: dataset, pixels, seconds, mean error (when ground truth), status."""
+    header = ("dataset", "pixels", "seconds", "error (deg)", "status")
+    lines = [header]
+    for row in rows:
+        status = row.status if row.message is None else f"{row.status}: {row.message}"
+        lines.append(
+            (
+                str(row.dataset),
+                "-" if row.pixels is None else str(row.pixels),
+                "-" if row.seconds is None else f"{row.seconds:.1f}",
+                "-" if row.error_deg is None else f"{row.error_deg:.2f}",
+                status,
+            )
+        )
+    widths = [max(len(line[k]) for line in lines) for k in range(len(header) - 1)]
+    return "\n".join(
+        "  ".join(
+            [cell.ljust(width) if k == 0 else cell.rjust(width) for k, (cell, width) in
+             enumerate(zip(line[:-1], widths, strict=True))] + [line[-1]]
+        )
+        for line in lines
+    )

@@ -1,0 +1,324 @@
+"""Band work on a Dask cluster (``ps-lab reconstruct --scheduler``, ``ps-lab batch``).
+
+Dask (``dask.distributed``) is an optional dependency, ``pip install 'ps-lab[distributed]'``;
+:mod:`ps_lab.reconstruct.pipeline` loads this module only when a scheduler is given, so a plain
+``ps-lab reconstruct`` never imports Dask.
+
+The design (``docs/scale.md``, "On a Dask cluster"): the client plans the bands and creates the
+staging file, full size, inside the staged output folder. **Pass 1** runs one task per group of
+lights: the worker reads those frames from the dataset itself (a shared filesystem is assumed),
+and writes their mask pixels into the staging file (:func:`ps_lab.io.bands.stage_lights`),
+returning only its rows of the noise sample. The client estimates the whole-image noise level from
+that sample, exactly as in one process. **Each solve pass** runs one task per band: the worker
+reads the band's block from the staging file, solves it with one thread and returns a
+:class:`~ps_lab.reconstruct._bands.BandResult` (float32 normals, albedo and corruption of the
+band's mask pixels, or the light-refinement sums). The client writes the outputs through the same
+staged folder as always. Every task is a pure function of its arguments and the files, so Dask
+can run it again on another worker when one dies.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+from collections.abc import Callable, Iterator, Sequence
+from contextlib import contextmanager
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from ps_lab.errors import ClusterError
+from ps_lab.io.bands import Band, ObservationStore, stage_lights
+from ps_lab.io.dataset import DatasetHeader, reference_exposure
+from ps_lab.io.truth import open_normal_gt
+from ps_lab.reconstruct._bands import BandResult, band_truth, solve_band
+
+try:  # the optional dependency: the error below names the extra to install
+    import distributed as _dask
+except ImportError:  # pragma: no cover - exercised by the missing-Dask test
+    _dask = None
+
+log = logging.getLogger(__name__)
+
+INSTALL_HINT = "Dask is not installed: pip install 'ps-lab[distributed]'"
+# Bands per worker at least (for load balance and a finer progress bar), memory budget permitting.
+BANDS_PER_WORKER = 4
+# Stage tasks per worker when a dark frame makes each task re-read it (else one light per task).
+STAGE_TASKS_PER_WORKER = 4
+
+
+def require_dask() -> Any:
+    """The ``distributed`` module, or :class:`ClusterError` saying how to install it."""
+    if _dask is None:
+        raise ClusterError(INSTALL_HINT)
+    return _dask
+
+
+@contextmanager
+def connect(address: str, *, timeout: float | None = None) -> Iterator[Any]:
+    """A Dask client connected to the scheduler at ``address``, closed afterwards.
+
+    Raises
+    ------
+    ClusterError
+        Dask missing, or no scheduler answering at ``address`` within ``timeout`` seconds
+        (default: Dask's ``distributed.comm.timeouts.connect``, 30 s).
+
+    """
+    dask = require_dask()
+    with _quiet_dask():
+        try:
+            limit = {} if timeout is None else {"timeout": timeout}
+            client = dask.Client(address, set_as_default=False, **limit)
+        except (OSError, TimeoutError, ValueError, TypeError) as exc:
+            raise ClusterError(f"cannot reach the Dask scheduler at {address}: {exc}") from None
+        log.info("Dask scheduler %s, dashboard %s", address, client.dashboard_link)
+        try:
+            yield client
+        finally:
+            client.close()
+
+
+@contextmanager
+def _quiet_dask() -> Iterator[None]:
+    """Keep Dask's own log records (tracebacks of a lost connection) off the terminal.
+
+    What goes wrong reaches the user as one :class:`ClusterError` line; ``-vv`` shows them.
+    """
+    logger = logging.getLogger("distributed")
+    if logging.getLogger().isEnabledFor(logging.DEBUG):
+        yield
+        return
+    silent = logging.NullHandler()
+    propagate = logger.propagate
+    logger.addHandler(silent)
+    logger.propagate = False
+    try:
+        yield
+    finally:
+        logger.propagate = propagate
+        logger.removeHandler(silent)
+
+
+@contextmanager
+def local_cluster(workers: int) -> Iterator[Any]:
+    """A Dask cluster of ``workers`` processes (one thread each) on this machine, and its client.
+
+    The embedded default of ``ps-lab batch``: nothing to install or start. The dashboard takes a
+    free port (logged at ``-v``); worker logs are silenced (errors come back through the futures).
+    """
+    dask = require_dask()
+    with _quiet_dask(), dask.LocalCluster(
+        n_workers=workers,
+        threads_per_worker=1,
+        processes=True,
+        dashboard_address=":0",
+        silence_logs=logging.CRITICAL,
+    ) as cluster, dask.Client(cluster, set_as_default=False) as client:
+        log.info("local Dask cluster of %d workers, dashboard %s", workers, client.dashboard_link)
+        yield client
+
+
+def completed(
+    client: Any, futures: Sequence[Any], *, lost: str = "nothing was written"
+) -> Iterator[tuple[Any, Any, Exception | None]]:
+    """Yield ``(future, result, exception)`` as the futures complete.
+
+    ``exception`` is the task's own (then ``result`` is None). A lost scheduler raises
+    :class:`ClusterError` (its message ends with ``lost``); on that, any other error or Ctrl-C,
+    the futures not yet done are cancelled.
+    """
+    dask = require_dask()
+    try:
+        for future in dask.as_completed(futures, loop=client.loop):
+            try:
+                yield future, future.result(), None
+            except (dask.client.FutureCancelledError, dask.comm.CommClosedError) as exc:
+                raise ClusterError(
+                    f"lost the Dask scheduler at {client.scheduler.address} "
+                    f"({type(exc).__name__}); {lost}"
+                ) from None
+            except RuntimeError as exc:
+                if "deserializ" not in str(exc):
+                    yield future, None, exc
+                    continue
+                raise ClusterError(
+                    "the Dask scheduler or a worker cannot load ps-lab: start `dask scheduler` "
+                    "and `dask worker` from ps-lab's environment"
+                ) from None
+            except Exception as exc:  # noqa: BLE001 - the caller decides (raise, or report)
+                yield future, None, exc
+    except BaseException:
+        client.cancel(list(futures))
+        raise
+
+
+def gather(client: Any, futures: Sequence[Any]) -> Iterator[Any]:
+    """Yield the futures' results as they complete; a task's exception is raised as it is.
+
+    A :class:`ps_lab.errors.PsLabError` raised in a task (a corrupt frame, say) thus reaches the
+    command line as its usual one line; the remaining futures are cancelled.
+    """
+    for _, result, exc in completed(client, futures):
+        if exc is not None:
+            raise exc
+        yield result
+
+
+class DaskBands:
+    """The band executor on a Dask cluster (same methods as ``_bands.LocalBands``)."""
+
+    name = "dask"
+
+    def __init__(self, client: Any) -> None:
+        self.client = client
+        self.token = os.urandom(4).hex()  # task keys of this run, readable on the dashboard
+        self.passes = 0
+
+    def _workers(self) -> int:
+        return max(len(self.client.scheduler_info().get("workers", {})), 1)
+
+    def band_pixels(self, budget_pixels: int, pixels: int, method: str) -> int:
+        """Most mask pixels per band: the memory budget's, and small enough to feed every worker.
+
+        At least :data:`BANDS_PER_WORKER` bands per worker, except for R-PCA, whose low-rank model
+        is fitted per band: it keeps the in-process band plan, and so the in-process result.
+        """
+        if method == "rpca":
+            return budget_pixels
+        return max(1, min(budget_pixels, -(-pixels // (BANDS_PER_WORKER * self._workers()))))
+
+    def stage(
+        self,
+        header: DatasetHeader,
+        mask: np.ndarray,
+        bands: list[Band],
+        *,
+        channel: str,
+        shadow_threshold: float | None,
+        folder: Path,
+        in_memory: bool,
+        sample_pixels: int,
+        progress: Callable[[int], None],
+    ) -> ObservationStore:
+        """Pass 1 as tasks: workers stage groups of lights into a file in ``folder``.
+
+        ``in_memory`` is ignored: the workers need a file.
+        """
+        n = len(header.names)
+        store = ObservationStore(bands, n, mask, folder=folder, sample_pixels=sample_pixels)
+        try:
+            per_task = 1
+            if header.plan.dark_files:  # each task averages the dark frame again
+                per_task = max(1, -(-n // (STAGE_TASKS_PER_WORKER * self._workers())))
+            exposure = reference_exposure(header.plan)
+            futures = [
+                self.client.submit(
+                    _stage_task,
+                    header,
+                    bands,
+                    lights,
+                    str(store.path),
+                    common_exposure=exposure,
+                    channel=channel,
+                    shadow_threshold=shadow_threshold,
+                    sample_pixels=sample_pixels,
+                    key=f"ps-lab-stage-{self.token}-{lights[0]}",
+                )
+                for lights in (list(range(a, min(a + per_task, n))) for a in range(0, n, per_task))
+            ]
+            for lights, observations, valid in gather(self.client, futures):
+                store.sample_observations[lights] = observations
+                store.sample_valid[lights] = valid
+                progress(len(lights))
+        except BaseException:
+            store.close()
+            raise
+        return store
+
+    def solve(
+        self,
+        store: ObservationStore,
+        header: DatasetHeader,
+        vectors: np.ndarray,
+        *,
+        method: str,
+        parameters: dict[str, Any],
+        final: bool,
+        truth,
+        advance: Callable[..., None],
+        label: str,
+    ) -> Iterator[BandResult]:
+        """One solve pass as tasks, one per non-empty band; results in completion order."""
+        self.passes += 1
+        futures = [
+            self.client.submit(
+                _solve_task,
+                header,
+                str(store.path),
+                store.bands,
+                band.index,
+                vectors,
+                method=method,
+                parameters=parameters,
+                final=final,
+                with_truth=truth is not None,
+                key=f"ps-lab-band-{self.token}-{self.passes}-{band.index}",
+            )
+            for band in store.bands
+            if band.pixel_count
+        ]
+        count = len(store.bands)
+        for result in gather(self.client, futures):
+            band = store.bands[result.index]
+            advance(band.pixel_count, description=f"{label}: band {band.index + 1}/{count}")
+            yield result
+
+
+# --- the tasks (run on the workers) ----------------------------------------------------------
+
+_MASKS: dict[tuple, np.ndarray] = {}
+
+
+def worker_mask(header: DatasetHeader) -> np.ndarray:
+    """The dataset's mask, read once per worker process (kept for the latest dataset only)."""
+    file = header.mask_file
+    key = (str(header.root), str(file), file.stat().st_mtime_ns if file else 0, header.shape)
+    mask = _MASKS.get(key)
+    if mask is None:
+        mask = header.read_mask()
+        mask.setflags(write=False)
+        _MASKS.clear()
+        _MASKS[key] = mask
+    return mask
+
+
+def _stage_task(header, bands, lights, path, **kwargs) -> tuple[list[int], np.ndarray, np.ndarray]:
+    observations, valid = stage_lights(
+        header, worker_mask(header), bands, lights, Path(path), **kwargs
+    )
+    return lights, observations, valid
+
+
+def _solve_task(
+    header, path, bands, index, vectors, *, method, parameters, final, with_truth
+) -> BandResult:
+    band = bands[index]
+    mask = worker_mask(header)
+    with ObservationStore(
+        bands, len(header.names), mask, sample_pixels=0, path=Path(path)
+    ) as store:
+        observations, valid = store.read(band)
+    truth = open_normal_gt(header.root, mask.shape) if with_truth else None
+    return solve_band(
+        observations,
+        valid,
+        index,
+        vectors,
+        method=method,
+        parameters=parameters,
+        threads=1,  # a worker runs as many tasks at once as it has threads
+        final=final,
+        truth_rows=None if truth is None else band_truth(truth, mask, band),
+    )
