@@ -44,6 +44,7 @@ from ps_lab.reconstruct._outputs import (
     _Histogram,
     _OutputWriter,
     albedo_picture,
+    check_solved_share,
     corruption_picture,
     normal_picture,
     write_png,
@@ -103,10 +104,10 @@ def parse_memory_size(text: str) -> int:
     """
     match = re.fullmatch(r"\s*([0-9]*\.?[0-9]+)\s*([kKmMgGtT]?)(?:i?[bB])?\s*", str(text))
     if match is None:
-        raise OutputError(f"memory budget {text!r}: expected a size such as 800MB or 2GB")
+        raise OutputError(f"--memory-budget {text!r}: expected a size such as 800MB or 2GB")
     size = int(float(match.group(1)) * _SIZE_UNITS[match.group(2).lower()])
     if size <= 0:
-        raise OutputError(f"memory budget {text!r} must be positive")
+        raise OutputError(f"--memory-budget {text!r} must be positive")
     return size
 
 
@@ -307,6 +308,7 @@ def reconstruct_to_folder(
         with store:
             writer = _OutputWriter(stage, store.mask, source.truth, store.n_lights)
             solved = _solve_bands(store, source, options, writer, bars)
+            check_solved_share(source.header.root, writer.solved_count, store.pixels)
             timings["solve_seconds"] = solved.seconds
             written = time.perf_counter()
             metrics = _write_results(writer, stage, source, options, store, solved, timings)

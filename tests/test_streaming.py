@@ -316,7 +316,7 @@ def test_staging_removed_after_failure(capture, tmp_path, monkeypatch, staging):
 
 
 def test_bad_budget_and_staging_are_refused(capture, tmp_path):
-    with pytest.raises(OutputError, match="memory budget"):
+    with pytest.raises(OutputError, match="memory-budget"):
         run(capture, tmp_path / "o", memory_budget="lots")
     with pytest.raises(OutputError, match="staging"):
         run(capture, tmp_path / "o", staging="disk")
@@ -362,7 +362,7 @@ def test_cli_memory_budget(capture, tmp_path):
         np.load(tmp_path / "a" / "normals.npy"), np.load(tmp_path / "b" / "normals.npy"), atol=1e-6
     )
     result = runner.invoke(app, [*args, "--out", str(tmp_path / "c"), "--memory-budget", "lots"])
-    assert result.exit_code == 2 and result.output.startswith("error: memory budget")
+    assert result.exit_code == 2 and result.output.startswith("error: --memory-budget")
     assert not (tmp_path / "c").exists()
 
 

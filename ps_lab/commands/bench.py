@@ -28,7 +28,9 @@ def paper(
     ] = False,
     size: Annotated[
         int | None,
-        typer.Option(min=8, help="Image width and height in pixels (default 128; --quick 48)."),
+        typer.Option(
+            min=8, max=2048, help="Image width and height in pixels (default 128; --quick 48)."
+        ),
     ] = None,
     light_sets: Annotated[
         int | None,

@@ -7,24 +7,17 @@ from typing import Annotated
 
 import typer
 
-from ps_lab._cli_util import lab_command, progress_bar
+from ps_lab._cli_util import lab_command, naming_folder, parse_numbers, positive, progress_bar
 from ps_lab.calibration import calibrate as run_calibration
 from ps_lab.calibration import rig_circles, write_calibration
 from ps_lab.errors import CalibrationError
 from ps_lab.io.dataset import load_frames
 
 
-def _numbers(text: str | None, option: str, names: str) -> tuple[float, ...] | None:
-    if text is None:
-        return None
-    parts = [p.strip() for p in text.split(",")]
-    try:
-        values = tuple(float(p) for p in parts)
-    except ValueError:
-        values = ()
-    if len(values) != len(names.split(",")):
-        raise CalibrationError(f"{option} expects {names} (comma-separated numbers), got {text!r}")
-    return values
+def circle_in_image(circle: tuple[float, ...], width: int, height: int) -> bool:
+    """Whether the circle's centre lies in the image and the circle overlaps it."""
+    cx, cy, r = circle
+    return 0 <= cx < width and 0 <= cy < height and r < max(width, height)
 
 
 @lab_command
@@ -75,9 +68,11 @@ def calibrate(
 
     Writes light_directions.txt, light_intensities.txt, calibration.json and calibration.png.
     """
-    sphere_c = _numbers(sphere, "--sphere", "CX,CY,R")
-    matte_c = _numbers(matte, "--matte", "CX,CY,R")
-    roi_v = _numbers(roi, "--roi", "X,Y,W,H")
+    sphere_c = parse_numbers(sphere, "--sphere", "CX,CY,R", positive=("R",))
+    matte_c = parse_numbers(matte, "--matte", "CX,CY,R", positive=("R",))
+    roi_v = parse_numbers(roi, "--roi", "X,Y,W,H", positive=("W", "H"))
+    positive(focal_length, "--focal-length")
+    positive(pixel_pitch, "--pixel-pitch")
     if (focal_length is None) != (pixel_pitch is None):
         raise CalibrationError(
             "--focal-length and --pixel-pitch go together (perspective correction)"
@@ -86,8 +81,14 @@ def calibrate(
 
     frames = load_frames(data)
     rig_chrome, rig_matte = rig_circles(frames.manifest)
-    n = frames.images.shape[0]
-    with progress_bar(n, "highlights") as advance:
+    n, height, width = frames.images.shape[:3]
+    for option, circle in (("--sphere", sphere_c), ("--matte", matte_c)):
+        if circle is not None and not circle_in_image(circle, width, height):
+            raise CalibrationError(
+                f"{option} {circle[0]:g},{circle[1]:g},{circle[2]:g} is not inside the "
+                f"{width}x{height} image of {frames.root}"
+            )
+    with progress_bar(n, "highlights") as advance, naming_folder(frames.root):
         result = run_calibration(
             frames.images,
             sphere=sphere_c,
