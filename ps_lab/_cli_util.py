@@ -132,7 +132,7 @@ def parse_numbers(
         values = ()
     if len(values) != len(labels):
         raise _click_exc.UsageError(
-            f"{option}: expected {names} (comma-separated numbers), got {text!r}"
+            f"{option} expects {names} (comma-separated numbers), got {text!r}"
         )
     for label, value in zip(labels, values, strict=True):
         if not math.isfinite(value):
@@ -337,8 +337,7 @@ class HeldWarnings(logging.Handler):
 HELD = HeldWarnings()
 
 
-_LIVE = logging.StreamHandler(sys.stderr)
-_LIVE.setFormatter(logging.Formatter("%(levelname)s %(name)s: %(message)s"))
+_LIVE: list[logging.Handler] = []  # the handler -v/-vv added last
 
 
 def configure_logging(verbose: int) -> None:
@@ -348,17 +347,20 @@ def configure_logging(verbose: int) -> None:
     root logger (pytest's, an application's) are left alone.
     """
     root = logging.getLogger()
-    for handler in (HELD, _LIVE):
+    for handler in [HELD, *_LIVE]:
         root.removeHandler(handler)
+    _LIVE.clear()
     HELD.discard()
-    _LIVE.setStream(sys.stderr)
     logging.captureWarnings(True)
     if verbose == 0:
         root.setLevel(logging.WARNING)
         root.addHandler(HELD)
     else:
+        live = logging.StreamHandler(sys.stderr)  # the stderr of this run (CliRunner swaps it)
+        live.setFormatter(logging.Formatter("%(levelname)s %(name)s: %(message)s"))
+        _LIVE.append(live)
         root.setLevel(logging.INFO if verbose == 1 else logging.DEBUG)
-        root.addHandler(_LIVE)
+        root.addHandler(live)
 
 
 # --- bugs ---------------------------------------------------------------------------------------

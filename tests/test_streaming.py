@@ -122,7 +122,8 @@ def test_store_equals_load_dataset_bit_for_bit(tmp_path, colour, in_memory, max_
 def test_store_file_is_removed_when_reading_fails(tmp_path):
     folder = tmp_path / "d"
     write_capture(folder)
-    (folder / "005.png").write_bytes(b"\x89PNG\r\n\x1a\n broken")
+    # A sound header (open_dataset reads it) over missing pixel data (found while staging).
+    (folder / "005.png").write_bytes((folder / "005.png").read_bytes()[:40])
     header = open_dataset(folder)
     mask = header.read_mask()
     with pytest.raises(DatasetError, match="005.png"):
