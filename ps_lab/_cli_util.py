@@ -7,7 +7,8 @@ code 130. The pieces:
 - :class:`LabGroup`, the click group of the app (``typer.Typer(cls=LabGroup)``): runs the command
   line and turns typer's own rejections into one line (``error: --method: 'foo' is not one of ls,
   l1, sbl, rpca``), makes SIGTERM/SIGHUP unwind like Ctrl-C, refuses NaN/infinity in every float
-  parameter of every command (:func:`refuse_non_finite`), and holds log warnings until the command
+  parameter of every command and gives commands without :func:`lab_command` its handling
+  (:func:`guard_commands`), and holds log warnings until the command
   succeeds (:data:`HELD`).
 - :func:`lab_command`, the decorator of every command: :class:`PsLabError` → its message;
   ``OSError`` → the file and the reason; ``MemoryError`` → one line; any other exception is a bug →
@@ -245,30 +246,34 @@ def _non_finite(value: Any) -> bool:
     return False
 
 
-def refuse_non_finite(command: _click_core.Command) -> None:
-    """Make every command under ``command`` refuse NaN and infinity in any float parameter.
+def guard_commands(command: _click_core.Command) -> None:
+    """Give every command under ``command`` the checks and failure handling of the app.
 
-    Runs after typer has converted the values and before the command body: an option added later
-    gets the check without declaring anything. The refusal is a ``BadParameter`` naming the option.
+    Each leaf command's ``invoke`` refuses NaN and infinity in any float parameter (after typer
+    has converted the values, before the command body: an option added later gets the check
+    without declaring anything; the refusal names the option), then runs the command under
+    :func:`lab_command`'s handling, so a command that forgot the decorator still fails in one line.
     """
     subcommands = getattr(command, "commands", None)
     if subcommands is not None:
         for sub in subcommands.values():
-            refuse_non_finite(sub)
+            guard_commands(sub)
         return
-    if getattr(command, "_finite_checked", False):
+    if getattr(command, "_lab_guarded", False):
         return
-    original = command.invoke
+    original = lab_command(command.invoke)
 
     def invoke(ctx: _click_core.Context) -> Any:
         for param in ctx.command.params:
             value = ctx.params.get(param.name)
             if _non_finite(value):
-                raise _click_exc.BadParameter(f"{value!r} is not a finite number", ctx=ctx, param=param)
+                raise _click_exc.BadParameter(
+                    f"{value!r} is not a finite number", ctx=ctx, param=param
+                )
         return original(ctx)
 
     command.invoke = invoke  # type: ignore[method-assign]
-    command._finite_checked = True  # type: ignore[attr-defined]
+    command._lab_guarded = True  # type: ignore[attr-defined]
 
 
 # --- usage errors as one line ------------------------------------------------------------------
@@ -409,7 +414,7 @@ class LabGroup(TyperGroup):
 
     def main(self, args=None, prog_name=None, complete_var=None, standalone_mode=True, **extra):
         previous = install_signal_handlers()
-        refuse_non_finite(self)
+        guard_commands(self)
         _reported.clear()
         code = 0
         try:
