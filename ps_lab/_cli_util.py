@@ -97,9 +97,7 @@ def lab_command(func: F) -> F:
         except (Exit, Abort, _click_exc.ClickException):
             raise
         except MemoryError:
-            raise fail(
-                "out of memory (try a smaller --memory-budget, or free memory)"
-            ) from None
+            raise fail("out of memory (try a smaller --memory-budget, or free memory)") from None
         except OSError as exc:
             raise fail(os_error_line(exc)) from None
         except Exception as exc:  # noqa: BLE001 - a bug: one line, traceback in the log
@@ -165,7 +163,9 @@ def naming_folder(folder: Path) -> Iterator[None]:
 
 
 @contextmanager
-def progress_bar(total: int, description: str, *, enabled: bool = True) -> Iterator[Callable[..., None]]:
+def progress_bar(
+    total: int, description: str, *, enabled: bool = True
+) -> Iterator[Callable[..., None]]:
     """Show a progress bar with an ETA; yield ``advance(n=1, description=None)``.
 
     The bar goes to stderr, and only when stderr is a terminal: on a pipe or in a log file a
@@ -313,7 +313,9 @@ def usage_line(exc: _click_exc.ClickException) -> str:
         return f"{exc.param_hint}: {message}"
     message = re.sub(r"\. Did you mean (.*)\?$", r" (did you mean \1?)", message)
     message = re.sub(r"^No such command '(.*)'", r"no such command '\1'", message)
-    message = re.sub(r"^Got unexpected extra arguments? \((.*)\)", r"unexpected argument: \1", message)
+    message = re.sub(
+        r"^Got unexpected extra arguments? \((.*)\)", r"unexpected argument: \1", message
+    )
     return message[:1].lower() + message[1:]
 
 
@@ -321,7 +323,10 @@ def usage_line(exc: _click_exc.ClickException) -> str:
 
 
 class HeldWarnings(logging.Handler):
-    """Hold WARNING+ records; :meth:`print_held` prints them as ``warning:`` lines, :meth:`discard` not."""
+    """Hold WARNING+ records; :meth:`print_held` prints them as ``warning:`` lines.
+
+    :meth:`discard` forgets them: a failed command prints its error line only.
+    """
 
     def __init__(self) -> None:
         super().__init__(logging.WARNING)
@@ -446,5 +451,3 @@ class LabGroup(TyperGroup):
         if standalone_mode:
             sys.exit(code)
         return code
-
-

@@ -408,7 +408,9 @@ def _common_image_size(plan: FramePlan) -> tuple[int, int]:
     is the one named, not a correct mask, and a dark frame is named as the dark frame.
     """
     first = plan.light_files[0][0]
-    lights = [f for files in plan.light_files for f in files if f.suffix.lower() in _HEADER_SUFFIXES]
+    lights = [
+        f for files in plan.light_files for f in files if f.suffix.lower() in _HEADER_SUFFIXES
+    ]
     if not lights:
         return read_image_size(first)
     sizes = {file: read_image_size(file) for file in lights}

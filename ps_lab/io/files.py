@@ -50,7 +50,7 @@ def _process_alive(pid: int) -> bool:
 
 
 def remove_stale_staging(folder: Path, pattern: str) -> list[Path]:
-    """Remove the entries of ``folder`` named by ``pattern`` whose writing process is gone.
+    r"""Remove the entries of ``folder`` named by ``pattern`` whose writing process is gone.
 
     Parameters
     ----------
@@ -58,7 +58,7 @@ def remove_stale_staging(folder: Path, pattern: str) -> list[Path]:
         Where the staging folders are.
     pattern : str
         Regular expression for a whole name, with one group capturing the process id, e.g.
-        ``r"\\.out\\.(?:partial|old)-(\\d+)"``.
+        ``r"\.out\.(?:partial|old)-(\d+)"``.
 
     Returns
     -------
