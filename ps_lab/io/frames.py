@@ -123,7 +123,7 @@ def _plan_image_folder(root: Path) -> FramePlan:
     if listing.exists() or listing.is_symlink():
         check_is_file(listing, "image list")
         try:
-            names = [line.strip() for line in listing.read_text(encoding="utf-8").splitlines()]
+            names = [line.strip() for line in listing.read_text(encoding="utf-8-sig").splitlines()]
         except (OSError, UnicodeDecodeError) as exc:
             raise DatasetError(f"{listing}: cannot read file ({exc})") from None
         names = [name for name in names if name and not name.startswith("#")]

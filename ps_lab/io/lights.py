@@ -124,7 +124,7 @@ def write_light_table(path: Path, rows: np.ndarray) -> None:
 def _read_table(path: Path, widths: tuple[int, ...]) -> np.ndarray:
     """Parse a whitespace (or comma) separated numeric table; ``#`` starts a comment."""
     try:
-        text = path.read_text(encoding="utf-8")
+        text = path.read_text(encoding="utf-8-sig")
     except FileNotFoundError:
         raise DatasetError(f"{path}: file not found") from None
     except (OSError, UnicodeDecodeError) as exc:
