@@ -24,6 +24,7 @@ import dataclasses
 import inspect
 import json
 import logging
+import math
 import re
 import time
 from collections.abc import Callable, Iterator
@@ -154,6 +155,8 @@ class ReconstructOptions:
     staging: str = "auto"
 
     def __post_init__(self) -> None:
+        if self.shadow_threshold is not None and not math.isfinite(self.shadow_threshold):
+            raise OutputError(f"--shadow-threshold {self.shadow_threshold} is not a finite number")
         if self.staging not in STAGING:
             raise OutputError(f"staging must be auto, memory or file, got {self.staging!r}")
         budget = self.memory_budget

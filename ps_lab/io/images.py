@@ -122,6 +122,7 @@ def check_is_file(path: Path, what: str = "file") -> None:
     permission to read.
     """
     path = Path(path)
+    a_what = f"{'an' if what[:1] in 'aeiou' else 'a'} {what}"
     try:
         st = path.stat()
     except FileNotFoundError:
@@ -130,9 +131,9 @@ def check_is_file(path: Path, what: str = "file") -> None:
     except OSError as exc:  # ELOOP, EACCES on a parent, ...
         raise DatasetError(f"{path}: cannot open {what} ({exc.strerror})") from None
     if os.path.isdir(path):
-        raise DatasetError(f"{path}: is a folder, expected a {what}")
+        raise DatasetError(f"{path}: is a folder, expected {a_what}")
     if not path.is_file():
-        raise DatasetError(f"{path}: is not a regular file (expected a {what})")
+        raise DatasetError(f"{path}: is not a regular file (expected {a_what})")
     if st.st_size == 0:
         raise DatasetError(f"{path}: {what} is empty (0 bytes)")
     if not os.access(path, os.R_OK):
