@@ -1116,6 +1116,16 @@ for _port_label, _port_text in (
         return ["rig", "check", "--port", _port(w, port), "--lights", "4"]
 
 
+@case("x-simulate-seed-negative", ("--seed",))
+def _(w):
+    return ["simulate", str(w.root / "new"), "--size", "16", "--lights", "8", "--seed", "-1"]
+
+
+@case("x-bench-seed-negative", ("--seed",))
+def _(w):
+    return ["bench", "paper", "--quick", "--seed", "-1"]
+
+
 @case("x-simulate-into-dataset", lambda w: (str(w.ds),))
 def _(w):
     return ["simulate", str(w.png()), "--size", "16", "--lights", "8"]
@@ -1205,6 +1215,7 @@ CI_CASES = {
     "x-capture-port-dev-null",
     "x-rig-check-port-regular-file",
     "x-tiff-five-channels",
+    "x-simulate-seed-negative",
 }
 
 

@@ -36,7 +36,9 @@ def paper(
         int | None,
         typer.Option(min=1, help="Random light sets to average (default 5; 2 with --quick)."),
     ] = None,
-    seed: Annotated[int | None, typer.Option(help="Seed of the light sets (default 0).")] = None,
+    seed: Annotated[
+        int | None, typer.Option(min=0, help="Seed of the light sets (default 0).")
+    ] = None,
     tables: Annotated[
         str | None, typer.Option(help="Tables to run, comma-separated from 1,3,4,5 (default all).")
     ] = None,

@@ -42,7 +42,9 @@ def serve_sim(
             "KIND is drop, garble, delay, reboot or silence. Repeatable."
         ),
     ] = None,
-    seed: Annotated[int, typer.Option(help="Seed of probabilistic faults and garbling.")] = 0,
+    seed: Annotated[
+        int, typer.Option(min=0, help="Seed of probabilistic faults and garbling.")
+    ] = 0,
     delay: Annotated[
         float,
         typer.Option(min=0.0, max=3600.0, help="Seconds a 'delay' fault holds a reply back."),
