@@ -6,8 +6,9 @@ line on stderr, starting with ``error:``, that names the offending file or optio
 and no file created or changed in the case's folder (dataset and output; names, sizes, mtimes).
 
 The table has one group per kind of failure (ids ``g1-`` ... ``g7-`` follow issue 13, ``x-`` are
-inputs it did not list). CI runs a subset of every group (:data:`CI_CASES`); ``pytest -m slow``
-runs the whole table. The datasets are tiny (16x16, 8 lights) and made once per session.
+inputs it did not list). CI runs a subset of every group (:data:`CI_CASES`), ``pytest -m slow``
+the rest, and ``pytest -m "slow or not device"`` all of it. The datasets are tiny (16x16, 8
+lights) and made once per session; the table's commands run a few at a time.
 """
 
 from __future__ import annotations
