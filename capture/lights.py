@@ -67,6 +67,12 @@ _ID_REPLY = re.compile(r"^(?:ID|READY) ([!-~]+) ([0-9]+) ([0-9]+)$")
 _STATE_REPLY = re.compile(r"^STATE (?:NONE|\d+(?: \d+)*)$")
 
 
+# Ctrl-C, `kill`/`timeout`/batch schedulers, and a closed terminal all unwind with the lights off.
+_INTERRUPTS = tuple(
+    getattr(signal, name) for name in ("SIGINT", "SIGTERM", "SIGHUP") if hasattr(signal, name)
+)
+
+
 @contextmanager
 def _interrupts_raise() -> Iterator[None]:
     """While active (main thread only), SIGINT and SIGTERM raise KeyboardInterrupt; then restore.
@@ -80,7 +86,7 @@ def _interrupts_raise() -> Iterator[None]:
     def interrupt(signum: int, frame: object) -> None:
         raise KeyboardInterrupt(signal.Signals(signum).name)
 
-    previous = {sig: signal.signal(sig, interrupt) for sig in (signal.SIGINT, signal.SIGTERM)}
+    previous = {sig: signal.signal(sig, interrupt) for sig in _INTERRUPTS}
     try:
         yield
     finally:
@@ -94,7 +100,7 @@ def _interrupts_deferred() -> Iterator[None]:
     if threading.current_thread() is not threading.main_thread():
         yield
         return
-    previous = {sig: signal.signal(sig, signal.SIG_IGN) for sig in (signal.SIGINT, signal.SIGTERM)}
+    previous = {sig: signal.signal(sig, signal.SIG_IGN) for sig in _INTERRUPTS}
     try:
         yield
     finally:
@@ -121,6 +127,8 @@ class LightController(ABC):
             raise RigError(f"a light controller needs at least one light, not {count!r}")
         self._count = int(count)
         self._closed = False
+        # Lights that may be lit: those of a switch not yet followed by a confirmed OFF.
+        self._maybe_lit: frozenset[int] = frozenset()
 
     @property
     def count(self) -> int:
@@ -140,16 +148,19 @@ class LightController(ABC):
         chosen = self._validate_lights(lights)
         self._check_open()
         log.info("lights on: %s", " ".join(map(str, sorted(chosen))) or "none")
+        self._maybe_lit = self._maybe_lit | chosen
         if chosen:
             self._do_switch(chosen)
         else:
             self._do_all_off()
+        self._maybe_lit = chosen
 
     def all_off(self) -> None:
         """Switch every light off."""
         self._check_open()
         log.info("lights off")
         self._do_all_off()
+        self._maybe_lit = frozenset()
 
     def set_level(self, level: int) -> None:
         """Set the PWM brightness (0-255) of lit lights."""
@@ -183,8 +194,23 @@ class LightController(ABC):
         with _interrupts_deferred():
             try:
                 self._do_all_off()
+                self._maybe_lit = frozenset()
             finally:
                 self._do_close()
+
+    def lit_note(self) -> str:
+        """``"lights off"``, or which lights may still be lit and what switches them off."""
+        if not self._maybe_lit:
+            return "lights off"
+        lights = sorted(self._maybe_lit)
+        which = f"light {lights[0]}" if len(lights) == 1 else "lights " + " ".join(map(str, lights))
+        watchdog_ms = getattr(self, "_watchdog_ms", 0)
+        if watchdog_ms:
+            return (
+                f"{which} may still be lit: the controller's watchdog switches "
+                f"{'it' if len(lights) == 1 else 'them'} off within {watchdog_ms / 1000:g} s"
+            )
+        return f"{which} may still be lit and the watchdog is off: check the rig"
 
     @contextmanager
     def session(self) -> Iterator[LightController]:
@@ -202,6 +228,7 @@ class LightController(ABC):
             raise
         with _interrupts_deferred():
             self._do_all_off()
+            self._maybe_lit = frozenset()
 
     def __enter__(self) -> LightController:
         self._check_open()
@@ -230,6 +257,7 @@ class LightController(ABC):
         with _interrupts_deferred():
             try:
                 self._do_all_off()
+                self._maybe_lit = frozenset()
             except Exception as exc:
                 log.error("could not switch the lights off: %s", exc)
 

@@ -9,7 +9,6 @@ command and ``ps_lab.cli.app`` (the tests' CliRunner) load them all.
 from __future__ import annotations
 
 import importlib
-import logging
 import sys
 from collections.abc import Iterable, Sequence
 from typing import Annotated, Any
@@ -17,6 +16,7 @@ from typing import Annotated, Any
 import typer
 
 from ps_lab import __version__
+from ps_lab._cli_util import LabGroup, configure_logging
 
 #: Command name -> module with ``register(app)``, in the order of ``ps-lab --help``.
 COMMANDS = {
@@ -42,6 +42,7 @@ def make_app(commands: Iterable[str] = tuple(COMMANDS)) -> typer.Typer:
         no_args_is_help=True,
         add_completion=False,
         pretty_exceptions_enable=False,
+        cls=LabGroup,  # one `error:` line and exit 2 for every failure, 130 for a signal
     )
     app.callback()(_root)
     for name in commands:
@@ -65,8 +66,7 @@ def _root(
     ] = False,
 ) -> None:
     """Configure logging for every command."""
-    level = logging.WARNING if verbose == 0 else logging.INFO if verbose == 1 else logging.DEBUG
-    logging.basicConfig(level=level, format="%(levelname)s %(name)s: %(message)s")
+    configure_logging(verbose)
 
 
 def __getattr__(name: str) -> Any:

@@ -8,13 +8,14 @@ Files (see ``docs/datasets.md``): ``normals.npy``, ``normal.png``, ``albedo.npy`
 
 from __future__ import annotations
 
+import logging
 from pathlib import Path
 from typing import Any
 
 import cv2
 import numpy as np
 
-from ps_lab.errors import OutputError
+from ps_lab.errors import DatasetError, OutputError
 from ps_lab.io.lights import write_light_table
 from ps_lab.reconstruct._bands import reduce_solution
 from ps_lab.reconstruct.metrics import angular_errors_deg
@@ -22,6 +23,36 @@ from ps_lab.reconstruct.metrics import angular_errors_deg
 # Angular errors are summarised from a histogram of this bin width (degrees): median and p90 are
 # within half a bin of the exact values, mean and max are exact.
 ERROR_BIN_DEG = 0.001
+# A result with at least this share of its mask pixels unsolved is reported in one warning line.
+UNSOLVED_WARNING_SHARE = 0.10
+
+log = logging.getLogger(__name__)
+
+
+def check_solved_share(root: Path, solved: int, pixels: int) -> None:
+    """Refuse a result where no pixel was solved; warn in one line when many were not.
+
+    A pixel is unsolved when it has too few usable observations for a normal: the images are
+    dark, saturated or NaN there, or every value is at or below ``--shadow-threshold``.
+
+    Raises
+    ------
+    DatasetError
+        No mask pixel could be solved (the caller writes nothing).
+
+    """
+    why = "too few usable observations: dark, saturated, NaN, or at or below --shadow-threshold"
+    if pixels and solved == 0:
+        raise DatasetError(f"{root}: no pixel can be solved ({why}); nothing written")
+    unsolved = pixels - solved
+    if pixels and unsolved >= UNSOLVED_WARNING_SHARE * pixels:
+        log.warning(
+            "%s: %.0f%% of the %d mask pixels could not be solved (%s); their normals are 0",
+            root,
+            100.0 * unsolved / pixels,
+            pixels,
+            why,
+        )
 
 
 def normal_picture(normals: np.ndarray, mask: np.ndarray) -> np.ndarray:

@@ -24,6 +24,7 @@ import dataclasses
 import inspect
 import json
 import logging
+import math
 import re
 import time
 from collections.abc import Callable, Iterator
@@ -46,6 +47,7 @@ from ps_lab.reconstruct._outputs import (
     _Histogram,
     _OutputWriter,
     albedo_picture,
+    check_solved_share,
     corruption_picture,
     normal_picture,
     write_png,
@@ -113,10 +115,10 @@ def parse_memory_size(text: str) -> int:
     """
     match = re.fullmatch(r"\s*([0-9]*\.?[0-9]+)\s*([kKmMgGtT]?)(?:i?[bB])?\s*", str(text))
     if match is None:
-        raise OutputError(f"memory budget {text!r}: expected a size such as 800MB or 2GB")
+        raise OutputError(f"--memory-budget {text!r}: expected a size such as 800MB or 2GB")
     size = int(float(match.group(1)) * _SIZE_UNITS[match.group(2).lower()])
     if size <= 0:
-        raise OutputError(f"memory budget {text!r} must be positive")
+        raise OutputError(f"--memory-budget {text!r} must be positive")
     return size
 
 
@@ -174,6 +176,8 @@ class ReconstructOptions:
     scheduler: str | None = None
 
     def __post_init__(self) -> None:
+        if self.shadow_threshold is not None and not math.isfinite(self.shadow_threshold):
+            raise OutputError(f"--shadow-threshold {self.shadow_threshold} is not a finite number")
         if self.staging not in STAGING:
             raise OutputError(f"staging must be auto, memory or file, got {self.staging!r}")
         if self.lights not in LIGHT_MODELS:
@@ -337,6 +341,7 @@ def reconstruct_to_folder(
                 solved = _solve_bands(store, source, options, writer, bars, executor)
             else:
                 solved = _solve_near_bands(store, source, options, writer, bars, stage)
+            check_solved_share(source.header.root, writer.solved_count, store.pixels)
             timings["solve_seconds"] = solved.seconds
             written = time.perf_counter()
             metrics = _write_results(writer, stage, source, options, store, solved, timings)

@@ -87,7 +87,8 @@ def test_store_equals_load_dataset_bit_for_bit(tmp_path, colour, in_memory, max_
 def test_store_file_is_removed_when_reading_fails(tmp_path):
     folder = tmp_path / "d"
     write_capture(folder)
-    (folder / "005.png").write_bytes(b"\x89PNG\r\n\x1a\n broken")
+    # A sound header (open_dataset reads it) over missing pixel data (found while staging).
+    (folder / "005.png").write_bytes((folder / "005.png").read_bytes()[:40])
     header = open_dataset(folder)
     mask = header.read_mask()
     with pytest.raises(DatasetError, match="005.png"):
@@ -281,7 +282,7 @@ def test_staging_removed_after_failure(capture, tmp_path, monkeypatch, staging):
 
 
 def test_bad_budget_and_staging_are_refused(capture, tmp_path):
-    with pytest.raises(OutputError, match="memory budget"):
+    with pytest.raises(OutputError, match="memory-budget"):
         run(capture, tmp_path / "o", memory_budget="lots")
     with pytest.raises(OutputError, match="staging"):
         run(capture, tmp_path / "o", staging="disk")
@@ -327,7 +328,7 @@ def test_cli_memory_budget(capture, tmp_path):
         np.load(tmp_path / "a" / "normals.npy"), np.load(tmp_path / "b" / "normals.npy"), atol=1e-6
     )
     result = runner.invoke(app, [*args, "--out", str(tmp_path / "c"), "--memory-budget", "lots"])
-    assert result.exit_code == 2 and result.output.startswith("error: memory budget")
+    assert result.exit_code == 2 and result.output.startswith("error: --memory-budget")
     assert not (tmp_path / "c").exists()
 
 

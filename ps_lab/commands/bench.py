@@ -28,13 +28,17 @@ def paper(
     ] = False,
     size: Annotated[
         int | None,
-        typer.Option(min=8, help="Image width and height in pixels (default 128; --quick 48)."),
+        typer.Option(
+            min=8, max=2048, help="Image width and height in pixels (default 128; --quick 48)."
+        ),
     ] = None,
     light_sets: Annotated[
         int | None,
         typer.Option(min=1, help="Random light sets to average (default 5; 2 with --quick)."),
     ] = None,
-    seed: Annotated[int | None, typer.Option(help="Seed of the light sets (default 0).")] = None,
+    seed: Annotated[
+        int | None, typer.Option(min=0, help="Seed of the light sets (default 0).")
+    ] = None,
     tables: Annotated[
         str | None, typer.Option(help="Tables to run, comma-separated from 1,3,4,5 (default all).")
     ] = None,

@@ -8,7 +8,7 @@ from typing import Annotated
 import numpy as np
 import typer
 
-from ps_lab._cli_util import lab_command, progress_bar
+from ps_lab._cli_util import lab_command, naming_folder, parse_numbers, positive, progress_bar
 from ps_lab.calibration import calibrate as run_calibration
 from ps_lab.calibration import (
     rig_anisotropy,
@@ -20,17 +20,10 @@ from ps_lab.errors import CalibrationError
 from ps_lab.io.dataset import load_frames
 
 
-def _numbers(text: str | None, option: str, names: str) -> tuple[float, ...] | None:
-    if text is None:
-        return None
-    parts = [p.strip() for p in text.split(",")]
-    try:
-        values = tuple(float(p) for p in parts)
-    except ValueError:
-        values = ()
-    if len(values) != len(names.split(",")):
-        raise CalibrationError(f"{option} expects {names} (comma-separated numbers), got {text!r}")
-    return values
+def circle_in_image(circle: tuple[float, ...], width: int, height: int) -> bool:
+    """Whether the circle's centre lies in the image and the circle overlaps it."""
+    cx, cy, r = circle
+    return 0 <= cx < width and 0 <= cy < height and r < max(width, height)
 
 
 @lab_command
@@ -87,10 +80,12 @@ def calibrate(
     Writes light_directions.txt, light_intensities.txt, calibration.json and calibration.png;
     with two or more chrome spheres also light_positions.txt (scene frame, pixels).
     """
-    spheres = [_numbers(text, "--sphere", "CX,CY,R") for text in sphere or []]
+    spheres = [parse_numbers(t, "--sphere", "CX,CY,R", positive=("R",)) for t in sphere or []]
     sphere_c = spheres[0] if spheres else None
-    matte_c = _numbers(matte, "--matte", "CX,CY,R")
-    roi_v = _numbers(roi, "--roi", "X,Y,W,H")
+    matte_c = parse_numbers(matte, "--matte", "CX,CY,R", positive=("R",))
+    roi_v = parse_numbers(roi, "--roi", "X,Y,W,H", positive=("W", "H"))
+    positive(focal_length, "--focal-length")
+    positive(pixel_pitch, "--pixel-pitch")
     if (focal_length is None) != (pixel_pitch is None):
         raise CalibrationError(
             "--focal-length and --pixel-pitch go together (perspective correction)"
@@ -101,8 +96,18 @@ def calibrate(
     _, rig_matte = rig_circles(frames.manifest)
     rig_chrome = rig_chrome_spheres(frames.manifest)
     hints = [] if sphere_c is not None or roi_v is not None else rig_chrome
-    n = frames.images.shape[0]
-    with progress_bar(n * max(len(spheres), len(hints), 1), "highlights") as advance:
+    n, height, width = frames.images.shape[:3]
+    circles = [("--sphere", c) for c in spheres] + [("--matte", matte_c)]
+    for option, circle in circles:
+        if circle is not None and not circle_in_image(circle, width, height):
+            raise CalibrationError(
+                f"{option} {circle[0]:g},{circle[1]:g},{circle[2]:g} is not inside the "
+                f"{width}x{height} image of {frames.root}"
+            )
+    with (
+        progress_bar(n * max(len(spheres), len(hints), 1), "highlights") as advance,
+        naming_folder(frames.root),
+    ):
         result = run_calibration(
             frames.images,
             sphere=sphere_c,

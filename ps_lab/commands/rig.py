@@ -7,9 +7,16 @@ from typing import Annotated
 
 import typer
 
-from ps_lab._cli_util import lab_command, progress_bar
+from ps_lab._cli_util import (
+    EXIT_INTERRUPTED,
+    fail,
+    interrupted_line,
+    lab_command,
+    progress_bar,
+)
 from ps_lab.capture.connect import parse_faults, serve_firmware, serve_simulator
 from ps_lab.capture.lights import SerialLightController, walk_lights
+from ps_lab.errors import PsLabError, RigError
 
 rig_app = typer.Typer(
     help="Light-controller tools: a simulated controller or the compiled sketch in simavr on a "
@@ -36,9 +43,12 @@ def serve_sim(
             "KIND is drop, garble, delay, reboot or silence. Repeatable."
         ),
     ] = None,
-    seed: Annotated[int, typer.Option(help="Seed of probabilistic faults and garbling.")] = 0,
+    seed: Annotated[
+        int, typer.Option(min=0, help="Seed of probabilistic faults and garbling.")
+    ] = 0,
     delay: Annotated[
-        float, typer.Option(min=0.0, help="Seconds a 'delay' fault holds a reply back.")
+        float,
+        typer.Option(min=0.0, max=3600.0, help="Seconds a 'delay' fault holds a reply back."),
     ] = 1.0,
 ) -> None:
     """Print the device path of a simulated controller (protocol v1) and serve until Ctrl-C."""
@@ -105,14 +115,23 @@ def check(
     ],
     lights: Annotated[int, typer.Option(min=1, help="Number of lights the rig has.")],
     dwell: Annotated[
-        float, typer.Option(min=0.0, help="Seconds each light stays on, to watch the rig.")
+        float,
+        typer.Option(min=0.0, max=3600.0, help="Seconds each light stays on, to watch the rig."),
     ] = 0.0,
-    timeout: Annotated[float, typer.Option(min=0.01, help="Seconds to wait for each reply.")] = 0.5,
+    timeout: Annotated[
+        float, typer.Option(min=0.01, max=60.0, help="Seconds to wait for each reply.")
+    ] = 0.5,
 ) -> None:
     """Handshake with a light controller, light each light alone, check what it reports."""
-    with SerialLightController(port, lights, reply_timeout=timeout) as controller:
-        with progress_bar(lights, "lights") as advance:
+    controller = SerialLightController(port, lights, reply_timeout=timeout)
+    try:
+        with controller, progress_bar(lights, "lights") as advance:
             walk_lights(controller, dwell_s=dwell, progress=advance)
+    except PsLabError as exc:
+        message = str(exc) if port in str(exc) else f"{port}: {exc}"
+        raise RigError(f"{message}; {controller.lit_note()}") from None
+    except KeyboardInterrupt as exc:
+        raise fail(f"{interrupted_line(exc)}; {controller.lit_note()}", EXIT_INTERRUPTED) from None
     typer.echo(
         f"{port}: protocol v1 controller, {lights} lights switched one by one and "
         "reported correctly"

@@ -37,9 +37,11 @@ def simulate(
         SceneKind, typer.Option(help="sphere, or relief (a height field whose bumps cast shadows).")
     ] = SceneKind.sphere,
     lights: Annotated[int, typer.Option(min=3, help="Number of random lights.")] = 40,
-    size: Annotated[int, typer.Option(min=8, help="Image width and height in pixels.")] = 128,
+    size: Annotated[
+        int, typer.Option(min=8, max=8192, help="Image width and height in pixels.")
+    ] = 128,
     seed: Annotated[
-        int, typer.Option(help="Seed of the lights, the relief layout and the noise.")
+        int, typer.Option(min=0, help="Seed of the lights, the relief layout and the noise.")
     ] = 0,
     specular: Annotated[
         float, typer.Option(min=0.0, help="Cook-Torrance strength (0 = Lambertian).")

@@ -35,8 +35,10 @@ from ps_lab.io.frames import FramePlan, is_capture_run, plan_frames
 from ps_lab.io.images import (
     RAW_SUFFIXES,
     Image,
+    check_is_file,
     read_image,
     read_image_size,
+    read_png_bytes,
 )
 from ps_lab.io.lights import (
     read_light_anisotropy,
@@ -180,11 +182,17 @@ def iter_frames(
     """
     reference: Image | None = None
     reference_path: Path | None = None
+    darks = set(plan.dark_files)
 
     def read_checked(file: Path) -> Image:
         nonlocal reference, reference_path
         image = read_image(file)
         if reference is None:
+            reference, reference_path = image, file
+        elif reference_path in darks and file not in darks:
+            # The dark frame is read first; when the first light frame disagrees with it, the
+            # dark frame is the odd one. Light frames are compared with this one from here on.
+            _check_same_geometry(reference, reference_path, image, file)
             reference, reference_path = image, file
         else:
             _check_same_geometry(image, file, reference, reference_path)
@@ -436,6 +444,8 @@ def open_dataset(path: Path, *, channel: str = "mean", read_size: bool = True) -
     run = is_capture_run(root) if root.is_dir() else False
     # Lights are checked before pixels are read: a missing file should not cost a long load.
     directions_file = root / LIGHT_DIRECTIONS
+    if directions_file.exists() or directions_file.is_symlink():
+        check_is_file(directions_file, "light directions file")
     if root.is_dir() and not directions_file.is_file():
         if run:
             raise DatasetError(f"run {root} is not calibrated: run `ps-lab calibrate {root}` first")
@@ -444,12 +454,15 @@ def open_dataset(path: Path, *, channel: str = "mean", read_size: bool = True) -
     n = len(plan.light_files)
     light_directions = read_light_directions(directions_file, n)
     intensities_file = root / LIGHT_INTENSITIES
-    if intensities_file.is_file():
+    if intensities_file.exists() or intensities_file.is_symlink():
         light_intensities = read_light_intensities(intensities_file, n)
     else:
         light_intensities = np.ones((n, 3))
     positions_file, anisotropy_file = root / LIGHT_POSITIONS, root / LIGHT_ANISOTROPY
-    shape = read_image_size(plan.light_files[0][0]) if read_size else None
+    shape = _common_image_size(plan) if read_size else None
+    mask_file = root / MASK
+    if mask_file.exists() or mask_file.is_symlink():
+        check_is_file(mask_file, "mask")
     return DatasetHeader(
         root=root,
         plan=plan,
@@ -465,6 +478,45 @@ def open_dataset(path: Path, *, channel: str = "mean", read_size: bool = True) -
         if anisotropy_file.is_file()
         else None,
     )
+
+
+_HEADER_SUFFIXES = (".png", ".npy", ".tif", ".tiff")
+
+
+def _common_image_size(plan: FramePlan) -> tuple[int, int]:
+    """The image size ``(H, W)`` of the dataset, naming the frame that disagrees.
+
+    Sizes come from the headers of every light and dark frame whose format has a cheap header
+    (PNG, ``.npy``, TIFF); other formats are sized by their first frame. The size most light
+    frames share is the dataset's, so a first image of the wrong size (or with a forged header)
+    is the one named, not a correct mask, and a dark frame is named as the dark frame.
+    """
+    first = plan.light_files[0][0]
+    lights = [
+        f for files in plan.light_files for f in files if f.suffix.lower() in _HEADER_SUFFIXES
+    ]
+    if not lights:
+        return read_image_size(first)
+    sizes = {file: read_image_size(file) for file in lights}
+    counts: dict[tuple[int, int], int] = {}
+    for size in sizes.values():
+        counts[size] = counts.get(size, 0) + 1
+    common = max(counts, key=lambda size: (counts[size], size == sizes.get(first)))
+    for file, size in sizes.items():
+        if size != common:
+            raise DatasetError(
+                f"{file}: image size {size[1]}x{size[0]} differs from the other light frames "
+                f"({common[1]}x{common[0]})"
+            )
+    for file in plan.dark_files:
+        if file.suffix.lower() in _HEADER_SUFFIXES:
+            size = read_image_size(file)
+            if size != common:
+                raise DatasetError(
+                    f"{file}: dark frame size {size[1]}x{size[0]} differs from the light frames "
+                    f"({common[1]}x{common[0]})"
+                )
+    return common
 
 
 def combine_channels(image: np.ndarray, intensity: np.ndarray, channel: str = "mean") -> np.ndarray:
@@ -528,6 +580,15 @@ def _check_same_geometry(image: Image, file: Path, reference: Image, reference_p
             f"{file}: {kinds[image.data.shape[2]]} image among "
             f"{kinds[reference.data.shape[2]]} images (first: {reference_path.name})"
         )
+    if (
+        image.bit_depth is not None
+        and reference.bit_depth is not None
+        and image.bit_depth != reference.bit_depth
+    ):
+        raise DatasetError(
+            f"{file}: {image.bit_depth}-bit image among {reference.bit_depth}-bit images "
+            f"(first: {reference_path.name}); a mix means a file from another capture"
+        )
 
 
 def read_mask(path: Path, shape: tuple[int, int] | None = None) -> np.ndarray:
@@ -545,10 +606,14 @@ def read_mask(path: Path, shape: tuple[int, int] | None = None) -> np.ndarray:
     ndarray of shape (H, W), bool
 
     """
-    try:
-        raw = path.read_bytes()
-    except OSError as exc:
-        raise DatasetError(f"{path}: cannot read file ({exc.strerror})") from None
+    check_is_file(path, "mask")
+    if path.suffix.lower() == ".png":
+        raw = read_png_bytes(path)
+    else:
+        try:
+            raw = path.read_bytes()
+        except OSError as exc:
+            raise DatasetError(f"{path}: cannot read file ({exc.strerror})") from None
     array = cv2.imdecode(np.frombuffer(raw, np.uint8), cv2.IMREAD_UNCHANGED)
     if array is None:
         raise DatasetError(f"{path}: corrupt or unreadable mask image")

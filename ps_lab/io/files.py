@@ -8,15 +8,20 @@
 - :func:`staged_files`: files built in a hidden sub-folder, then each renamed into an existing
   folder (``ps-lab calibrate`` writes into a capture run);
 - :func:`sha256` of a file, and :func:`json_safe` values for ``json.dumps``.
+
+Staging folders carry the writer's process id (``.OUT.partial-PID``); a run killed by SIGKILL
+leaves one behind, and the next run writing to the same place removes those whose process is gone
+(:func:`remove_stale_staging`).
 """
 
 from __future__ import annotations
 
 import hashlib
 import json
+import logging
 import os
+import re
 import shutil
-import tempfile
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
@@ -28,6 +33,51 @@ from ps_lab.errors import PsLabError
 
 #: Name prefix of a file being written by :func:`write_bytes_atomic`.
 PARTIAL_PREFIX = ".partial-"
+
+log = logging.getLogger(__name__)
+
+
+def _process_alive(pid: int) -> bool:
+    if pid == os.getpid():
+        return True
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:  # another user's process
+        return True
+    return True
+
+
+def remove_stale_staging(folder: Path, pattern: str) -> list[Path]:
+    r"""Remove the entries of ``folder`` named by ``pattern`` whose writing process is gone.
+
+    Parameters
+    ----------
+    folder : Path
+        Where the staging folders are.
+    pattern : str
+        Regular expression for a whole name, with one group capturing the process id, e.g.
+        ``r"\.out\.(?:partial|old)-(\d+)"``.
+
+    Returns
+    -------
+    list of Path
+        What was removed. Entries of live processes (or of another user's) are left alone.
+
+    """
+    removed: list[Path] = []
+    try:
+        entries = list(Path(folder).iterdir())
+    except OSError:
+        return removed
+    for entry in entries:
+        match = re.fullmatch(pattern, entry.name)
+        if match and not _process_alive(int(match.group(1))):
+            shutil.rmtree(entry, ignore_errors=True)
+            log.info("removed %s, left by process %s (killed or crashed)", entry, match.group(1))
+            removed.append(entry)
+    return removed
 
 
 def _fsync_dir(path: Path) -> None:
@@ -124,6 +174,7 @@ def staged_folder(
     while not parent.exists():
         created.append(parent)
         parent = parent.parent
+    remove_stale_staging(out.parent, rf"\.{re.escape(out.name)}\.(?:partial|old)-(\d+)")
     try:
         out.parent.mkdir(parents=True, exist_ok=True)
         stage = out.parent / f".{out.name}.partial-{os.getpid()}"
@@ -157,12 +208,17 @@ def staged_files(out: Path, *, prefix: str = ".staged-") -> Iterator[Path]:
     """Yield a hidden sub-folder of ``out`` whose files move into ``out`` when the block succeeds.
 
     ``out`` is created if needed; every file is fsynced, then renamed into ``out``. The sub-folder
-    is removed in every case, so a failure leaves ``out`` as it was. Raises ``OSError`` as it
+    (``PREFIX``, ``partial-`` and the process id) is removed in every case, so a failure leaves
+    ``out`` as it was; one left by a killed process is removed here. Raises ``OSError`` as it
     comes.
     """
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
-    staging = Path(tempfile.mkdtemp(prefix=prefix, dir=out))
+    remove_stale_staging(out, rf"{re.escape(prefix)}partial-(\d+)")
+    staging = out / f"{prefix}partial-{os.getpid()}"
+    if staging.exists():
+        shutil.rmtree(staging)
+    staging.mkdir()
     try:
         yield staging
         files = sorted(p for p in staging.iterdir() if p.is_file())

@@ -17,7 +17,7 @@ import numpy as np
 
 from ps_lab.errors import DatasetError
 from ps_lab.io.files import sha256
-from ps_lab.io.images import SUPPORTED_SUFFIXES, is_supported
+from ps_lab.io.images import SUPPORTED_SUFFIXES, check_is_file, is_supported
 from ps_lab.io.run import MANIFEST_NAME, is_run, read_manifest
 
 log = logging.getLogger("ps_lab.io.dataset")
@@ -120,21 +120,34 @@ def _is_light_frame(path: Path) -> bool:
 
 def _plan_image_folder(root: Path) -> FramePlan:
     listing = root / FILENAMES
-    if listing.is_file():
+    if listing.exists() or listing.is_symlink():
+        check_is_file(listing, "image list")
         try:
-            names = [line.strip() for line in listing.read_text(encoding="utf-8").splitlines()]
+            names = [line.strip() for line in listing.read_text(encoding="utf-8-sig").splitlines()]
         except (OSError, UnicodeDecodeError) as exc:
             raise DatasetError(f"{listing}: cannot read file ({exc})") from None
         names = [name for name in names if name and not name.startswith("#")]
         if not names:
             raise DatasetError(f"{listing}: lists no images")
         files = []
-        for name in names:
+        seen: dict[str, int] = {}
+        for number, name in enumerate(names, start=1):
             file = root / name
-            if not file.is_file():
+            if name in seen:
+                raise DatasetError(
+                    f"{listing}: lists {name} twice (entries {seen[name]} and {number})"
+                )
+            seen[name] = number
+            if not (file.exists() or file.is_symlink()):
                 raise DatasetError(f"{listing}: lists {name}, which does not exist")
+            check_is_file(file, "image file")
             if not is_supported(file):
                 raise DatasetError(f"{file}: unsupported image type {file.suffix!r}")
+            if not _is_light_frame(file):
+                raise DatasetError(
+                    f"{listing}: lists {name}, which is not a light image (mask, result, "
+                    "ground truth or dark frame)"
+                )
             files.append(file)
     else:
         files = sorted(

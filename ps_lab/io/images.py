@@ -17,8 +17,10 @@ work on one file at a time so that callers can stream large captures.
 
 from __future__ import annotations
 
+import os
 import re
 import struct
+import zlib
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -37,6 +39,10 @@ IMAGE_SUFFIXES = (".png", ".tif", ".tiff", ".pfm", ".npy")
 SUPPORTED_SUFFIXES = IMAGE_SUFFIXES + RAW_SUFFIXES
 
 _PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
+_PNG_CHANNELS = {0: 1, 2: 3, 3: 1, 4: 2, 6: 4}
+# Deflate (PNG) cannot compress better than 1032:1; a header claiming more pixels than its data can
+# hold is forged or corrupt, and is refused before the decoder allocates what it claims.
+MAX_COMPRESSION_RATIO = 1100
 
 
 @dataclass(frozen=True)
@@ -57,6 +63,7 @@ class Image:
     data: np.ndarray
     saturated: np.ndarray
     exposure_s: float | None = None
+    bit_depth: int | None = None  # bits per sample of an integer file (8, 16), else None
 
     @property
     def shape(self) -> tuple[int, int]:
@@ -90,8 +97,7 @@ def read_image(path: Path) -> Image:
     """
     path = Path(path)
     suffix = path.suffix.lower()
-    if not path.is_file():
-        raise DatasetError(f"{path}: image file not found")
+    check_is_file(path, "image file")
     if suffix in RAW_SUFFIXES:
         return _read_raw(path)
     if suffix == ".png":
@@ -109,6 +115,109 @@ def read_image(path: Path) -> Image:
     return _to_linear(array, path)
 
 
+def check_is_file(path: Path, what: str = "file") -> None:
+    """Raise :class:`DatasetError` naming ``path`` unless it is a readable regular file.
+
+    Tells the usual cases apart: missing, a folder, a link that leads nowhere or loops, or no
+    permission to read.
+    """
+    path = Path(path)
+    a_what = f"{'an' if what[:1] in 'aeiou' else 'a'} {what}"
+    try:
+        st = path.stat()
+    except FileNotFoundError:
+        kind = "a broken link" if path.is_symlink() else "not found"
+        raise DatasetError(f"{path}: {what} {kind}") from None
+    except OSError as exc:  # ELOOP, EACCES on a parent, ...
+        raise DatasetError(f"{path}: cannot open {what} ({exc.strerror})") from None
+    if os.path.isdir(path):
+        raise DatasetError(f"{path}: is a folder, expected {a_what}")
+    if not path.is_file():
+        raise DatasetError(f"{path}: is not a regular file (expected {a_what})")
+    if st.st_size == 0:
+        raise DatasetError(f"{path}: {what} is empty (0 bytes)")
+    if not os.access(path, os.R_OK):
+        raise DatasetError(f"{path}: no permission to read the {what}")
+
+
+def png_layout_problem(raw: bytes) -> str | None:
+    """Check a PNG's chunks (lengths, CRCs, IHDR, IDAT, IEND) without decoding any pixel.
+
+    Returns
+    -------
+    str or None
+        Why the file cannot be a valid PNG (``"truncated ..."``, a forged size), else None.
+        Catching these before libpng runs keeps libpng's own messages off stderr and stops a
+        forged header from making the decoder allocate the size it claims.
+
+    """
+    if not raw.startswith(_PNG_SIGNATURE):
+        return "not a PNG file"
+    pos, idat, header = 8, 0, None
+    while True:
+        if pos + 8 > len(raw):
+            return "corrupt or truncated PNG file (no IEND chunk)"
+        length, kind = struct.unpack(">I4s", raw[pos : pos + 8])
+        end = pos + 12 + length
+        name = kind.decode("latin-1")
+        if end > len(raw):
+            return f"corrupt or truncated PNG file ({name!r} chunk cut short)"
+        data = raw[pos + 8 : pos + 8 + length]
+        if zlib.crc32(kind + data) != struct.unpack(">I", raw[end - 4 : end])[0]:
+            return f"corrupt PNG file ({name!r} chunk fails its CRC)"
+        if kind == b"IHDR" and length == 13:
+            header = struct.unpack(">IIBBBBB", data)
+        elif kind == b"IDAT":
+            idat += length
+        elif kind == b"IEND":
+            break
+        pos = end
+    if header is None or idat == 0:
+        return "corrupt PNG file (no image header or no image data)"
+    width, height, depth, colour = header[:4]
+    channels = _PNG_CHANNELS.get(colour)
+    if width == 0 or height == 0 or channels is None or depth not in (1, 2, 4, 8, 16):
+        return f"corrupt PNG header ({width}x{height}, colour type {colour}, depth {depth})"
+    raw_bytes = height * (1 + (width * channels * depth + 7) // 8)
+    if raw_bytes > MAX_COMPRESSION_RATIO * idat:
+        return (
+            f"PNG header claims {width}x{height} pixels but the file holds only {idat} bytes of "
+            "image data (forged or corrupt header)"
+        )
+    check_decode_memory(None, height, width, channels)
+    return None
+
+
+def available_memory() -> int:
+    """Bytes of memory available now (``MemAvailable`` on Linux, else physical memory)."""
+    try:
+        with open("/proc/meminfo", encoding="ascii") as stream:
+            for line in stream:
+                if line.startswith("MemAvailable:"):
+                    return int(line.split()[1]) * 1024
+    except (OSError, ValueError, IndexError):
+        pass
+    try:
+        return os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
+    except (ValueError, OSError, AttributeError):
+        return 1 << 62
+
+
+def check_decode_memory(path: Path | None, height: int, width: int, channels: int) -> None:
+    """Refuse an image whose decoding would not fit in the memory available now.
+
+    Decoding holds the file's array and its float32 copy (about 8 bytes per sample).
+    """
+    need = int(height) * int(width) * max(int(channels), 1) * 8
+    have = available_memory()
+    if need > have:
+        where = f"{path}: " if path is not None else ""
+        raise DatasetError(
+            f"{where}image of {width}x{height} pixels would need {need / 2**30:.1f} GiB to decode, "
+            f"{have / 2**30:.1f} GiB available (forged header, or too large for this machine)"
+        )
+
+
 def read_image_size(path: Path) -> tuple[int, int]:
     """Size ``(H, W)`` of an image file, from its header when the format allows.
 
@@ -123,26 +232,43 @@ def read_image_size(path: Path) -> tuple[int, int]:
     """
     path = Path(path)
     suffix = path.suffix.lower()
+    check_is_file(path, "image file")
+    size: tuple[int, int] | None = None
+    claimed = stored = 0
     try:
         if suffix == ".png":
             with path.open("rb") as stream:
-                head = stream.read(24)
+                head = stream.read(26)
             if head.startswith(_PNG_SIGNATURE) and head[12:16] == b"IHDR":
                 width, height = struct.unpack(">II", head[16:24])
+                depth, colour = head[24], head[25]
                 if width and height:
-                    return int(height), int(width)
+                    size = int(height), int(width)
+                    claimed = height * width * depth * _PNG_CHANNELS.get(colour, 1) // 8
+                    stored = MAX_COMPRESSION_RATIO * path.stat().st_size
         elif suffix == ".npy":
             with path.open("rb") as stream:
-                shape, _, _, _ = read_npy_header(stream)
+                shape, _, dtype, offset = read_npy_header(stream)
             if len(shape) in (2, 3):
-                return int(shape[0]), int(shape[1])
+                size = int(shape[0]), int(shape[1])
+                claimed = int(np.prod(shape, dtype=np.float64)) * dtype.itemsize
+                stored = path.stat().st_size - offset
         elif suffix in (".tif", ".tiff"):
             with tifffile.TiffFile(path) as tiff:
                 page = tiff.pages[0]
                 if page.imagelength and page.imagewidth:
-                    return int(page.imagelength), int(page.imagewidth)
+                    size = int(page.imagelength), int(page.imagewidth)
     except Exception:  # noqa: BLE001, S110 - any header problem: decode the file, which names it
-        pass
+        size = None
+    if size is not None:
+        if claimed > stored:
+            raise DatasetError(
+                f"{path}: header claims {size[1]}x{size[0]} pixels, more than the file's "
+                f"{path.stat().st_size} bytes can hold (forged or truncated)"
+            )
+        if suffix in (".tif", ".tiff"):
+            _check_tiff_layout(path)
+        return size
     return read_image(path).shape
 
 
@@ -180,6 +306,11 @@ def read_pfm(path: Path) -> np.ndarray:
         raise DatasetError(f"{path}: not a PFM file (bad scale {match.group(4)!r})") from None
     if width == 0 or height == 0 or scale == 0.0:
         raise DatasetError(f"{path}: PFM header has zero size or zero scale")
+    if len(raw) - match.end() < width * height * channels * 4:
+        raise DatasetError(
+            f"{path}: PFM header claims {width}x{height} pixels but the file is shorter "
+            "(truncated or forged)"
+        )
     dtype = np.dtype("<f4") if scale < 0 else np.dtype(">f4")
     count = width * height * channels
     body = raw[match.end() :]
@@ -235,13 +366,25 @@ def read_npy_header(stream) -> tuple[tuple[int, ...], bool, np.dtype, int]:
     return tuple(shape), bool(fortran_order), np.dtype(dtype), stream.tell()
 
 
-def _read_png(path: Path) -> np.ndarray:
+def read_png_bytes(path: Path) -> bytes:
+    """The bytes of a PNG file whose structure is sound (see :func:`png_layout_problem`)."""
     try:
         raw = path.read_bytes()
     except OSError as exc:
         raise DatasetError(f"{path}: cannot read file ({exc.strerror})") from None
-    if not raw.startswith(_PNG_SIGNATURE):
-        raise DatasetError(f"{path}: not a PNG file")
+    problem = png_layout_problem(raw)
+    if problem is not None:
+        raise DatasetError(f"{path}: {problem}")
+    return raw
+
+
+def _read_png(path: Path) -> np.ndarray:
+    try:
+        raw = read_png_bytes(path)
+    except DatasetError as exc:
+        if str(path) in str(exc):
+            raise
+        raise DatasetError(f"{path}: {exc}") from None
     array = cv2.imdecode(np.frombuffer(raw, np.uint8), cv2.IMREAD_UNCHANGED)
     if array is None:
         raise DatasetError(f"{path}: corrupt or truncated PNG file")
@@ -251,6 +394,7 @@ def _read_png(path: Path) -> np.ndarray:
 def _read_tiff(path: Path) -> np.ndarray:
     # tifffile keeps every sample type exactly; OpenCV covers compressions tifffile cannot decode
     # without the optional imagecodecs package (LZW, JPEG).
+    _check_tiff_layout(path)
     try:
         array = tifffile.imread(path)
     except Exception as tiff_exc:  # noqa: BLE001 - any decoder failure → try the second decoder
@@ -265,7 +409,39 @@ def _read_tiff(path: Path) -> np.ndarray:
     return array
 
 
+def _check_tiff_layout(path: Path) -> None:
+    """Refuse a TIFF whose first page claims more pixels than its strips or tiles hold."""
+    try:
+        with tifffile.TiffFile(path) as tiff:
+            page = tiff.pages.first
+            height, width = int(page.imagelength), int(page.imagewidth)
+            samples = int(page.samplesperpixel)
+            stored = int(sum(page.databytecounts or ()))
+            claimed = height * width * samples * max(int(page.bitspersample), 1) // 8
+            compressed = int(page.compression) != 1
+    except Exception:  # noqa: BLE001, S110 - the decoder below names the problem
+        return
+    limit = stored * (MAX_COMPRESSION_RATIO if compressed else 1)
+    if claimed > limit or stored > path.stat().st_size:
+        raise DatasetError(
+            f"{path}: TIFF header claims {width}x{height}x{samples} samples but the file holds "
+            f"only {stored} bytes of image data (forged or corrupt header)"
+        )
+    check_decode_memory(path, height, width, samples)
+
+
 def _read_npy(path: Path) -> np.ndarray:
+    try:
+        with path.open("rb") as stream:
+            shape, _, dtype, offset = read_npy_header(stream)
+        claimed = int(np.prod(shape, dtype=np.float64)) * dtype.itemsize
+    except (OSError, ValueError, EOFError, TypeError) as exc:
+        raise DatasetError(f"{path}: corrupt or unreadable .npy file ({exc})") from None
+    if offset + claimed > path.stat().st_size:
+        raise DatasetError(
+            f"{path}: .npy header claims shape {tuple(shape)} ({claimed} bytes) but the file "
+            f"holds {path.stat().st_size - offset} bytes (truncated or forged)"
+        )
     try:
         return np.load(path, allow_pickle=False)
     except (OSError, ValueError, EOFError) as exc:
@@ -310,8 +486,10 @@ def _to_linear(array: np.ndarray, path: Path) -> Image:
         )
     if array.dtype == np.bool_:
         array = array.astype(np.uint8)
+    bit_depth = None
     if np.issubdtype(array.dtype, np.integer):
         top = np.iinfo(array.dtype).max
+        bit_depth = array.dtype.itemsize * 8
         saturated = array[:, :, 0] >= top
         for k in range(1, array.shape[2]):
             saturated |= array[:, :, k] >= top
@@ -324,4 +502,4 @@ def _to_linear(array: np.ndarray, path: Path) -> Image:
             data[bad] = 0.0
     else:
         raise DatasetError(f"{path}: unsupported pixel type {array.dtype}")
-    return Image(data=np.ascontiguousarray(data), saturated=saturated)
+    return Image(data=np.ascontiguousarray(data), saturated=saturated, bit_depth=bit_depth)

@@ -14,6 +14,7 @@ from pathlib import Path
 import numpy as np
 
 from ps_lab.errors import DatasetError
+from ps_lab.io.images import check_is_file
 
 log = logging.getLogger("ps_lab.io.dataset")
 
@@ -54,7 +55,46 @@ def read_light_directions(path: Path, count: int | None = None) -> np.ndarray:
             int(off.sum()),
             ", ".join(str(i + 1) for i in np.flatnonzero(off)[:10]),
         )
-    return rows / norms[:, None]
+    unit = rows / norms[:, None]
+    problem = light_geometry_problem(unit)
+    if problem is not None:
+        raise DatasetError(f"{path}: {problem}")
+    return unit
+
+
+# Smallest singular value over the largest of the unit light directions below which the lights
+# count as coplanar: about 0.06 degrees out of their plane.
+_COPLANAR_TOLERANCE = 1e-3
+
+
+def light_geometry_problem(directions: np.ndarray) -> str | None:
+    """Say why ``directions`` cannot determine one normal per pixel, or return None.
+
+    Parameters
+    ----------
+    directions : ndarray of shape (n_lights, 3)
+        Unit light directions.
+
+    Returns
+    -------
+    str or None
+        Fewer than 3 lights, all along one line (identical or opposite), or all in one plane
+        through the object (the 3x3 normal equations are then singular for every pixel).
+
+    """
+    d = np.asarray(directions, dtype=np.float64)
+    n = d.shape[0]
+    if n < 3:
+        return f"{n} light{'' if n == 1 else 's'}: photometric stereo needs at least 3"
+    s = np.linalg.svd(d, compute_uv=False)
+    if s[1] <= _COPLANAR_TOLERANCE * s[0]:
+        return f"all {n} lights point along one line: they must span 3 directions"
+    if s[2] <= _COPLANAR_TOLERANCE * s[0]:
+        return (
+            f"all {n} lights lie in one plane through the object: they must span 3 directions "
+            "(normals out of that plane cannot be recovered)"
+        )
+    return None
 
 
 def read_light_intensities(path: Path, count: int | None = None) -> np.ndarray:
@@ -65,6 +105,7 @@ def read_light_intensities(path: Path, count: int | None = None) -> np.ndarray:
     ndarray of shape (n, 3), float64, positive
 
     """
+    check_is_file(path, "light intensities file")
     rows = _read_table(path, (1, 3))
     if count is not None and len(rows) != count:
         raise DatasetError(
@@ -117,7 +158,7 @@ def write_light_table(path: Path, rows: np.ndarray) -> None:
 def _read_table(path: Path, widths: tuple[int, ...], *, allow_nan: bool = False) -> np.ndarray:
     """Parse a whitespace (or comma) separated numeric table; ``#`` starts a comment."""
     try:
-        text = path.read_text(encoding="utf-8")
+        text = path.read_text(encoding="utf-8-sig")
     except FileNotFoundError:
         raise DatasetError(f"{path}: file not found") from None
     except (OSError, UnicodeDecodeError) as exc:

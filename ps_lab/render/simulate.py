@@ -48,17 +48,19 @@ class SimulationSettings:
                 f"unknown image format {self.image_format!r}; choose one of {', '.join(FORMATS)}"
             )
         if self.lights < 3:
-            raise DatasetError(f"need at least 3 lights, got {self.lights}")
+            raise DatasetError(f"--lights: need at least 3 lights, got {self.lights}")
         if self.size < 8:
-            raise DatasetError(f"image size must be at least 8 pixels, got {self.size}")
+            raise DatasetError(f"--size: image size must be at least 8 pixels, got {self.size}")
         if self.roughness <= 0:
-            raise DatasetError(f"roughness must be positive, got {self.roughness}")
+            raise DatasetError(f"--roughness must be positive, got {self.roughness}")
         if self.specular < 0 or self.noise_sigma < 0:
-            raise DatasetError("specular and noise sigma must be >= 0")
+            raise DatasetError("--specular and --noise-sigma must be >= 0")
         if not 0.0 <= self.noise_fraction <= 1.0:
-            raise DatasetError(f"noise fraction must be in [0, 1], got {self.noise_fraction}")
+            raise DatasetError(f"--noise-fraction must be in [0, 1], got {self.noise_fraction}")
         if not 0.0 < self.max_zenith_deg < 90.0:
-            raise DatasetError(f"max zenith must be in (0, 90) degrees, got {self.max_zenith_deg}")
+            raise DatasetError(
+                f"--max-zenith must be in (0, 90) degrees, got {self.max_zenith_deg}"
+            )
 
 
 def check_new_dataset_folder(out: Path) -> None:
