@@ -126,14 +126,16 @@ def l1_tile(y, w, lights, *, max_iter: int, tol: float, delta: float,
 
 
 @njit(nogil=True, cache=True)
-def _sbl_kernel(y, w, lights, aa, lam, ridge, max_iter, tol, floor, threshold, x_out, outliers, iters):
+def _sbl_kernel(y, w, lights, aa, lam_px, ridge, max_iter, tol, floor, start, threshold, x_out,
+                outliers, iters):
     m, n = y.shape
     g = np.empty(n)
     z_old = np.empty(n)
     d = np.empty(n)
     for p in range(m):
+        lam = lam_px[p]
         for i in range(n):
-            g[i] = 1.0
+            g[i] = start
             z_old[i] = 0.0
         iters[p] = max_iter
         for it in range(0, max_iter + 1):
@@ -183,8 +185,8 @@ def _sbl_kernel(y, w, lights, aa, lam, ridge, max_iter, tol, floor, threshold, x
                 iters[p] = it + 1
 
 
-def sbl_tile(y, w, lights, *, lam: float, sigma_x2: float, max_iter: int, tol: float,
-             gamma_floor: float, outlier_threshold: float) -> TileResult:
+def sbl_tile(y, w, lights, *, lam, sigma_x2: float, max_iter: int, tol: float,
+             gamma_floor: float, gamma_start: float, outlier_threshold: float) -> TileResult:
     """Sparse Bayesian learning of Ikehata et al. (CVPR 2012), Eqs. 12-13, per pixel.
 
     With ``D = (Gamma + lam I)^-1`` (zero for dropped observations) and
@@ -194,7 +196,8 @@ def sbl_tile(y, w, lights, *, lam: float, sigma_x2: float, max_iter: int, tol: f
     - ``diag(S)_i = d_i - d_i^2 a_i^T M^-1 a_i``,
 
     so ``z = Gamma S y`` and ``u = diag(Gamma - Gamma S Gamma)`` cost O(n) per pixel;
-    ``gamma <- max(z^2 + u, gamma_floor)``, starting from ``gamma = 1``. A pixel converges when
+    ``gamma <- max(z^2 + u, gamma_floor)``, starting from ``gamma = gamma_start``. ``lam`` is one
+    noise variance for the tile or one per pixel, shape (m,). A pixel converges when
     ``max_i |z_i - z_i_old| < tol``. The normal comes from ``x`` of the final ``gamma``; outliers
     are usable observations whose corruption estimate ``|z_i|`` (final gamma) exceeds
     ``outlier_threshold``.
@@ -203,6 +206,8 @@ def sbl_tile(y, w, lights, *, lam: float, sigma_x2: float, max_iter: int, tol: f
     x = np.zeros((m, 3))
     outliers = np.zeros(y.shape, np.bool_)
     iters = np.zeros(m, np.int64)
-    _sbl_kernel(y, w, lights, outer6(lights), float(lam), 1.0 / float(sigma_x2), int(max_iter), float(tol),
-                float(gamma_floor), float(outlier_threshold), x, outliers, iters)
+    lam_px = np.broadcast_to(np.asarray(lam, dtype=np.float64), (m,))
+    _sbl_kernel(y, w, lights, outer6(lights), np.ascontiguousarray(lam_px), 1.0 / float(sigma_x2),
+                int(max_iter), float(tol), float(gamma_floor), float(gamma_start),
+                float(outlier_threshold), x, outliers, iters)
     return TileResult(x, outliers, iters)

@@ -20,7 +20,8 @@ DEFAULTS: dict[str, dict] = {
     "l1": {"max_iter": 100, "tol": 1e-6, "delta": 1e-6, "outlier_threshold": None,
            "noise_sigma": None},
     "sbl": {"lam": None, "sigma_x2": 1e6, "max_iter": 100, "tol": 1e-4, "gamma_floor": 1e-10,
-            "outlier_threshold": None, "noise_sigma": None},
+            "gamma_start": 1e3, "outlier_threshold": None, "noise_sigma": None,
+            "noise_floor": None},
     "rpca": {"lam_sparse": None, "max_iter": 500, "tol": 1e-7, "rho": 1.5,
              "outlier_threshold": None, "noise_sigma": None},
 }
@@ -37,6 +38,34 @@ SHADOW_FRACTION = 0.1
 # the 25% quantile of abs(r) is 0.3186 sigma.
 NOISE_QUANTILE = 0.25
 NOISE_QUANTILE_Z = 0.31864
+# The noise floor (noise constant in the observations' own units: quantisation, read noise) is
+# fitted on this many equal-count bins of pixel scale, each needing this many residuals.
+NOISE_FLOOR_BINS = 8
+NOISE_FLOOR_MIN_COUNT = 50
+
+
+def sbl_lambda(scale: np.ndarray, noise_sigma: float, noise_floor: float) -> np.ndarray:
+    """SBL's default noise variance per pixel, in units of the pixel's scale squared.
+
+    Parameters
+    ----------
+    scale : ndarray of shape (m,)
+        The pixels' robust scales (:func:`pixel_scale`), in the observations' units.
+    noise_sigma : float
+        Noise proportional to the signal, relative to the pixel scale (:func:`estimate_noise`).
+    noise_floor : float
+        Noise constant in the observations' units (:func:`estimate_noise_model`).
+
+    Returns
+    -------
+    ndarray of shape (m,)
+        ``max(noise_sigma^2 + (noise_floor / scale)^2, LAMBDA_FLOOR)`` (the floor where
+        ``scale`` is 0: unsolvable pixels).
+    """
+    s = np.asarray(scale, dtype=np.float64)
+    with np.errstate(divide="ignore"):
+        floor_part = np.where(s > 0, (noise_floor / np.where(s > 0, s, 1.0)) ** 2, 0.0)
+    return np.maximum(noise_sigma * noise_sigma + floor_part, LAMBDA_FLOOR)
 
 
 def _check_inputs(observations, light_directions, valid):
@@ -113,18 +142,48 @@ def estimate_noise(observations, light_directions, valid=None, *,
         (the Gaussian ratio), which ignores up to 75 % corrupted residuals.
     """
     obs, lights, usable = _check_inputs(observations, light_directions, valid)
-    return _noise_level(obs, lights, usable, max_pixels)
+    return _noise_level(*_noise_residuals(obs, lights, usable, max_pixels))
 
 
-def _noise_level(obs, lights, usable, max_pixels=NOISE_SAMPLE_PIXELS):
+def estimate_noise_model(observations, light_directions, valid=None, *,
+                         max_pixels: int = NOISE_SAMPLE_PIXELS) -> tuple[float, float]:
+    """Both noise terms of SBL's default lambda, from one L1 fit (see :func:`sbl_lambda`).
+
+    Parameters
+    ----------
+    observations : ndarray of shape (n, P)
+    light_directions : ndarray of shape (n, 3)
+    valid : ndarray of shape (n, P), bool, optional
+    max_pixels : int
+        At most this many pixels (evenly spaced) are used.
+
+    Returns
+    -------
+    noise_sigma : float
+        As :func:`estimate_noise`.
+    noise_floor : float
+        Noise constant in the observations' units (quantisation, read noise): the same residuals
+        as :func:`estimate_noise`, cut into ``NOISE_FLOOR_BINS`` equal-count bins of pixel scale
+        ``s``; each bin's Gaussian-equivalent variance (25 % quantile) is fitted by
+        ``sigma_abs^2 / s^2 + sigma_rel^2`` (both >= 0, relative least squares). Zero for float
+        renders and when dark pixels are no noisier (relative to their scale) than bright ones.
+    """
+    obs, lights, usable = _check_inputs(observations, light_directions, valid)
+    residuals = _noise_residuals(obs, lights, usable, max_pixels)
+    return _noise_level(*residuals), _noise_floor(*residuals)
+
+
+def _noise_residuals(obs, lights, usable, max_pixels=NOISE_SAMPLE_PIXELS):
+    """Relative residuals of an L1 fit on a pixel sample, and each residual's pixel scale."""
     n, p = obs.shape
+    empty = np.zeros(0), np.zeros(0)
     if p == 0:
-        return 0.0
+        return empty
     take = np.unique(np.linspace(0, p - 1, min(p, max_pixels)).round().astype(np.int64))
-    y, w, _, ok = _prepare_tile(obs[:, take], usable[:, take], lights, 0, take.size)
-    y, w = y[ok], w[ok]
+    y, w, scale, ok = _prepare_tile(obs[:, take], usable[:, take], lights, 0, take.size)
+    y, w, scale = y[ok], w[ok], scale[ok]
     if y.shape[0] == 0:
-        return 0.0
+        return empty
     res = _kernels.l1_tile(y, w, lights, max_iter=30, tol=1e-6, delta=1e-6,
                            outlier_threshold=np.inf)
     return residual_noise(y, w, res.x @ lights.T)
@@ -139,8 +198,34 @@ def residual_noise(y: np.ndarray, w: np.ndarray, model: np.ndarray) -> float:
     """
     r = np.abs(y - model)
     keep = (w > 0) & (y > SHADOW_FRACTION) & (model > SHADOW_FRACTION) & (r > 1e-12)
-    r = r[keep]
+    return r[keep], np.broadcast_to(scale[:, None], r.shape)[keep]
+
+
+def _noise_level(r, s=None):
     return float(np.quantile(r, NOISE_QUANTILE) / NOISE_QUANTILE_Z) if r.size else 0.0
+
+
+def _noise_floor(r, s):
+    """``sigma_abs`` of the fit ``var(r) = sigma_abs^2 / s^2 + sigma_rel^2`` over bins of ``s``."""
+    if r.size < NOISE_FLOOR_MIN_COUNT * 2:
+        return 0.0
+    order = np.argsort(s, kind="stable")
+    rows, var = [], []
+    for part in np.array_split(order, NOISE_FLOOR_BINS):
+        if part.size < NOISE_FLOOR_MIN_COUNT:
+            continue
+        v = _noise_level(r[part]) ** 2
+        if v > 0:
+            rows.append((1.0 / np.median(s[part]) ** 2, 1.0))
+            var.append(v)
+    if len(var) < 2:
+        return 0.0
+    # Relative least squares (each bin's variance counts alike), both coefficients >= 0.
+    a = np.array(rows) / np.array(var)[:, None]
+    coef = np.linalg.lstsq(a, np.ones(len(var)), rcond=None)[0]
+    if coef[1] < 0:
+        coef = np.array([np.sum(a[:, 0]) / np.sum(a[:, 0] ** 2), 0.0])
+    return float(math.sqrt(max(coef[0], 0.0)))
 
 
 def solve(
@@ -180,8 +265,9 @@ def solve(
         The method's parameters, all in units of the pixel's robust scale (median of its usable
         observations):
 
-        - ``sbl``: ``lam`` (noise variance; default estimated from the data), ``sigma_x2`` (1e6),
-          ``max_iter`` (100), ``tol`` (1e-4), ``gamma_floor`` (1e-10), ``outlier_threshold``;
+        - ``sbl``: ``lam`` (noise variance; default per pixel from the data, below),
+          ``sigma_x2`` (1e6), ``max_iter`` (100), ``tol`` (1e-4), ``gamma_floor`` (1e-10),
+          ``gamma_start`` (1e3), ``outlier_threshold``;
         - ``l1``: ``max_iter`` (100), ``tol`` (1e-6), ``delta`` (1e-6), ``outlier_threshold``;
         - ``rpca``: ``lam_sparse`` (1/sqrt(max(n, P))), ``max_iter`` (500), ``tol`` (1e-7),
           ``rho`` (1.5), ``outlier_threshold``.
@@ -189,7 +275,9 @@ def solve(
         ``outlier_threshold`` defaults to ``max(3 sigma, 0.05)`` with sigma the noise level;
         ``noise_sigma`` (l1, sbl, rpca) gives sigma instead of estimating it from these
         observations (for solving a capture in bands with whole-image parameters); SBL's
-        default ``lam`` is ``max(sigma^2, 1e-6)``.
+        default ``lam`` is, per pixel of scale ``s``, ``max(sigma^2 + (noise_floor / s)^2, 1e-6)``
+        with ``noise_floor`` (sbl; in the observations' units) given or estimated
+        (:func:`estimate_noise_model`).
 
     Returns
     -------
@@ -205,19 +293,27 @@ def solve(
     n, p = obs.shape
     used: dict = {"method": method}
 
+    noise_floor = None
     if method != "ls":
         noise = params.pop("noise_sigma")
         if method == "sbl":
-            if params["lam"] is None:
+            noise_floor = params.pop("noise_floor")
+            if params["lam"] is None and (noise is None or noise_floor is None):
+                residuals = _noise_residuals(obs, lights, usable)
                 if noise is None:
-                    noise = _noise_level(obs, lights, usable)
-                params["lam"] = max(noise * noise, LAMBDA_FLOOR)
-            used["lambda"] = float(params["lam"])
-            if noise is None:
-                noise = math.sqrt(params["lam"])
+                    noise = _noise_level(*residuals)
+                if noise_floor is None:
+                    noise_floor = _noise_floor(*residuals)
+            if params["lam"] is None:
+                used["lambda"] = None  # per pixel: max(noise_sigma^2 + (noise_floor/s)^2, 1e-6)
+                used["noise_floor"] = float(noise_floor)
+            else:
+                used["lambda"] = float(params["lam"])
+                if noise is None:
+                    noise = math.sqrt(params["lam"])
         if params["outlier_threshold"] is None:
             if noise is None:
-                noise = _noise_level(obs, lights, usable)
+                noise = _noise_level(*_noise_residuals(obs, lights, usable))
             params["outlier_threshold"] = max(3.0 * noise, MIN_OUTLIER_THRESHOLD)
         if noise is not None:
             used["noise_sigma"] = float(noise)
@@ -245,7 +341,11 @@ def solve(
     def run_tile(a: int) -> int:
         b = min(a + tile, p)
         y, w, scale, ok = _prepare_tile(obs, usable, lights, a, b)
-        res = kernel(y, w, lights, **kernel_params)
+        tile_params = kernel_params
+        if method == "sbl" and params["lam"] is None:
+            tile_params = {**kernel_params,
+                           "lam": sbl_lambda(scale, used["noise_sigma"], noise_floor)}
+        res = kernel(y, w, lights, **tile_params)
         x = res.x.astype(np.float64) * scale[:, None]
         length = np.linalg.norm(x, axis=1)
         good = ok & (length > 0) & np.isfinite(length)

@@ -51,7 +51,7 @@ from ps_lab.reconstruct._outputs import (
 )
 from ps_lab.reconstruct._refine import fit_lights, light_fit_sums
 from ps_lab.reconstruct._solution import Solution
-from ps_lab.reconstruct._solve import estimate_noise, solve
+from ps_lab.reconstruct._solve import estimate_noise, estimate_noise_model, solve
 from ps_lab.reconstruct.metrics import angular_errors_deg
 from ps_lab.reconstruct.near import (
     NearLights,
@@ -627,17 +627,18 @@ def _whole_image_parameters(store: ObservationStore, vectors: np.ndarray, method
     :func:`ps_lab.reconstruct.estimate_noise`); the store kept that very sample, so the estimate
     on it is the whole-image one. Each band is solved with ``noise_sigma=`` it, from which
     ``solve`` derives the outlier threshold (and SBL's ``lam``), so results do not depend on the
-    banding. Least squares takes no noise level.
+    banding. Least squares takes no noise level; SBL also gets the noise floor (``noise_floor=``,
+    :func:`ps_lab.reconstruct.estimate_noise_model`) of its per-pixel default ``lam``.
     """
     if method == "ls" or store.sample_index.size == 0:
         return {}
-    sigma = estimate_noise(
+    sigma, floor = estimate_noise_model(
         store.sample_observations,
         vectors,
         store.sample_valid,
         max_pixels=store.sample_index.size,
     )
-    return {"noise_sigma": sigma}
+    return {"noise_sigma": sigma, "noise_floor": floor} if method == "sbl" else {"noise_sigma": sigma}
 
 
 def _solve_pass(
