@@ -40,6 +40,7 @@ from ps_lab.io.bands import ObservationStore, plan_bands, stage_observations
 from ps_lab.io.dataset import DatasetHeader, open_dataset
 from ps_lab.io.files import json_safe, staged_folder
 from ps_lab.io.truth import open_normal_gt
+from ps_lab.reconstruct._kernels import start_warm_up
 from ps_lab.reconstruct._outputs import (
     ERROR_BIN_DEG,
     _Histogram,
@@ -321,10 +322,13 @@ def reconstruct_to_folder(
     check_output_folder(out)
     started = time.perf_counter()
     timings: dict[str, float] = {}
+    # The solver kernels load while the images are read (see _kernels.warm_up).
+    warm_up = start_warm_up(options.method)
     source = _read(dataset, options)
     with staged_folder(out, check=check_output_folder, error=OutputError) as stage:
         store = _stage(source, options, stage, bars)
         timings["read_seconds"] = time.perf_counter() - started
+        warm_up.join()
         with store:
             writer = _OutputWriter(stage, store.mask, source.truth, store.n_lights)
             if source.near is None:
