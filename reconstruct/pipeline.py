@@ -24,6 +24,7 @@ import dataclasses
 import inspect
 import json
 import logging
+import math
 import re
 import time
 from collections.abc import Callable, Iterator
@@ -51,7 +52,7 @@ from ps_lab.reconstruct._outputs import (
     write_png,
 )
 from ps_lab.reconstruct._refine import fit_lights, light_fit_sums
-from ps_lab.reconstruct._solution import Solution
+from ps_lab.reconstruct._solution import Solution, SolverInputError
 from ps_lab.reconstruct._solve import estimate_noise, estimate_noise_model, solve
 from ps_lab.reconstruct.metrics import angular_errors_deg
 from ps_lab.reconstruct.near import (
@@ -122,6 +123,34 @@ def parse_memory_size(text: str) -> int:
     return size
 
 
+# Solver fields of ReconstructOptions -> (command-line flag, methods they apply to).
+SOLVER_OPTIONS = {
+    "lam": ("--lambda", ("sbl", "rpca")),
+    "sigma_x2": ("--sigma-x2", ("sbl",)),
+    "max_iter": ("--max-iter", ("l1", "sbl", "rpca")),
+    "tol": ("--tol", ("l1", "sbl", "rpca")),
+}
+
+
+def _check_solver_options(options: ReconstructOptions) -> None:
+    """Raise :class:`SolverInputError` for a solver field that is not finite and positive, or
+    that does not apply to the method."""
+    for name, (flag, methods) in SOLVER_OPTIONS.items():
+        value = getattr(options, name)
+        if value is None:
+            continue
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
+            raise SolverInputError(f"{flag} must be a number, got {value!r}")
+        if not math.isfinite(value) or value <= 0:
+            raise SolverInputError(f"{flag} must be finite and positive, got {value!r}")
+        if name == "max_iter" and int(value) != value:
+            raise SolverInputError(f"{flag} must be a whole number, got {value!r}")
+        if options.method not in methods:
+            raise SolverInputError(
+                f"{flag} does not apply to method {options.method} (only {', '.join(methods)})"
+            )
+
+
 def band_pixels(memory_budget: int, n_lights: int) -> int:
     """Most mask pixels per band that keep one band's solve within ``memory_budget`` bytes."""
     per_pixel = n_lights * BYTES_PER_OBSERVATION + BYTES_PER_PIXEL
@@ -158,6 +187,11 @@ class ReconstructOptions:
         (LEDs at a finite distance, alternating normals and depth; :mod:`ps_lab.reconstruct.near`),
         ``directional`` with ``light_directions.txt`` alone; ``auto`` is near when the dataset
         has ``light_positions.txt``.
+    lam, sigma_x2, max_iter, tol : float, float, int, float, or None
+        Solver parameters in the units of ``docs/solvers.md`` (relative to each pixel's robust
+        scale); None keeps the method's default. ``lam``: SBL's noise variance, or R-PCA's
+        sparse weight; ``sigma_x2``: SBL's prior variance of ``x``; ``max_iter`` and ``tol``:
+        SBL, L1 and R-PCA. Each must be finite and positive, and apply to ``method``.
     """
 
     method: str = "sbl"
@@ -169,8 +203,13 @@ class ReconstructOptions:
     memory_budget: int = DEFAULT_MEMORY_BUDGET
     staging: str = "auto"
     lights: str = "auto"
+    lam: float | None = None
+    sigma_x2: float | None = None
+    max_iter: int | None = None
+    tol: float | None = None
 
     def __post_init__(self) -> None:
+        _check_solver_options(self)
         if self.staging not in STAGING:
             raise OutputError(f"staging must be auto, memory or file, got {self.staging!r}")
         if self.lights not in LIGHT_MODELS:
@@ -184,10 +223,12 @@ class ReconstructOptions:
     def solver_parameters(self) -> dict[str, Any]:
         """Keyword arguments for :func:`ps_lab.reconstruct.solve` that these options fix.
 
-        None yet: solver parameters added as fields (``lam``, ``sigma_x2``, ``max_iter``, ``tol``)
-        are returned here, and every band's solve receives them.
+        The solver fields that are set (``lam`` is R-PCA's ``lam_sparse``); every band's solve
+        receives them.
         """
-        return {}
+        given = {name: getattr(self, name) for name in SOLVER_OPTIONS}
+        names = {"lam": "lam_sparse"} if self.method == "rpca" else {}
+        return {names.get(k, k): v for k, v in given.items() if v is not None}
 
     def replace(self, **changes: Any) -> ReconstructOptions:
         """Return a copy with some fields changed (:func:`dataclasses.replace`)."""
@@ -585,6 +626,7 @@ def _write_results(
     except OSError as exc:
         raise OutputError(f"{stage}: cannot write results ({exc.strerror or exc})") from None
     metrics["channel"] = options.channel
+    metrics["solver_options"] = {SOLVER_OPTIONS[k][0][2:]: getattr(options, k) for k in SOLVER_OPTIONS}
     metrics["shadow_threshold"] = options.shadow_threshold
     metrics["light_model"] = "directional" if source.near is None else "near"
     if solved.near is not None:
