@@ -149,13 +149,7 @@ def estimate_noise_model(observations, light_directions, valid=None, *,
                          max_pixels: int = NOISE_SAMPLE_PIXELS) -> tuple[float, float]:
     """Both noise terms of SBL's default lambda, from one L1 fit (see :func:`sbl_lambda`).
 
-    Parameters
-    ----------
-    observations : ndarray of shape (n, P)
-    light_directions : ndarray of shape (n, 3)
-    valid : ndarray of shape (n, P), bool, optional
-    max_pixels : int
-        At most this many pixels (evenly spaced) are used.
+    Parameters are those of :func:`estimate_noise`.
 
     Returns
     -------

@@ -13,6 +13,13 @@ from ps_lab.bench import paper as bench_paper
 from ps_lab.bench import real as bench_real
 from ps_lab.bench import report
 
+MarkdownFlag = Annotated[
+    bool, typer.Option("--markdown", help="Print Markdown (for docs/results.md) instead of text.")
+]
+JsonFile = Annotated[
+    Path | None, typer.Option("--json", help="Also write all numbers to this JSON file.")
+]
+
 bench_app = typer.Typer(
     name="bench",
     help="Benchmarks on rendered scenes (the paper's tables).",
@@ -39,13 +46,8 @@ def paper(
     tables: Annotated[
         str | None, typer.Option(help="Tables to run, comma-separated from 1,3,4,5 (default all).")
     ] = None,
-    markdown: Annotated[
-        bool,
-        typer.Option("--markdown", help="Print Markdown (for docs/results.md) instead of text."),
-    ] = False,
-    json_out: Annotated[
-        Path | None, typer.Option("--json", help="Also write all numbers to this JSON file.")
-    ] = None,
+    markdown: MarkdownFlag = False,
+    json_out: JsonFile = None,
     progress: Annotated[bool, typer.Option(help="Show a progress bar on stderr.")] = True,
 ) -> None:
     """Regenerate Tables 1, 3, 4 and 5 of Ikehata et al. (CVPR 2012) for LS, L1, R-PCA and SBL."""
@@ -82,13 +84,8 @@ def real(
     every: Annotated[
         int, typer.Option(min=1, help="Keep every N-th mask pixel (quick runs).")
     ] = 1,
-    markdown: Annotated[
-        bool,
-        typer.Option("--markdown", help="Print Markdown (for docs/results.md) instead of text."),
-    ] = False,
-    json_out: Annotated[
-        Path | None, typer.Option("--json", help="Also write all numbers to this JSON file.")
-    ] = None,
+    markdown: MarkdownFlag = False,
+    json_out: JsonFile = None,
     threads: Annotated[
         int | None,
         typer.Option(min=1, help="Solver threads [default: all cores].", show_default=False),
