@@ -72,6 +72,7 @@ def oracle_params(sol):
         if p["lam"] is None:  # SBL's per-pixel default
             p["noise_sigma"] = sol.params["noise_sigma"]
             p["noise_floor"] = sol.params["noise_floor"]
+            p["light_noise"] = sol.params["light_noise"]
     return p
 
 

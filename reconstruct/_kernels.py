@@ -127,14 +127,13 @@ def l1_tile(y, w, lights, *, max_iter: int, tol: float, delta: float,
 
 
 @njit(nogil=True, cache=True)
-def _sbl_kernel(y, w, lights, aa, lam_px, ridge, max_iter, tol, floor, start, threshold, x_out,
+def _sbl_kernel(y, w, lights, aa, lam, ridge, max_iter, tol, floor, start, threshold, x_out,
                 outliers, iters):
     m, n = y.shape
     g = np.empty(n)
     z_old = np.empty(n)
     d = np.empty(n)
     for p in range(m):
-        lam = lam_px[p]
         for i in range(n):
             g[i] = start
             z_old[i] = 0.0
@@ -144,7 +143,7 @@ def _sbl_kernel(y, w, lights, aa, lam_px, ridge, max_iter, tol, floor, start, th
             xx = yy = zz = xy = xz = yz = 0.0
             t0 = t1 = t2 = 0.0
             for i in range(n):
-                di = w[p, i] / (g[i] + lam)
+                di = w[p, i] / (g[i] + lam[p, i])
                 d[i] = di
                 xx += di * aa[i, 0]
                 yy += di * aa[i, 1]
@@ -197,8 +196,8 @@ def sbl_tile(y, w, lights, *, lam, sigma_x2: float, max_iter: int, tol: float,
     - ``diag(S)_i = d_i - d_i^2 a_i^T M^-1 a_i``,
 
     so ``z = Gamma S y`` and ``u = diag(Gamma - Gamma S Gamma)`` cost O(n) per pixel;
-    ``gamma <- max(z^2 + u, gamma_floor)``, starting from ``gamma = gamma_start``. ``lam`` is one
-    noise variance for the tile or one per pixel, shape (m,). A pixel converges when
+    ``gamma <- max(z^2 + u, gamma_floor)``, starting from ``gamma = gamma_start``. ``lam`` is the
+    noise variance: one for the tile, one per pixel (m, 1) or one per observation (m, n). A pixel converges when
     ``max_i |z_i - z_i_old| < tol``. The normal comes from ``x`` of the final ``gamma``; outliers
     are usable observations whose corruption estimate ``|z_i|`` (final gamma) exceeds
     ``outlier_threshold``.
@@ -207,8 +206,8 @@ def sbl_tile(y, w, lights, *, lam, sigma_x2: float, max_iter: int, tol: float,
     x = np.zeros((m, 3))
     outliers = np.zeros(y.shape, np.bool_)
     iters = np.zeros(m, np.int64)
-    lam_px = np.broadcast_to(np.asarray(lam, dtype=np.float64), (m,))
-    _sbl_kernel(y, w, lights, outer6(lights), np.ascontiguousarray(lam_px), 1.0 / float(sigma_x2),
+    lam_obs = np.ascontiguousarray(np.broadcast_to(np.asarray(lam, dtype=np.float64), y.shape))
+    _sbl_kernel(y, w, lights, outer6(lights), lam_obs, 1.0 / float(sigma_x2),
                 int(max_iter), float(tol), float(gamma_floor), float(gamma_start),
                 float(outlier_threshold), x, outliers, iters)
     return TileResult(x, outliers, iters)

@@ -21,7 +21,7 @@ DEFAULTS: dict[str, dict] = {
            "noise_sigma": None},
     "sbl": {"lam": None, "sigma_x2": 1e6, "max_iter": 100, "tol": 1e-4, "gamma_floor": 1e-10,
             "gamma_start": 1e3, "outlier_threshold": None, "noise_sigma": None,
-            "noise_floor": None},
+            "noise_floor": None, "light_noise": None},
     "rpca": {"lam_sparse": None, "max_iter": 500, "tol": 1e-7, "rho": 1.5,
              "outlier_threshold": None, "noise_sigma": None},
 }
@@ -44,8 +44,9 @@ NOISE_FLOOR_BINS = 8
 NOISE_FLOOR_MIN_COUNT = 50
 
 
-def sbl_lambda(scale: np.ndarray, noise_sigma: float, noise_floor: float) -> np.ndarray:
-    """SBL's default noise variance per pixel, in units of the pixel's scale squared.
+def sbl_lambda(scale: np.ndarray, noise_sigma: float, noise_floor: float,
+               light_noise: np.ndarray | None = None) -> np.ndarray:
+    """SBL's default noise variance per observation, in units of the pixel's scale squared.
 
     Parameters
     ----------
@@ -55,17 +56,48 @@ def sbl_lambda(scale: np.ndarray, noise_sigma: float, noise_floor: float) -> np.
         Noise proportional to the signal, relative to the pixel scale (:func:`estimate_noise`).
     noise_floor : float
         Noise constant in the observations' units (:func:`estimate_noise_model`).
+    light_noise : ndarray of shape (n,), optional
+        Relative size of the noise floor under each light (mean square 1; default all 1): a floor
+        constant in the *image* units becomes ``floor / intensity`` once each image is divided by
+        its light's intensity (:func:`light_noise_factors`).
 
     Returns
     -------
-    ndarray of shape (m,)
-        ``max(noise_sigma^2 + (noise_floor / scale)^2, LAMBDA_FLOOR)`` (the floor where
-        ``scale`` is 0: unsolvable pixels).
+    ndarray of shape (m, 1), or (m, n) with ``light_noise``
+        ``max(noise_sigma^2 + (noise_floor * light_noise_i / scale)^2, LAMBDA_FLOOR)`` (the floor
+        where ``scale`` is 0: unsolvable pixels).
     """
-    s = np.asarray(scale, dtype=np.float64)
+    s = np.asarray(scale, dtype=np.float64)[:, None]
+    f2 = np.ones(1) if light_noise is None else np.asarray(light_noise, dtype=np.float64) ** 2
     with np.errstate(divide="ignore"):
-        floor_part = np.where(s > 0, (noise_floor / np.where(s > 0, s, 1.0)) ** 2, 0.0)
-    return np.maximum(noise_sigma * noise_sigma + floor_part, LAMBDA_FLOOR)
+        inv = np.where(s > 0, 1.0 / np.where(s > 0, s, 1.0) ** 2, 0.0)
+    return np.maximum(noise_sigma * noise_sigma + noise_floor**2 * inv * f2[None, :],
+                      LAMBDA_FLOOR)
+
+
+def light_noise_factors(light_intensities: np.ndarray, channel: str = "mean") -> np.ndarray:
+    """Relative noise floor of each light's observations after the intensity division.
+
+    Parameters
+    ----------
+    light_intensities : ndarray of shape (n, 3)
+        RGB intensity of each light, as the observations were divided by.
+    channel : {"mean", "r", "g", "b"}
+        The colour rule (``mean``: the channels divided by their intensities are averaged).
+
+    Returns
+    -------
+    ndarray of shape (n,)
+        ``sqrt(sum_c 1 / I_ic^2)`` (mean) or ``1 / I_ik`` (one channel), scaled to mean square 1:
+        noise that is the same in every raw image (quantisation, read noise) is this much larger,
+        relative to the others, in light i's observations.
+    """
+    intensity = np.asarray(light_intensities, dtype=np.float64)
+    pick = {"r": 0, "g": 1, "b": 2}
+    f2 = (1.0 / intensity**2).sum(axis=1) if channel == "mean" else 1.0 / intensity[:, pick[channel]] ** 2
+    if not np.all(np.isfinite(f2)) or not np.all(f2 > 0):
+        raise SolverInputError("light intensities must be finite and positive")
+    return np.sqrt(f2 / f2.mean())
 
 
 def _check_inputs(observations, light_directions, valid):
@@ -146,10 +178,12 @@ def estimate_noise(observations, light_directions, valid=None, *,
 
 
 def estimate_noise_model(observations, light_directions, valid=None, *,
-                         max_pixels: int = NOISE_SAMPLE_PIXELS) -> tuple[float, float]:
+                         max_pixels: int = NOISE_SAMPLE_PIXELS,
+                         light_noise: np.ndarray | None = None) -> tuple[float, float]:
     """Both noise terms of SBL's default lambda, from one L1 fit (see :func:`sbl_lambda`).
 
-    Parameters are those of :func:`estimate_noise`.
+    Parameters are those of :func:`estimate_noise`, and ``light_noise`` (n,), the relative noise
+    floor of each light (:func:`sbl_lambda`; default all 1).
 
     Returns
     -------
@@ -158,13 +192,13 @@ def estimate_noise_model(observations, light_directions, valid=None, *,
     noise_floor : float
         Noise constant in the observations' units (quantisation, read noise): the same residuals
         as :func:`estimate_noise`, cut into ``NOISE_FLOOR_BINS`` equal-count bins of pixel scale
-        ``s``; each bin's Gaussian-equivalent variance (25 % quantile) is fitted by
-        ``sigma_abs^2 / s^2 + sigma_rel^2`` (both >= 0, relative least squares). Zero for float
+        ``light_noise_i^2 / s^2``; each bin's Gaussian-equivalent variance (25 % quantile) is
+        fitted by ``sigma_abs^2 light_noise_i^2 / s^2 + sigma_rel^2`` (both >= 0, relative least squares). Zero for float
         renders and when dark pixels are no noisier (relative to their scale) than bright ones.
     """
     obs, lights, usable = _check_inputs(observations, light_directions, valid)
     residuals = _noise_residuals(obs, lights, usable, max_pixels)
-    return _noise_level(*residuals), _noise_floor(*residuals)
+    return _noise_level(*residuals), _noise_floor(*residuals, light_noise)
 
 
 def _noise_residuals(obs, lights, usable, max_pixels=NOISE_SAMPLE_PIXELS):
@@ -192,25 +226,29 @@ def residual_noise(y: np.ndarray, w: np.ndarray, model: np.ndarray) -> float:
     """
     r = np.abs(y - model)
     keep = (w > 0) & (y > SHADOW_FRACTION) & (model > SHADOW_FRACTION) & (r > 1e-12)
-    return r[keep], np.broadcast_to(scale[:, None], r.shape)[keep]
+    light = np.broadcast_to(np.arange(n)[None, :], r.shape)[keep]
+    return r[keep], np.broadcast_to(scale[:, None], r.shape)[keep], light
 
 
-def _noise_level(r, s=None):
+def _noise_level(r, s=None, light=None):
     return float(np.quantile(r, NOISE_QUANTILE) / NOISE_QUANTILE_Z) if r.size else 0.0
 
 
-def _noise_floor(r, s):
-    """``sigma_abs`` of the fit ``var(r) = sigma_abs^2 / s^2 + sigma_rel^2`` over bins of ``s``."""
+def _noise_floor(r, s, light, light_noise=None):
+    """``sigma_abs`` of the fit ``var(r) = sigma_abs^2 x + sigma_rel^2`` over bins of
+    ``x = light_noise[light]^2 / s^2``."""
     if r.size < NOISE_FLOOR_MIN_COUNT * 2:
         return 0.0
-    order = np.argsort(s, kind="stable")
+    f2 = np.ones(1) if light_noise is None else np.asarray(light_noise, dtype=np.float64) ** 2
+    x = f2[light if light_noise is not None else 0] / s**2
+    order = np.argsort(x, kind="stable")
     rows, var = [], []
     for part in np.array_split(order, NOISE_FLOOR_BINS):
         if part.size < NOISE_FLOOR_MIN_COUNT:
             continue
         v = _noise_level(r[part]) ** 2
         if v > 0:
-            rows.append((1.0 / np.median(s[part]) ** 2, 1.0))
+            rows.append((np.median(x[part]), 1.0))
             var.append(v)
     if len(var) < 2:
         return 0.0
@@ -292,15 +330,22 @@ def solve(
         noise = params.pop("noise_sigma")
         if method == "sbl":
             noise_floor = params.pop("noise_floor")
+            light_noise = params.pop("light_noise")
+            if light_noise is not None:
+                light_noise = np.asarray(light_noise, dtype=np.float64)
+                if light_noise.shape != (n,) or not np.all(np.isfinite(light_noise) & (light_noise > 0)):
+                    raise SolverInputError(f"light_noise must be {n} finite positive factors")
             if params["lam"] is None and (noise is None or noise_floor is None):
                 residuals = _noise_residuals(obs, lights, usable)
                 if noise is None:
                     noise = _noise_level(*residuals)
                 if noise_floor is None:
-                    noise_floor = _noise_floor(*residuals)
+                    noise_floor = _noise_floor(*residuals, light_noise)
             if params["lam"] is None:
-                used["lambda"] = None  # per pixel: max(noise_sigma^2 + (noise_floor/s)^2, 1e-6)
+                # per observation: max(noise_sigma^2 + (noise_floor light_noise_i / s)^2, 1e-6)
+                used["lambda"] = None
                 used["noise_floor"] = float(noise_floor)
+                used["light_noise"] = None if light_noise is None else light_noise.tolist()
             else:
                 used["lambda"] = float(params["lam"])
                 if noise is None:
@@ -338,7 +383,7 @@ def solve(
         tile_params = kernel_params
         if method == "sbl" and params["lam"] is None:
             tile_params = {**kernel_params,
-                           "lam": sbl_lambda(scale, used["noise_sigma"], noise_floor)}
+                           "lam": sbl_lambda(scale, used["noise_sigma"], noise_floor, light_noise)}
         res = kernel(y, w, lights, **tile_params)
         x = res.x.astype(np.float64) * scale[:, None]
         length = np.linalg.norm(x, axis=1)

@@ -53,7 +53,12 @@ from ps_lab.reconstruct._outputs import (
 )
 from ps_lab.reconstruct._refine import fit_lights, light_fit_sums
 from ps_lab.reconstruct._solution import Solution, SolverInputError
-from ps_lab.reconstruct._solve import estimate_noise, estimate_noise_model, solve
+from ps_lab.reconstruct._solve import (
+    estimate_noise,
+    estimate_noise_model,
+    light_noise_factors,
+    solve,
+)
 from ps_lab.reconstruct.metrics import angular_errors_deg
 from ps_lab.reconstruct.near import (
     NearLights,
@@ -496,6 +501,7 @@ def _solve_bands(
                 writer=writer if final else None,
                 advance=advance,
                 label=method if passes == 1 else f"{method} pass {k + 1}/{passes}",
+                intensities=source.header.light_intensities,
             )
             if refine:
                 errors = {}
@@ -666,7 +672,9 @@ class _PassResult:
     usable: int = 0
 
 
-def _whole_image_parameters(store: ObservationStore, vectors: np.ndarray, method: str) -> dict:
+def _whole_image_parameters(
+    store: ObservationStore, vectors: np.ndarray, options: ReconstructOptions, intensities
+) -> dict:
     """The noise level a single whole-image solve would estimate, fixed for every band.
 
     ``solve`` estimates it from an evenly spaced sample of all pixels (at most ``max_pixels`` of
@@ -674,17 +682,23 @@ def _whole_image_parameters(store: ObservationStore, vectors: np.ndarray, method
     on it is the whole-image one. Each band is solved with ``noise_sigma=`` it, from which
     ``solve`` derives the outlier threshold (and SBL's ``lam``), so results do not depend on the
     banding. Least squares takes no noise level; SBL also gets the noise floor (``noise_floor=``,
-    :func:`ps_lab.reconstruct.estimate_noise_model`) of its per-pixel default ``lam``.
+    :func:`ps_lab.reconstruct.estimate_noise_model`) of its default ``lam`` and each light's share
+    of it (``light_noise=``: the images were divided by the file's light intensities).
     """
+    method = options.method
     if method == "ls" or store.sample_index.size == 0:
         return {}
+    light_noise = light_noise_factors(intensities, options.channel) if method == "sbl" else None
     sigma, floor = estimate_noise_model(
         store.sample_observations,
         vectors,
         store.sample_valid,
         max_pixels=store.sample_index.size,
+        light_noise=light_noise,
     )
-    return {"noise_sigma": sigma, "noise_floor": floor} if method == "sbl" else {"noise_sigma": sigma}
+    if method != "sbl":
+        return {"noise_sigma": sigma}
+    return {"noise_sigma": sigma, "noise_floor": floor, "light_noise": light_noise}
 
 
 def _solve_pass(
@@ -697,9 +711,11 @@ def _solve_pass(
     writer: _OutputWriter | None,
     advance: Callable[..., None],
     label: str,
+    intensities: np.ndarray,
 ) -> _PassResult:
-    """Solve every band once with the light vectors ``vectors`` (n, 3)."""
-    fixed = _whole_image_parameters(store, vectors, options.method)
+    """Solve every band once with the light vectors ``vectors`` (n, 3); ``intensities`` (n, 3)
+    are the ones the observations were divided by."""
+    fixed = _whole_image_parameters(store, vectors, options, intensities)
     n = store.n_lights
     result = _PassResult(params={})
     if fit:

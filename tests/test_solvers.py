@@ -16,7 +16,7 @@ from ps_lab.reconstruct import (
     estimate_noise_model,
     solve,
 )
-from ps_lab.reconstruct._solve import sbl_lambda
+from ps_lab.reconstruct._solve import light_noise_factors, sbl_lambda
 from ps_lab.render import random_light_directions, relief_surface, render, sphere_surface
 
 ORACLE_PARAMS = ("max_iter", "tol", "delta", "outlier_threshold", "sigma_x2", "gamma_floor",
@@ -42,6 +42,7 @@ def oracle_params(sol):
         if p["lam"] is None:  # SBL's per-pixel default
             p["noise_sigma"] = sol.params["noise_sigma"]
             p["noise_floor"] = sol.params["noise_floor"]
+            p["light_noise"] = sol.params["light_noise"]
     return p
 
 
@@ -173,7 +174,27 @@ def test_noise_floor_separates_constant_from_proportional_noise():
     assert 0.006 < floor_c < 0.015  # the constant noise is found in the observations' units
     assert floor_p < 0.3 * floor_c and 0.01 < sigma_p < 0.03
     lam = sbl_lambda(np.array([0.1, 0.5, 0.0]), 0.02, 0.01)
-    assert np.allclose(lam, [0.02**2 + 0.1**2, 0.02**2 + 0.02**2, 0.02**2])
+    assert np.allclose(lam[:, 0], [0.02**2 + 0.1**2, 0.02**2 + 0.02**2, 0.02**2])
+
+
+def test_light_noise_per_observation_equals_oracle(corrupted):
+    y, lights, valid, _ = corrupted
+    factors = np.random.default_rng(3).uniform(0.5, 2.0, len(lights))
+    sol = solve(y, lights, method="sbl", valid=valid, light_noise=factors, noise_floor=0.02)
+    assert sol.params["light_noise"] == pytest.approx(list(factors))
+    normals, albedo, _, iterations = solve_oracle(y, lights, "sbl", valid, **oracle_params(sol))
+    assert np.abs(sol.normals - normals).max() < 1e-6
+    assert np.allclose(sol.albedo, albedo, rtol=1e-6, atol=1e-9)
+    assert np.mean(sol.iterations == iterations) > 0.99
+    plain = solve(y, lights, method="sbl", valid=valid, noise_floor=0.02)
+    assert np.abs(plain.normals - sol.normals).max() > 1e-6  # the factors act
+    # dimmer lights (divided by a smaller intensity) get a larger share of the floor
+    f = light_noise_factors(np.array([[1.0, 1, 1], [2, 2, 2], [1, 1, 1]]))
+    assert np.allclose(np.mean(f**2), 1.0) and f[0] == pytest.approx(2 * f[1])
+    assert np.allclose(light_noise_factors(np.array([[1.0, 4, 1], [1, 2, 1]]), "g"), [0.6325, 1.2649],
+                       atol=1e-4)
+    with pytest.raises(SolverInputError, match="light_noise"):
+        solve(y, lights, method="sbl", light_noise=factors[:3])
 
 
 def test_solution_shapes_and_params(corrupted):

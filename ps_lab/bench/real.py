@@ -18,6 +18,7 @@ import numpy as np
 
 from ps_lab.io.dataset import load_dataset
 from ps_lab.reconstruct import angular_errors_deg, error_summary, solve
+from ps_lab.reconstruct._solve import light_noise_factors
 
 # The repository's sibling data folder (``../shared/data/diligent-8bit`` from the repo root).
 DEFAULT_FOLDER = Path(__file__).resolve().parents[2].parent / "shared" / "data" / "diligent-8bit"
@@ -27,13 +28,15 @@ FIXED_LAMBDAS = (1e-6, 1e-4, 1e-2, 1e-1)
 
 @dataclass(frozen=True)
 class RealObject:
-    """One object's solver inputs: observations (n, P), usable mask (n, P), lights, truth (P, 3)."""
+    """One object's solver inputs: observations (n, P), usable mask (n, P), lights, truth (P, 3),
+    and each light's share of the noise floor (n,) as ``ps-lab reconstruct`` passes it to SBL."""
 
     name: str
     observations: np.ndarray
     valid: np.ndarray
     light_directions: np.ndarray
     normal_gt: np.ndarray
+    light_noise: np.ndarray
 
 
 @dataclass
@@ -68,7 +71,8 @@ def load_object(path: Path, every: int = 1) -> RealObject:
     obs = data.images[:, mask][:, ::every]
     valid = data.valid[:, mask][:, ::every]
     gt = np.asarray(data.normal_gt, dtype=np.float64)[mask][::every]
-    return RealObject(Path(path).name, obs, valid, data.light_directions, gt)
+    return RealObject(Path(path).name, obs, valid, data.light_directions, gt,
+                      light_noise_factors(data.light_intensities))
 
 
 def columns(methods=METHODS, lambdas=FIXED_LAMBDAS) -> list[str]:
@@ -81,6 +85,8 @@ def solve_column(obj: RealObject, column: str, threads: int | None = None) -> di
     kwargs: dict = {"method": column.split()[0]}
     if column.startswith("sbl lam="):
         kwargs["lam"] = float(column.split("=")[1])
+    elif column == "sbl":
+        kwargs["light_noise"] = obj.light_noise
     started = time.perf_counter()
     sol = solve(obj.observations, obj.light_directions, valid=obj.valid, threads=threads, **kwargs)
     seconds = time.perf_counter() - started

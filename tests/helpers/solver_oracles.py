@@ -90,10 +90,14 @@ def solve_oracle(observations, lights, method, valid=None, **params):
             continue
         pixel_params = params
         if method == "sbl" and params.get("lam") is None:
-            # SBL's default: sigma^2 relative plus the noise floor (observation units) / scale
+            # SBL's default: sigma^2 relative plus the noise floor (observation units, times each
+            # light's factor) / scale, per observation
             sigma, floor = params["noise_sigma"], params["noise_floor"]
-            rest = {k: v for k, v in params.items() if k not in ("noise_sigma", "noise_floor")}
-            pixel_params = {**rest, "lam": max(sigma**2 + (floor / scale) ** 2, 1e-6)}
+            factor = np.ones(n) if params.get("light_noise") is None else np.asarray(params["light_noise"])
+            rest = {k: v for k, v in params.items()
+                    if k not in ("noise_sigma", "noise_floor", "light_noise")}
+            lam = np.maximum(sigma**2 + (floor * factor[v] / scale) ** 2, 1e-6)
+            pixel_params = {**rest, "lam": lam}
         x, out, it = PIXEL_ORACLES[method](y / scale, a, **pixel_params)
         x = x * scale
         albedo[j] = np.linalg.norm(x)
