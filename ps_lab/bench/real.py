@@ -17,8 +17,7 @@ from pathlib import Path
 import numpy as np
 
 from ps_lab.io.dataset import load_dataset
-from ps_lab.reconstruct import angular_errors_deg, error_summary, solve
-from ps_lab.reconstruct._solve import light_noise_factors
+from ps_lab.reconstruct import angular_errors_deg, error_summary, light_noise_factors, solve
 
 # The repository's sibling data folder (``../shared/data/diligent-8bit`` from the repo root).
 DEFAULT_FOLDER = Path(__file__).resolve().parents[2].parent / "shared" / "data" / "diligent-8bit"
