@@ -197,10 +197,10 @@ def sbl_tile(y, w, lights, *, lam, sigma_x2: float, max_iter: int, tol: float,
 
     so ``z = Gamma S y`` and ``u = diag(Gamma - Gamma S Gamma)`` cost O(n) per pixel;
     ``gamma <- max(z^2 + u, gamma_floor)``, starting from ``gamma = gamma_start``. ``lam`` is the
-    noise variance: one for the tile, one per pixel (m, 1) or one per observation (m, n). A pixel converges when
-    ``max_i |z_i - z_i_old| < tol``. The normal comes from ``x`` of the final ``gamma``; outliers
-    are usable observations whose corruption estimate ``|z_i|`` (final gamma) exceeds
-    ``outlier_threshold``.
+    noise variance: one for the tile, one per pixel (m, 1) or one per observation (m, n). A pixel
+    converges when ``max_i |z_i - z_i_old| < tol``. The normal comes from ``x`` of the final
+    ``gamma``; outliers are usable observations whose corruption estimate ``|z_i|`` (final
+    gamma) exceeds ``outlier_threshold``.
     """
     m = y.shape[0]
     x = np.zeros((m, 3))

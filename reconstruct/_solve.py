@@ -94,7 +94,10 @@ def light_noise_factors(light_intensities: np.ndarray, channel: str = "mean") ->
     """
     intensity = np.asarray(light_intensities, dtype=np.float64)
     pick = {"r": 0, "g": 1, "b": 2}
-    f2 = (1.0 / intensity**2).sum(axis=1) if channel == "mean" else 1.0 / intensity[:, pick[channel]] ** 2
+    if channel == "mean":
+        f2 = (1.0 / intensity**2).sum(axis=1)
+    else:
+        f2 = 1.0 / intensity[:, pick[channel]] ** 2
     if not np.all(np.isfinite(f2)) or not np.all(f2 > 0):
         raise SolverInputError("light intensities must be finite and positive")
     return np.sqrt(f2 / f2.mean())
@@ -191,10 +194,11 @@ def estimate_noise_model(observations, light_directions, valid=None, *,
         As :func:`estimate_noise`.
     noise_floor : float
         Noise constant in the observations' units (quantisation, read noise): the same residuals
-        as :func:`estimate_noise`, cut into ``NOISE_FLOOR_BINS`` equal-count bins of pixel scale
-        ``light_noise_i^2 / s^2``; each bin's Gaussian-equivalent variance (25 % quantile) is
-        fitted by ``sigma_abs^2 light_noise_i^2 / s^2 + sigma_rel^2`` (both >= 0, relative least squares). Zero for float
-        renders and when dark pixels are no noisier (relative to their scale) than bright ones.
+        as :func:`estimate_noise`, cut into ``NOISE_FLOOR_BINS`` equal-count bins of
+        ``x = light_noise_i^2 / s^2`` (``s`` the pixel scale); each bin's Gaussian-equivalent
+        variance (25 % quantile) is fitted by ``sigma_abs^2 x + sigma_rel^2`` (both >= 0, relative
+        least squares), and ``noise_floor = sigma_abs``. Zero for float renders and when dark
+        pixels are no noisier (relative to their scale) than bright ones.
     """
     obs, lights, usable = _check_inputs(observations, light_directions, valid)
     residuals = _noise_residuals(obs, lights, usable, max_pixels)
@@ -235,8 +239,10 @@ def _noise_level(r, s=None, light=None):
 
 
 def _noise_floor(r, s, light, light_noise=None):
-    """``sigma_abs`` of the fit ``var(r) = sigma_abs^2 x + sigma_rel^2`` over bins of
-    ``x = light_noise[light]^2 / s^2``."""
+    """``sigma_abs`` of ``var(r) = sigma_abs^2 x + sigma_rel^2`` fitted over bins of ``x``.
+
+    ``x = light_noise[light]^2 / s^2``: the noise floor's share of each residual's variance.
+    """
     if r.size < NOISE_FLOOR_MIN_COUNT * 2:
         return 0.0
     f2 = np.ones(1) if light_noise is None else np.asarray(light_noise, dtype=np.float64) ** 2
@@ -333,7 +339,8 @@ def solve(
             light_noise = params.pop("light_noise")
             if light_noise is not None:
                 light_noise = np.asarray(light_noise, dtype=np.float64)
-                if light_noise.shape != (n,) or not np.all(np.isfinite(light_noise) & (light_noise > 0)):
+                good = np.isfinite(light_noise) & (light_noise > 0)
+                if light_noise.shape != (n,) or not np.all(good):
                     raise SolverInputError(f"light_noise must be {n} finite positive factors")
             if params["lam"] is None and (noise is None or noise_floor is None):
                 residuals = _noise_residuals(obs, lights, usable)

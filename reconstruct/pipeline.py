@@ -138,8 +138,10 @@ SOLVER_OPTIONS = {
 
 
 def _check_solver_options(options: ReconstructOptions) -> None:
-    """Raise :class:`SolverInputError` for a solver field that is not finite and positive, or
-    that does not apply to the method."""
+    """Raise :class:`SolverInputError` for a bad solver field.
+
+    A field must be finite and positive (``max_iter`` whole) and apply to ``options.method``.
+    """
     for name, (flag, methods) in SOLVER_OPTIONS.items():
         value = getattr(options, name)
         if value is None:
@@ -632,7 +634,9 @@ def _write_results(
     except OSError as exc:
         raise OutputError(f"{stage}: cannot write results ({exc.strerror or exc})") from None
     metrics["channel"] = options.channel
-    metrics["solver_options"] = {SOLVER_OPTIONS[k][0][2:]: getattr(options, k) for k in SOLVER_OPTIONS}
+    metrics["solver_options"] = {
+        flag[2:]: getattr(options, name) for name, (flag, _) in SOLVER_OPTIONS.items()
+    }
     metrics["shadow_threshold"] = options.shadow_threshold
     metrics["light_model"] = "directional" if source.near is None else "near"
     if solved.near is not None:
@@ -713,8 +717,10 @@ def _solve_pass(
     label: str,
     intensities: np.ndarray,
 ) -> _PassResult:
-    """Solve every band once with the light vectors ``vectors`` (n, 3); ``intensities`` (n, 3)
-    are the ones the observations were divided by."""
+    """Solve every band once with the light vectors ``vectors`` (n, 3).
+
+    ``intensities`` (n, 3) are the light intensities the observations were divided by.
+    """
     fixed = _whole_image_parameters(store, vectors, options, intensities)
     n = store.n_lights
     result = _PassResult(params={})

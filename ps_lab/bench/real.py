@@ -27,8 +27,11 @@ FIXED_LAMBDAS = (1e-6, 1e-4, 1e-2, 1e-1)
 
 @dataclass(frozen=True)
 class RealObject:
-    """One object's solver inputs: observations (n, P), usable mask (n, P), lights, truth (P, 3),
-    and each light's share of the noise floor (n,) as ``ps-lab reconstruct`` passes it to SBL."""
+    """One object's solver inputs, as ``ps-lab reconstruct`` gives them to the solvers.
+
+    Observations (n, P), usable mask (n, P), lights (n, 3), truth (P, 3), and each light's share
+    of the noise floor (n,), which ``ps-lab reconstruct`` passes to SBL.
+    """
 
     name: str
     observations: np.ndarray
@@ -133,7 +136,8 @@ def format_table(rows: list[RealRow], *, markdown: bool = False) -> str:
         out += ["| " + " | ".join(cells) + " |" for cells in lines]
         return "\n".join(out)
     widths = [max(len(r[k]) for r in [head, *lines]) for k in range(len(head))]
-    return "\n".join("  ".join(c.rjust(w) for c, w in zip(r, widths)) for r in [head, *lines])
+    rows = [head, *lines]
+    return "\n".join("  ".join(c.rjust(w) for c, w in zip(r, widths, strict=True)) for r in rows)
 
 
 def results_as_dict(rows: list[RealRow]) -> list[dict]:

@@ -93,7 +93,8 @@ def solve_oracle(observations, lights, method, valid=None, **params):
             # SBL's default: sigma^2 relative plus the noise floor (observation units, times each
             # light's factor) / scale, per observation
             sigma, floor = params["noise_sigma"], params["noise_floor"]
-            factor = np.ones(n) if params.get("light_noise") is None else np.asarray(params["light_noise"])
+            factor = params.get("light_noise")
+            factor = np.ones(n) if factor is None else np.asarray(factor)
             rest = {k: v for k, v in params.items()
                     if k not in ("noise_sigma", "noise_floor", "light_noise")}
             lam = np.maximum(sigma**2 + (floor * factor[v] / scale) ** 2, 1e-6)
