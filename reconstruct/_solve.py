@@ -208,7 +208,7 @@ def estimate_noise_model(observations, light_directions, valid=None, *,
 def _noise_residuals(obs, lights, usable, max_pixels=NOISE_SAMPLE_PIXELS):
     """Relative residuals of an L1 fit on a pixel sample, and each residual's pixel scale."""
     n, p = obs.shape
-    empty = np.zeros(0), np.zeros(0)
+    empty = np.zeros(0), np.zeros(0), np.zeros(0, np.int64)
     if p == 0:
         return empty
     take = np.unique(np.linspace(0, p - 1, min(p, max_pixels)).round().astype(np.int64))
@@ -218,20 +218,26 @@ def _noise_residuals(obs, lights, usable, max_pixels=NOISE_SAMPLE_PIXELS):
         return empty
     res = _kernels.l1_tile(y, w, lights, max_iter=30, tol=1e-6, delta=1e-6,
                            outlier_threshold=np.inf)
-    return residual_noise(y, w, res.x @ lights.T)
+    r, keep = _kept_residuals(y, w, res.x @ lights.T)
+    light = np.broadcast_to(np.arange(n)[None, :], r.shape)[keep]
+    return r[keep], np.broadcast_to(scale[:, None], r.shape)[keep], light
 
 
-def residual_noise(y: np.ndarray, w: np.ndarray, model: np.ndarray) -> float:
-    """Noise level from the residuals of scaled observations ``y`` (m, n) against a robust fit.
+def _kept_residuals(y, w, model):
+    """``|y - model|`` (m, n) and the mask of residuals that are noise samples.
 
     Attached and cast shadows are the bulk of the corruptions (often half the observations of a
     pixel), so only observations that are lit and predicted lit count; the L1 fit interpolates
     three observations per pixel exactly, which are not residual samples either.
     """
     r = np.abs(y - model)
-    keep = (w > 0) & (y > SHADOW_FRACTION) & (model > SHADOW_FRACTION) & (r > 1e-12)
-    light = np.broadcast_to(np.arange(n)[None, :], r.shape)[keep]
-    return r[keep], np.broadcast_to(scale[:, None], r.shape)[keep], light
+    return r, (w > 0) & (y > SHADOW_FRACTION) & (model > SHADOW_FRACTION) & (r > 1e-12)
+
+
+def residual_noise(y: np.ndarray, w: np.ndarray, model: np.ndarray) -> float:
+    """Noise level from the residuals of scaled observations ``y`` (m, n) against a robust fit."""
+    r, keep = _kept_residuals(y, w, model)
+    return _noise_level(r[keep])
 
 
 def _noise_level(r, s=None, light=None):

@@ -199,6 +199,10 @@ def solve_near(
         if noise is None:
             noise = estimate_noise_near(obs, vectors, usable)
         if method == "sbl":
+            # One relative lam here: the directional solver's per-light noise floor is not
+            # carried over to near lights (issue 12 left it out).
+            params.pop("noise_floor")
+            params.pop("light_noise")
             if params["lam"] is None:
                 params["lam"] = max(noise * noise, LAMBDA_FLOOR)
             used["lambda"] = float(params["lam"])
