@@ -19,7 +19,7 @@ DEFAULTS: dict[str, dict] = {
     "ls": {},
     "l1": {"max_iter": 100, "tol": 1e-6, "delta": 1e-6, "outlier_threshold": None,
            "noise_sigma": None},
-    "sbl": {"lam": None, "sigma_x2": 1e6, "max_iter": 100, "tol": 1e-4, "gamma_floor": 1e-10,
+    "sbl": {"lam": None, "sigma_x2": 1e6, "max_iter": 100, "tol": None, "gamma_floor": 1e-10,
             "gamma_start": 1e3, "outlier_threshold": None, "noise_sigma": None,
             "noise_floor": None, "light_noise": None},
     "rpca": {"lam_sparse": None, "max_iter": 500, "tol": 1e-7, "rho": 1.5,
@@ -42,6 +42,10 @@ NOISE_QUANTILE_Z = 0.31864
 # fitted on this many equal-count bins of pixel scale, each needing this many residuals.
 NOISE_FLOOR_BINS = 8
 NOISE_FLOOR_MIN_COUNT = 50
+# SBL's default tolerance: a change of the corruption estimate this small against the noise level
+# moves no normal (docs/solvers.md), and never tighter than SBL_TOL_MIN (noise-free data).
+SBL_TOL_NOISE_SHARE = 1.0 / 200.0
+SBL_TOL_MIN = 1e-4
 
 
 def sbl_lambda(scale: np.ndarray, noise_sigma: float, noise_floor: float,
@@ -310,7 +314,8 @@ def solve(
         observations):
 
         - ``sbl``: ``lam`` (noise variance; default per pixel from the data, below),
-          ``sigma_x2`` (1e6), ``max_iter`` (100), ``tol`` (1e-4), ``gamma_floor`` (1e-10),
+          ``sigma_x2`` (1e6), ``max_iter`` (100), ``tol`` (``max(1e-4, sigma / 200)``),
+          ``gamma_floor`` (1e-10),
           ``gamma_start`` (1e3), ``outlier_threshold``;
         - ``l1``: ``max_iter`` (100), ``tol`` (1e-6), ``delta`` (1e-6), ``outlier_threshold``;
         - ``rpca``: ``lam_sparse`` (1/sqrt(max(n, P))), ``max_iter`` (500), ``tol`` (1e-7),
@@ -369,6 +374,8 @@ def solve(
             params["outlier_threshold"] = max(3.0 * noise, MIN_OUTLIER_THRESHOLD)
         if noise is not None:
             used["noise_sigma"] = float(noise)
+        if method == "sbl" and params["tol"] is None:
+            params["tol"] = max(SBL_TOL_MIN, SBL_TOL_NOISE_SHARE * noise)
     used.update({k: v for k, v in params.items() if k != "lam"})
 
     if method == "rpca":

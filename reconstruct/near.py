@@ -36,6 +36,8 @@ from ._solve import (
     LAMBDA_FLOOR,
     MIN_OUTLIER_THRESHOLD,
     NOISE_SAMPLE_PIXELS,
+    SBL_TOL_MIN,
+    SBL_TOL_NOISE_SHARE,
     SOLVABLE_REL_DET,
     _method_params,
     pixel_scale,
@@ -209,6 +211,8 @@ def solve_near(
         if params["outlier_threshold"] is None:
             params["outlier_threshold"] = max(3.0 * noise, MIN_OUTLIER_THRESHOLD)
         used["noise_sigma"] = float(noise)
+        if method == "sbl" and params["tol"] is None:
+            params["tol"] = max(SBL_TOL_MIN, SBL_TOL_NOISE_SHARE * noise)
     else:
         params = {"outlier_threshold": np.inf}
     used.update({k: v for k, v in params.items() if k != "lam"})
