@@ -130,7 +130,7 @@ def speed() -> None:
     print("| lights | directional ns / pixel-iteration | per-pixel lights | ratio |")
     print("|---|---|---|---|")
     params = dict(lam=1e-4, sigma_x2=1e6, max_iter=100, tol=1e-4, gamma_floor=1e-10,
-                  outlier_threshold=0.05)
+                  gamma_start=1e3, outlier_threshold=0.05)
     for n in (24, 40, 96):
         m = 20000
         lights = render.random_light_directions(n, rng)

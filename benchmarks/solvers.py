@@ -36,7 +36,8 @@ from ps_lab.reconstruct import (  # noqa: E402
     solve,
 )
 
-ORACLE_KEYS = ("max_iter", "tol", "delta", "outlier_threshold", "sigma_x2", "gamma_floor")
+ORACLE_KEYS = ("max_iter", "tol", "delta", "outlier_threshold", "sigma_x2", "gamma_floor",
+               "gamma_start")
 
 
 def machine() -> str:
@@ -68,6 +69,10 @@ def oracle_params(sol):
     p = {k: v for k, v in sol.params.items() if k in ORACLE_KEYS}
     if "lambda" in sol.params:
         p["lam"] = sol.params["lambda"]
+        if p["lam"] is None:  # SBL's per-pixel default
+            p["noise_sigma"] = sol.params["noise_sigma"]
+            p["noise_floor"] = sol.params["noise_floor"]
+            p["light_noise"] = sol.params["light_noise"]
     return p
 
 
@@ -130,7 +135,7 @@ def _lambda_row(names, obs, lights, valid, normals):
             kw["lam"] = float(name.split()[1])
         sol = solve(obs, lights, valid=valid, **kw)
         if name == "sbl auto":
-            lam = sol.params["lambda"]
+            lam = sol.params["noise_sigma"] ** 2
         e = error_summary(angular_errors_deg(sol.normals, normals))
         cells.append(f"{e['mean']:5.2f}/{e['median']:5.2f}")
     return cells, lam

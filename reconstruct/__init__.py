@@ -5,7 +5,7 @@ The package imports neither ``ps_lab.capture`` nor ``ps_lab.calibration``.
 
 from ._refine import fit_lights, light_fit_sums, refine_lights
 from ._solution import METHODS, RefinementResult, Solution, SolverInputError
-from ._solve import estimate_noise, solve
+from ._solve import estimate_noise, estimate_noise_model, light_noise_factors, solve
 from .metrics import angular_errors_deg, error_summary
 
 __all__ = [
@@ -16,8 +16,10 @@ __all__ = [
     "angular_errors_deg",
     "error_summary",
     "estimate_noise",
+    "estimate_noise_model",
     "fit_lights",
     "light_fit_sums",
+    "light_noise_factors",
     "refine_lights",
     "solve",
 ]

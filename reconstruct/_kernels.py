@@ -19,6 +19,7 @@ in parallel. See docs/solvers.md for the measurements.
 
 from __future__ import annotations
 
+import threading
 from dataclasses import dataclass
 
 import numpy as np
@@ -126,14 +127,15 @@ def l1_tile(y, w, lights, *, max_iter: int, tol: float, delta: float,
 
 
 @njit(nogil=True, cache=True)
-def _sbl_kernel(y, w, lights, aa, lam, ridge, max_iter, tol, floor, threshold, x_out, outliers, iters):
+def _sbl_kernel(y, w, lights, aa, lam, ridge, max_iter, tol, floor, start, threshold, x_out,
+                outliers, iters):
     m, n = y.shape
     g = np.empty(n)
     z_old = np.empty(n)
     d = np.empty(n)
     for p in range(m):
         for i in range(n):
-            g[i] = 1.0
+            g[i] = start
             z_old[i] = 0.0
         iters[p] = max_iter
         for it in range(0, max_iter + 1):
@@ -141,7 +143,7 @@ def _sbl_kernel(y, w, lights, aa, lam, ridge, max_iter, tol, floor, threshold, x
             xx = yy = zz = xy = xz = yz = 0.0
             t0 = t1 = t2 = 0.0
             for i in range(n):
-                di = w[p, i] / (g[i] + lam)
+                di = w[p, i] / (g[i] + lam[p, i])
                 d[i] = di
                 xx += di * aa[i, 0]
                 yy += di * aa[i, 1]
@@ -183,8 +185,8 @@ def _sbl_kernel(y, w, lights, aa, lam, ridge, max_iter, tol, floor, threshold, x
                 iters[p] = it + 1
 
 
-def sbl_tile(y, w, lights, *, lam: float, sigma_x2: float, max_iter: int, tol: float,
-             gamma_floor: float, outlier_threshold: float) -> TileResult:
+def sbl_tile(y, w, lights, *, lam, sigma_x2: float, max_iter: int, tol: float,
+             gamma_floor: float, gamma_start: float, outlier_threshold: float) -> TileResult:
     """Sparse Bayesian learning of Ikehata et al. (CVPR 2012), Eqs. 12-13, per pixel.
 
     With ``D = (Gamma + lam I)^-1`` (zero for dropped observations) and
@@ -194,15 +196,44 @@ def sbl_tile(y, w, lights, *, lam: float, sigma_x2: float, max_iter: int, tol: f
     - ``diag(S)_i = d_i - d_i^2 a_i^T M^-1 a_i``,
 
     so ``z = Gamma S y`` and ``u = diag(Gamma - Gamma S Gamma)`` cost O(n) per pixel;
-    ``gamma <- max(z^2 + u, gamma_floor)``, starting from ``gamma = 1``. A pixel converges when
-    ``max_i |z_i - z_i_old| < tol``. The normal comes from ``x`` of the final ``gamma``; outliers
-    are usable observations whose corruption estimate ``|z_i|`` (final gamma) exceeds
-    ``outlier_threshold``.
+    ``gamma <- max(z^2 + u, gamma_floor)``, starting from ``gamma = gamma_start``. ``lam`` is the
+    noise variance: one for the tile, one per pixel (m, 1) or one per observation (m, n). A pixel
+    converges when ``max_i |z_i - z_i_old| < tol``. The normal comes from ``x`` of the final
+    ``gamma``; outliers are usable observations whose corruption estimate ``|z_i|`` (final
+    gamma) exceeds ``outlier_threshold``.
     """
     m = y.shape[0]
     x = np.zeros((m, 3))
     outliers = np.zeros(y.shape, np.bool_)
     iters = np.zeros(m, np.int64)
-    _sbl_kernel(y, w, lights, outer6(lights), float(lam), 1.0 / float(sigma_x2), int(max_iter), float(tol),
-                float(gamma_floor), float(outlier_threshold), x, outliers, iters)
+    lam_obs = np.ascontiguousarray(np.broadcast_to(np.asarray(lam, dtype=np.float64), y.shape))
+    _sbl_kernel(y, w, lights, outer6(lights), lam_obs, 1.0 / float(sigma_x2),
+                int(max_iter), float(tol), float(gamma_floor), float(gamma_start),
+                float(outlier_threshold), x, outliers, iters)
     return TileResult(x, outliers, iters)
+
+
+def warm_up(method: str) -> None:
+    """Load ``method``'s compiled kernels (and L1's, used by the noise estimate) into the process.
+
+    The first call of any numba kernel in a process initialises the compiler and loads the cached
+    machine code (0.25 s on a quiet machine, over 1 s under load), although nothing is compiled.
+    Running it on a one-pixel input while the images are read takes that cost off the solve.
+    """
+    if method not in ("l1", "sbl"):
+        return
+    lights = np.eye(3)
+    y = np.ones((1, 3))
+    w = np.ones((1, 3))
+    l1_tile(y, w, lights, max_iter=1, tol=1.0, delta=1e-6, outlier_threshold=np.inf)
+    if method == "sbl":
+        sbl_tile(y, w, lights, lam=1e-6, sigma_x2=1e6, max_iter=1, tol=1.0, gamma_floor=1e-10,
+                 gamma_start=1.0, outlier_threshold=np.inf)
+
+
+def start_warm_up(method: str) -> threading.Thread:
+    """Run :func:`warm_up` on a daemon thread (join it before solving); see there for why."""
+    thread = threading.Thread(target=warm_up, args=(method,), name="ps-lab-kernel-warm-up",
+                              daemon=True)
+    thread.start()
+    return thread

@@ -84,8 +84,8 @@ def _l1_kernel_pp(y, w, lights, max_iter, tol, delta, threshold, x_out, outliers
 
 
 @njit(nogil=True, cache=True)
-def _sbl_kernel_pp(y, w, lights, lam, ridge, max_iter, tol, floor, threshold, x_out, outliers,
-                   iters):
+def _sbl_kernel_pp(y, w, lights, lam, ridge, max_iter, tol, floor, start, threshold, x_out,
+                   outliers, iters):
     m, n = y.shape
     g = np.empty(n)
     z_old = np.empty(n)
@@ -94,7 +94,7 @@ def _sbl_kernel_pp(y, w, lights, lam, ridge, max_iter, tol, floor, threshold, x_
     for p in range(m):
         _outer6_pixel(lights, p, aa)
         for i in range(n):
-            g[i] = 1.0
+            g[i] = start
             z_old[i] = 0.0
         iters[p] = max_iter
         for it in range(0, max_iter + 1):
@@ -163,7 +163,7 @@ def l1_tile_pp(y, w, lights, *, max_iter: int, tol: float, delta: float,
 
 
 def sbl_tile_pp(y, w, lights, *, lam: float, sigma_x2: float, max_iter: int, tol: float,
-                gamma_floor: float, outlier_threshold: float) -> TileResult:
-    """:func:`._kernels.sbl_tile` with per-pixel lights (m, n, 3)."""
+                gamma_floor: float, gamma_start: float, outlier_threshold: float) -> TileResult:
+    """:func:`._kernels.sbl_tile` with per-pixel lights (m, n, 3) and one ``lam``."""
     return _run(_sbl_kernel_pp, y, w, lights, float(lam), 1.0 / float(sigma_x2), int(max_iter),
-                float(tol), float(gamma_floor), float(outlier_threshold))
+                float(tol), float(gamma_floor), float(gamma_start), float(outlier_threshold))

@@ -19,8 +19,9 @@ DEFAULTS: dict[str, dict] = {
     "ls": {},
     "l1": {"max_iter": 100, "tol": 1e-6, "delta": 1e-6, "outlier_threshold": None,
            "noise_sigma": None},
-    "sbl": {"lam": None, "sigma_x2": 1e6, "max_iter": 100, "tol": 1e-4, "gamma_floor": 1e-10,
-            "outlier_threshold": None, "noise_sigma": None},
+    "sbl": {"lam": None, "sigma_x2": 1e6, "max_iter": 100, "tol": None, "gamma_floor": 1e-10,
+            "gamma_start": 1e3, "outlier_threshold": None, "noise_sigma": None,
+            "noise_floor": None, "light_noise": None},
     "rpca": {"lam_sparse": None, "max_iter": 500, "tol": 1e-7, "rho": 1.5,
              "outlier_threshold": None, "noise_sigma": None},
 }
@@ -37,6 +38,73 @@ SHADOW_FRACTION = 0.1
 # the 25% quantile of abs(r) is 0.3186 sigma.
 NOISE_QUANTILE = 0.25
 NOISE_QUANTILE_Z = 0.31864
+# The noise floor (noise constant in the observations' own units: quantisation, read noise) is
+# fitted on this many equal-count bins of pixel scale, each needing this many residuals.
+NOISE_FLOOR_BINS = 8
+NOISE_FLOOR_MIN_COUNT = 50
+# SBL's default tolerance: a change of the corruption estimate this small against the noise level
+# moves no normal (docs/solvers.md), and never tighter than SBL_TOL_MIN (noise-free data).
+SBL_TOL_NOISE_SHARE = 1.0 / 200.0
+SBL_TOL_MIN = 1e-4
+
+
+def sbl_lambda(scale: np.ndarray, noise_sigma: float, noise_floor: float,
+               light_noise: np.ndarray | None = None) -> np.ndarray:
+    """SBL's default noise variance per observation, in units of the pixel's scale squared.
+
+    Parameters
+    ----------
+    scale : ndarray of shape (m,)
+        The pixels' robust scales (:func:`pixel_scale`), in the observations' units.
+    noise_sigma : float
+        Noise proportional to the signal, relative to the pixel scale (:func:`estimate_noise`).
+    noise_floor : float
+        Noise constant in the observations' units (:func:`estimate_noise_model`).
+    light_noise : ndarray of shape (n,), optional
+        Relative size of the noise floor under each light (mean square 1; default all 1): a floor
+        constant in the *image* units becomes ``floor / intensity`` once each image is divided by
+        its light's intensity (:func:`light_noise_factors`).
+
+    Returns
+    -------
+    ndarray of shape (m, 1), or (m, n) with ``light_noise``
+        ``max(noise_sigma^2 + (noise_floor * light_noise_i / scale)^2, LAMBDA_FLOOR)`` (the floor
+        where ``scale`` is 0: unsolvable pixels).
+    """
+    s = np.asarray(scale, dtype=np.float64)[:, None]
+    f2 = np.ones(1) if light_noise is None else np.asarray(light_noise, dtype=np.float64) ** 2
+    with np.errstate(divide="ignore"):
+        inv = np.where(s > 0, 1.0 / np.where(s > 0, s, 1.0) ** 2, 0.0)
+    return np.maximum(noise_sigma * noise_sigma + noise_floor**2 * inv * f2[None, :],
+                      LAMBDA_FLOOR)
+
+
+def light_noise_factors(light_intensities: np.ndarray, channel: str = "mean") -> np.ndarray:
+    """Relative noise floor of each light's observations after the intensity division.
+
+    Parameters
+    ----------
+    light_intensities : ndarray of shape (n, 3)
+        RGB intensity of each light, as the observations were divided by.
+    channel : {"mean", "r", "g", "b"}
+        The colour rule (``mean``: the channels divided by their intensities are averaged).
+
+    Returns
+    -------
+    ndarray of shape (n,)
+        ``sqrt(sum_c 1 / I_ic^2)`` (mean) or ``1 / I_ik`` (one channel), scaled to mean square 1:
+        noise that is the same in every raw image (quantisation, read noise) is this much larger,
+        relative to the others, in light i's observations.
+    """
+    intensity = np.asarray(light_intensities, dtype=np.float64)
+    pick = {"r": 0, "g": 1, "b": 2}
+    if channel == "mean":
+        f2 = (1.0 / intensity**2).sum(axis=1)
+    else:
+        f2 = 1.0 / intensity[:, pick[channel]] ** 2
+    if not np.all(np.isfinite(f2)) or not np.all(f2 > 0):
+        raise SolverInputError("light intensities must be finite and positive")
+    return np.sqrt(f2 / f2.mean())
 
 
 def _check_inputs(observations, light_directions, valid):
@@ -113,34 +181,99 @@ def estimate_noise(observations, light_directions, valid=None, *,
         (the Gaussian ratio), which ignores up to 75 % corrupted residuals.
     """
     obs, lights, usable = _check_inputs(observations, light_directions, valid)
-    return _noise_level(obs, lights, usable, max_pixels)
+    return _noise_level(*_noise_residuals(obs, lights, usable, max_pixels))
 
 
-def _noise_level(obs, lights, usable, max_pixels=NOISE_SAMPLE_PIXELS):
+def estimate_noise_model(observations, light_directions, valid=None, *,
+                         max_pixels: int = NOISE_SAMPLE_PIXELS,
+                         light_noise: np.ndarray | None = None) -> tuple[float, float]:
+    """Both noise terms of SBL's default lambda, from one L1 fit (see :func:`sbl_lambda`).
+
+    Parameters are those of :func:`estimate_noise`, and ``light_noise`` (n,), the relative noise
+    floor of each light (:func:`sbl_lambda`; default all 1).
+
+    Returns
+    -------
+    noise_sigma : float
+        As :func:`estimate_noise`.
+    noise_floor : float
+        Noise constant in the observations' units (quantisation, read noise): the same residuals
+        as :func:`estimate_noise`, cut into ``NOISE_FLOOR_BINS`` equal-count bins of
+        ``x = light_noise_i^2 / s^2`` (``s`` the pixel scale); each bin's Gaussian-equivalent
+        variance (25 % quantile) is fitted by ``sigma_abs^2 x + sigma_rel^2`` (both >= 0, relative
+        least squares), and ``noise_floor = sigma_abs``. Zero for float renders and when dark
+        pixels are no noisier (relative to their scale) than bright ones.
+    """
+    obs, lights, usable = _check_inputs(observations, light_directions, valid)
+    residuals = _noise_residuals(obs, lights, usable, max_pixels)
+    return _noise_level(*residuals), _noise_floor(*residuals, light_noise)
+
+
+def _noise_residuals(obs, lights, usable, max_pixels=NOISE_SAMPLE_PIXELS):
+    """Relative residuals of an L1 fit on a pixel sample, and each residual's pixel scale."""
     n, p = obs.shape
+    empty = np.zeros(0), np.zeros(0), np.zeros(0, np.int64)
     if p == 0:
-        return 0.0
+        return empty
     take = np.unique(np.linspace(0, p - 1, min(p, max_pixels)).round().astype(np.int64))
-    y, w, _, ok = _prepare_tile(obs[:, take], usable[:, take], lights, 0, take.size)
-    y, w = y[ok], w[ok]
+    y, w, scale, ok = _prepare_tile(obs[:, take], usable[:, take], lights, 0, take.size)
+    y, w, scale = y[ok], w[ok], scale[ok]
     if y.shape[0] == 0:
-        return 0.0
+        return empty
     res = _kernels.l1_tile(y, w, lights, max_iter=30, tol=1e-6, delta=1e-6,
                            outlier_threshold=np.inf)
-    return residual_noise(y, w, res.x @ lights.T)
+    r, keep = _kept_residuals(y, w, res.x @ lights.T)
+    light = np.broadcast_to(np.arange(n)[None, :], r.shape)[keep]
+    return r[keep], np.broadcast_to(scale[:, None], r.shape)[keep], light
 
 
-def residual_noise(y: np.ndarray, w: np.ndarray, model: np.ndarray) -> float:
-    """Noise level from the residuals of scaled observations ``y`` (m, n) against a robust fit.
+def _kept_residuals(y, w, model):
+    """``|y - model|`` (m, n) and the mask of residuals that are noise samples.
 
     Attached and cast shadows are the bulk of the corruptions (often half the observations of a
     pixel), so only observations that are lit and predicted lit count; the L1 fit interpolates
     three observations per pixel exactly, which are not residual samples either.
     """
     r = np.abs(y - model)
-    keep = (w > 0) & (y > SHADOW_FRACTION) & (model > SHADOW_FRACTION) & (r > 1e-12)
-    r = r[keep]
+    return r, (w > 0) & (y > SHADOW_FRACTION) & (model > SHADOW_FRACTION) & (r > 1e-12)
+
+
+def residual_noise(y: np.ndarray, w: np.ndarray, model: np.ndarray) -> float:
+    """Noise level from the residuals of scaled observations ``y`` (m, n) against a robust fit."""
+    r, keep = _kept_residuals(y, w, model)
+    return _noise_level(r[keep])
+
+
+def _noise_level(r, s=None, light=None):
     return float(np.quantile(r, NOISE_QUANTILE) / NOISE_QUANTILE_Z) if r.size else 0.0
+
+
+def _noise_floor(r, s, light, light_noise=None):
+    """``sigma_abs`` of ``var(r) = sigma_abs^2 x + sigma_rel^2`` fitted over bins of ``x``.
+
+    ``x = light_noise[light]^2 / s^2``: the noise floor's share of each residual's variance.
+    """
+    if r.size < NOISE_FLOOR_MIN_COUNT * 2:
+        return 0.0
+    f2 = np.ones(1) if light_noise is None else np.asarray(light_noise, dtype=np.float64) ** 2
+    x = f2[light if light_noise is not None else 0] / s**2
+    order = np.argsort(x, kind="stable")
+    rows, var = [], []
+    for part in np.array_split(order, NOISE_FLOOR_BINS):
+        if part.size < NOISE_FLOOR_MIN_COUNT:
+            continue
+        v = _noise_level(r[part]) ** 2
+        if v > 0:
+            rows.append((np.median(x[part]), 1.0))
+            var.append(v)
+    if len(var) < 2:
+        return 0.0
+    # Relative least squares (each bin's variance counts alike), both coefficients >= 0.
+    a = np.array(rows) / np.array(var)[:, None]
+    coef = np.linalg.lstsq(a, np.ones(len(var)), rcond=None)[0]
+    if coef[1] < 0:
+        coef = np.array([np.sum(a[:, 0]) / np.sum(a[:, 0] ** 2), 0.0])
+    return float(math.sqrt(max(coef[0], 0.0)))
 
 
 def solve(
@@ -180,8 +313,10 @@ def solve(
         The method's parameters, all in units of the pixel's robust scale (median of its usable
         observations):
 
-        - ``sbl``: ``lam`` (noise variance; default estimated from the data), ``sigma_x2`` (1e6),
-          ``max_iter`` (100), ``tol`` (1e-4), ``gamma_floor`` (1e-10), ``outlier_threshold``;
+        - ``sbl``: ``lam`` (noise variance; default per pixel from the data, below),
+          ``sigma_x2`` (1e6), ``max_iter`` (100), ``tol`` (``max(1e-4, sigma / 200)``),
+          ``gamma_floor`` (1e-10),
+          ``gamma_start`` (1e3), ``outlier_threshold``;
         - ``l1``: ``max_iter`` (100), ``tol`` (1e-6), ``delta`` (1e-6), ``outlier_threshold``;
         - ``rpca``: ``lam_sparse`` (1/sqrt(max(n, P))), ``max_iter`` (500), ``tol`` (1e-7),
           ``rho`` (1.5), ``outlier_threshold``.
@@ -189,7 +324,9 @@ def solve(
         ``outlier_threshold`` defaults to ``max(3 sigma, 0.05)`` with sigma the noise level;
         ``noise_sigma`` (l1, sbl, rpca) gives sigma instead of estimating it from these
         observations (for solving a capture in bands with whole-image parameters); SBL's
-        default ``lam`` is ``max(sigma^2, 1e-6)``.
+        default ``lam`` is, per pixel of scale ``s``, ``max(sigma^2 + (noise_floor / s)^2, 1e-6)``
+        with ``noise_floor`` (sbl; in the observations' units) given or estimated
+        (:func:`estimate_noise_model`).
 
     Returns
     -------
@@ -205,22 +342,40 @@ def solve(
     n, p = obs.shape
     used: dict = {"method": method}
 
+    noise_floor = None
     if method != "ls":
         noise = params.pop("noise_sigma")
         if method == "sbl":
-            if params["lam"] is None:
+            noise_floor = params.pop("noise_floor")
+            light_noise = params.pop("light_noise")
+            if light_noise is not None:
+                light_noise = np.asarray(light_noise, dtype=np.float64)
+                good = np.isfinite(light_noise) & (light_noise > 0)
+                if light_noise.shape != (n,) or not np.all(good):
+                    raise SolverInputError(f"light_noise must be {n} finite positive factors")
+            if params["lam"] is None and (noise is None or noise_floor is None):
+                residuals = _noise_residuals(obs, lights, usable)
                 if noise is None:
-                    noise = _noise_level(obs, lights, usable)
-                params["lam"] = max(noise * noise, LAMBDA_FLOOR)
-            used["lambda"] = float(params["lam"])
-            if noise is None:
-                noise = math.sqrt(params["lam"])
+                    noise = _noise_level(*residuals)
+                if noise_floor is None:
+                    noise_floor = _noise_floor(*residuals, light_noise)
+            if params["lam"] is None:
+                # per observation: max(noise_sigma^2 + (noise_floor light_noise_i / s)^2, 1e-6)
+                used["lambda"] = None
+                used["noise_floor"] = float(noise_floor)
+                used["light_noise"] = None if light_noise is None else light_noise.tolist()
+            else:
+                used["lambda"] = float(params["lam"])
+                if noise is None:
+                    noise = math.sqrt(params["lam"])
         if params["outlier_threshold"] is None:
             if noise is None:
-                noise = _noise_level(obs, lights, usable)
+                noise = _noise_level(*_noise_residuals(obs, lights, usable))
             params["outlier_threshold"] = max(3.0 * noise, MIN_OUTLIER_THRESHOLD)
         if noise is not None:
             used["noise_sigma"] = float(noise)
+        if method == "sbl" and params["tol"] is None:
+            params["tol"] = max(SBL_TOL_MIN, SBL_TOL_NOISE_SHARE * noise)
     used.update({k: v for k, v in params.items() if k != "lam"})
 
     if method == "rpca":
@@ -245,7 +400,11 @@ def solve(
     def run_tile(a: int) -> int:
         b = min(a + tile, p)
         y, w, scale, ok = _prepare_tile(obs, usable, lights, a, b)
-        res = kernel(y, w, lights, **kernel_params)
+        tile_params = kernel_params
+        if method == "sbl" and params["lam"] is None:
+            tile_params = {**kernel_params,
+                           "lam": sbl_lambda(scale, used["noise_sigma"], noise_floor, light_noise)}
+        res = kernel(y, w, lights, **tile_params)
         x = res.x.astype(np.float64) * scale[:, None]
         length = np.linalg.norm(x, axis=1)
         good = ok & (length > 0) & np.isfinite(length)

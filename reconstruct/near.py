@@ -36,6 +36,8 @@ from ._solve import (
     LAMBDA_FLOOR,
     MIN_OUTLIER_THRESHOLD,
     NOISE_SAMPLE_PIXELS,
+    SBL_TOL_MIN,
+    SBL_TOL_NOISE_SHARE,
     SOLVABLE_REL_DET,
     _method_params,
     pixel_scale,
@@ -199,12 +201,18 @@ def solve_near(
         if noise is None:
             noise = estimate_noise_near(obs, vectors, usable)
         if method == "sbl":
+            # One relative lam here: the directional solver's per-light noise floor is not
+            # carried over to near lights (issue 12 left it out).
+            params.pop("noise_floor")
+            params.pop("light_noise")
             if params["lam"] is None:
                 params["lam"] = max(noise * noise, LAMBDA_FLOOR)
             used["lambda"] = float(params["lam"])
         if params["outlier_threshold"] is None:
             params["outlier_threshold"] = max(3.0 * noise, MIN_OUTLIER_THRESHOLD)
         used["noise_sigma"] = float(noise)
+        if method == "sbl" and params["tol"] is None:
+            params["tol"] = max(SBL_TOL_MIN, SBL_TOL_NOISE_SHARE * noise)
     else:
         params = {"outlier_threshold": np.inf}
     used.update({k: v for k, v in params.items() if k != "lam"})

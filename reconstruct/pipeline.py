@@ -42,6 +42,7 @@ from ps_lab.io.dataset import DatasetHeader, open_dataset
 from ps_lab.io.files import json_safe, staged_folder
 from ps_lab.io.truth import open_normal_gt
 from ps_lab.reconstruct._bands import BandResult, LocalBands
+from ps_lab.reconstruct._kernels import start_warm_up
 from ps_lab.reconstruct._outputs import (
     ERROR_BIN_DEG,
     _Histogram,
@@ -53,7 +54,12 @@ from ps_lab.reconstruct._outputs import (
     write_png,
 )
 from ps_lab.reconstruct._refine import fit_lights
-from ps_lab.reconstruct._solve import estimate_noise
+from ps_lab.reconstruct._solution import SolverInputError
+from ps_lab.reconstruct._solve import (
+    estimate_noise,
+    estimate_noise_model,
+    light_noise_factors,
+)
 from ps_lab.reconstruct.near import (
     NearLights,
     NearRounds,
@@ -122,6 +128,36 @@ def parse_memory_size(text: str) -> int:
     return size
 
 
+# Solver fields of ReconstructOptions -> (command-line flag, methods they apply to).
+SOLVER_OPTIONS = {
+    "lam": ("--lambda", ("sbl", "rpca")),
+    "sigma_x2": ("--sigma-x2", ("sbl",)),
+    "max_iter": ("--max-iter", ("l1", "sbl", "rpca")),
+    "tol": ("--tol", ("l1", "sbl", "rpca")),
+}
+
+
+def _check_solver_options(options: ReconstructOptions) -> None:
+    """Raise :class:`SolverInputError` for a bad solver field.
+
+    A field must be finite and positive (``max_iter`` whole) and apply to ``options.method``.
+    """
+    for name, (flag, methods) in SOLVER_OPTIONS.items():
+        value = getattr(options, name)
+        if value is None:
+            continue
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
+            raise SolverInputError(f"{flag} must be a number, got {value!r}")
+        if not math.isfinite(value) or value <= 0:
+            raise SolverInputError(f"{flag} must be finite and positive, got {value!r}")
+        if name == "max_iter" and int(value) != value:
+            raise SolverInputError(f"{flag} must be a whole number, got {value!r}")
+        if options.method not in methods:
+            raise SolverInputError(
+                f"{flag} does not apply to method {options.method} (only {', '.join(methods)})"
+            )
+
+
 def band_pixels(memory_budget: int, n_lights: int) -> int:
     """Most mask pixels per band that keep one band's solve within ``memory_budget`` bytes."""
     per_pixel = n_lights * BYTES_PER_OBSERVATION + BYTES_PER_PIXEL
@@ -162,6 +198,11 @@ class ReconstructOptions:
         Address of a Dask scheduler (``tcp://host:8786``): the frames are staged and the bands
         solved as tasks on its workers (:mod:`ps_lab.reconstruct.distributed`; the dataset and
         the output folder must be on a filesystem the workers share). None: in this process.
+    lam, sigma_x2, max_iter, tol : float, float, int, float, or None
+        Solver parameters in the units of ``docs/solvers.md`` (relative to each pixel's robust
+        scale); None keeps the method's default. ``lam``: SBL's noise variance, or R-PCA's
+        sparse weight; ``sigma_x2``: SBL's prior variance of ``x``; ``max_iter`` and ``tol``:
+        SBL, L1 and R-PCA. Each must be finite and positive, and apply to ``method``.
     """
 
     method: str = "sbl"
@@ -174,8 +215,13 @@ class ReconstructOptions:
     staging: str = "auto"
     lights: str = "auto"
     scheduler: str | None = None
+    lam: float | None = None
+    sigma_x2: float | None = None
+    max_iter: int | None = None
+    tol: float | None = None
 
     def __post_init__(self) -> None:
+        _check_solver_options(self)
         if self.shadow_threshold is not None and not math.isfinite(self.shadow_threshold):
             raise OutputError(f"--shadow-threshold {self.shadow_threshold} is not a finite number")
         if self.staging not in STAGING:
@@ -191,10 +237,12 @@ class ReconstructOptions:
     def solver_parameters(self) -> dict[str, Any]:
         """Keyword arguments for :func:`ps_lab.reconstruct.solve` that these options fix.
 
-        None yet: solver parameters added as fields (``lam``, ``sigma_x2``, ``max_iter``, ``tol``)
-        are returned here, and every band's solve receives them.
+        The solver fields that are set (``lam`` is R-PCA's ``lam_sparse``); every band's solve
+        receives them.
         """
-        return {}
+        given = {name: getattr(self, name) for name in SOLVER_OPTIONS}
+        names = {"lam": "lam_sparse"} if self.method == "rpca" else {}
+        return {names.get(k, k): v for k, v in given.items() if v is not None}
 
     def replace(self, **changes: Any) -> ReconstructOptions:
         """Return a copy with some fields changed (:func:`dataclasses.replace`)."""
@@ -329,12 +377,15 @@ def reconstruct_to_folder(
     check_output_folder(out)
     started = time.perf_counter()
     timings: dict[str, float] = {}
+    # The solver kernels load while the images are read (see _kernels.warm_up).
+    warm_up = start_warm_up(options.method)
     source = _read(dataset, options)
     with _band_executor(options) as executor, staged_folder(
         out, check=check_output_folder, error=OutputError
     ) as stage:
         store = _stage(source, options, stage, bars, executor)
         timings["read_seconds"] = time.perf_counter() - started
+        warm_up.join()
         with store:
             writer = _OutputWriter(stage, store.mask, source.truth, store.n_lights)
             if source.near is None:
@@ -486,6 +537,7 @@ def _solve_bands(
                 writer=writer if final else None,
                 advance=advance,
                 label=method if passes == 1 else f"{method} pass {k + 1}/{passes}",
+                intensities=source.header.light_intensities,
             )
             if refine:
                 errors = {}
@@ -616,6 +668,9 @@ def _write_results(
     except OSError as exc:
         raise OutputError(f"{stage}: cannot write results ({exc.strerror or exc})") from None
     metrics["channel"] = options.channel
+    metrics["solver_options"] = {
+        flag[2:]: getattr(options, name) for name, (flag, _) in SOLVER_OPTIONS.items()
+    }
     metrics["shadow_threshold"] = options.shadow_threshold
     metrics["light_model"] = "directional" if source.near is None else "near"
     if solved.near is not None:
@@ -655,24 +710,33 @@ class _PassResult:
     usable: int = 0
 
 
-def _whole_image_parameters(store: ObservationStore, vectors: np.ndarray, method: str) -> dict:
+def _whole_image_parameters(
+    store: ObservationStore, vectors: np.ndarray, options: ReconstructOptions, intensities
+) -> dict:
     """The noise level a single whole-image solve would estimate, fixed for every band.
 
     ``solve`` estimates it from an evenly spaced sample of all pixels (at most ``max_pixels`` of
     :func:`ps_lab.reconstruct.estimate_noise`); the store kept that very sample, so the estimate
     on it is the whole-image one. Each band is solved with ``noise_sigma=`` it, from which
     ``solve`` derives the outlier threshold (and SBL's ``lam``), so results do not depend on the
-    banding. Least squares takes no noise level.
+    banding. Least squares takes no noise level; SBL also gets the noise floor (``noise_floor=``,
+    :func:`ps_lab.reconstruct.estimate_noise_model`) of its default ``lam`` and each light's share
+    of it (``light_noise=``: the images were divided by the file's light intensities).
     """
+    method = options.method
     if method == "ls" or store.sample_index.size == 0:
         return {}
-    sigma = estimate_noise(
+    light_noise = light_noise_factors(intensities, options.channel) if method == "sbl" else None
+    sigma, floor = estimate_noise_model(
         store.sample_observations,
         vectors,
         store.sample_valid,
         max_pixels=store.sample_index.size,
+        light_noise=light_noise,
     )
-    return {"noise_sigma": sigma}
+    if method != "sbl":
+        return {"noise_sigma": sigma}
+    return {"noise_sigma": sigma, "noise_floor": floor, "light_noise": light_noise}
 
 
 def _solve_pass(
@@ -687,13 +751,16 @@ def _solve_pass(
     writer: _OutputWriter | None,
     advance: Callable[..., None],
     label: str,
+    intensities: np.ndarray,
 ) -> _PassResult:
     """Solve every band once with the light vectors ``vectors`` (n, 3), on ``executor``.
+
+    ``intensities`` (n, 3) are the light intensities the observations were divided by.
 
     Band results may arrive in any order (Dask); the writer takes them as they come, and the
     parameters, error sums and refinement sums are combined in band order, as one process would.
     """
-    fixed = _whole_image_parameters(store, vectors, options.method)
+    fixed = _whole_image_parameters(store, vectors, options, intensities)
     count = len(store.bands)
     started = time.perf_counter()
     done: dict[int, BandResult] = {}

@@ -385,3 +385,46 @@ def test_bad_input_one_line_exit_2_nothing_written(tmp_path, kind):
     assert len(lines) == 1 and lines[0].startswith("error: "), result.output
     assert names in lines[0]
     assert tree(tmp_path) == before
+
+
+# --- solver flags (issue 12) ------------------------------------------------------------------
+
+
+def test_solver_flags_reach_the_solver_and_metrics(tmp_path):
+    write_dataset(tmp_path / "sphere", specular=0.2)
+    out = tmp_path / "out"
+    result = invoke(tmp_path / "sphere", "--out", out, "--lambda", "1e-4", "--sigma-x2", "1e4",
+                    "--max-iter", "7", "--tol", "1e-3")
+    assert result.exit_code == 0, result.output
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert metrics["solver_options"] == {"lambda": 1e-4, "sigma-x2": 1e4, "max-iter": 7,
+                                         "tol": 1e-3}
+    params = metrics["parameters"]
+    assert (params["lambda"], params["sigma_x2"], params["max_iter"], params["tol"]) == (
+        1e-4, 1e4, 7, 1e-3)
+    assert metrics["iterations"]["max"] <= 7
+    result = invoke(tmp_path / "sphere", "--out", out, "--method", "rpca", "--lambda", "0.2")
+    assert result.exit_code == 0, result.output
+    assert json.loads((out / "metrics.json").read_text())["parameters"]["lam_sparse"] == 0.2
+
+
+@pytest.mark.parametrize(
+    ("args", "message"),
+    [
+        (("--lambda", "nan"), "--lambda must be finite and positive"),
+        (("--lambda", "-1e-3"), "--lambda must be finite and positive"),
+        (("--sigma-x2", "inf"), "--sigma-x2 must be finite and positive"),
+        (("--tol", "0"), "--tol must be finite and positive"),
+        (("--max-iter", "0"), "--max-iter must be finite and positive"),
+        (("--method", "ls", "--max-iter", "5"), "does not apply to method ls"),
+        (("--method", "l1", "--lambda", "1e-3"), "does not apply to method l1"),
+    ],
+)
+def test_bad_solver_flag_one_line_exit_2(tmp_path, args, message):
+    write_dataset(tmp_path / "sphere")
+    before = tree(tmp_path)
+    result = invoke(tmp_path / "sphere", *args)
+    assert result.exit_code == 2, result.output
+    lines = result.output.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("error: ") and message in lines[0]
+    assert tree(tmp_path) == before

@@ -76,7 +76,9 @@ def test_band_sums_reproduce_refine_lights(perturbed):
     half = y.shape[1] // 2
     sums = [np.zeros((len(lights), 6)), np.zeros((len(lights), 3))]
     for band in (slice(0, half), slice(half, None)):
-        band_sol = solve(y[:, band], wrong, valid=valid[:, band], lam=sol.params["lambda"])
+        band_sol = solve(y[:, band], wrong, valid=valid[:, band],
+                         noise_sigma=sol.params["noise_sigma"],
+                         noise_floor=sol.params["noise_floor"])
         m6, t3, _ = light_fit_sums(y[:, band], valid[:, band], band_sol)
         sums[0] += m6
         sums[1] += t3

@@ -13,12 +13,14 @@ from ps_lab.reconstruct import (
     angular_errors_deg,
     error_summary,
     estimate_noise,
+    estimate_noise_model,
     solve,
 )
+from ps_lab.reconstruct._solve import light_noise_factors, sbl_lambda
 from ps_lab.render import random_light_directions, relief_surface, render, sphere_surface
 
 ORACLE_PARAMS = ("max_iter", "tol", "delta", "outlier_threshold", "sigma_x2", "gamma_floor",
-                 "lam_sparse", "rho")
+                 "gamma_start", "lam_sparse", "rho")
 
 
 def lights_upper(n, rng, max_zenith_deg=60.0):
@@ -37,6 +39,10 @@ def oracle_params(sol):
     p = {k: v for k, v in sol.params.items() if k in ORACLE_PARAMS}
     if "lambda" in sol.params:
         p["lam"] = sol.params["lambda"]
+        if p["lam"] is None:  # SBL's per-pixel default
+            p["noise_sigma"] = sol.params["noise_sigma"]
+            p["noise_floor"] = sol.params["noise_floor"]
+            p["light_noise"] = sol.params["light_noise"]
     return p
 
 
@@ -150,9 +156,45 @@ def test_auto_lambda_follows_the_noise_level():
         noisy = y + rng.normal(0, rel * np.median(y[y > 0]), y.shape)
         sigmas.append(estimate_noise(noisy, lights, valid=y > 0))
         sol = solve(noisy, lights, method="sbl", valid=y > 0)
-        assert sol.params["lambda"] == pytest.approx(sol.params["noise_sigma"] ** 2)
+        assert sol.params["lambda"] is None  # per pixel, from noise_sigma and noise_floor
+        assert sol.params["noise_sigma"] == pytest.approx(sigmas[-1])
     # relative to each pixel's median observation, so roughly proportional to the noise
     assert 2.5 < sigmas[1] / sigmas[0] < 6
+
+
+def test_noise_floor_separates_constant_from_proportional_noise():
+    rng = np.random.default_rng(11)
+    lights = lights_upper(40, rng)
+    y, _, _ = scene("relief", (48, 48), lights, rng)  # albedo 0.55-1: pixel scales vary
+    y = y * np.linspace(0.2, 1.0, y.shape[1])  # and more so: dark and bright pixels
+    constant = y + rng.normal(0.0, 0.01, y.shape)
+    proportional = y * (1.0 + rng.normal(0.0, 0.02, y.shape))
+    sigma_c, floor_c = estimate_noise_model(constant, lights, valid=y > 0)
+    sigma_p, floor_p = estimate_noise_model(proportional, lights, valid=y > 0)
+    assert 0.006 < floor_c < 0.015  # the constant noise is found in the observations' units
+    assert floor_p < 0.3 * floor_c and 0.01 < sigma_p < 0.03
+    lam = sbl_lambda(np.array([0.1, 0.5, 0.0]), 0.02, 0.01)
+    assert np.allclose(lam[:, 0], [0.02**2 + 0.1**2, 0.02**2 + 0.02**2, 0.02**2])
+
+
+def test_light_noise_per_observation_equals_oracle(corrupted):
+    y, lights, valid, _ = corrupted
+    factors = np.random.default_rng(3).uniform(0.5, 2.0, len(lights))
+    sol = solve(y, lights, method="sbl", valid=valid, light_noise=factors, noise_floor=0.02)
+    assert sol.params["light_noise"] == pytest.approx(list(factors))
+    normals, albedo, _, iterations = solve_oracle(y, lights, "sbl", valid, **oracle_params(sol))
+    assert np.abs(sol.normals - normals).max() < 1e-6
+    assert np.allclose(sol.albedo, albedo, rtol=1e-6, atol=1e-9)
+    assert np.mean(sol.iterations == iterations) > 0.99
+    plain = solve(y, lights, method="sbl", valid=valid, noise_floor=0.02)
+    assert np.abs(plain.normals - sol.normals).max() > 1e-6  # the factors act
+    # dimmer lights (divided by a smaller intensity) get a larger share of the floor
+    f = light_noise_factors(np.array([[1.0, 1, 1], [2, 2, 2], [1, 1, 1]]))
+    assert np.allclose(np.mean(f**2), 1.0) and f[0] == pytest.approx(2 * f[1])
+    green = light_noise_factors(np.array([[1.0, 4, 1], [1, 2, 1]]), "g")
+    assert np.allclose(green, [0.6325, 1.2649], atol=1e-4)
+    with pytest.raises(SolverInputError, match="light_noise"):
+        solve(y, lights, method="sbl", light_noise=factors[:3])
 
 
 def test_solution_shapes_and_params(corrupted):
@@ -198,10 +240,13 @@ def test_metrics():
 @pytest.mark.parametrize("method", ("l1", "sbl", "rpca"))
 def test_given_noise_level_and_threshold_are_used(corrupted, method):
     y, lights, valid, _ = corrupted
-    sol = solve(y, lights, method=method, valid=valid, noise_sigma=0.03)
+    given = {"noise_floor": 0.0} if method == "sbl" else {}
+    sol = solve(y, lights, method=method, valid=valid, noise_sigma=0.03, **given)
     assert sol.params["noise_sigma"] == 0.03
     assert sol.params["outlier_threshold"] == pytest.approx(0.09)
     if method == "sbl":
-        assert sol.params["lambda"] == pytest.approx(0.03**2)
+        assert sol.params["lambda"] is None and sol.params["noise_floor"] == 0.0
+        same = solve(y, lights, method=method, valid=valid, lam=0.03**2)
+        assert np.abs(same.normals - sol.normals).max() < 1e-12
     fixed = solve(y, lights, method=method, valid=valid, outlier_threshold=0.2)
     assert fixed.params["outlier_threshold"] == 0.2

@@ -199,6 +199,7 @@ def test_streamed_light_refinement_equals_refine_lights(tmp_path, fixed_intensit
         data.images[:, data.mask], data.light_directions, method="sbl", iterations=2,
         fixed_intensities=fixed_intensities, valid=data.valid[:, data.mask],
         normal_gt=data.normal_gt[data.mask], threads=1,
+        light_noise=solvers.light_noise_factors(data.light_intensities),
     )  # fmt: skip
     metrics = run(
         folder, tmp_path / "out", method="sbl", refine_lights=2,

@@ -1,4 +1,4 @@
-"""`ps-lab bench`: benchmarks that regenerate published results on rendered scenes."""
+"""`ps-lab bench`: benchmarks that regenerate published results (rendered scenes, real data)."""
 
 from __future__ import annotations
 
@@ -10,7 +10,15 @@ import typer
 
 from ps_lab._cli_util import lab_command, progress_bar
 from ps_lab.bench import paper as bench_paper
+from ps_lab.bench import real as bench_real
 from ps_lab.bench import report
+
+MarkdownFlag = Annotated[
+    bool, typer.Option("--markdown", help="Print Markdown (for docs/results.md) instead of text.")
+]
+JsonFile = Annotated[
+    Path | None, typer.Option("--json", help="Also write all numbers to this JSON file.")
+]
 
 bench_app = typer.Typer(
     name="bench",
@@ -42,13 +50,8 @@ def paper(
     tables: Annotated[
         str | None, typer.Option(help="Tables to run, comma-separated from 1,3,4,5 (default all).")
     ] = None,
-    markdown: Annotated[
-        bool,
-        typer.Option("--markdown", help="Print Markdown (for docs/results.md) instead of text."),
-    ] = False,
-    json_out: Annotated[
-        Path | None, typer.Option("--json", help="Also write all numbers to this JSON file.")
-    ] = None,
+    markdown: MarkdownFlag = False,
+    json_out: JsonFile = None,
     progress: Annotated[bool, typer.Option(help="Show a progress bar on stderr.")] = True,
 ) -> None:
     """Regenerate Tables 1, 3, 4 and 5 of Ikehata et al. (CVPR 2012) for LS, L1, R-PCA and SBL."""
@@ -69,6 +72,42 @@ def paper(
     )
     if json_out is not None:
         json_out.write_text(json.dumps(report.results_as_dict(results), indent=1))
+
+
+@bench_app.command("real")
+@lab_command
+def real(
+    folder: Annotated[
+        Path | None,
+        typer.Argument(
+            help="Folder of object folders (DiLiGenT layout with normal_gt) "
+            "[default: ../shared/data/diligent-8bit from the repository root].",
+            show_default=False,
+        ),
+    ] = None,
+    every: Annotated[
+        int, typer.Option(min=1, help="Keep every N-th mask pixel (quick runs).")
+    ] = 1,
+    markdown: MarkdownFlag = False,
+    json_out: JsonFile = None,
+    threads: Annotated[
+        int | None,
+        typer.Option(min=1, help="Solver threads [default: all cores].", show_default=False),
+    ] = None,
+) -> None:
+    """LS, L1, SBL, R-PCA (defaults) and SBL at fixed lambda on every real object of a folder."""
+    folder = folder if folder is not None else bench_real.DEFAULT_FOLDER
+    objects = bench_real.find_objects(folder)
+    if not objects:
+        typer.echo(f"skipped: no object folders with ground truth under {folder}")
+        return
+    total = len(objects) * len(bench_real.columns())
+    with progress_bar(total, "real objects", enabled=True) as advance:
+        rows = bench_real.run_real(folder, every=every, threads=threads,
+                                   progress=lambda label: advance(1, description=label))
+    typer.echo(bench_real.format_table(rows, markdown=markdown))
+    if json_out is not None:
+        json_out.write_text(json.dumps(bench_real.results_as_dict(rows), indent=1))
 
 
 def register(app: typer.Typer) -> None:

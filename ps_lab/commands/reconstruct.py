@@ -95,6 +95,30 @@ def reconstruct(
             show_default=False,
         ),
     ] = None,
+    lam: Annotated[
+        float | None,
+        typer.Option(
+            "--lambda",
+            help="SBL noise variance, or R-PCA sparse weight (relative units, docs/solvers.md) "
+            "[default: from the data].",
+            show_default=False,
+        ),
+    ] = None,
+    sigma_x2: Annotated[
+        float | None,
+        typer.Option(help="SBL prior variance of albedo x normal (relative) [default: 1e6].",
+                     show_default=False),
+    ] = None,
+    max_iter: Annotated[
+        int | None,
+        typer.Option(help="Iterations at most (sbl, l1, rpca) [default: 100, 100, 500].",
+                     show_default=False),
+    ] = None,
+    tol: Annotated[
+        float | None,
+        typer.Option(help="Convergence tolerance (sbl, l1, rpca; docs/solvers.md) "
+                     "[default: 1e-4, 1e-6, 1e-7].", show_default=False),
+    ] = None,
 ) -> None:
     """Estimate surface normals and albedo; write normals.npy, normal.png, albedo, metrics.json."""
     out = out if out is not None else dataset / "recon" / method.value
@@ -108,6 +132,10 @@ def reconstruct(
         memory_budget=parse_memory_size(memory_budget),
         lights=lights.value,
         scheduler=scheduler,
+        lam=lam,
+        sigma_x2=sigma_x2,
+        max_iter=max_iter,
+        tol=tol,
     )
     metrics = reconstruct_to_folder(dataset, out, options, progress_bars=_terminal_bars).metrics
     typer.echo(

@@ -44,9 +44,9 @@ def l1_pixel(y, a, *, max_iter=100, tol=1e-6, delta=1e-6, outlier_threshold=0.05
 
 
 def sbl_pixel(y, a, *, lam, sigma_x2=1e6, max_iter=100, tol=1e-4, gamma_floor=1e-10,
-              outlier_threshold=0.05):
+              gamma_start=1e3, outlier_threshold=0.05):
     n = y.size
-    gamma = np.ones(n)
+    gamma = np.full(n, float(gamma_start))
     z_old = np.zeros(n)
     it = max_iter
     for k in range(1, max_iter + 1):
@@ -88,7 +88,18 @@ def solve_oracle(observations, lights, method, valid=None, **params):
         scale = pixel_scale(y)
         if not solvable(a, scale):
             continue
-        x, out, it = PIXEL_ORACLES[method](y / scale, a, **params)
+        pixel_params = params
+        if method == "sbl" and params.get("lam") is None:
+            # SBL's default: sigma^2 relative plus the noise floor (observation units, times each
+            # light's factor) / scale, per observation
+            sigma, floor = params["noise_sigma"], params["noise_floor"]
+            factor = params.get("light_noise")
+            factor = np.ones(n) if factor is None else np.asarray(factor)
+            rest = {k: v for k, v in params.items()
+                    if k not in ("noise_sigma", "noise_floor", "light_noise")}
+            lam = np.maximum(sigma**2 + (floor * factor[v] / scale) ** 2, 1e-6)
+            pixel_params = {**rest, "lam": lam}
+        x, out, it = PIXEL_ORACLES[method](y / scale, a, **pixel_params)
         x = x * scale
         albedo[j] = np.linalg.norm(x)
         if albedo[j] > 0:

@@ -1,0 +1,146 @@
+"""Solvers on real captures with ground truth (DiLiGenT-style folders): ``ps-lab bench real``.
+
+Every object folder under a root (a folder holding ``light_directions.txt`` and ground-truth
+normals) is loaded as ``ps-lab reconstruct`` loads it (channels divided by the light intensities
+and averaged, saturated observations dropped, every mask pixel) and solved with LS, L1, SBL and
+R-PCA at their defaults, plus SBL at fixed ``lam`` values for comparison. The numbers go to
+``docs/results.md``; ``docs/solvers.md`` explains SBL's default ``lam`` with them.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from ps_lab.io.dataset import load_dataset
+from ps_lab.reconstruct import angular_errors_deg, error_summary, light_noise_factors, solve
+
+# The repository's sibling data folder (``../shared/data/diligent-8bit`` from the repo root).
+DEFAULT_FOLDER = Path(__file__).resolve().parents[2].parent / "shared" / "data" / "diligent-8bit"
+METHODS = ("ls", "l1", "sbl", "rpca")
+FIXED_LAMBDAS = (1e-6, 1e-4, 1e-2, 1e-1)
+
+
+@dataclass(frozen=True)
+class RealObject:
+    """One object's solver inputs, as ``ps-lab reconstruct`` gives them to the solvers.
+
+    Observations (n, P), usable mask (n, P), lights (n, 3), truth (P, 3), and each light's share
+    of the noise floor (n,), which ``ps-lab reconstruct`` passes to SBL.
+    """
+
+    name: str
+    observations: np.ndarray
+    valid: np.ndarray
+    light_directions: np.ndarray
+    normal_gt: np.ndarray
+    light_noise: np.ndarray
+
+
+@dataclass
+class RealRow:
+    """Results of one object: per column name, mean/median error (deg) and seconds."""
+
+    name: str
+    pixels: int
+    lights: int
+    cells: dict[str, dict[str, float]] = field(default_factory=dict)
+
+
+def find_objects(folder: Path) -> list[Path]:
+    """Object folders directly under ``folder`` (light directions and ground truth), sorted."""
+    folder = Path(folder)
+    if not folder.is_dir():
+        return []
+    return sorted(
+        p
+        for p in folder.iterdir()
+        if (p / "light_directions.txt").is_file()
+        and ((p / "normal_gt.npy").is_file() or (p / "Normal_gt.mat").is_file())
+    )
+
+
+def load_object(path: Path, every: int = 1) -> RealObject:
+    """Load one object folder; ``every`` > 1 keeps every ``every``-th mask pixel (quick runs)."""
+    data = load_dataset(Path(path))
+    if data.normal_gt is None:
+        raise ValueError(f"{path}: no ground-truth normals")
+    mask = data.mask
+    obs = data.images[:, mask][:, ::every]
+    valid = data.valid[:, mask][:, ::every]
+    gt = np.asarray(data.normal_gt, dtype=np.float64)[mask][::every]
+    return RealObject(Path(path).name, obs, valid, data.light_directions, gt,
+                      light_noise_factors(data.light_intensities))
+
+
+def columns(methods=METHODS, lambdas=FIXED_LAMBDAS) -> list[str]:
+    """Column names: the methods with defaults, then ``sbl lam=<value>`` for each fixed lambda."""
+    return list(methods) + [f"sbl lam={lam:g}" for lam in lambdas]
+
+
+def solve_column(obj: RealObject, column: str, threads: int | None = None) -> dict[str, float]:
+    """Mean/median angular error (deg) and solve seconds of one column on one object."""
+    kwargs: dict = {"method": column.split()[0]}
+    if column.startswith("sbl lam="):
+        kwargs["lam"] = float(column.split("=")[1])
+    elif column == "sbl":
+        kwargs["light_noise"] = obj.light_noise
+    started = time.perf_counter()
+    sol = solve(obj.observations, obj.light_directions, valid=obj.valid, threads=threads, **kwargs)
+    seconds = time.perf_counter() - started
+    summary = error_summary(angular_errors_deg(sol.normals, obj.normal_gt))
+    return {"mean": summary["mean"], "median": summary["median"], "seconds": seconds}
+
+
+def run_real(
+    folder: Path,
+    *,
+    every: int = 1,
+    methods=METHODS,
+    lambdas=FIXED_LAMBDAS,
+    threads: int | None = None,
+    progress: Callable[[str], None] | None = None,
+) -> list[RealRow]:
+    """Solve every object under ``folder`` with every column; one row per object."""
+    rows = []
+    for path in find_objects(folder):
+        obj = load_object(path, every)
+        row = RealRow(obj.name, obj.observations.shape[1], obj.observations.shape[0])
+        for column in columns(methods, lambdas):
+            row.cells[column] = solve_column(obj, column, threads)
+            if progress is not None:
+                progress(f"{obj.name} {column}")
+        rows.append(row)
+    return rows
+
+
+def format_table(rows: list[RealRow], *, markdown: bool = False) -> str:
+    """One table: per object and column ``mean/median error in degrees (solve seconds)``."""
+    if not rows:
+        return ""
+    names = list(rows[0].cells)
+    head = ["object", "pixels", *names]
+    lines = []
+    for row in rows:
+        cells = [row.name, str(row.pixels)]
+        for name in names:
+            c = row.cells[name]
+            cells.append(f"{c['mean']:.2f}/{c['median']:.2f} ({c['seconds']:.1f} s)")
+        lines.append(cells)
+    if markdown:
+        out = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+        out += ["| " + " | ".join(cells) + " |" for cells in lines]
+        return "\n".join(out)
+    widths = [max(len(r[k]) for r in [head, *lines]) for k in range(len(head))]
+    rows = [head, *lines]
+    return "\n".join("  ".join(c.rjust(w) for c, w in zip(r, widths, strict=True)) for r in rows)
+
+
+def results_as_dict(rows: list[RealRow]) -> list[dict]:
+    """Plain data for JSON."""
+    return [{"object": r.name, "pixels": r.pixels, "lights": r.lights, "results": r.cells}
+            for r in rows]
