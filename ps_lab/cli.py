@@ -22,6 +22,7 @@ from ps_lab import __version__
 COMMANDS = {
     "simulate": "ps_lab.commands.simulate",
     "reconstruct": "ps_lab.commands.reconstruct",
+    "integrate": "ps_lab.commands.integrate",
     "capture": "ps_lab.commands.capture",
     "calibrate": "ps_lab.commands.calibrate",
     "rig": "ps_lab.commands.rig",

@@ -51,6 +51,7 @@ from ps_lab.reconstruct._outputs import (
 from ps_lab.reconstruct._refine import fit_lights, light_fit_sums
 from ps_lab.reconstruct._solution import Solution
 from ps_lab.reconstruct._solve import estimate_noise, solve
+from ps_lab.reconstruct.depth import DepthOptions, write_depth, write_normal_maps
 from ps_lab.reconstruct.metrics import angular_errors_deg
 
 __all__ = [
@@ -141,6 +142,8 @@ class ReconstructOptions:
         band's solve may use; sets the band height.
     staging : {"auto", "memory", "file"}
         Backing of the observation store: in memory when small (``auto``), or forced.
+    depth : {"poisson", "bilateral"} or None
+        Also integrate the normals into depth maps and a mesh (:mod:`ps_lab.reconstruct.depth`).
     """
 
     method: str = "sbl"
@@ -151,8 +154,11 @@ class ReconstructOptions:
     fixed_intensities: bool = False
     memory_budget: int = DEFAULT_MEMORY_BUDGET
     staging: str = "auto"
+    depth: str | None = None
 
     def __post_init__(self) -> None:
+        if self.depth is not None:
+            DepthOptions(method=self.depth)  # validates the method
         if self.staging not in STAGING:
             raise OutputError(f"staging must be auto, memory or file, got {self.staging!r}")
         budget = self.memory_budget
@@ -312,6 +318,7 @@ def reconstruct_to_folder(
             metrics = _write_results(writer, stage, source, options, store, solved, timings)
             timings["write_seconds"] = time.perf_counter() - written
             metrics["timings"] = dict(timings)
+            _write_surface(stage, options, metrics)
             _write_metrics(stage, metrics)
     metrics["out"] = str(out)
     return ReconstructResult(out=out, metrics=metrics)
@@ -474,6 +481,21 @@ def _write_results(
         metrics["refinement"] = {"iterations": options.refine_lights, "history": solved.history}
     metrics["timings"] = dict(timings)
     return json_safe(metrics)
+
+
+def _write_surface(stage: Path, options: ReconstructOptions, metrics: dict) -> None:
+    """Stage 5: normal maps for other tools and, with ``options.depth``, depth and mesh."""
+    started = time.perf_counter()
+    normals = np.load(stage / "normals.npy")
+    try:
+        write_normal_maps(stage, normals, np.linalg.norm(normals, axis=-1) > 0.5)
+        if options.depth is not None:
+            albedo = np.load(stage / "albedo.npy")
+            depth = write_depth(stage, normals, albedo, DepthOptions(method=options.depth))
+            metrics["depth"] = json_safe(depth)
+    except OSError as exc:
+        raise OutputError(f"{stage}: cannot write results ({exc.strerror or exc})") from None
+    metrics["timings"]["surface_seconds"] = time.perf_counter() - started
 
 
 def _write_metrics(folder: Path, metrics: dict) -> None:

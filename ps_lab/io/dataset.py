@@ -37,7 +37,7 @@ from ps_lab.io.images import (
     read_image,
     read_image_size,
 )
-from ps_lab.io.lights import read_light_directions, read_light_intensities
+from ps_lab.io.lights import lp_directions_for, read_light_directions, read_light_intensities
 from ps_lab.io.run import SIMULATION_DIR
 from ps_lab.io.truth import _find_normal_gt
 
@@ -359,13 +359,19 @@ def open_dataset(path: Path, *, channel: str = "mean", read_size: bool = True) -
     run = is_capture_run(root) if root.is_dir() else False
     # Lights are checked before pixels are read: a missing file should not cost a long load.
     directions_file = root / LIGHT_DIRECTIONS
-    if root.is_dir() and not directions_file.is_file():
+    lp_files = sorted(root.glob("*.lp")) if root.is_dir() else []
+    if root.is_dir() and not directions_file.is_file() and len(lp_files) != 1:
         if run:
             raise DatasetError(f"run {root} is not calibrated: run `ps-lab calibrate {root}` first")
-        raise DatasetError(f"{root}: no {LIGHT_DIRECTIONS} (one row 'x y z' per image)")
+        raise DatasetError(
+            f"{root}: no {LIGHT_DIRECTIONS} (one row 'x y z' per image) and no single .lp file"
+        )
     plan = plan_frames(root)
     n = len(plan.light_files)
-    light_directions = read_light_directions(directions_file, n)
+    if directions_file.is_file():
+        light_directions = read_light_directions(directions_file, n)
+    else:  # a RelightLab / RTIBuilder light file, matched to the images by file name
+        light_directions = lp_directions_for(lp_files[0], plan.names)
     intensities_file = root / LIGHT_INTENSITIES
     if intensities_file.is_file():
         light_intensities = read_light_intensities(intensities_file, n)
