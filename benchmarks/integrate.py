@@ -41,7 +41,8 @@ def _render(megapixels: float, folder: Path) -> Path:
         path.mkdir(parents=True, exist_ok=True)
         surface = relief_surface((side, side), seed=1)
         np.save(path / "normals.npy", surface.normals.astype(np.float32))
-        np.save(path / "depth.npy", np.where(surface.mask, -surface.height, np.nan).astype(np.float32))
+        depth = np.where(surface.mask, -surface.height, np.nan).astype(np.float32)
+        np.save(path / "depth.npy", depth)
     return path
 
 
@@ -102,7 +103,8 @@ def main() -> None:
             except subprocess.TimeoutExpired:
                 row = f"| {megapixels:g} MP | {method} | > {args.timeout:.0f} (stopped) | | | | |"
             except (ValueError, IndexError):
-                row = f"| {megapixels:g} MP | {method} | failed: {done.stderr.strip()[-200:]} | | | | |"
+                failure = done.stderr.strip()[-200:]
+                row = f"| {megapixels:g} MP | {method} | failed: {failure} | | | | |"
             rows.append(row)
             print(row, flush=True)
     if args.markdown:

@@ -72,8 +72,8 @@ def main(argv: list[str] | None = None) -> None:
         "calibrate": _stage("calibrate", ["calibrate", str(run)]),
         "reconstruct": _stage(
             "reconstruct",
-            ["reconstruct", str(run), "--method", "sbl", "--refine-lights", "2", "--out", str(recon),
-             "--depth", "poisson"],
+            ["reconstruct", str(run), "--method", "sbl", "--refine-lights", "2",
+             "--out", str(recon), "--depth", "poisson"],  # fmt: skip
         ),
     }
 

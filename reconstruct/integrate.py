@@ -19,8 +19,8 @@ Orthographic camera (one pixel = one length unit), ``g = depth``:
 
     d depth / d col = n_x / n_z,        d depth / d row = -n_y / n_z.
 
-Perspective camera (focal length ``f`` in pixels, principal point ``(c_x, c_y)``), ``g = log depth``,
-with ``u = col - c_x``, ``v = row - c_y`` and ``m = f n_z - u n_x + v n_y`` (``f`` times the cosine
+Perspective camera (focal length ``f`` in pixels, principal point ``(c_x, c_y)``),
+``g = log depth``, with ``u = col - c_x``, ``v = row - c_y`` and ``m = f n_z - u n_x + v n_y`` (``f`` times the cosine
 between the normal and the line of sight, > 0 on every visible surface):
 
     d log depth / d col = n_x / m,      d log depth / d row = -n_y / m,
@@ -358,7 +358,7 @@ class _Graph:
         self.pinned = np.asarray(first, dtype=np.int64).reshape(-1)
 
     def trapezoid_targets(self, gradient_col: np.ndarray, gradient_row: np.ndarray) -> np.ndarray:
-        """Predicted difference ``g_head - g_tail`` of every edge: the mean of its ends' gradients."""
+        """Predicted ``g_head - g_tail`` of every edge: the mean of its two ends' gradients."""
         k = self.horizontal
         t = np.empty(self.tail.size)
         t[:k] = 0.5 * (gradient_col[self.tail[:k]] + gradient_col[self.head[:k]])

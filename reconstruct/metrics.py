@@ -65,8 +65,8 @@ def error_summary(errors_deg: np.ndarray) -> dict:
 def depth_error(depth: np.ndarray, truth: np.ndarray) -> dict[str, float]:
     """RMS difference between two depth maps, each 4-connected component up to its offset.
 
-    Integrated depth is known only up to one offset per component (``ps_lab.reconstruct.integrate``),
-    so each component of the pixels where both are finite is compared after removing its mean
+    Integrated depth is known only up to one offset per component
+    (:mod:`ps_lab.reconstruct.integrate`), so each component of the pixels where both are finite is compared after removing its mean
     difference.
 
     Parameters

@@ -104,7 +104,9 @@ def write_ply(path: Path, vertices: np.ndarray, colours: np.ndarray, triangles: 
     """Write a binary little-endian PLY with coloured vertices and triangles."""
     vertex = np.empty(
         len(vertices),
-        dtype=[("x", "f4"), ("y", "f4"), ("z", "f4"), ("red", "u1"), ("green", "u1"), ("blue", "u1")],
+        dtype=[
+            ("x", "f4"), ("y", "f4"), ("z", "f4"), ("red", "u1"), ("green", "u1"), ("blue", "u1")
+        ],
     )
     vertex["x"], vertex["y"], vertex["z"] = np.asarray(vertices, np.float32).T
     vertex["red"], vertex["green"], vertex["blue"] = np.asarray(colours, np.uint8).T

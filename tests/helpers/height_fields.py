@@ -87,6 +87,14 @@ def bumps(shape, seed=0, count=6, amplitude=0.12, offset=0.0):
     return np.where(mask, depth, np.nan), d_col, d_row, mask
 
 
+def _taper(rows, h):
+    """``b(row) = sin^2`` from 0 to 1 and back over the middle 70 % of the rows; and db/drow."""
+    y = np.clip((rows - 0.15 * h) / (0.7 * h), 0, 1)
+    b = np.sin(np.pi * y) ** 2
+    db = 2 * np.sin(np.pi * y) * np.cos(np.pi * y) * np.pi / (0.7 * h) * ((y > 0) & (y < 1))
+    return b, db
+
+
 def ledge(shape, height=None, offset=0.0):
     """A ramp that rises toward a cliff above a flat floor (an occluding edge with a step).
 
@@ -104,9 +112,7 @@ def ledge(shape, height=None, offset=0.0):
     x = np.clip((cols - start) / (edge - start), 0, None)
     q = np.where(cols < edge, x * x, 0.0)
     dq = np.where(cols < edge, 2 * x / (edge - start), 0.0) * (cols >= start)
-    y = np.clip((rows - 0.15 * h) / (0.7 * h), 0, 1)
-    b = np.sin(np.pi * y) ** 2
-    db = 2 * np.sin(np.pi * y) * np.cos(np.pi * y) * np.pi / (0.7 * h) * ((y > 0) & (y < 1))
+    b, db = _taper(rows, h)
     depth = offset - height * b * q
     d_col = -height * b * dq
     d_row = -height * db * q
@@ -140,9 +146,7 @@ def occluding_step(shape, height=None, max_slope_deg=80.0, offset=0.0):
     root = np.sqrt(np.clip(1 - x**2, 1e-12, None))
     q = np.where(cols < edge, np.where(on, 1 - root, 0.0), 0.0)
     dq = np.where(on, x / root * x_max / length, 0.0)
-    y = np.clip((rows - 0.15 * h) / (0.7 * h), 0, 1)
-    b = np.sin(np.pi * y) ** 2
-    db = 2 * np.sin(np.pi * y) * np.cos(np.pi * y) * np.pi / (0.7 * h) * ((y > 0) & (y < 1))
+    b, db = _taper(rows, h)
     depth = offset - height * b * q
     d_col = -height * b * dq
     d_row = -height * db * q
