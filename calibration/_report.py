@@ -16,6 +16,7 @@ import numpy as np
 from ps_lab.calibration._calibrate import Calibration
 from ps_lab.errors import CalibrationError
 from ps_lab.io.files import staged_files
+from ps_lab.io.lights import write_lp
 
 CALIBRATION_FORMAT = "ps-lab-calibration"
 OUTPUT_FILES = (
@@ -23,6 +24,7 @@ OUTPUT_FILES = (
     "light_intensities.txt",
     "calibration.json",
     "calibration.png",
+    "lights.lp",
 )
 # Written with two or more chrome spheres (LED positions); removed from the output folder otherwise,
 # so an earlier near-light calibration cannot outlive a new one.
@@ -314,6 +316,8 @@ def write_calibration(calibration: Calibration, out_dir: Path) -> dict[str, Path
             np.savetxt(
                 staging / "light_intensities.txt", calibration.light_intensities, fmt="%.9f"
             )
+            # The same directions for RTI tools (RelightLab, RTIBuilder): "filename x y z".
+            write_lp(staging / "lights.lp", list(calibration.names), calibration.light_directions)
             record = calibration_record(calibration)
             (staging / "calibration.json").write_text(
                 json.dumps(record, indent=2) + "\n", encoding="utf-8"

@@ -480,7 +480,7 @@ class CaptureSession:
         write_manifest(run, self.manifest)
 
     def _write_simulation(self, opened: OpenRig) -> None:
-        """Write the simulator's ground truth (normals, mask, true lights in plan order)."""
+        """Write the simulator's ground truth (normals, depth, mask, true lights in plan order)."""
         sim = opened.simulation if opened.simulation is not None else build_simulation(self.rig)
         folder = self.run_dir / SIMULATION_DIR
         folder.mkdir(exist_ok=True)
@@ -488,6 +488,8 @@ class CaptureSession:
         rows = [i - 1 for i in self.plan.lights]
         buf = _npy_bytes(np.asarray(truth["normals"], dtype=np.float64))
         write_bytes_atomic(folder / "normal_gt.npy", buf)
+        depth = np.asarray(truth["depth"], dtype=np.float32)
+        write_bytes_atomic(folder / "depth_gt.npy", _npy_bytes(depth))
         ok, png = cv2.imencode(".png", np.where(truth["mask"], 255, 0).astype(np.uint8))
         if not ok:  # pragma: no cover - OpenCV always encodes a uint8 image
             raise DatasetError("cannot encode the ground-truth mask")

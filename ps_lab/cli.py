@@ -23,6 +23,7 @@ COMMANDS = {
     "simulate": "ps_lab.commands.simulate",
     "reconstruct": "ps_lab.commands.reconstruct",
     "batch": "ps_lab.commands.batch",
+    "integrate": "ps_lab.commands.integrate",
     "capture": "ps_lab.commands.capture",
     "calibrate": "ps_lab.commands.calibrate",
     "rig": "ps_lab.commands.rig",

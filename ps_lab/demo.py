@@ -5,7 +5,8 @@ Each stage is the ``ps-lab`` command a user would type, run as its own process:
 1. ``ps-lab capture --rig rigs/simulated.toml`` — the simulated protocol-v1 controller is served on a
    pseudo-terminal and driven through the OS serial layer; the simulated camera writes DNG frames;
 2. ``ps-lab calibrate RUN`` — chrome sphere and highlights, no flags;
-3. ``ps-lab reconstruct RUN --method sbl --refine-lights 2``.
+3. ``ps-lab reconstruct RUN --method sbl --refine-lights 2 --depth poisson`` (normals, then depth
+   and a mesh).
 
 Then it prints a summary against the simulator's ground truth (``RUN/simulation/``), and runs the
 near-light variant (``--near-rig``, default ``rigs/simulated-near.toml``: LEDs on a dome 3x the
@@ -25,7 +26,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ps_lab.reconstruct.metrics import angular_errors_deg, error_summary
+from ps_lab.reconstruct.metrics import angular_errors_deg, depth_error, error_summary
 
 DEFAULT_RIG = Path("rigs/simulated.toml")
 DEFAULT_OUT = Path("demo-run")
@@ -81,7 +82,8 @@ def main(argv: list[str] | None = None) -> None:
         "calibrate": _stage("calibrate", ["calibrate", str(run)]),
         "reconstruct": _stage(
             "reconstruct",
-            ["reconstruct", str(run), "--method", "sbl", "--refine-lights", "2", "--out", str(recon)],
+            ["reconstruct", str(run), "--method", "sbl", "--refine-lights", "2",
+             "--out", str(recon), "--depth", "poisson"],  # fmt: skip
         ),
     }
 
@@ -98,10 +100,18 @@ def main(argv: list[str] | None = None) -> None:
         f"median {normal_error['median']:.3f} deg, p90 {normal_error['p90']:.3f} deg "
         f"({metrics['pixels']} pixels, {metrics['lights']} lights)"
     )
+    depth = depth_error(np.load(recon / "depth.npy"), np.load(run / "simulation" / "depth_gt.npy"))
+    print(
+        f"depth error vs simulator truth:       rmse {depth['rmse']:.3f} px "
+        f"({100 * depth['relative']:.2f} % of the {depth['range']:.1f} px depth range, "
+        f"{metrics['depth']['method']}, {depth['pixels']} pixels)"
+    )
     print("time per stage: " + ", ".join(f"{k} {v:.1f} s" for k, v in seconds.items()))
     print(f"total {sum(seconds.values()):.1f} s")
     print(f"normal map:      {recon / 'normal.png'}")
     print(f"calibration:     {run / 'calibration.png'}")
+    print(f"depth picture:   {recon / 'depth.png'}")
+    print(f"mesh:            {recon / 'mesh.ply'}")
     if not args.no_near:
         _near_variant(args.near_rig, args.out / "near")
 

@@ -1,10 +1,11 @@
-"""Angular-error metrics for surface normals (shared by every ps-lab module)."""
+"""Error metrics: angular errors of normals, depth errors up to offsets (shared by ps-lab)."""
 
 from __future__ import annotations
 
 import numpy as np
+import scipy.ndimage as ndi
 
-__all__ = ["angular_errors_deg", "error_summary"]
+__all__ = ["angular_errors_deg", "depth_error", "error_summary"]
 
 
 def angular_errors_deg(normals: np.ndarray, reference: np.ndarray) -> np.ndarray:
@@ -58,4 +59,38 @@ def error_summary(errors_deg: np.ndarray) -> dict:
         "median": float(np.median(e)),
         "p90": float(np.percentile(e, 90)),
         "max": float(e.max()),
+    }
+
+
+def depth_error(depth: np.ndarray, truth: np.ndarray) -> dict[str, float]:
+    """RMS difference between two depth maps, each 4-connected component up to its offset.
+
+    Integrated depth is known only up to one offset per component
+    (:mod:`ps_lab.reconstruct.integrate`), so each component of the pixels where both are finite is compared after removing its mean
+    difference.
+
+    Parameters
+    ----------
+    depth, truth : ndarray of shape (H, W)
+        Depth maps in the same unit, NaN where there is none.
+
+    Returns
+    -------
+    dict
+        ``rmse`` (same unit), ``range`` (of ``truth`` over the compared pixels), ``relative``
+        (``rmse / range``) and ``pixels``.
+    """
+    both = np.isfinite(depth) & np.isfinite(truth)
+    labels, count = ndi.label(both)
+    difference = (np.asarray(depth, np.float64) - truth)[both]
+    component = labels[both]
+    offsets = ndi.mean(difference, component, np.arange(1, count + 1))
+    residual = difference - np.concatenate([[0.0], np.atleast_1d(offsets)])[component]
+    rmse = float(np.sqrt(np.mean(residual**2))) if residual.size else float("nan")
+    spread = float(np.ptp(truth[both])) if residual.size else float("nan")
+    return {
+        "rmse": rmse,
+        "range": spread,
+        "relative": rmse / spread if spread > 0 else float("nan"),
+        "pixels": int(both.sum()),
     }

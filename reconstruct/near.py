@@ -23,8 +23,7 @@ from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 
 import numpy as np
-from scipy import ndimage, sparse
-from scipy.sparse.linalg import spsolve
+from scipy import ndimage
 
 from ps_lab.geometry import near_light_vectors, scene_points
 
@@ -43,11 +42,7 @@ from ._solve import (
     pixel_scale,
     residual_noise,
 )
-
-try:  # the depth integration of issue 14, when it has landed
-    from .integrate import integrate as _integrate
-except ImportError:  # pragma: no cover - depends on the branch
-    _integrate = None
+from .integrate import integrate
 
 __all__ = [
     "DEPTH_TOLERANCE_PX",
@@ -69,9 +64,6 @@ _KERNELS = {
     "l1": _near_kernels.l1_tile_pp,
     "sbl": _near_kernels.sbl_tile_pp,
 }
-# The integrator's guard for grazing normals: slopes are clipped where n_z is below this.
-_MIN_NZ = 0.1
-_MAX_SLOPE = 10.0
 # At most this many parabola steps of the depth-offset search.
 _OFFSET_STEPS = 8
 
@@ -257,54 +249,14 @@ def solve_near(
 # --- depth -----------------------------------------------------------------------------------
 
 
-def _integrate_poisson(normals, mask, method="poisson", focal_length=None):
-    """Least-squares depth (H, W) from normals inside ``mask`` (mean 0, pixel units).
+def _height_poisson(normals, mask, method="poisson", focal_length=None):
+    """Height toward the camera (H, W) from normals inside ``mask``, pixel units, 0 outside.
 
-    A minimal stand-in with the signature of the depth integration of issue 14
-    (``reconstruct/integrate.py``): forward differences between mask neighbours, slopes
-    ``-n_x/n_z`` (x right) and ``-n_y/n_z`` (y up) averaged over each pair, clipped where the
-    normal grazes; orthographic only.
+    :func:`ps_lab.reconstruct.integrate.integrate` (least squares, orthographic) returns depth
+    away from the camera; the near-light rounds work with heights above the spheres' plane.
     """
-    if method != "poisson" or focal_length is not None:
-        raise SolverInputError("the built-in integration is orthographic Poisson only")
-    h, w = mask.shape
-    nz = np.maximum(normals[..., 2], _MIN_NZ)
-    gx = np.clip(-normals[..., 0] / nz, -_MAX_SLOPE, _MAX_SLOPE)
-    gy = np.clip(-normals[..., 1] / nz, -_MAX_SLOPE, _MAX_SLOPE)
-    index = -np.ones((h, w), np.int64)
-    count = int(mask.sum())
-    index[mask] = np.arange(count)
-    rows, cols, values, rhs = [], [], [], []
-    equations = 0
-    # z(r, c+1) - z(r, c) = mean slope in x; rows run down, y up: z(r+1, c) - z(r, c) = -slope_y
-    for first, second, slope, sign in (
-        (np.s_[:, :-1], np.s_[:, 1:], gx, 1.0),
-        (np.s_[:-1, :], np.s_[1:, :], gy, -1.0),
-    ):
-        both = mask[first] & mask[second]
-        a, b = index[first][both], index[second][both]
-        eq = equations + np.arange(a.size)
-        rows += [eq, eq]
-        cols += [b, a]
-        values += [np.ones(a.size), -np.ones(a.size)]
-        rhs.append(sign * 0.5 * (slope[first][both] + slope[second][both]))
-        equations += a.size
-    system = sparse.csr_matrix(
-        (np.concatenate(values), (np.concatenate(rows), np.concatenate(cols))),
-        shape=(equations, count),
-    )
-    b = np.concatenate(rhs)
-    # a tiny ridge fixes the constant (and isolated pixels); the mean is removed after
-    normal = (system.T @ system + 1e-8 * sparse.identity(count)).tocsc()
-    z = spsolve(normal, system.T @ b)
-    depth = np.zeros((h, w))
-    depth[mask] = z - z.mean()
-    return depth
-
-
-def _integrator() -> Callable:
-    """The depth integration of ``reconstruct/integrate.py`` when present, else the stand-in."""
-    return _integrate_poisson if _integrate is None else _integrate
+    depth = integrate(normals, mask, method=method, focal_length=focal_length).depth
+    return np.where(mask, -np.nan_to_num(depth.astype(float)), 0.0)
 
 
 def _inlier_residual(observations, use, vectors):
@@ -434,14 +386,14 @@ def near_light_rounds(
     max_rounds : int
         At most this many rounds.
     integrate : callable, optional
-        ``integrate(normals, mask, method="poisson", focal_length=None) -> depth``; default issue
-        14's integration when present, else a built-in least-squares Poisson solve.
+        ``integrate(normals, mask, method="poisson", focal_length=None) -> height (H, W)``
+        toward the camera; default :func:`ps_lab.reconstruct.integrate.integrate` (Poisson).
 
     Returns
     -------
     NearRounds
     """
-    integrate = integrate or _integrator()
+    integrate = integrate or _height_poisson
     rows, cols = np.nonzero(mask)
     outline = mask & ~ndimage.binary_erosion(mask)
     observations, valid, index = sample

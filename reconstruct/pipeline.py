@@ -60,6 +60,7 @@ from ps_lab.reconstruct._solve import (
     estimate_noise_model,
     light_noise_factors,
 )
+from ps_lab.reconstruct.depth import DepthOptions, write_depth, write_normal_maps
 from ps_lab.reconstruct.near import (
     NearLights,
     NearRounds,
@@ -203,6 +204,8 @@ class ReconstructOptions:
         scale); None keeps the method's default. ``lam``: SBL's noise variance, or R-PCA's
         sparse weight; ``sigma_x2``: SBL's prior variance of ``x``; ``max_iter`` and ``tol``:
         SBL, L1 and R-PCA. Each must be finite and positive, and apply to ``method``.
+    depth : {"poisson", "bilateral"} or None
+        Also integrate the normals into depth maps and a mesh (:mod:`ps_lab.reconstruct.depth`).
     """
 
     method: str = "sbl"
@@ -220,7 +223,11 @@ class ReconstructOptions:
     max_iter: int | None = None
     tol: float | None = None
 
+    depth: str | None = None
+
     def __post_init__(self) -> None:
+        if self.depth is not None:
+            DepthOptions(method=self.depth)  # validates the method
         _check_solver_options(self)
         if self.shadow_threshold is not None and not math.isfinite(self.shadow_threshold):
             raise OutputError(f"--shadow-threshold {self.shadow_threshold} is not a finite number")
@@ -398,6 +405,7 @@ def reconstruct_to_folder(
             metrics = _write_results(writer, stage, source, options, store, solved, timings)
             timings["write_seconds"] = time.perf_counter() - written
             metrics["timings"] = dict(timings)
+            _write_surface(stage, options, metrics)
             _write_metrics(stage, metrics)
     metrics["out"] = str(out)
     return ReconstructResult(out=out, metrics=metrics)
@@ -686,6 +694,21 @@ def _write_results(
         metrics["refinement"] = {"iterations": options.refine_lights, "history": solved.history}
     metrics["timings"] = dict(timings)
     return json_safe(metrics)
+
+
+def _write_surface(stage: Path, options: ReconstructOptions, metrics: dict) -> None:
+    """Stage 5: normal maps for other tools and, with ``options.depth``, depth and mesh."""
+    started = time.perf_counter()
+    normals = np.load(stage / "normals.npy")
+    try:
+        write_normal_maps(stage, normals, np.linalg.norm(normals, axis=-1) > 0.5)
+        if options.depth is not None:
+            albedo = np.load(stage / "albedo.npy")
+            depth = write_depth(stage, normals, albedo, DepthOptions(method=options.depth))
+            metrics["depth"] = json_safe(depth)
+    except OSError as exc:
+        raise OutputError(f"{stage}: cannot write results ({exc.strerror or exc})") from None
+    metrics["timings"]["surface_seconds"] = time.perf_counter() - started
 
 
 def _write_metrics(folder: Path, metrics: dict) -> None:

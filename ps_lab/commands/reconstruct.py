@@ -119,6 +119,13 @@ def reconstruct(
         typer.Option(help="Convergence tolerance (sbl, l1, rpca; docs/solvers.md) "
                      "[default: 1e-4, 1e-6, 1e-7].", show_default=False),
     ] = None,
+    depth: Annotated[
+        str | None,
+        typer.Option(
+            help="Also integrate depth and a mesh: poisson or bilateral (see ps-lab integrate).",
+            show_default=False,
+        ),
+    ] = None,
 ) -> None:
     """Estimate surface normals and albedo; write normals.npy, normal.png, albedo, metrics.json."""
     out = out if out is not None else dataset / "recon" / method.value
@@ -136,6 +143,7 @@ def reconstruct(
         sigma_x2=sigma_x2,
         max_iter=max_iter,
         tol=tol,
+        depth=depth,
     )
     metrics = reconstruct_to_folder(dataset, out, options, progress_bars=_terminal_bars).metrics
     typer.echo(
@@ -162,7 +170,17 @@ def reconstruct(
         if step.get("normal_error_deg") is not None:
             line += f", mean normal error {step['normal_error_deg']:.2f} deg"
         typer.echo(line)
+    if "depth" in metrics:
+        typer.echo(_depth_line(metrics["depth"]))
     typer.echo(f"results: {out}")
+
+
+def _depth_line(depth: dict) -> str:
+    """One line about an integration (shared with ``ps-lab integrate``)."""
+    return (
+        f"depth: {depth['method']}, {depth['pixels']} pixels in {depth['components']} "
+        f"component(s), {depth['seconds']:.2f} s, residual {depth['residual']:.2g}"
+    )
 
 
 def _terminal_bars(total: int, description: str):

@@ -66,8 +66,8 @@ def simulate(
 ) -> None:
     """Render a sphere or relief under random lights and write it as a dataset with ground truth.
 
-    Writes the images, filenames.txt, light_directions.txt, light_intensities.txt, mask.png and
-    normal_gt.npy.
+    Writes the images, filenames.txt, light_directions.txt, light_intensities.txt, mask.png,
+    normal_gt.npy and depth_gt.npy.
     """
     settings = SimulationSettings(
         scene=scene.value,

@@ -191,3 +191,68 @@ def _read_table(path: Path, widths: tuple[int, ...], *, allow_nan: bool = False)
     if not rows:
         raise DatasetError(f"{path}: file is empty")
     return np.asarray(rows, dtype=np.float64)
+
+
+def read_lp(path: Path) -> tuple[list[str], np.ndarray]:
+    """Read a RelightLab / RTIBuilder ``.lp`` light file.
+
+    The first line is the number of images, then one line ``filename x y z`` per image (the
+    direction toward the light, in the same frame as ``light_directions.txt``).
+
+    Returns
+    -------
+    names : list of str
+        The image file names as written (a path; compare by base name).
+    directions : ndarray of shape (n, 3), float64, unit rows
+    """
+    try:
+        lines = [line.strip() for line in path.read_text(encoding="utf-8").splitlines()]
+    except FileNotFoundError:
+        raise DatasetError(f"{path}: file not found") from None
+    except (OSError, UnicodeDecodeError) as exc:
+        raise DatasetError(f"{path}: cannot read file ({exc})") from None
+    lines = [line for line in lines if line and not line.startswith("#")]
+    try:
+        count = int(lines[0].split()[0])
+    except (IndexError, ValueError):
+        raise DatasetError(f"{path}: first line must be the number of images") from None
+    if len(lines) - 1 != count:
+        raise DatasetError(f"{path}: says {count} images but lists {len(lines) - 1}")
+    names: list[str] = []
+    rows = np.empty((count, 3))
+    for number, line in enumerate(lines[1:], start=2):
+        fields = line.rsplit(maxsplit=3)
+        try:
+            rows[number - 2] = [float(v) for v in fields[1:]]
+        except (ValueError, IndexError):
+            raise DatasetError(f"{path}: line {number}: expected 'filename x y z'") from None
+        if len(fields) != 4 or not np.all(np.isfinite(rows[number - 2])):
+            raise DatasetError(f"{path}: line {number}: expected 'filename x y z'")
+        names.append(fields[0])
+    norms = np.linalg.norm(rows, axis=1)
+    if np.any(norms < 1e-12):
+        raise DatasetError(f"{path}: a light direction has zero length")
+    return names, rows / norms[:, None]
+
+
+def write_lp(path: Path, names: list[str], directions: np.ndarray) -> None:
+    """Write a RelightLab / RTIBuilder ``.lp`` file: the count, then ``filename x y z`` lines."""
+    directions = np.atleast_2d(np.asarray(directions, dtype=np.float64))
+    if len(names) != len(directions):
+        raise ValueError(f"{len(names)} names for {len(directions)} directions")
+    lines = [str(len(names))]
+    lines += [f"{name} {x:.9f} {y:.9f} {z:.9f}" for name, (x, y, z) in zip(names, directions)]
+    path.write_text("\n".join(lines) + "\n", encoding="utf-8")
+
+
+def lp_directions_for(path: Path, image_names: list[str]) -> np.ndarray:
+    """Directions of an ``.lp`` file in the order of ``image_names`` (matched by base name)."""
+    names, directions = read_lp(path)
+    by_name = {Path(name.replace("\\", "/")).name: i for i, name in enumerate(names)}
+    order = []
+    for image in image_names:
+        key = Path(image).name
+        if key not in by_name:
+            raise DatasetError(f"{path}: no light for image {key}")
+        order.append(by_name[key])
+    return directions[order]

@@ -193,10 +193,13 @@ def scene_ground_truth(scene: Scene) -> dict:
     -------
     dict
         ``normals`` (H, W, 3) of the sphere/relief objects (zeros elsewhere), ``mask`` (H, W) bool
-        of those objects, ``chrome`` and ``matte``: lists of ``(cx, cy, r)`` circles.
+        of those objects, ``depth`` (H, W): their depth along the viewing axis away from the
+        camera (``-height``, in pixels; NaN elsewhere), ``chrome`` and ``matte``: lists of
+        ``(cx, cy, r)`` circles.
     """
     h, w = scene.height, scene.width
     normals = np.zeros((h, w, 3))
+    depth = np.full((h, w), np.nan)
     mask = np.zeros((h, w), dtype=bool)
     chrome: list[tuple[float, float, float]] = []
     matte: list[tuple[float, float, float]] = []
@@ -204,12 +207,14 @@ def scene_ground_truth(scene: Scene) -> dict:
         obj_mask = alpha > 0.5
         # A later object hides what is behind it.
         normals[obj_mask] = 0.0
+        depth[obj_mask] = np.nan
         mask &= ~obj_mask
         if obj.kind in ("sphere", "relief"):
             normals[obj_mask] = surface.normals[obj_mask]
+            depth[obj_mask] = -surface.height[obj_mask]
             mask |= obj_mask
         elif obj.kind == "chrome":
             chrome.append((float(obj.center[0]), float(obj.center[1]), float(obj.radius)))
         else:
             matte.append((float(obj.center[0]), float(obj.center[1]), float(obj.radius)))
-    return {"normals": normals, "mask": mask, "chrome": chrome, "matte": matte}
+    return {"normals": normals, "mask": mask, "depth": depth, "chrome": chrome, "matte": matte}

@@ -148,6 +148,9 @@ def write_simulated_dataset(
         np.savetxt(staging / "light_intensities.txt", np.ones((settings.lights, 3)), fmt="%.6f")
         cv2.imwrite(str(staging / "mask.png"), surface.mask.astype(np.uint8) * 255)
         np.save(staging / "normal_gt.npy", surface.normals.astype(np.float32))
+        # Depth along the viewing axis, away from the camera, in pixels (docs/datasets.md).
+        depth = np.where(surface.mask, -surface.height, np.nan).astype(np.float32)
+        np.save(staging / "depth_gt.npy", depth)
         meta = {
             "format": "ps-lab-simulation",
             "version": 1,

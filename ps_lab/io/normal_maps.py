@@ -1,0 +1,64 @@
+"""Normal maps other tools read: 16-bit PNG and float32 OpenEXR.
+
+Both hold the normals in the camera frame x right, y up, z toward the camera (the convention of
+OpenGL normal maps): ``normal16.png`` as RGB = (n + 1) / 2 scaled to 0..65535 (the same mapping as
+the 8-bit ``normal.png``), ``normals.exr`` as float32 channels R, G, B = x, y, z (zeros where there
+is no normal).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import cv2
+import numpy as np
+import OpenEXR
+
+from ps_lab.errors import OutputError
+
+__all__ = ["normal16_picture", "read_normals_exr", "write_normal16", "write_normals_exr"]
+
+
+def normal16_picture(normals: np.ndarray, mask: np.ndarray) -> np.ndarray:
+    """Colour-code normals as 16-bit RGB = (n + 1) / 2 · 65535, black outside the mask.
+
+    Parameters
+    ----------
+    normals : ndarray of shape (H, W, 3)
+    mask : ndarray of shape (H, W), bool
+
+    Returns
+    -------
+    ndarray of shape (H, W, 3), uint16, RGB
+    """
+    picture = np.clip(np.rint((np.asarray(normals) + 1.0) * 0.5 * 65535.0), 0, 65535)
+    picture = picture.astype(np.uint16)
+    picture[~np.asarray(mask, bool)] = 0
+    return picture
+
+
+def write_normal16(path: Path, normals: np.ndarray, mask: np.ndarray) -> None:
+    """Write ``normal16.png`` (see :func:`normal16_picture`)."""
+    picture = normal16_picture(normals, mask)
+    if not cv2.imwrite(str(path), np.ascontiguousarray(picture[..., ::-1])):
+        raise OutputError(f"{path}: OpenCV could not write the PNG")
+
+
+def write_normals_exr(path: Path, normals: np.ndarray) -> None:
+    """Write float32 normals (H, W, 3) as an OpenEXR file with channels R, G, B = x, y, z."""
+    pixels = np.ascontiguousarray(np.nan_to_num(np.asarray(normals, np.float32)))
+    header = {"type": OpenEXR.scanlineimage, "compression": OpenEXR.ZIP_COMPRESSION}
+    try:
+        with OpenEXR.File(header, {"RGB": pixels}) as exr:
+            exr.write(str(path))
+    except (OSError, RuntimeError) as exc:
+        raise OutputError(f"{path}: cannot write the OpenEXR file ({exc})") from None
+
+
+def read_normals_exr(path: Path) -> np.ndarray:
+    """Read an OpenEXR normal map written by :func:`write_normals_exr`: (H, W, 3) float32."""
+    with OpenEXR.File(str(path)) as exr:
+        channels = exr.channels()
+        if "RGB" in channels:
+            return np.asarray(channels["RGB"].pixels, np.float32)
+        return np.stack([channels[c].pixels for c in "RGB"], axis=-1).astype(np.float32)

@@ -1,0 +1,194 @@
+"""The depth stage: integrate a result's normals and write depth maps, a picture and a mesh.
+
+Used at the end of ``ps-lab reconstruct --depth METHOD`` (on the staged result folder) and by
+``ps-lab integrate RESULT`` (on a finished result folder). Files (``docs/datasets.md``):
+``depth.npy`` and ``depth.tiff`` (float32, NaN outside the integrated pixels; pixels, or mm with a
+pixel size), ``depth.png`` (a shaded relief), ``mesh.ply`` (binary PLY, albedo-coloured vertices);
+and the normal maps for other tools written by every reconstruction: ``normal16.png`` and
+``normals.exr``. Metrics go under ``"depth"`` in ``metrics.json``.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+import tifffile
+
+from ps_lab.errors import OutputError
+from ps_lab.io.files import json_safe, staged_files, write_json_atomic
+from ps_lab.io.mesh import depth_mesh, write_ply
+from ps_lab.io.normal_maps import write_normal16, write_normals_exr
+from ps_lab.reconstruct.integrate import INTEGRATION_METHODS, IntegrationInputError, integrate
+
+__all__ = ["DepthOptions", "depth_picture", "integrate_result", "write_depth", "write_normal_maps"]
+
+# Direction toward the light of the shaded relief: from the upper left, as maps are shaded.
+_RELIEF_LIGHT = np.array([-1.0, 1.0, 1.5]) / np.linalg.norm([-1.0, 1.0, 1.5])
+
+
+@dataclass(frozen=True)
+class DepthOptions:
+    """How to integrate a result's normals.
+
+    Attributes
+    ----------
+    method : {"poisson", "bilateral"}
+        See :func:`ps_lab.reconstruct.integrate.integrate`.
+    pixel_size : float or None
+        Width of a pixel on the object in mm: depth and mesh in mm (default: in pixels).
+    focal_length : float or None
+        Perspective camera, focal length in pixels (default orthographic).
+    """
+
+    method: str = "poisson"
+    pixel_size: float | None = None
+    focal_length: float | None = None
+
+    def __post_init__(self) -> None:
+        if self.method not in INTEGRATION_METHODS:
+            raise IntegrationInputError(
+                f"unknown depth method {self.method!r}; choose {' or '.join(INTEGRATION_METHODS)}"
+            )
+        if self.pixel_size is not None and not self.pixel_size > 0:
+            raise IntegrationInputError(f"pixel size must be positive, got {self.pixel_size}")
+        if self.focal_length is not None and not self.focal_length > 0:
+            raise IntegrationInputError(f"focal length must be positive, got {self.focal_length}")
+
+
+def depth_picture(depth: np.ndarray) -> np.ndarray:
+    """Shaded relief of a depth map in pixel units: grey 8-bit, black where there is no depth.
+
+    Parameters
+    ----------
+    depth : ndarray of shape (H, W)
+        Depth away from the camera, in pixels; NaN where there is none.
+
+    Returns
+    -------
+    ndarray of shape (H, W), uint8
+    """
+    valid = np.isfinite(depth)
+    filled = np.where(valid, depth, np.nanmedian(depth) if valid.any() else 0.0)
+    d_row, d_col = np.gradient(filled)
+    # Normal of z = -depth in the camera frame (y up): (d depth/d col, -d depth/d row, 1).
+    normals = np.stack([d_col, -d_row, np.ones_like(d_col)], axis=-1)
+    normals /= np.linalg.norm(normals, axis=-1, keepdims=True)
+    shade = 0.15 + 0.85 * np.clip(normals @ _RELIEF_LIGHT, 0.0, 1.0)
+    picture = np.rint(shade * 255.0).astype(np.uint8)
+    picture[~valid] = 0
+    return picture
+
+
+def write_normal_maps(folder: Path, normals: np.ndarray, mask: np.ndarray) -> None:
+    """Write ``normal16.png`` and ``normals.exr`` (``ps_lab.io.normal_maps``) into ``folder``."""
+    write_normal16(folder / "normal16.png", normals, mask)
+    write_normals_exr(folder / "normals.exr", normals)
+
+
+def write_depth(
+    folder: Path, normals: np.ndarray, albedo: np.ndarray | None, options: DepthOptions
+) -> dict[str, Any]:
+    """Integrate ``normals`` and write the depth files into ``folder``; return the metrics.
+
+    Parameters
+    ----------
+    folder : Path
+        Where ``depth.npy``, ``depth.tiff``, ``depth.png`` and ``mesh.ply`` are written.
+    normals : ndarray of shape (H, W, 3)
+        Unit normals, zeros where there is none.
+    albedo : ndarray of shape (H, W) or (H, W, 3), optional
+        Vertex colours of the mesh (scaled so that its 99th percentile is white).
+    options : DepthOptions
+
+    Returns
+    -------
+    dict
+        ``method``, ``camera``, ``seconds``, ``iterations``, ``solver_iterations``, ``residual``,
+        ``components``, ``discontinuities``, ``converged``, ``pixels``, ``unit``, ``offset``.
+    """
+    started = time.perf_counter()
+    result = integrate(normals, None, options.method, focal_length=options.focal_length)
+    seconds = time.perf_counter() - started
+    scale = options.pixel_size if options.pixel_size is not None else 1.0
+    depth = (result.depth * np.float32(scale)).astype(np.float32)
+    np.save(folder / "depth.npy", depth)
+    tifffile.imwrite(folder / "depth.tiff", depth)
+    if not cv2.imwrite(str(folder / "depth.png"), depth_picture(result.depth)):
+        raise OutputError(f"{folder / 'depth.png'}: OpenCV could not write the PNG")
+    colours = None
+    if albedo is not None:
+        top = np.nanpercentile(albedo[np.isfinite(result.depth)], 99) if result.pixels else 0
+        colours = np.clip(np.nan_to_num(albedo) / top, 0, 1) if top > 0 else None
+    vertices, vertex_colours, triangles = depth_mesh(
+        depth, colours, pixel_size=scale, focal_length=options.focal_length
+    )
+    write_ply(folder / "mesh.ply", vertices, vertex_colours, triangles)
+    gauge = (
+        "unknown: each component's median depth is set to 0"
+        if options.focal_length is None
+        else "unknown scale: each component's median depth is set to the focal length"
+    )
+    return {
+        "method": result.method,
+        "camera": result.camera,
+        "seconds": seconds,
+        "iterations": result.iterations,
+        "solver_iterations": result.solver_iterations,
+        "residual": result.residual,
+        "components": result.components,
+        "offset": gauge,
+        "discontinuities": result.discontinuities,
+        "converged": result.converged,
+        "pixels": result.pixels,
+        "unit": "mm" if options.pixel_size is not None else "pixel",
+        "mesh": {"vertices": len(vertices), "triangles": len(triangles)},
+        "options": asdict(options),
+    }
+
+
+def integrate_result(result: Path, out: Path | None, options: DepthOptions) -> dict[str, Any]:
+    """``ps-lab integrate``: depth files for a reconstruct result folder.
+
+    Parameters
+    ----------
+    result : Path
+        A ``ps-lab reconstruct`` output folder (``normals.npy``, optional ``albedo.npy``).
+    out : Path or None
+        Where to write (default: ``result`` itself). The files appear together when complete; a
+        ``metrics.json`` there gains (or replaces) its ``"depth"`` entry.
+    options : DepthOptions
+
+    Returns
+    -------
+    dict
+        The depth metrics (see :func:`write_depth`).
+    """
+    result = Path(result)
+    normals_file = result / "normals.npy"
+    if not normals_file.is_file():
+        raise IntegrationInputError(f"{result}: no normals.npy (not a ps-lab reconstruct result)")
+    try:
+        normals = np.load(normals_file)
+        albedo_file = result / "albedo.npy"
+        albedo = np.load(albedo_file) if albedo_file.is_file() else None
+    except (OSError, ValueError) as exc:
+        raise IntegrationInputError(f"{normals_file}: cannot read ({exc})") from None
+    if normals.ndim != 3 or normals.shape[2] != 3:
+        raise IntegrationInputError(f"{normals_file}: expected H x W x 3, got {normals.shape}")
+    out = result if out is None else Path(out)
+    try:
+        with staged_files(out, prefix=".integrate-") as staging:
+            metrics = json_safe(write_depth(staging, normals, albedo, options))
+        metrics_file = out / "metrics.json"
+        record = json.loads(metrics_file.read_text("utf-8")) if metrics_file.is_file() else {}
+        record["depth"] = metrics
+        write_json_atomic(metrics_file, record)
+    except OSError as exc:
+        raise OutputError(f"{out}: cannot write depth outputs ({exc.strerror or exc})") from None
+    return metrics

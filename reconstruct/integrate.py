@@ -1,0 +1,467 @@
+"""Normal integration: depth maps from normal maps, least-squares or discontinuity-preserving.
+
+Both methods fit depth differences between 4-neighbouring pixels ``p, q`` to the differences the
+normals predict, over the pixels of the mask that carry a normal, with no condition at the mask's
+outline (natural boundary conditions):
+
+    E(g) = sum over neighbour pairs e = (p, q) of c_e (g_q - g_p - t_e)^2,
+
+``t_e`` the trapezoid rule (mean of the two pixels' gradients, second order on smooth surfaces).
+The normal equations are a weighted graph Laplacian ``L g = b``, solved by conjugate gradients
+preconditioned with an algebraic-multigrid V-cycle (pyamg, classical Ruge-Stuben). Each 4-connected
+component of the pixels is integrated on its own; its offset (orthographic) or scale (perspective)
+cannot be known from normals and is fixed by convention (:class:`Integration`).
+
+Camera frame (the frame of the normals): x right, y up, z toward the camera; the row index grows
+downward. ``depth`` is the distance along the viewing axis, away from the camera (``z = -depth``).
+
+Orthographic camera (one pixel = one length unit), ``g = depth``:
+
+    d depth / d col = n_x / n_z,        d depth / d row = -n_y / n_z.
+
+Perspective camera (focal length ``f`` in pixels, principal point ``(c_x, c_y)``),
+``g = log depth``, with ``u = col - c_x``, ``v = row - c_y`` and ``m = f n_z - u n_x + v n_y`` (``f`` times the cosine
+between the normal and the line of sight, > 0 on every visible surface):
+
+    d log depth / d col = n_x / m,      d log depth / d row = -n_y / m,
+
+from the surface point ``P = depth / f (u, -v, -f)`` and ``n . dP = 0`` along both pixel axes.
+
+``poisson``: ``c_e = 1``, the classical least-squares integration (Quéau, Durou & Aujol 2018).
+
+``bilateral``: discontinuity-preserving. Each pair is weighted by a Gaussian range kernel of its own
+misfit, ``c_e = exp(-(r_e / sigma)^2)`` with ``r_e = g_q - g_p - t_e`` (in pixels of depth per
+pixel), re-estimated from the previous solution until the weights settle (iteratively reweighted
+least squares for Welsch's M-estimator; Durou, Aujol & Courteille 2009). Where the normals cannot be
+integrated across a pair of pixels -- a depth step at an occluding edge -- the pair's misfit is
+large, its weight vanishes and the step stays between those two pixels instead of being spread over
+the surface as ``poisson`` spreads it; on smooth surfaces every weight stays 1 and the result is
+``poisson``'s. The range kernel plays the part of the bilateral weights of Bilateral Normal
+Integration (Cao et al. 2022); BiNI's own rule (per-pixel weights from one-sided depth differences)
+was implemented and measured first and did not keep a step whose height the normals determine, see
+``docs/results.md``.
+
+References
+----------
+.. [1] Y. Quéau, J.-D. Durou, J.-F. Aujol, "Normal Integration: A Survey", JMIV 60, 2018.
+.. [2] J.-D. Durou, J.-F. Aujol, F. Courteille, "Integrating the Normal Field of a Surface in the
+   Presence of Discontinuities", EMMCVPR 2009.
+.. [3] X. Cao, H. Santo, B. Shi, F. Okura, Y. Matsushita, "Bilateral Normal Integration",
+   ECCV 2022.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import pyamg
+import scipy.ndimage as ndi
+import scipy.sparse as sp
+
+from ps_lab.errors import DatasetError
+
+__all__ = [
+    "INTEGRATION_METHODS",
+    "Integration",
+    "IntegrationInputError",
+    "integrate",
+    "valid_normals",
+]
+
+INTEGRATION_METHODS = ("poisson", "bilateral")
+
+# Normals at grazing angles (cosine to the line of sight below this) are treated as missing: their
+# gradients are unbounded and a single such pixel would dominate its neighbourhood.
+_MIN_COSINE = 1e-3
+# Smallest weight of a pair of pixels: keeps the system definite when steps cut a region off.
+_MIN_WEIGHT = 1e-6
+# Bilateral reweighting stops when at most this share of the pixel pairs changed weight by more
+# than the tolerance.
+_MOVING_SHARE = 3e-5
+
+
+class IntegrationInputError(DatasetError, ValueError):
+    """Normals, mask or camera parameters that cannot be integrated.
+
+    A :class:`~ps_lab.errors.DatasetError` (the CLI prints one line) and a ``ValueError`` (for
+    library callers).
+    """
+
+
+@dataclass(frozen=True)
+class Integration:
+    """Depth integrated from a normal map.
+
+    Attributes
+    ----------
+    depth : ndarray of shape (H, W), float32
+        Distance along the viewing axis (away from the camera), NaN where nothing was integrated.
+        Orthographic: in pixels, each component's median set to 0. Perspective: each component
+        scaled so that its median depth equals the focal length, which makes a pixel one unit wide
+        at that depth, as in the orthographic case.
+    method : str
+        ``'poisson'`` or ``'bilateral'``.
+    camera : str
+        ``'orthographic'`` or ``'perspective'``.
+    components : int
+        4-connected components integrated separately, each with its own unknown offset (or scale).
+    pixels : int
+        Pixels integrated.
+    iterations : int
+        Reweighting iterations (1 for ``poisson``).
+    solver_iterations : int
+        Conjugate-gradient iterations over all linear solves.
+    residual : float
+        Root-mean-square misfit ``r_e`` over the pairs of neighbours, weighted by ``c_e``: in pixels
+        per pixel (orthographic) or log-depth per pixel (perspective); 0 for an integrable field.
+    discontinuities : int
+        Pairs of neighbours whose weight fell below 1/2 (``bilateral``; 0 for ``poisson``): the
+        pixel boundaries that carry a depth step.
+    converged : bool
+        Whether every linear solve and, for ``bilateral``, the reweighting reached its tolerance.
+    """
+
+    depth: np.ndarray
+    method: str
+    camera: str
+    components: int
+    pixels: int
+    iterations: int
+    solver_iterations: int
+    residual: float
+    discontinuities: int
+    converged: bool
+
+
+def valid_normals(normals: np.ndarray, mask: np.ndarray | None = None) -> np.ndarray:
+    """Pixels that carry a usable normal.
+
+    Parameters
+    ----------
+    normals : ndarray of shape (H, W, 3)
+        Normals (any length) in the camera frame: x right, y up, z toward the camera.
+    mask : ndarray of shape (H, W), optional
+        Pixels to consider (non-zero); default all.
+
+    Returns
+    -------
+    ndarray of shape (H, W), bool
+        Inside ``mask``, finite, non-zero and facing the camera (``n_z > 0.001 |n|``; a
+        perspective camera applies its own test in :func:`integrate`).
+    """
+    normals = np.asarray(normals)
+    finite = np.all(np.isfinite(normals), axis=-1)
+    clean = np.where(finite[..., None], normals, 0)
+    length = np.sqrt(np.einsum("...i,...i->...", clean, clean, dtype=np.float64))
+    valid = finite & (length > 0)
+    if mask is not None:
+        valid &= np.asarray(mask) != 0
+    return valid & (clean[..., 2] > _MIN_COSINE * length)
+
+
+def integrate(
+    normals: np.ndarray,
+    mask: np.ndarray | None = None,
+    method: str = "poisson",
+    *,
+    focal_length: float | None = None,
+    principal_point: tuple[float, float] | None = None,
+    sigma: float = 0.25,
+    max_iterations: int = 30,
+    tolerance: float = 0.01,
+    solver_tolerance: float | None = None,
+) -> Integration:
+    """Integrate a normal map into a depth map.
+
+    Parameters
+    ----------
+    normals : ndarray of shape (H, W, 3)
+        Surface normals in the camera frame (x right, y up, z toward the camera; the row index
+        grows downward), any length. Zero or non-finite normals are skipped.
+    mask : ndarray of shape (H, W), optional
+        Pixels to integrate (non-zero); default every pixel with a normal.
+    method : {'poisson', 'bilateral'}
+        Least squares, or discontinuity-preserving (module docstring).
+    focal_length : float, optional
+        Focal length in pixels: perspective camera. Default orthographic (one pixel = one unit).
+    principal_point : (x, y), optional
+        Principal point in pixels (column, row), origin at the centre of the top-left pixel;
+        default the image centre ``((W - 1) / 2, (H - 1) / 2)``. Perspective only.
+    sigma : float
+        ``bilateral``: width of the range kernel, in pixels of depth per pixel: a pair whose depth
+        difference disagrees with the normals by much more than this is treated as a step.
+    max_iterations : int
+        ``bilateral``: most reweighting iterations.
+    tolerance : float
+        ``bilateral``: stop when at most 0.003 % of the pixel pairs change weight by more than this.
+    solver_tolerance : float, optional
+        Relative residual of each linear solve; default 1e-8 (``poisson``) or 1e-6 (each
+        warm-started solve of ``bilateral``).
+
+    Returns
+    -------
+    Integration
+        The depth map and how it was obtained.
+
+    Raises
+    ------
+    IntegrationInputError
+        Wrong shapes, an unknown method, bad camera or solver parameters.
+    """
+    normals = np.asarray(normals)
+    if normals.ndim != 3 or normals.shape[2] != 3:
+        raise IntegrationInputError(f"normals must be (H, W, 3), got {normals.shape}")
+    shape = normals.shape[:2]
+    if mask is not None and np.shape(mask) != shape:
+        raise IntegrationInputError(f"mask must be {shape}, got {np.shape(mask)}")
+    if method not in INTEGRATION_METHODS:
+        raise IntegrationInputError(
+            f"unknown integration method {method!r}; expected one of {INTEGRATION_METHODS}"
+        )
+    if focal_length is not None and not (np.isfinite(focal_length) and focal_length > 0):
+        raise IntegrationInputError(f"focal length must be positive, got {focal_length}")
+    if principal_point is not None and focal_length is None:
+        raise IntegrationInputError("a principal point needs a focal length (perspective camera)")
+    if solver_tolerance is None:
+        solver_tolerance = 1e-8 if method == "poisson" else 1e-6
+    if not (sigma > 0 and max_iterations >= 1 and tolerance > 0 and solver_tolerance > 0):
+        raise IntegrationInputError(
+            "need sigma > 0, max_iterations >= 1, tolerance > 0 and solver_tolerance > 0"
+        )
+
+    valid = valid_normals(normals, mask)
+    if not valid.any():
+        raise IntegrationInputError("no pixel of the mask carries a normal facing the camera")
+    n = normals[valid].astype(np.float64)
+    n /= np.linalg.norm(n, axis=1, keepdims=True)
+    if focal_length is not None:
+        h, w = shape
+        cx, cy = principal_point if principal_point is not None else ((w - 1) / 2, (h - 1) / 2)
+        rows, cols = np.nonzero(valid)
+        u = cols - cx
+        v = rows - cy
+        del rows, cols
+        m = focal_length * n[:, 2] - u * n[:, 0] + v * n[:, 1]
+        facing = m > _MIN_COSINE * np.sqrt(focal_length**2 + u * u + v * v)
+        del u, v
+        if not facing.all():
+            valid[valid] = facing
+            n, m = n[facing], m[facing]
+    else:
+        m = n[:, 2]
+    gradient_col = n[:, 0] / m
+    gradient_row = -n[:, 1] / m
+    del n, m
+
+    graph = _Graph(valid)
+    t = graph.trapezoid_targets(gradient_col, gradient_row)
+    del gradient_col, gradient_row
+    if method == "poisson":
+        g, info = _least_squares(graph, t, solver_tolerance)
+    else:
+        # Misfits in pixels of depth: log-depth misfits times the normalised depth (focal length).
+        unit = 1.0 if focal_length is None else float(focal_length)
+        g, info = _reweighted(
+            graph, t, sigma / unit, max_iterations, tolerance, solver_tolerance
+        )
+    depth = np.full(shape, np.nan, dtype=np.float32)
+    depth[valid] = _fix_gauge(g, graph, focal_length)
+    return Integration(
+        depth=depth,
+        method=method,
+        camera="orthographic" if focal_length is None else "perspective",
+        components=graph.components,
+        pixels=graph.size,
+        **info,
+    )
+
+
+class _Graph:
+    """The valid pixels (nodes, raster order) and their pairs of 4-neighbours (edges).
+
+    Edges come first all horizontal ones (pixel to its right neighbour), then all vertical ones
+    (pixel to the one below), each in raster order; ``tail`` and ``head`` are their node indices.
+    Also holds the CSR pattern of the graph Laplacian, so that a new set of edge weights costs only
+    a gather.
+    """
+
+    def __init__(self, valid: np.ndarray) -> None:
+        h, w = valid.shape
+        self.valid = valid
+        self.size = int(np.count_nonzero(valid))
+        index = np.full(valid.shape, -1, dtype=np.int32)
+        index[valid] = np.arange(self.size, dtype=np.int32)
+        right = valid[:, :-1] & valid[:, 1:]
+        down = valid[:-1, :] & valid[1:, :]
+        self.tail = np.concatenate([index[:, :-1][right], index[:-1, :][down]])
+        self.head = np.concatenate([index[:, 1:][right], index[1:, :][down]])
+        self.horizontal = int(np.count_nonzero(right))
+        labels, self.components = ndi.label(valid)
+        self.labels = labels[valid]
+        del labels
+        # CSR pattern: row i holds, in column order, its up, left, diagonal, right, down entries.
+        # up/left entries of row i are edges where i is the head; right/down where it is the tail.
+        up = np.zeros(valid.shape, bool)
+        up[1:] = down
+        left = np.zeros(valid.shape, bool)
+        left[:, 1:] = right
+        has_right = np.zeros(valid.shape, bool)
+        has_right[:, :-1] = right
+        has_down = np.zeros(valid.shape, bool)
+        has_down[:-1] = down
+        slots = [up[valid], left[valid], None, has_right[valid], has_down[valid]]
+        del up, left, has_right, has_down, index
+        counts = np.ones(self.size, dtype=np.int64)
+        for present in slots:
+            if present is not None:
+                counts += present
+        nnz = int(counts.sum())
+        # One index type for indptr and indices: scipy would otherwise copy both to int64.
+        position_type = np.int32 if nnz < 2**31 else np.int64
+        self.indptr = np.zeros(self.size + 1, dtype=position_type)
+        np.cumsum(counts, out=self.indptr[1:])
+        del counts
+        offset = self.indptr[:-1].astype(position_type)  # next free slot of each row
+        self.indices = np.empty(nnz, dtype=position_type)
+        edge_count = self.tail.size
+        vertical = np.arange(self.horizontal, edge_count)
+        horizontal = np.arange(self.horizontal)
+        # Edges sorted by head: their raster order is the order of the up/left slots (per row).
+        # Position of each edge's entry in the head row and in the tail row.
+        self.at_head = np.empty(edge_count, dtype=position_type)
+        self.at_tail = np.empty(edge_count, dtype=position_type)
+        # Slot order per row: up (vertical edge with head = row), left (horizontal, head = row),
+        # diagonal, right (horizontal, tail = row), down (vertical, tail = row).
+        for kind, edges, end in (
+            ("up", vertical, "head"),
+            ("left", horizontal, "head"),
+            ("diag", None, None),
+            ("right", horizontal, "tail"),
+            ("down", vertical, "tail"),
+        ):
+            if kind == "diag":
+                self.at_diagonal = offset.copy()
+                self.indices[offset] = np.arange(self.size, dtype=np.int32)
+                offset += 1
+                continue
+            rows = (self.head if end == "head" else self.tail)[edges]
+            other = (self.tail if end == "head" else self.head)[edges]
+            where = offset[rows]
+            self.indices[where] = other
+            (self.at_head if end == "head" else self.at_tail)[edges] = where
+            offset[rows] += 1
+        del offset
+        # One node per component is pinned (a soft anchor) so that L is definite.
+        first = ndi.minimum(
+            np.arange(self.size), self.labels, np.arange(1, self.components + 1)
+        )
+        self.pinned = np.asarray(first, dtype=np.int64).reshape(-1)
+
+    def trapezoid_targets(self, gradient_col: np.ndarray, gradient_row: np.ndarray) -> np.ndarray:
+        """Predicted ``g_head - g_tail`` of every edge: the mean of its two ends' gradients."""
+        k = self.horizontal
+        t = np.empty(self.tail.size)
+        t[:k] = 0.5 * (gradient_col[self.tail[:k]] + gradient_col[self.head[:k]])
+        t[k:] = 0.5 * (gradient_row[self.tail[k:]] + gradient_row[self.head[k:]])
+        return t
+
+    def laplacian(self, weights: np.ndarray) -> sp.csr_matrix:
+        """Weighted graph Laplacian ``sum_e c_e (e_head - e_tail)(e_head - e_tail)^T`` + anchors."""
+        data = np.empty(self.indices.size)
+        data[self.at_head] = -weights
+        data[self.at_tail] = -weights
+        diagonal = np.bincount(self.tail, weights, self.size)
+        diagonal += np.bincount(self.head, weights, self.size)
+        anchor = float(np.mean(diagonal)) if self.size else 1.0
+        diagonal[self.pinned] += anchor if anchor > 0 else 1.0
+        data[self.at_diagonal] = diagonal
+        return sp.csr_matrix((data, self.indices, self.indptr), shape=(self.size, self.size))
+
+    def divergence(self, flow: np.ndarray) -> np.ndarray:
+        """``D^T flow``: flow into each node minus flow out of it."""
+        return np.bincount(self.head, flow, self.size) - np.bincount(self.tail, flow, self.size)
+
+    def differences(self, g: np.ndarray) -> np.ndarray:
+        """``g_head - g_tail`` for every edge."""
+        return g[self.head] - g[self.tail]
+
+
+def _solve(matrix, rhs, x0, tolerance, hierarchy=None):
+    """Conjugate gradients preconditioned with a classical AMG V-cycle."""
+    if hierarchy is None:
+        # Classical (Ruge-Stuben) AMG: half the CPU time and less memory than smoothed
+        # aggregation on these Laplacians; direct interpolation a quarter less time and a tenth
+        # less peak memory than classical (measured, docs/results.md "Normal integration").
+        hierarchy = pyamg.ruge_stuben_solver(matrix, max_coarse=500, interpolation="direct")
+    residuals: list[float] = []
+    x = hierarchy.solve(
+        rhs, x0=x0, tol=tolerance, maxiter=1000, accel="cg", residuals=residuals
+    )
+    norm = np.linalg.norm(rhs)
+    converged = bool(norm == 0 or residuals[-1] <= 1.01 * tolerance * norm)
+    return x, len(residuals) - 1, converged, hierarchy
+
+
+def _least_squares(graph: _Graph, t: np.ndarray, tolerance: float):
+    weights = np.ones(t.size)
+    matrix = graph.laplacian(weights)
+    g, iterations, converged, _ = _solve(matrix, graph.divergence(t), None, tolerance)
+    misfit = graph.differences(g) - t
+    residual = float(np.sqrt(np.mean(misfit**2))) if t.size else 0.0
+    return g, {
+        "iterations": 1,
+        "solver_iterations": iterations,
+        "residual": residual,
+        "discontinuities": 0,
+        "converged": converged,
+    }
+
+
+def _reweighted(graph, t, sigma, max_iterations, tolerance, solver_tolerance):
+    weights = np.ones(t.size)
+    g = None
+    hierarchy = None
+    total = 0
+    all_converged = True
+    settled = False
+    iteration = 0
+    for iteration in range(1, max_iterations + 1):
+        matrix = graph.laplacian(np.maximum(weights, _MIN_WEIGHT))
+        g, its, converged, hierarchy = _solve(
+            matrix, graph.divergence(weights * t), g, solver_tolerance, hierarchy
+        )
+        total += its
+        all_converged &= converged
+        # The weights change the coarse levels (a cut pair must not be aggregated across): a
+        # hierarchy kept from an earlier iteration left conjugate gradients unconverged after
+        # 1000 iterations, so every iteration builds its own.
+        hierarchy = None
+        misfit = graph.differences(g) - t
+        new_weights = np.exp(-((misfit / sigma) ** 2))
+        # Settled when hardly any pair's weight still moves: a few steep pixels at a mask's rim
+        # may keep swinging without changing the depth elsewhere.
+        moving = int(np.count_nonzero(np.abs(new_weights - weights) > tolerance))
+        weights = new_weights
+        if moving <= _MOVING_SHARE * weights.size:
+            settled = True
+            break
+    total_weight = float(np.sum(weights))
+    residual = float(np.sqrt(np.sum(weights * misfit**2) / total_weight)) if total_weight else 0.0
+    return g, {
+        "iterations": iteration,
+        "solver_iterations": total,
+        "residual": residual,
+        "discontinuities": int(np.count_nonzero(weights < 0.5)),
+        "converged": bool(all_converged and settled),
+    }
+
+
+def _fix_gauge(g: np.ndarray, graph: _Graph, focal_length: float | None) -> np.ndarray:
+    """Each component's median to 0 (orthographic) or its median depth to ``f`` (perspective)."""
+    medians = ndi.median(g, graph.labels, np.arange(1, graph.components + 1))
+    shift = np.concatenate([[0.0], np.asarray(medians, dtype=np.float64).reshape(-1)])
+    g = g - shift[graph.labels]
+    if focal_length is None:
+        return g
+    return focal_length * np.exp(g)
