@@ -205,7 +205,7 @@ class LocalBands:
     def __init__(self, threads: int | None = None) -> None:
         self.threads = threads
 
-    def band_pixels(self, budget_pixels: int, pixels: int, method: str) -> int:
+    def band_pixels(self, budget_pixels: int, pixels: int, keep_plan: bool) -> int:
         """Most mask pixels per band: what the memory budget allows."""
         return budget_pixels
 

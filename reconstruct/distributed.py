@@ -179,13 +179,15 @@ class DaskBands:
     def _workers(self) -> int:
         return max(len(self.client.scheduler_info().get("workers", {})), 1)
 
-    def band_pixels(self, budget_pixels: int, pixels: int, method: str) -> int:
+    def band_pixels(self, budget_pixels: int, pixels: int, keep_plan: bool) -> int:
         """Most mask pixels per band: the memory budget's, and small enough to feed every worker.
 
-        At least :data:`BANDS_PER_WORKER` bands per worker, except for R-PCA, whose low-rank model
-        is fitted per band: it keeps the in-process band plan, and so the in-process result.
+        At least :data:`BANDS_PER_WORKER` bands per worker, unless ``keep_plan``: a result that
+        depends on the band plan (R-PCA's low-rank model is fitted per band; light refinement adds
+        its sums band by band, so the rounding follows the plan) keeps the in-process plan, and so
+        the in-process result to the last bit.
         """
-        if method == "rpca":
+        if keep_plan:
             return budget_pixels
         return max(1, min(budget_pixels, -(-pixels // (BANDS_PER_WORKER * self._workers()))))
 

@@ -469,7 +469,8 @@ def _stage(
     extra = 0 if source.near is None else NEAR_BYTES_PER_OBSERVATION // BYTES_PER_OBSERVATION
     per_light = n * (1 + extra)
     pixels = int(mask.sum())
-    limit = executor.band_pixels(band_pixels(budget, per_light), pixels, options.method)
+    keep_plan = options.method == "rpca" or options.refine_lights > 0
+    limit = executor.band_pixels(band_pixels(budget, per_light), pixels, keep_plan)
     bands = plan_bands(mask, limit)
     store_bytes = n * (4 * pixels + (pixels + 7 * len(bands)) // 8)
     small = store_bytes <= IN_MEMORY_SHARE * budget

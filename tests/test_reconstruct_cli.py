@@ -411,9 +411,9 @@ def test_solver_flags_reach_the_solver_and_metrics(tmp_path):
 @pytest.mark.parametrize(
     ("args", "message"),
     [
-        (("--lambda", "nan"), "--lambda must be finite and positive"),
+        (("--lambda", "nan"), "--lambda: nan is not a finite number"),
         (("--lambda", "-1e-3"), "--lambda must be finite and positive"),
-        (("--sigma-x2", "inf"), "--sigma-x2 must be finite and positive"),
+        (("--sigma-x2", "inf"), "--sigma-x2: inf is not a finite number"),
         (("--tol", "0"), "--tol must be finite and positive"),
         (("--max-iter", "0"), "--max-iter must be finite and positive"),
         (("--method", "ls", "--max-iter", "5"), "does not apply to method ls"),
