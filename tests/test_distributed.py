@@ -313,3 +313,16 @@ def test_summary_table_lines_up():
     assert table[2].split() == ["long/name", "-", "-", "-", "failed:", "boom"]
     end = table[0].index("pixels") + len("pixels")  # numbers right-aligned under their heading
     assert table[1].index("1200") + 4 == end and table[2].index("-") + 1 == end
+
+
+def test_batch_takes_the_solver_options_of_reconstruct(three, cluster, tmp_path):
+    result = CliRunner().invoke(
+        app,
+        ["batch", str(three[0]), "--out-root", str(tmp_path), "--scheduler",
+         cluster.scheduler_address, "--max-iter", "7", "--tol", "1e-3"],  # fmt: skip
+    )
+    assert result.exit_code == 0, result.output
+    metrics = json.loads((tmp_path / "sphere0" / "metrics.json").read_text())
+    assert metrics["solver_options"]["max-iter"] == 7
+    assert metrics["solver_options"]["tol"] == 1e-3
+    assert metrics["iterations"]["max"] <= 7

@@ -8,7 +8,18 @@ from typing import Annotated
 import typer
 
 from ps_lab._cli_util import fail, lab_command
-from ps_lab.commands.reconstruct import Channel, Method, _terminal_bars
+from ps_lab.commands.reconstruct import (
+    Channel,
+    DepthOption,
+    LambdaOption,
+    Lights,
+    LightsOption,
+    MaxIterOption,
+    Method,
+    SigmaX2Option,
+    TolOption,
+    _terminal_bars,
+)
 from ps_lab.reconstruct.batch import run_batch, summary_table
 from ps_lab.reconstruct.pipeline import ReconstructOptions, parse_memory_size
 
@@ -59,6 +70,12 @@ def batch(
     memory_budget: Annotated[
         str, typer.Option(help="Memory for one row band's solve on a worker, e.g. 800MB or 2GB.")
     ] = "1GB",
+    lights: LightsOption = Lights.auto,
+    lam: LambdaOption = None,
+    sigma_x2: SigmaX2Option = None,
+    max_iter: MaxIterOption = None,
+    tol: TolOption = None,
+    depth: DepthOption = None,
 ) -> None:
     """Reconstruct many datasets on a Dask cluster; skip those already done; print a summary."""
     options = ReconstructOptions(
@@ -68,6 +85,12 @@ def batch(
         refine_lights=refine_lights,
         fixed_intensities=fixed_intensities,
         memory_budget=parse_memory_size(memory_budget),
+        lights=lights.value,
+        lam=lam,
+        sigma_x2=sigma_x2,
+        max_iter=max_iter,
+        tol=tol,
+        depth=depth,
     )
     rows = run_batch(
         datasets,

@@ -43,6 +43,52 @@ class Channel(str, Enum):  # noqa: UP042
     b = "b"
 
 
+# Options that `ps-lab batch` shares with `ps-lab reconstruct` (one declaration each).
+LightsOption = Annotated[
+    Lights,
+    typer.Option(
+        help="near: per-pixel lights from light_positions.txt (LEDs at a finite distance); "
+        "directional: light_directions.txt only; auto: near when light_positions.txt exists."
+    ),
+]
+LambdaOption = Annotated[
+    float | None,
+    typer.Option(
+        "--lambda",
+        help="SBL noise variance, or R-PCA sparse weight (relative units, docs/solvers.md; "
+        "default: from the data).",
+        show_default=False,
+    ),
+]
+SigmaX2Option = Annotated[
+    float | None,
+    typer.Option(
+        help="SBL prior variance of albedo x normal (relative; default 1e6).", show_default=False
+    ),
+]
+MaxIterOption = Annotated[
+    int | None,
+    typer.Option(
+        help="Iterations at most (defaults: sbl 100, l1 100, rpca 500).", show_default=False
+    ),
+]
+TolOption = Annotated[
+    float | None,
+    typer.Option(
+        help="Convergence tolerance (docs/solvers.md; defaults: sbl from the noise level, at "
+        "least 1e-4; l1 1e-6; rpca 1e-7).",
+        show_default=False,
+    ),
+]
+DepthOption = Annotated[
+    str | None,
+    typer.Option(
+        help="Also integrate depth and a mesh: poisson or bilateral (see ps-lab integrate).",
+        show_default=False,
+    ),
+]
+
+
 @lab_command
 def reconstruct(
     dataset: Annotated[
@@ -79,13 +125,7 @@ def reconstruct(
             help="Memory for one row band's solve, e.g. 800MB or 2GB (sets the band height)."
         ),
     ] = "1GB",
-    lights: Annotated[
-        Lights,
-        typer.Option(
-            help="near: per-pixel lights from light_positions.txt (LEDs at a finite distance); "
-            "directional: light_directions.txt only; auto: near when light_positions.txt exists."
-        ),
-    ] = Lights.auto,
+    lights: LightsOption = Lights.auto,
     scheduler: Annotated[
         str | None,
         typer.Option(
@@ -95,37 +135,11 @@ def reconstruct(
             show_default=False,
         ),
     ] = None,
-    lam: Annotated[
-        float | None,
-        typer.Option(
-            "--lambda",
-            help="SBL noise variance, or R-PCA sparse weight (relative units, docs/solvers.md) "
-            "[default: from the data].",
-            show_default=False,
-        ),
-    ] = None,
-    sigma_x2: Annotated[
-        float | None,
-        typer.Option(help="SBL prior variance of albedo x normal (relative) [default: 1e6].",
-                     show_default=False),
-    ] = None,
-    max_iter: Annotated[
-        int | None,
-        typer.Option(help="Iterations at most (sbl, l1, rpca) [default: 100, 100, 500].",
-                     show_default=False),
-    ] = None,
-    tol: Annotated[
-        float | None,
-        typer.Option(help="Convergence tolerance (sbl, l1, rpca; docs/solvers.md) "
-                     "[default: 1e-4, 1e-6, 1e-7].", show_default=False),
-    ] = None,
-    depth: Annotated[
-        str | None,
-        typer.Option(
-            help="Also integrate depth and a mesh: poisson or bilateral (see ps-lab integrate).",
-            show_default=False,
-        ),
-    ] = None,
+    lam: LambdaOption = None,
+    sigma_x2: SigmaX2Option = None,
+    max_iter: MaxIterOption = None,
+    tol: TolOption = None,
+    depth: DepthOption = None,
 ) -> None:
     """Estimate surface normals and albedo; write normals.npy, normal.png, albedo, metrics.json."""
     out = out if out is not None else dataset / "recon" / method.value
