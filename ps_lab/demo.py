@@ -31,8 +31,6 @@ from ps_lab.reconstruct.metrics import angular_errors_deg, depth_error, error_su
 DEFAULT_RIG = Path("rigs/simulated.toml")
 DEFAULT_OUT = Path("demo-run")
 DEFAULT_NEAR_RIG = Path("rigs/simulated-near.toml")
-# The near rig's objects have grazing rims where most lights are in shadow: drop the shadows.
-NEAR_SHADOW_THRESHOLD = "0.02"
 
 
 def _stage(title: str, args: list[str]) -> float:
@@ -119,18 +117,17 @@ def main(argv: list[str] | None = None) -> None:
 def _near_variant(rig: Path, run: Path) -> None:
     """Capture, calibrate and reconstruct the near-light rig; print its summary."""
     near, directional = run / "recon" / "near", run / "recon" / "directional"
-    threshold = ["--shadow-threshold", NEAR_SHADOW_THRESHOLD]
     seconds = {
         "capture": _stage("near-light capture", ["capture", "--rig", str(rig), "--out", str(run)]),
         "calibrate": _stage("near-light calibrate", ["calibrate", str(run)]),
         "reconstruct": _stage(
             "near-light reconstruct",
-            ["reconstruct", str(run), *threshold, "--lights", "near", "--out", str(near)],
+            ["reconstruct", str(run), "--lights", "near", "--out", str(near)],
         ),
     }
     _stage(
         "the same frames, directional model",
-        ["reconstruct", str(run), *threshold, "--lights", "directional", "--out", str(directional)],
+        ["reconstruct", str(run), "--lights", "directional", "--out", str(directional)],
     )
     positions = np.loadtxt(run / "light_positions.txt", ndmin=2)
     truth = np.loadtxt(run / "simulation" / "light_positions_true.txt", ndmin=2)

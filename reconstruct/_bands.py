@@ -90,6 +90,7 @@ def solve_band(
     final: bool,
     truth_rows: np.ndarray | None = None,
     progress: Callable[[int], None] | None = None,
+    black: np.ndarray | None = None,
 ) -> BandResult:
     """Solve one band and reduce the solution.
 
@@ -116,6 +117,9 @@ def solve_band(
         Ground truth of the band's mask pixels (refinement history).
     progress : callable or None
         ``progress(k)`` after each tile of k pixels.
+    black : ndarray of shape (n,) or None
+        Each light's level of black: observations at or below it are shadows, dropped
+        (:func:`ps_lab.reconstruct._shadows.black_threshold`).
 
     Returns
     -------
@@ -123,6 +127,8 @@ def solve_band(
 
     """
     started = time.perf_counter()
+    if black is not None:
+        valid = valid & (observations > black[:, None])
     solution = solve(
         observations,
         vectors,
@@ -247,6 +253,7 @@ class LocalBands:
         truth,
         advance: Callable[..., None],
         label: str,
+        black: np.ndarray | None = None,
     ) -> Iterator[BandResult]:
         """One solve pass: yield each non-empty band's result, in band order."""
         count = len(store.bands)
@@ -266,4 +273,5 @@ class LocalBands:
                 final=final,
                 truth_rows=None if truth is None else band_truth(truth, store.mask, band),
                 progress=advance,
+                black=black,
             )

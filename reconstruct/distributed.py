@@ -251,6 +251,7 @@ class DaskBands:
         truth,
         advance: Callable[..., None],
         label: str,
+        black: np.ndarray | None = None,
     ) -> Iterator[BandResult]:
         """One solve pass as tasks, one per non-empty band; results in completion order."""
         self.passes += 1
@@ -266,6 +267,7 @@ class DaskBands:
                 parameters=parameters,
                 final=final,
                 with_truth=truth is not None,
+                black=black,
                 key=f"ps-lab-band-{self.token}-{self.passes}-{band.index}",
             )
             for band in store.bands
@@ -304,7 +306,7 @@ def _stage_task(header, bands, lights, path, **kwargs) -> tuple[list[int], np.nd
 
 
 def _solve_task(
-    header, path, bands, index, vectors, *, method, parameters, final, with_truth
+    header, path, bands, index, vectors, *, method, parameters, final, with_truth, black=None
 ) -> BandResult:
     band = bands[index]
     mask = worker_mask(header)
@@ -323,4 +325,5 @@ def _solve_task(
         threads=1,  # a worker runs as many tasks at once as it has threads
         final=final,
         truth_rows=None if truth is None else band_truth(truth, mask, band),
+        black=black,
     )

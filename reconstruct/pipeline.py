@@ -54,6 +54,7 @@ from ps_lab.reconstruct._outputs import (
     write_png,
 )
 from ps_lab.reconstruct._refine import fit_lights
+from ps_lab.reconstruct._shadows import black_threshold
 from ps_lab.reconstruct._solution import SolverInputError
 from ps_lab.reconstruct._solve import (
     estimate_noise,
@@ -349,6 +350,7 @@ class _Solved:
     history: list[dict]
     seconds: float
     near: NearRounds | None = None
+    black: list[float] | None = None
 
 
 def reconstruct_to_folder(
@@ -395,10 +397,11 @@ def reconstruct_to_folder(
         warm_up.join()
         with store:
             writer = _OutputWriter(stage, store.mask, source.truth, store.n_lights)
+            black = _black_threshold(store, source.header, options)
             if source.near is None:
-                solved = _solve_bands(store, source, options, writer, bars, executor)
+                solved = _solve_bands(store, source, options, writer, bars, executor, black)
             else:
-                solved = _solve_near_bands(store, source, options, writer, bars, stage)
+                solved = _solve_near_bands(store, source, options, writer, bars, stage, black)
             check_solved_share(source.header.root, writer.solved_count, store.pixels)
             timings["solve_seconds"] = solved.seconds
             written = time.perf_counter()
@@ -503,6 +506,26 @@ def _stage(
     return store
 
 
+def _black_threshold(
+    store: ObservationStore, header: DatasetHeader, options: ReconstructOptions
+) -> np.ndarray | None:
+    """Without ``--shadow-threshold``: each light's level of black, from the store's sample.
+
+    :func:`ps_lab.reconstruct._shadows.black_threshold` measures the noise at black on the
+    negative observations of the sample; observations at or below it are shadows. The sample's
+    validity is updated here, so the noise level estimated next sees what the bands will see.
+    Returns None (every observation kept) with an explicit threshold or no measurable noise.
+    """
+    if options.shadow_threshold is not None or store.sample_index.size == 0:
+        return None
+    factors = light_noise_factors(header.light_intensities, options.channel)
+    black = black_threshold(store.sample_observations, store.sample_valid, factors)
+    if black is not None:
+        store.sample_valid &= store.sample_observations > black[:, None]
+        log.info("shadows: observations within %.3g (mean) of black are dropped", black.mean())
+    return black
+
+
 def _default(function: Callable, name: str, fallback: Any) -> Any:
     parameter = inspect.signature(function).parameters.get(name)
     if parameter is None or parameter.default is inspect.Parameter.empty:
@@ -517,11 +540,12 @@ def _solve_bands(
     writer: _OutputWriter,
     bars: ProgressBars,
     executor,
+    black: np.ndarray | None = None,
 ) -> _Solved:
     """Stage 3: K + 1 solve passes over the bands (K = ``options.refine_lights``).
 
     Between passes each light is re-fitted from the sums the pass accumulated; the last pass
-    hands every band to ``writer``.
+    hands every band to ``writer``. ``black`` (n,): observations at or below it are shadows.
     """
     started = time.perf_counter()
     method, refine = options.method, options.refine_lights
@@ -547,6 +571,7 @@ def _solve_bands(
                 advance=advance,
                 label=method if passes == 1 else f"{method} pass {k + 1}/{passes}",
                 intensities=source.header.light_intensities,
+                black=black,
             )
             if refine:
                 errors = {}
@@ -575,13 +600,16 @@ def _solve_bands(
                 pending["max_direction_change_deg"],
             )
     params = dict(result.params)
+    listed = None if black is None else black.tolist()
     if not refine:
-        return _Solved(params, None, None, history, time.perf_counter() - started)
+        return _Solved(params, None, None, history, time.perf_counter() - started, black=listed)
     params["refine_iterations"] = refine
     # The observations were already divided by the file's intensities, so the refined relative
     # intensity multiplies them.
     intensities = source.header.light_intensities * factor.reshape(-1, 1)
-    return _Solved(params, directions, intensities, history, time.perf_counter() - started)
+    return _Solved(
+        params, directions, intensities, history, time.perf_counter() - started, black=listed
+    )
 
 
 def _solve_near_bands(
@@ -591,6 +619,7 @@ def _solve_near_bands(
     writer: _OutputWriter,
     bars: ProgressBars,
     stage: Path,
+    black: np.ndarray | None = None,
 ) -> _Solved:
     """Stage 3 with lights at a finite distance: rounds of band solves and depth, then the last.
 
@@ -622,6 +651,8 @@ def _solve_near_bands(
             if band.pixel_count == 0:
                 continue
             observations, valid = store.read(band)
+            if black is not None:
+                valid &= observations > black[:, None]
             pixels = slice(band.pixel_start, band.pixel_start + band.pixel_count)
             r, c = rows[pixels], cols[pixels]
             vectors = lights.vectors(scene_points(mask.shape, r, c, depth[r, c]))
@@ -652,7 +683,8 @@ def _solve_near_bands(
         solve_pass(rounds.depth, advance, final=True)
     np.save(stage / "depth.npy", np.where(mask, rounds.depth, np.nan).astype(np.float32))
     log.info("near lights: %d rounds, depth changes %s px", len(rounds.changes), rounds.changes)
-    return _Solved(params, None, None, [], time.perf_counter() - started, rounds)
+    listed = None if black is None else black.tolist()
+    return _Solved(params, None, None, [], time.perf_counter() - started, rounds, listed)
 
 
 def _write_results(
@@ -681,6 +713,7 @@ def _write_results(
         flag[2:]: getattr(options, name) for name, (flag, _) in SOLVER_OPTIONS.items()
     }
     metrics["shadow_threshold"] = options.shadow_threshold
+    metrics["black_threshold"] = solved.black
     metrics["light_model"] = "directional" if source.near is None else "near"
     if solved.near is not None:
         metrics["near"] = solved.near.record()
@@ -776,10 +809,12 @@ def _solve_pass(
     advance: Callable[..., None],
     label: str,
     intensities: np.ndarray,
+    black: np.ndarray | None = None,
 ) -> _PassResult:
     """Solve every band once with the light vectors ``vectors`` (n, 3), on ``executor``.
 
-    ``intensities`` (n, 3) are the light intensities the observations were divided by.
+    ``intensities`` (n, 3) are the light intensities the observations were divided by;
+    observations at or below ``black`` (n,) are shadows.
 
     Band results may arrive in any order (Dask); the writer takes them as they come, and the
     parameters, error sums and refinement sums are combined in band order, as one process would.
@@ -798,6 +833,7 @@ def _solve_pass(
         truth=truth,
         advance=advance,
         label=label,
+        black=black,
     ):
         band = store.bands[band_result.index]
         if writer is not None:

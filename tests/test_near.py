@@ -181,7 +181,8 @@ def test_near_rig_end_to_end(tmp_path: Path) -> None:
     dome = float(np.linalg.norm(truth, axis=1).mean())
     error = np.linalg.norm(positions - truth, axis=1) / dome
     assert error.mean() < 0.006 and error.max() < 0.0125, error  # target: within 1 % of the dome
-    threshold = ["--shadow-threshold", "0.02"]
+    # default options (the automatic shadow threshold): what a user gets
+    threshold: list[str] = []
     _invoke(["reconstruct", str(near_run), *threshold, "--out", str(near_run / "near")])
     _invoke(["reconstruct", str(near_run), *threshold, "--lights", "directional",
              "--out", str(near_run / "dir")])

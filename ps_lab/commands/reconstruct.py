@@ -104,7 +104,12 @@ def reconstruct(
     ] = None,
     shadow_threshold: Annotated[
         float | None,
-        typer.Option(help="Drop observations at or below this value (after intensity division)."),
+        typer.Option(
+            help="Drop observations at or below this value (after intensity division). "
+            "Default: 3 sigma of the noise at black, measured on the negative observations "
+            "of dark-subtracted frames (none without them); a negative value keeps all.",
+            show_default=False,
+        ),
     ] = None,
     channel: Annotated[
         Channel, typer.Option(help="Colour rule: mean of the channels, or one of r, g, b.")
