@@ -9,8 +9,8 @@ iterations and the depth error against the relief's height. Usage::
     python benchmarks/integrate.py [--sizes 0.25,1,4,12] [--methods poisson,bilateral]
                                    [--timeout S] [--folder DIR] [--markdown FILE]
 
-BLAS is limited to one thread in the children (``OPENBLAS_NUM_THREADS=1``): the multigrid setup's
-small dense products otherwise spin on a loaded 2-core machine (measured 9x slower wall time).
+The children run with the caller's environment (no BLAS thread limit), as ``ps-lab integrate`` does:
+the solver makes no threaded BLAS call (``ps_lab.reconstruct._multigrid``).
 """
 
 from __future__ import annotations
@@ -76,7 +76,6 @@ def main() -> None:
         _child(Path(args.child[0]), args.child[1])
         return
     folder = args.folder or Path(tempfile.mkdtemp(prefix="ps-lab-integrate-"))
-    env = dict(os.environ, OPENBLAS_NUM_THREADS="1", OMP_NUM_THREADS="1")
     rows = [
         f"integrate benchmark, {platform.processor() or platform.machine()}, "
         f"{os.cpu_count()} cores, python {platform.python_version()}",
@@ -91,7 +90,7 @@ def main() -> None:
             command = [sys.executable, __file__, "--child", str(path), method]
             try:
                 done = subprocess.run(
-                    command, capture_output=True, text=True, env=env, timeout=args.timeout
+                    command, capture_output=True, text=True, timeout=args.timeout
                 )
                 record = json.loads(done.stdout.strip().splitlines()[-1])
                 row = (
