@@ -95,9 +95,13 @@ def graph_laplacian(
 
 
 def _coarsen(size, tail, head, weights, anchors, rows, cols):
-    """Aggregates of one level (2 x 2 blocks of ``rows, cols`` split by strength), coarse graph."""
+    """Aggregates of one level (2 x 2 blocks of ``rows, cols`` split by strength), coarse graph.
+
+    ``rows`` and ``cols`` are halved in place (memory: they become the block indices).
+    """
     diagonal = np.bincount(tail, weights, size) + np.bincount(head, weights, size)
-    block_row, block_col = rows // 2, cols // 2
+    block_row = np.floor_divide(rows, 2, out=rows)
+    block_col = np.floor_divide(cols, 2, out=cols)
     inside = (block_row[tail] == block_row[head]) & (block_col[tail] == block_col[head])
     inner = np.flatnonzero(inside)
     del inside
@@ -131,7 +135,7 @@ def _coarsen(size, tail, head, weights, anchors, rows, cols):
         coarse_size,
         coarse_tail,
         coarse_head,
-        edges.data,
+        edges.data.astype(np.float64, copy=False),
         aggregate[anchors],
         coarse_rows,
         coarse_cols,
@@ -154,7 +158,7 @@ class GridMultigrid:
         Anchored nodes; ``anchor_weights`` their diagonal terms.
     anchor_weights : ndarray of shape (K,)
     rows, cols : ndarray of shape (N,), int32
-        Pixel position of each node.
+        Pixel position of each node; overwritten (pass temporaries).
 
     Calling the object with a residual ``r`` (N,) returns ``M r``, one V-cycle from zero.
     """
@@ -194,7 +198,10 @@ class GridMultigrid:
         aggregate = self.aggregates[level]
         x = np.zeros_like(rhs)
         gauss_seidel(matrix, x, rhs, iterations=1, sweep="forward")
-        coarse_rhs = np.bincount(aggregate, rhs - matrix @ x, self.matrices[level + 1].shape[0])
+        residual = matrix @ x
+        np.subtract(rhs, residual, out=residual)
+        coarse_rhs = np.bincount(aggregate, residual, self.matrices[level + 1].shape[0])
+        del residual
         correction = self._cycle(level + 1, coarse_rhs)
         correction *= _OVER_CORRECTION
         x += correction[aggregate]
@@ -243,14 +250,16 @@ def conjugate_gradients(matrix, rhs, x0, tolerance, max_iterations, precondition
     goal = tolerance * norm
     if np.sqrt(_dot(r, r)) <= goal:
         return x, 0, True
-    z = preconditioner(r)
-    p = z.copy()
-    rz = _dot(r, z)
+    p = preconditioner(r)
+    rz = _dot(r, p)
     for iteration in range(1, max_iterations + 1):
+        # In place: x, r, p and one work vector q (memory at 12 MP).
         q = matrix @ p
         step = rz / _dot(p, q)
-        x += step * p
-        r -= step * q
+        q *= step
+        r -= q
+        np.multiply(p, step, out=q)
+        x += q
         del q
         if np.sqrt(_dot(r, r)) <= goal:
             return x, iteration, True

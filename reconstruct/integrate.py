@@ -405,8 +405,8 @@ class _Graph:
         return sp.csr_matrix((data, self.indices, self.indptr), shape=(self.size, self.size))
 
     def drop_pattern(self) -> None:
-        """Free the edges' positions in the Laplacian (no reweighting will follow)."""
-        self.at_head = self.at_tail = None
+        """Free the entries' positions in the Laplacian (no reweighting will follow)."""
+        self.at_head = self.at_tail = self.at_diagonal = None
 
     def sides(self, edges: slice) -> tuple[np.ndarray, np.ndarray]:
         """Per node, its forward and backward edge among ``edges`` (one axis); -1 where none."""
@@ -453,7 +453,10 @@ def _solve(graph: _Graph, weights, rhs, x0, tolerance, last=False):
 
 def _least_squares(graph: _Graph, t: np.ndarray, tolerance: float):
     rhs = graph.divergence(t)
-    g, iterations, converged = _solve(graph, np.ones(t.size), rhs, None, tolerance, last=True)
+    # Unit weights in float32: half the memory, exact.
+    g, iterations, converged = _solve(
+        graph, np.ones(t.size, dtype=np.float32), rhs, None, tolerance, last=True
+    )
     del rhs
     misfit = graph.differences(g) - t
     residual = float(np.sqrt(np.mean(misfit**2))) if t.size else 0.0
