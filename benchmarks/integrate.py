@@ -7,7 +7,8 @@ resident memory (``ru_maxrss``) is the integration's. Reports wall and CPU secon
 iterations and the depth error against the relief's height. Usage::
 
     python benchmarks/integrate.py [--sizes 0.25,1,4,12] [--methods poisson,bilateral]
-                                   [--timeout S] [--folder DIR] [--markdown FILE]
+                                   [--bilateral-up-to 4] [--timeout S] [--folder DIR]
+                                   [--markdown FILE]
 
 The children run with the caller's environment (no BLAS thread limit), as ``ps-lab integrate`` does:
 the solver makes no threaded BLAS call (``ps_lab.reconstruct._multigrid``).
@@ -68,6 +69,10 @@ def main() -> None:
     parser.add_argument("--sizes", default="0.25,1,4,12", help="mask sizes in megapixels")
     parser.add_argument("--methods", default="poisson,bilateral")
     parser.add_argument("--timeout", type=float, default=1800.0, help="seconds per run")
+    parser.add_argument(
+        "--bilateral-up-to", type=float, default=4.0,
+        help="largest size (MP) for bilateral (12 MP: about 10 min)",
+    )
     parser.add_argument("--folder", type=Path, default=None, help="where the normals are kept")
     parser.add_argument("--markdown", type=Path, default=None, help="also write the table here")
     parser.add_argument("--child", nargs=2, help=argparse.SUPPRESS)
@@ -87,6 +92,8 @@ def main() -> None:
     for megapixels in (float(s) for s in args.sizes.split(",")):
         path = _render(megapixels, folder)
         for method in args.methods.split(","):
+            if method == "bilateral" and megapixels > args.bilateral_up_to:
+                continue
             command = [sys.executable, __file__, "--child", str(path), method]
             try:
                 done = subprocess.run(
