@@ -58,7 +58,9 @@ def test_smooth_surfaces_integrate_to_their_depth(surface, method, focal_length)
     assert result.components == count
     assert result.pixels == int(surface[3].sum())
     assert result.converged
-    assert max(errors) < 0.001  # issue bound 0.005 of the depth range; measured <= 3e-4
+    # Issue bound 0.005 of the depth range; measured <= 8.4e-5 (poisson), <= 6.3e-4 (bilateral,
+    # whose one-sided equations target each pixel's own gradient, first order).
+    assert max(errors) < 0.002
     assert result.discontinuities == 0
     assert np.isnan(result.depth[~surface[3]]).all()
     assert result.depth.dtype == np.float32
@@ -66,11 +68,14 @@ def test_smooth_surfaces_integrate_to_their_depth(surface, method, focal_length)
 
 @pytest.mark.parametrize(
     "make_step, focal_length",
-    [(occluding_step, None), (occluding_step, 300.0), (ledge, None)],
-    ids=["occluding-orthographic", "occluding-perspective", "ledge-orthographic"],
+    [(occluding_step, None), (occluding_step, 300.0), (ledge, None), (ledge, 300.0)],
+    ids=[
+        "occluding-orthographic", "occluding-perspective", "ledge-orthographic",
+        "ledge-perspective",
+    ],
 )
 def test_bilateral_keeps_a_step_that_poisson_smears(make_step, focal_length):
-    # 128 px: at 96 px and f = 150 px the perspective step keeps 8 wrong columns (measured).
+    # 128 px. Measured (bilateral): 1, 1, 0 and 0 wrong columns.
     offset = 0.0 if focal_length is None else DISTANCE
     depth, d_col, d_row, mask, edge, rows = make_step((128, 128), offset=offset)
     normals = normals_from_depth(depth, d_col, d_row, focal_length)
@@ -119,7 +124,7 @@ def test_valid_normals_rejects_grazing_and_backfacing():
         ({"method": "fft"}, "unknown integration method"),
         ({"focal_length": -1.0}, "focal length"),
         ({"principal_point": (1.0, 2.0)}, "needs a focal length"),
-        ({"sigma": 0.0}, "sigma"),
+        ({"sharpness": 0.0}, "sharpness"),
     ],
 )
 def test_bad_parameters_raise_one_error_type(kwargs, message):
