@@ -285,7 +285,7 @@ def _noise_floor(r, s, light, light_noise=None):
         return 0.0
     f2 = np.ones(1) if light_noise is None else np.asarray(light_noise, dtype=np.float64) ** 2
     x = f2[light if light_noise is not None else 0] / s**2
-    order = np.argsort(x, kind="stable")
+    order = _stable_order(x)
     x, r = x[order], r[order]
     size, extra = divmod(r.size, NOISE_FLOOR_BINS)  # np.array_split's equal-count bins
     rows, var = [], []
@@ -307,6 +307,21 @@ def _noise_floor(r, s, light, light_noise=None):
     if coef[1] < 0:
         coef = np.array([np.sum(a[:, 0]) / np.sum(a[:, 0] ** 2), 0.0])
     return float(math.sqrt(max(coef[0], 0.0)))
+
+
+def _stable_order(x):
+    """``np.argsort(x, kind="stable")``; sorts only the runs of equal values when there are few.
+
+    Without per-light factors the noise floor's ``x`` is one value per pixel, repeated over its
+    residuals: a run sorted by its value (stably) and expanded in place is the stable order.
+    """
+    starts = np.flatnonzero(np.concatenate(([True], x[1:] != x[:-1])))
+    if starts.size > x.size // 4:
+        return np.argsort(x, kind="stable")
+    runs = np.argsort(x[starts], kind="stable")
+    lengths = np.diff(np.append(starts, x.size))[runs]
+    # output position k of a run placed at position q is its element starts[run] + k - q
+    return np.repeat(starts[runs] - (np.cumsum(lengths) - lengths), lengths) + np.arange(x.size)
 
 
 def _default_tile(pixels: int, workers: int) -> int:
