@@ -27,8 +27,8 @@ DEFAULTS: dict[str, dict] = {
              "outlier_threshold": None, "noise_sigma": None},
 }
 DEFAULT_TILE_SIZE = 4096
-# Smaller default tiles when there would be fewer than this many per thread (so that no thread
-# idles while another finishes a large last tile), but never below MIN_TILE_SIZE pixels.
+# Smaller tiles when there would be fewer than this many per thread (so that no thread idles
+# while another finishes a large last tile), but never below MIN_TILE_SIZE pixels.
 TILES_PER_THREAD = 4
 MIN_TILE_SIZE = 512
 # The noise fit's pixel sample is cut into pieces of at least this many pixels for the threads.
@@ -324,12 +324,13 @@ def _stable_order(x):
     return np.repeat(starts[runs] - (np.cumsum(lengths) - lengths), lengths) + np.arange(x.size)
 
 
-def _default_tile(pixels: int, workers: int) -> int:
-    """``DEFAULT_TILE_SIZE``, or smaller tiles so each thread gets ``TILES_PER_THREAD`` of them."""
+def _tile_pixels(pixels: int, workers: int, bound: int) -> int:
+    """Pixels per tile: ``bound``, or fewer (not under ``MIN_TILE_SIZE``) so that each of the
+    ``workers`` threads gets ``TILES_PER_THREAD`` tiles of a small input."""
     if workers == 1:
-        return DEFAULT_TILE_SIZE
+        return bound
     share = -(-pixels // (workers * TILES_PER_THREAD))
-    return int(min(DEFAULT_TILE_SIZE, max(MIN_TILE_SIZE, share)))
+    return int(min(bound, max(MIN_TILE_SIZE, share)))
 
 
 def solve(
@@ -361,8 +362,9 @@ def solve(
     threads : int, optional
         Worker threads over tiles and over the noise fit's pieces (default: all cores).
     tile_size : int, optional
-        Pixels per tile (default 4096, or smaller, down to 512, so that each thread gets four
-        tiles). Results do not depend on it.
+        Pixels per tile, at most (default 4096; with several threads a small input is cut into
+        smaller tiles, down to 512 pixels, so that each thread gets four). Results do not depend
+        on it.
     progress : callable, optional
         Called as ``progress(k)`` with the number of pixels just finished (increments summing
         to P).
@@ -400,9 +402,10 @@ def solve(
     workers = int(threads) if threads else (os.cpu_count() or 1)
     if workers < 1:
         raise SolverInputError(f"threads must be positive, got {threads}")
-    tile = int(tile_size) if tile_size else _default_tile(p, workers)
-    if tile < 1:
+    bound = int(tile_size) if tile_size else DEFAULT_TILE_SIZE
+    if bound < 1:
         raise SolverInputError(f"tile_size must be positive, got {tile_size}")
+    tile = _tile_pixels(p, workers, bound)
     starts = range(0, p, tile)
     parallel = workers > 1 and (len(starts) > 1 or method in ("l1", "sbl", "rpca"))
     with ThreadPoolExecutor(max_workers=workers) if parallel else nullcontext() as pool:
@@ -414,7 +417,7 @@ def solve(
         used = _solve_params(n, method, params, residuals)
         if method == "rpca":
             return solve_rpca(obs, lights, usable, params, used, progress)
-        used.update({"tile_size": tile, "threads": workers})
+        used.update({"tile_size": bound, "threads": workers})
         return _solve_tiles(obs, lights, usable, method, params, used, starts, tile, mapper,
                             progress)
 
