@@ -9,9 +9,9 @@ Usage (from the repository root):
 
 `speed` prints, for 40 and 96 lights and 1e4, 1e5, 1e6 pixels, pixels per second per method, mean
 iterations, and the speed-up of SBL and L1 over the straightforward per-pixel numpy oracle
-(tests/helpers/solver_oracles.py, same update and stopping rules) timed on the first 200 pixels, each
-oracle run right after a solve (both see the same background load): best of --repeat runs of each
-(at 10⁶ pixels one solve, still --repeat oracle runs). Run it with OPENBLAS_NUM_THREADS=1:
+(tests/helpers/solver_oracles.py, same update and stopping rules) timed on the first 200 pixels,
+each oracle run right after a solve (both see the same background load): best of --repeat runs of
+each (at 10⁶ pixels one solve, still --repeat oracle runs). Run it with OPENBLAS_NUM_THREADS=1:
 numpy's threaded BLAS makes the oracle's small products slower.
 """
 
@@ -79,9 +79,9 @@ def oracle_params(sol):
     return p
 
 
-def _timed(run):
+def _timed(run, *args, **kwargs):
     t = time.perf_counter()
-    result = run()
+    result = run(*args, **kwargs)
     return time.perf_counter() - t, result
 
 
@@ -109,12 +109,12 @@ def cmd_speed(args):
                 # alternate, so both see the same background load; best of each
                 for r in range(args.repeat):
                     if r == 0 or p <= 100_000:  # one solve of 10⁶ pixels (the oracle: all)
-                        dt, sol = _timed(lambda: solve(obs, lights, method=method,
-                                                       threads=args.threads))
+                        dt, sol = _timed(solve, obs, lights, method=method,
+                                         threads=args.threads)
                         best = min(best, dt)
                     if method in ("l1", "sbl"):
-                        dt, _ = _timed(lambda: solve_oracle(sub, lights, method,
-                                                            **oracle_params(sol)))
+                        dt, _ = _timed(solve_oracle, sub, lights, method,
+                                       **oracle_params(sol))
                         best_oracle = min(best_oracle, dt)
                 oracle_txt = speed_txt = ""
                 if method in ("l1", "sbl"):

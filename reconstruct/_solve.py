@@ -261,7 +261,7 @@ def residual_noise(y: np.ndarray, w: np.ndarray, model: np.ndarray) -> float:
 
 
 def _quantile(a, q):
-    """``np.quantile(a, q)`` (linear interpolation, same rounding) by one partition, no copy checks."""
+    """``np.quantile(a, q)`` (linear interpolation, same rounding) by one partition."""
     where = q * (a.size - 1)
     lo = int(math.floor(where))
     t = where - lo
@@ -325,8 +325,11 @@ def _stable_order(x):
 
 
 def _tile_pixels(pixels: int, workers: int, bound: int) -> int:
-    """Pixels per tile: ``bound``, or fewer (not under ``MIN_TILE_SIZE``) so that each of the
-    ``workers`` threads gets ``TILES_PER_THREAD`` tiles of a small input."""
+    """Pixels per tile: ``bound``, or fewer for a small input on several threads.
+
+    Each of the ``workers`` threads gets ``TILES_PER_THREAD`` tiles, but a tile is never smaller
+    than ``MIN_TILE_SIZE`` pixels (nor larger than ``bound``).
+    """
     if workers == 1:
         return bound
     share = -(-pixels // (workers * TILES_PER_THREAD))

@@ -154,7 +154,7 @@ def test_noise_fit_in_pieces_and_default_tiles_give_the_one_piece_result():
     one = _noise_residuals(obs, lights_, usable)
     for workers in (2, 3):
         pieces = _noise_residuals(obs, lights_, usable, workers=workers)
-        assert all(np.array_equal(a, b) for a, b in zip(one, pieces))
+        assert all(np.array_equal(a, b) for a, b in zip(one, pieces, strict=True))
     ref = solve(y, lights, method="sbl", threads=1)
     sol = solve(y, lights, method="sbl", threads=3)  # 3 pieces, small tiles
     assert sol.params["tile_size"] == ref.params["tile_size"] == 4096  # the bound
