@@ -70,12 +70,13 @@ def _solve3(xx, yy, zz, xy, xz, yz, t0, t1, t2):
 # state array, so the compiler needs no aliasing checks between a dozen arrays (it gives up then).
 # The helpers are inlined into the kernels (a call that passes arrays costs about as much as the
 # loop over 40 lights), so the kernels carry the flags.
-_VECTOR = {"fastmath": {"reassoc", "contract", "nsz", "arcp"}, "error_model": "numpy"}
-_INLINE = {"inline": "always"}
+VECTOR = {"fastmath": {"reassoc", "contract", "nsz", "arcp"}, "error_model": "numpy"}
+INLINE = {"inline": "always"}
 # Rows of the per-pixel state arrays.
 # observations, usable (1/0), SBL's noise variance and gamma, weights (L1) or d = w / (gamma + lam)
 # (SBL), SBL's corruption estimate of the last iteration
 _Y, _W, _LAM, _G, _V, _Z = 0, 1, 2, 3, 4, 5
+STATE_ROWS = 6
 
 
 def light_table(lights: np.ndarray) -> np.ndarray:
@@ -83,7 +84,7 @@ def light_table(lights: np.ndarray) -> np.ndarray:
     return np.ascontiguousarray(np.concatenate([outer6(lights).T, lights.T]), dtype=np.float64)
 
 
-@njit(**_INLINE)
+@njit(**INLINE)
 def _weighted_sums(st, tab, n):
     """Normal equations ``sum_i v_i a_i a_i^T`` (6) and ``sum_i v_i y_i a_i`` (3), v = st[_V]."""
     xx = yy = zz = xy = xz = yz = 0.0
@@ -103,7 +104,7 @@ def _weighted_sums(st, tab, n):
     return xx, yy, zz, xy, xz, yz, t0, t1, t2
 
 
-@njit(**_INLINE)
+@njit(**INLINE)
 def _weighted_fit(st, tab, n):
     """Return x minimising ``sum_i v_i (y_i - a_i.x)^2`` (v = st[_V], y = st[_Y])."""
     xx, yy, zz, xy, xz, yz, t0, t1, t2 = _weighted_sums(st, tab, n)
@@ -111,14 +112,14 @@ def _weighted_fit(st, tab, n):
     return s[0], s[1], s[2]
 
 
-@njit(**_INLINE)
+@njit(**INLINE)
 def _load_pixel(st, y, w, p, n):
     for i in range(n):
         st[_Y, i] = y[p, i]
         st[_W, i] = w[p, i]
 
 
-@njit(**_INLINE)
+@njit(**INLINE)
 def _flag_outliers(st, tab, n, x0, x1, x2, threshold, factor_row, outliers, p):
     """``outliers[p, i]``: usable and ``|factor_i r_i| > threshold`` (factor 1 for row -1)."""
     for i in range(n):
@@ -128,33 +129,39 @@ def _flag_outliers(st, tab, n, x0, x1, x2, threshold, factor_row, outliers, p):
         outliers[p, i] = st[_W, i] > 0.0 and abs(r) > threshold
 
 
-@njit(**_INLINE)
+@njit(**INLINE)
 def _l1_weights(st, tab, n, x0, x1, x2, delta):
     for i in range(n):
         r = abs(st[_Y, i] - (x0 * tab[6, i] + x1 * tab[7, i] + x2 * tab[8, i]))
         st[_V, i] = st[_W, i] / (r if r > delta else delta)
 
 
-@njit(nogil=True, cache=True, **_VECTOR)
+@njit(**INLINE)
+def _l1_pixel(st, tab, n, max_iter, tol, delta, threshold, x_out, outliers, iters, p):
+    """IRLS on pixel p: its rows ``_Y``, ``_W`` of ``st`` and its light table ``tab`` loaded."""
+    for i in range(n):
+        st[_V, i] = st[_W, i]
+    x0, x1, x2 = _weighted_fit(st, tab, n)
+    iters[p] = max_iter
+    for it in range(1, max_iter + 1):
+        _l1_weights(st, tab, n, x0, x1, x2, delta)
+        n0, n1, n2 = _weighted_fit(st, tab, n)
+        step = max(abs(n0 - x0), abs(n1 - x1), abs(n2 - x2))
+        x0, x1, x2 = n0, n1, n2
+        if step < tol:
+            iters[p] = it
+            break
+    x_out[p, 0], x_out[p, 1], x_out[p, 2] = x0, x1, x2
+    _flag_outliers(st, tab, n, x0, x1, x2, threshold, -1, outliers, p)
+
+
+@njit(nogil=True, cache=True, **VECTOR)
 def _l1_kernel(y, w, tab, max_iter, tol, delta, threshold, x_out, outliers, iters):
     m, n = y.shape
-    st = np.zeros((5, n))
+    st = np.zeros((STATE_ROWS, n))
     for p in range(m):
         _load_pixel(st, y, w, p, n)
-        for i in range(n):
-            st[_V, i] = st[_W, i]
-        x0, x1, x2 = _weighted_fit(st, tab, n)
-        iters[p] = max_iter
-        for it in range(1, max_iter + 1):
-            _l1_weights(st, tab, n, x0, x1, x2, delta)
-            n0, n1, n2 = _weighted_fit(st, tab, n)
-            step = max(abs(n0 - x0), abs(n1 - x1), abs(n2 - x2))
-            x0, x1, x2 = n0, n1, n2
-            if step < tol:
-                iters[p] = it
-                break
-        x_out[p, 0], x_out[p, 1], x_out[p, 2] = x0, x1, x2
-        _flag_outliers(st, tab, n, x0, x1, x2, threshold, -1, outliers, p)
+        _l1_pixel(st, tab, n, max_iter, tol, delta, threshold, x_out, outliers, iters, p)
 
 
 def l1_tile(y, w, lights, *, max_iter: int, tol: float, delta: float,
@@ -174,7 +181,7 @@ def l1_tile(y, w, lights, *, max_iter: int, tol: float, delta: float,
     return TileResult(x, outliers, iters)
 
 
-@njit(**_INLINE)
+@njit(**INLINE)
 def _sbl_update(st, tab, n, x0, x1, x2, i00, i11, i22, j01, j02, j12, floor, tol):
     """One gamma update of a pixel (st holds its state); the count of ``|z_i - z_i_old| >= tol``.
 
@@ -200,39 +207,48 @@ def _sbl_update(st, tab, n, x0, x1, x2, i00, i11, i22, j01, j02, j12, floor, tol
     return moved
 
 
-@njit(nogil=True, cache=True, **_VECTOR)
+@njit(**INLINE)
+def _sbl_pixel(st, tab, n, ridge, max_iter, tol, floor, start, threshold, x_out, outliers,
+               iters, p):
+    """SBL on pixel p: its rows ``_Y``, ``_W``, ``_LAM`` of ``st`` and its ``tab`` loaded."""
+    for i in range(n):
+        st[_G, i] = start
+        st[_V, i] = st[_W, i] / (start + st[_LAM, i])
+        st[_Z, i] = 0.0
+    iters[p] = max_iter
+    done = False
+    it = 0
+    while True:
+        # M = ridge I + A^T D A with D = (Gamma + lam I)^-1 (0 for dropped observations)
+        xx, yy, zz, xy, xz, yz, t0, t1, t2 = _weighted_sums(st, tab, n)
+        x0, x1, x2, i00, i11, i22, i01, i02, i12 = _solve3(
+            xx + ridge, yy + ridge, zz + ridge, xy, xz, yz, t0, t1, t2)
+        if done or it == max_iter:
+            # posterior mean for the final gamma; corruption e = Gamma S y
+            x_out[p, 0], x_out[p, 1], x_out[p, 2] = x0, x1, x2
+            for i in range(n):
+                st[_Z, i] = st[_G, i] * st[_V, i]
+            _flag_outliers(st, tab, n, x0, x1, x2, threshold, _Z, outliers, p)
+            return
+        moved = _sbl_update(st, tab, n, x0, x1, x2, i00, i11, i22,
+                            2.0 * i01, 2.0 * i02, 2.0 * i12, floor, tol)
+        it += 1
+        if moved == 0:
+            iters[p] = it
+            done = True
+
+
+@njit(nogil=True, cache=True, **VECTOR)
 def _sbl_kernel(y, w, tab, lam, ridge, max_iter, tol, floor, start, threshold, x_out,
                 outliers, iters):
     m, n = y.shape
-    st = np.zeros((6, n))
+    st = np.zeros((STATE_ROWS, n))
     for p in range(m):
         _load_pixel(st, y, w, p, n)
         for i in range(n):
             st[_LAM, i] = lam[p, i]
-            st[_G, i] = start
-            st[_V, i] = st[_W, i] / (start + lam[p, i])
-            st[_Z, i] = 0.0
-        iters[p] = max_iter
-        done = False
-        it = 0
-        while True:
-            # M = ridge I + A^T D A with D = (Gamma + lam I)^-1 (0 for dropped observations)
-            xx, yy, zz, xy, xz, yz, t0, t1, t2 = _weighted_sums(st, tab, n)
-            x0, x1, x2, i00, i11, i22, i01, i02, i12 = _solve3(
-                xx + ridge, yy + ridge, zz + ridge, xy, xz, yz, t0, t1, t2)
-            if done or it == max_iter:
-                # posterior mean for the final gamma; corruption e = Gamma S y
-                x_out[p, 0], x_out[p, 1], x_out[p, 2] = x0, x1, x2
-                for i in range(n):
-                    st[_Z, i] = st[_G, i] * st[_V, i]
-                _flag_outliers(st, tab, n, x0, x1, x2, threshold, _Z, outliers, p)
-                break
-            moved = _sbl_update(st, tab, n, x0, x1, x2, i00, i11, i22,
-                                2.0 * i01, 2.0 * i02, 2.0 * i12, floor, tol)
-            it += 1
-            if moved == 0:
-                iters[p] = it
-                done = True
+        _sbl_pixel(st, tab, n, ridge, max_iter, tol, floor, start, threshold, x_out, outliers,
+                   iters, p)
 
 
 def sbl_tile(y, w, lights, *, lam, sigma_x2: float, max_iter: int, tol: float,
