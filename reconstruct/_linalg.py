@@ -81,7 +81,8 @@ def pixel_scale(y: np.ndarray, w: np.ndarray) -> np.ndarray:
         The median of ``|y|`` over usable observations; when that is zero (a pixel dark under most
         lights), the mean of ``|y|``; zero when the pixel has no usable non-zero observation.
     """
-    a = np.where(w, np.abs(y), np.inf).astype(np.float64)
+    a = np.abs(y).astype(np.float64, copy=False)  # a new array: sorted in place below
+    a[~w] = np.inf
     a.sort(axis=1)
     k = w.sum(axis=1)
     lo = np.clip((k - 1) // 2, 0, None)
@@ -89,7 +90,10 @@ def pixel_scale(y: np.ndarray, w: np.ndarray) -> np.ndarray:
     rows = np.arange(y.shape[0])
     last = a.shape[1] - 1
     mid = 0.5 * (a[rows, np.minimum(lo, last)] + a[rows, np.minimum(hi, last)])
-    med = np.where(k > 0, mid, 0.0)
-    a[~np.isfinite(a)] = 0.0
-    mean = a.sum(axis=1) / np.maximum(k, 1)
-    return np.where(med > 0, med, mean)
+    scale = np.where(k > 0, mid, 0.0)
+    dark = ~(scale > 0)  # the mean instead, over the same sorted rows
+    if dark.any():
+        a = a[dark]
+        a[~np.isfinite(a)] = 0.0
+        scale[dark] = a.sum(axis=1) / np.maximum(k[dark], 1)
+    return scale

@@ -6,6 +6,7 @@ import math
 import os
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
+from contextlib import nullcontext
 
 import numpy as np
 
@@ -26,6 +27,12 @@ DEFAULTS: dict[str, dict] = {
              "outlier_threshold": None, "noise_sigma": None},
 }
 DEFAULT_TILE_SIZE = 4096
+# Smaller tiles when there would be fewer than this many per thread (so that no thread idles
+# while another finishes a large last tile), but never below MIN_TILE_SIZE pixels.
+TILES_PER_THREAD = 4
+MIN_TILE_SIZE = 512
+# The noise fit's pixel sample is cut into pieces of at least this many pixels for the threads.
+NOISE_PIECE_PIXELS = 1000
 # Noise level floor (relative to the pixel scale): the paper's lambda for noise-free data.
 LAMBDA_FLOOR = 1e-6
 # Smallest outlier threshold (relative to the pixel scale).
@@ -209,22 +216,31 @@ def estimate_noise_model(observations, light_directions, valid=None, *,
     return _noise_level(*residuals), _noise_floor(*residuals, light_noise)
 
 
-def _noise_residuals(obs, lights, usable, max_pixels=NOISE_SAMPLE_PIXELS):
-    """Relative residuals of an L1 fit on a pixel sample, and each residual's pixel scale."""
+def _noise_residuals(obs, lights, usable, max_pixels=NOISE_SAMPLE_PIXELS, mapper=map,
+                     workers=1):
+    """Relative residuals of an L1 fit on a pixel sample, each residual's pixel scale and light.
+
+    The sample is fitted in up to ``workers`` pieces through ``mapper`` (``map``, or a thread
+    pool's ``map``); the pixels are independent, so the result does not depend on the pieces.
+    """
     n, p = obs.shape
     empty = np.zeros(0), np.zeros(0), np.zeros(0, np.int64)
     if p == 0:
         return empty
     take = np.unique(np.linspace(0, p - 1, min(p, max_pixels)).round().astype(np.int64))
-    y, w, scale, ok = _prepare_tile(obs[:, take], usable[:, take], lights, 0, take.size)
-    y, w, scale = y[ok], w[ok], scale[ok]
-    if y.shape[0] == 0:
-        return empty
-    res = _kernels.l1_tile(y, w, lights, max_iter=30, tol=1e-6, delta=1e-6,
-                           outlier_threshold=np.inf)
-    r, keep = _kept_residuals(y, w, res.x @ lights.T)
-    light = np.broadcast_to(np.arange(n)[None, :], r.shape)[keep]
-    return r[keep], np.broadcast_to(scale[:, None], r.shape)[keep], light
+    pieces = max(1, min(workers, take.size // NOISE_PIECE_PIXELS))
+
+    def fit(part):
+        y, w, scale, ok = _prepare_tile(obs[:, part], usable[:, part], lights, 0, part.size)
+        y, w, scale = y[ok], w[ok], scale[ok]
+        res = _kernels.l1_tile(y, w, lights, max_iter=30, tol=1e-6, delta=1e-6,
+                               outlier_threshold=np.inf)
+        r, keep = _kept_residuals(y, w, res.x @ lights.T)
+        light = np.broadcast_to(np.arange(n)[None, :], r.shape)[keep]
+        return r[keep], np.broadcast_to(scale[:, None], r.shape)[keep], light
+
+    parts = list(mapper(fit, np.array_split(take, pieces)))
+    return tuple(np.concatenate([part[k] for part in parts]) for k in range(3))
 
 
 def _kept_residuals(y, w, model):
@@ -244,8 +260,20 @@ def residual_noise(y: np.ndarray, w: np.ndarray, model: np.ndarray) -> float:
     return _noise_level(r[keep])
 
 
+def _quantile(a, q):
+    """``np.quantile(a, q)`` (linear interpolation, same rounding) by one partition."""
+    where = q * (a.size - 1)
+    lo = int(math.floor(where))
+    t = where - lo
+    hi = min(lo + 1, a.size - 1)
+    part = np.partition(a, [lo, hi] if hi > lo else [lo])
+    low, high = float(part[lo]), float(part[hi])
+    diff = high - low
+    return high - diff * (1.0 - t) if t >= 0.5 else low + diff * t
+
+
 def _noise_level(r, s=None, light=None):
-    return float(np.quantile(r, NOISE_QUANTILE) / NOISE_QUANTILE_Z) if r.size else 0.0
+    return _quantile(r, NOISE_QUANTILE) / NOISE_QUANTILE_Z if r.size else 0.0
 
 
 def _noise_floor(r, s, light, light_noise=None):
@@ -257,14 +285,19 @@ def _noise_floor(r, s, light, light_noise=None):
         return 0.0
     f2 = np.ones(1) if light_noise is None else np.asarray(light_noise, dtype=np.float64) ** 2
     x = f2[light if light_noise is not None else 0] / s**2
-    order = np.argsort(x, kind="stable")
+    order = _stable_order(x)
+    x, r = x[order], r[order]
+    size, extra = divmod(r.size, NOISE_FLOOR_BINS)  # np.array_split's equal-count bins
     rows, var = [], []
-    for part in np.array_split(order, NOISE_FLOOR_BINS):
-        if part.size < NOISE_FLOOR_MIN_COUNT:
+    end = 0
+    for k in range(NOISE_FLOOR_BINS):
+        start, end = end, end + size + (k < extra)
+        if end - start < NOISE_FLOOR_MIN_COUNT:
             continue
-        v = _noise_level(r[part]) ** 2
+        v = _noise_level(r[start:end]) ** 2
         if v > 0:
-            rows.append((np.median(x[part]), 1.0))
+            mid = (start + end - 1) // 2, (start + end) // 2  # x is sorted: its median
+            rows.append((0.5 * (x[mid[0]] + x[mid[1]]), 1.0))
             var.append(v)
     if len(var) < 2:
         return 0.0
@@ -274,6 +307,33 @@ def _noise_floor(r, s, light, light_noise=None):
     if coef[1] < 0:
         coef = np.array([np.sum(a[:, 0]) / np.sum(a[:, 0] ** 2), 0.0])
     return float(math.sqrt(max(coef[0], 0.0)))
+
+
+def _stable_order(x):
+    """``np.argsort(x, kind="stable")``; sorts only the runs of equal values when there are few.
+
+    Without per-light factors the noise floor's ``x`` is one value per pixel, repeated over its
+    residuals: a run sorted by its value (stably) and expanded in place is the stable order.
+    """
+    starts = np.flatnonzero(np.concatenate(([True], x[1:] != x[:-1])))
+    if starts.size > x.size // 4:
+        return np.argsort(x, kind="stable")
+    runs = np.argsort(x[starts], kind="stable")
+    lengths = np.diff(np.append(starts, x.size))[runs]
+    # output position k of a run placed at position q is its element starts[run] + k - q
+    return np.repeat(starts[runs] - (np.cumsum(lengths) - lengths), lengths) + np.arange(x.size)
+
+
+def _tile_pixels(pixels: int, workers: int, bound: int) -> int:
+    """Pixels per tile: ``bound``, or fewer for a small input on several threads.
+
+    Each of the ``workers`` threads gets ``TILES_PER_THREAD`` tiles, but a tile is never smaller
+    than ``MIN_TILE_SIZE`` pixels (nor larger than ``bound``).
+    """
+    if workers == 1:
+        return bound
+    share = -(-pixels // (workers * TILES_PER_THREAD))
+    return int(min(bound, max(MIN_TILE_SIZE, share)))
 
 
 def solve(
@@ -303,9 +363,11 @@ def solve(
         False for observations to drop (saturated, under the shadow threshold). Non-finite
         observations are always dropped.
     threads : int, optional
-        Worker threads over tiles (default: all cores).
+        Worker threads over tiles and over the noise fit's pieces (default: all cores).
     tile_size : int, optional
-        Pixels per tile (default 4096). Results do not depend on it.
+        Pixels per tile, at most (default 4096; with several threads a small input is cut into
+        smaller tiles, down to 512 pixels, so that each thread gets four). Results do not depend
+        on it.
     progress : callable, optional
         Called as ``progress(k)`` with the number of pixels just finished (increments summing
         to P).
@@ -340,9 +402,35 @@ def solve(
     obs, lights, usable = _check_inputs(observations, light_directions, valid)
     params = _method_params(method, method_params)
     n, p = obs.shape
-    used: dict = {"method": method}
+    workers = int(threads) if threads else (os.cpu_count() or 1)
+    if workers < 1:
+        raise SolverInputError(f"threads must be positive, got {threads}")
+    bound = int(tile_size) if tile_size else DEFAULT_TILE_SIZE
+    if bound < 1:
+        raise SolverInputError(f"tile_size must be positive, got {tile_size}")
+    tile = _tile_pixels(p, workers, bound)
+    starts = range(0, p, tile)
+    parallel = workers > 1 and (len(starts) > 1 or method in ("l1", "sbl", "rpca"))
+    with ThreadPoolExecutor(max_workers=workers) if parallel else nullcontext() as pool:
+        mapper = pool.map if pool is not None else map
 
-    noise_floor = None
+        def residuals():
+            return _noise_residuals(obs, lights, usable, mapper=mapper, workers=workers)
+
+        used = _solve_params(n, method, params, residuals)
+        if method == "rpca":
+            return solve_rpca(obs, lights, usable, params, used, progress)
+        used.update({"tile_size": bound, "threads": workers})
+        return _solve_tiles(obs, lights, usable, method, params, used, starts, tile, mapper,
+                            progress)
+
+
+def _solve_params(n, method, params, residuals) -> dict:
+    """Fill in the data-driven defaults of ``params`` (in place); the parameters as used.
+
+    ``n`` lights; ``residuals()`` returns the noise fit's residuals (:func:`_noise_residuals`).
+    """
+    used: dict = {"method": method}
     if method != "ls":
         noise = params.pop("noise_sigma")
         if method == "sbl":
@@ -353,12 +441,14 @@ def solve(
                 good = np.isfinite(light_noise) & (light_noise > 0)
                 if light_noise.shape != (n,) or not np.all(good):
                     raise SolverInputError(f"light_noise must be {n} finite positive factors")
+            params["light_noise"] = light_noise
             if params["lam"] is None and (noise is None or noise_floor is None):
-                residuals = _noise_residuals(obs, lights, usable)
+                fit = residuals()
                 if noise is None:
-                    noise = _noise_level(*residuals)
+                    noise = _noise_level(*fit)
                 if noise_floor is None:
-                    noise_floor = _noise_floor(*residuals, light_noise)
+                    noise_floor = _noise_floor(*fit, light_noise)
+            params["noise_floor"] = noise_floor
             if params["lam"] is None:
                 # per observation: max(noise_sigma^2 + (noise_floor light_noise_i / s)^2, 1e-6)
                 used["lambda"] = None
@@ -370,40 +460,38 @@ def solve(
                     noise = math.sqrt(params["lam"])
         if params["outlier_threshold"] is None:
             if noise is None:
-                noise = _noise_level(*_noise_residuals(obs, lights, usable))
+                noise = _noise_level(*residuals())
             params["outlier_threshold"] = max(3.0 * noise, MIN_OUTLIER_THRESHOLD)
         if noise is not None:
             used["noise_sigma"] = float(noise)
         if method == "sbl" and params["tol"] is None:
             params["tol"] = max(SBL_TOL_MIN, SBL_TOL_NOISE_SHARE * noise)
-    used.update({k: v for k, v in params.items() if k != "lam"})
+    used.update({k: v for k, v in params.items()
+                 if k not in ("lam", "noise_floor", "light_noise")})
+    return used
 
-    if method == "rpca":
-        return solve_rpca(obs, lights, usable, params, used, progress)
 
+def _solve_tiles(obs, lights, usable, method, params, used, starts, tile, mapper, progress):
+    """Run ``method``'s tile kernel over the tiles starting at ``starts``; the Solution."""
+    n, p = obs.shape
     normals = np.zeros((p, 3))
     albedo = np.zeros(p)
     outliers = np.zeros((n, p), bool)
     iterations = np.zeros(p, np.int64)
     kernel = {"ls": _kernels.ls_tile, "l1": _kernels.l1_tile, "sbl": _kernels.sbl_tile}[method]
-    kernel_params = dict(params)
+    kernel_params = {k: v for k, v in params.items() if k not in ("noise_floor", "light_noise")}
     if method == "ls":
         kernel_params = {"outlier_threshold": np.inf}
-    tile = int(tile_size) if tile_size else DEFAULT_TILE_SIZE
-    if tile < 1:
-        raise SolverInputError(f"tile_size must be positive, got {tile_size}")
-    workers = int(threads) if threads else (os.cpu_count() or 1)
-    if workers < 1:
-        raise SolverInputError(f"threads must be positive, got {threads}")
-    used.update({"tile_size": tile, "threads": workers})
+    per_pixel_lam = method == "sbl" and params["lam"] is None
 
     def run_tile(a: int) -> int:
         b = min(a + tile, p)
         y, w, scale, ok = _prepare_tile(obs, usable, lights, a, b)
         tile_params = kernel_params
-        if method == "sbl" and params["lam"] is None:
+        if per_pixel_lam:
             tile_params = {**kernel_params,
-                           "lam": sbl_lambda(scale, used["noise_sigma"], noise_floor, light_noise)}
+                           "lam": sbl_lambda(scale, used["noise_sigma"], params["noise_floor"],
+                                             params["light_noise"])}
         res = kernel(y, w, lights, **tile_params)
         x = res.x.astype(np.float64) * scale[:, None]
         length = np.linalg.norm(x, axis=1)
@@ -414,15 +502,7 @@ def solve(
         iterations[a:b] = np.where(ok, res.iterations, 0)
         return b - a
 
-    starts = range(0, p, tile)
-    if workers == 1 or len(starts) <= 1:
-        for a in starts:
-            done = run_tile(a)
-            if progress is not None:
-                progress(done)
-    else:
-        with ThreadPoolExecutor(max_workers=workers) as pool:
-            for done in pool.map(run_tile, starts):
-                if progress is not None:
-                    progress(done)
+    for done in mapper(run_tile, starts):
+        if progress is not None:
+            progress(done)
     return Solution(normals, albedo, outliers, iterations, used)

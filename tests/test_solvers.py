@@ -16,7 +16,13 @@ from ps_lab.reconstruct import (
     estimate_noise_model,
     solve,
 )
-from ps_lab.reconstruct._solve import light_noise_factors, sbl_lambda
+from ps_lab.reconstruct._solve import (
+    _check_inputs,
+    _noise_residuals,
+    _stable_order,
+    light_noise_factors,
+    sbl_lambda,
+)
 from ps_lab.render import random_light_directions, relief_surface, render, sphere_surface
 
 ORACLE_PARAMS = ("max_iter", "tol", "delta", "outlier_threshold", "sigma_x2", "gamma_floor",
@@ -137,6 +143,34 @@ def test_tiles_and_threads_give_the_single_tile_result(corrupted, method):
         assert np.abs(sol.normals - ref.normals).max() < 1e-6
         assert np.abs(sol.albedo - ref.albedo).max() < 1e-6 * ref.albedo.max()
         assert np.mean(sol.iterations == ref.iterations) > 0.99
+
+
+def test_noise_fit_in_pieces_and_default_tiles_give_the_one_piece_result():
+    rng = np.random.default_rng(5)
+    lights = lights_upper(16, rng)
+    y, _, _ = scene("relief", (64, 64), lights, rng, specular=0.3)
+    y = y + rng.normal(0.0, 0.005, y.shape) + rng.normal(0.0, 0.02, y.shape) * (y > 0)
+    obs, lights_, usable = _check_inputs(y, lights, None)
+    one = _noise_residuals(obs, lights_, usable)
+    for workers in (2, 3):
+        pieces = _noise_residuals(obs, lights_, usable, workers=workers)
+        assert all(np.array_equal(a, b) for a, b in zip(one, pieces, strict=True))
+    ref = solve(y, lights, method="sbl", threads=1)
+    sol = solve(y, lights, method="sbl", threads=3)  # 3 pieces, small tiles
+    assert sol.params["tile_size"] == ref.params["tile_size"] == 4096  # the bound
+    assert sol.params["noise_sigma"] == ref.params["noise_sigma"]
+    assert sol.params["noise_floor"] == ref.params["noise_floor"]
+    assert np.abs(sol.normals - ref.normals).max() < 1e-12
+
+
+def test_stable_order_of_runs_is_the_stable_argsort():
+    rng = np.random.default_rng(2)
+    for _ in range(50):
+        runs = rng.integers(1, 60)
+        x = np.repeat(rng.integers(0, 9, runs).astype(float), rng.integers(1, 20, runs))
+        assert np.array_equal(_stable_order(x), np.argsort(x, kind="stable"))
+    x = rng.random(500)  # no runs: the plain stable argsort
+    assert np.array_equal(_stable_order(x), np.argsort(x, kind="stable"))
 
 
 def test_progress_reports_every_pixel_once(corrupted):
