@@ -10,12 +10,17 @@ import typer
 from ps_lab._cli_util import fail, lab_command
 from ps_lab.commands.reconstruct import (
     Channel,
+    ChannelOption,
     DepthOption,
+    FixedIntensitiesOption,
     LambdaOption,
     Lights,
     LightsOption,
     MaxIterOption,
     Method,
+    MethodOption,
+    RefineLightsOption,
+    ShadowThresholdOption,
     SigmaX2Option,
     TolOption,
     _terminal_bars,
@@ -51,27 +56,11 @@ def batch(
             show_default=False,
         ),
     ] = None,
-    method: Annotated[
-        Method, typer.Option(help="Solver: ls (Woodham), l1 (IRLS), sbl (robust, default), rpca.")
-    ] = Method.sbl,
-    shadow_threshold: Annotated[
-        float | None,
-        typer.Option(
-            help="Drop observations at or below this value (after intensity division). "
-            "Default: 3 sigma of the noise at black, measured on the negative observations "
-            "of dark-subtracted frames (none without them); a negative value keeps all.",
-            show_default=False,
-        ),
-    ] = None,
-    channel: Annotated[
-        Channel, typer.Option(help="Colour rule: mean of the channels, or one of r, g, b.")
-    ] = Channel.mean,
-    refine_lights: Annotated[
-        int, typer.Option(min=0, help="Iterations of light refinement (0 = none).")
-    ] = 0,
-    fixed_intensities: Annotated[
-        bool, typer.Option(help="With --refine-lights: refine directions only.")
-    ] = False,
+    method: MethodOption = Method.sbl,
+    shadow_threshold: ShadowThresholdOption = None,
+    channel: ChannelOption = Channel.mean,
+    refine_lights: RefineLightsOption = 0,
+    fixed_intensities: FixedIntensitiesOption = False,
     memory_budget: Annotated[
         str, typer.Option(help="Memory for one row band's solve on a worker, e.g. 800MB or 2GB.")
     ] = "1GB",

@@ -44,6 +44,27 @@ class Channel(str, Enum):  # noqa: UP042
 
 
 # Options that `ps-lab batch` shares with `ps-lab reconstruct` (one declaration each).
+MethodOption = Annotated[
+    Method, typer.Option(help="Solver: ls (Woodham), l1 (IRLS), sbl (robust, default), rpca.")
+]
+ShadowThresholdOption = Annotated[
+    float | None,
+    typer.Option(
+        help="Drop observations at or below this value (after intensity division). "
+        "Default: 3 sigma of the noise at black, measured on the negative observations "
+        "of dark-subtracted frames (none without them); a negative value keeps all.",
+        show_default=False,
+    ),
+]
+ChannelOption = Annotated[
+    Channel, typer.Option(help="Colour rule: mean of the channels, or one of r, g, b.")
+]
+RefineLightsOption = Annotated[
+    int, typer.Option(min=0, help="Iterations of light refinement (0 = none).")
+]
+FixedIntensitiesOption = Annotated[
+    bool, typer.Option(help="With --refine-lights: refine directions only.")
+]
 LightsOption = Annotated[
     Lights,
     typer.Option(
@@ -95,35 +116,19 @@ def reconstruct(
         Path,
         typer.Argument(help="Image folder (DiLiGenT layout) or capture run.", show_default=False),
     ],
-    method: Annotated[
-        Method, typer.Option(help="Solver: ls (Woodham), l1 (IRLS), sbl (robust, default), rpca.")
-    ] = Method.sbl,
+    method: MethodOption = Method.sbl,
     out: Annotated[
         Path | None,
         typer.Option(help="Output folder [default: DATASET/recon/<method>].", show_default=False),
     ] = None,
-    shadow_threshold: Annotated[
-        float | None,
-        typer.Option(
-            help="Drop observations at or below this value (after intensity division). "
-            "Default: 3 sigma of the noise at black, measured on the negative observations "
-            "of dark-subtracted frames (none without them); a negative value keeps all.",
-            show_default=False,
-        ),
-    ] = None,
-    channel: Annotated[
-        Channel, typer.Option(help="Colour rule: mean of the channels, or one of r, g, b.")
-    ] = Channel.mean,
+    shadow_threshold: ShadowThresholdOption = None,
+    channel: ChannelOption = Channel.mean,
     threads: Annotated[
         int | None,
         typer.Option(min=1, help="Solver threads [default: all cores].", show_default=False),
     ] = None,
-    refine_lights: Annotated[
-        int, typer.Option(min=0, help="Iterations of light refinement (0 = none).")
-    ] = 0,
-    fixed_intensities: Annotated[
-        bool, typer.Option(help="With --refine-lights: refine directions only.")
-    ] = False,
+    refine_lights: RefineLightsOption = 0,
+    fixed_intensities: FixedIntensitiesOption = False,
     memory_budget: Annotated[
         str,
         typer.Option(
