@@ -5,15 +5,7 @@ mirror-law directions → matte-sphere intensities) and :func:`write_calibration
 DiLiGenT light tables, ``calibration.json`` and ``calibration.png``. See ``docs/calibration.md``.
 """
 
-from ps_lab.calibration._calibrate import (
-    Calibration,
-    calibrate,
-    chrome_score,
-    circle_residual,
-    rig_anisotropy,
-    rig_chrome_spheres,
-    rig_circles,
-)
+from ps_lab.calibration._calibrate import Calibration, calibrate
 from ps_lab.calibration._circle import (
     Circle,
     CircleFit,
@@ -37,6 +29,8 @@ from ps_lab.calibration._report import (
     write_calibration,
     zenith_azimuth_deg,
 )
+from ps_lab.calibration._rig_spheres import rig_anisotropy, rig_chrome_spheres, rig_circles
+from ps_lab.calibration._spheres import chrome_score, circle_residual
 
 __all__ = [
     "OUTPUT_FILES",

@@ -1,0 +1,194 @@
+"""What one reconstruction is asked to do: :class:`ReconstructOptions`, validated where it is made.
+
+The options object is passed whole to each stage of :mod:`ps_lab.reconstruct.pipeline`; this
+module also holds the memory model that sets the band height (:func:`band_pixels`) and the
+command-line sizes it accepts (:func:`parse_memory_size`).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import re
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any
+
+from ps_lab.errors import OutputError
+from ps_lab.reconstruct._solution import SolverInputError
+from ps_lab.reconstruct.depth import DepthOptions
+
+__all__ = [
+    "BYTES_PER_OBSERVATION",
+    "BYTES_PER_PIXEL",
+    "DEFAULT_MEMORY_BUDGET",
+    "IN_MEMORY_SHARE",
+    "LIGHT_MODELS",
+    "NEAR_BYTES_PER_OBSERVATION",
+    "SOLVER_OPTIONS",
+    "STAGING",
+    "ReconstructOptions",
+    "band_pixels",
+    "parse_memory_size",
+]
+
+DEFAULT_MEMORY_BUDGET = 1 << 30
+# Bytes held per observation of a band while it is solved: the float32 observations, their
+# validity, the solver's usable and outlier masks, and headroom for the refinement sums.
+BYTES_PER_OBSERVATION = 12
+# Bytes per pixel of a band: the solver's per-pixel results and the band's output images.
+BYTES_PER_PIXEL = 200
+# A store at most this share of the budget stays in memory; larger ones go to a temporary file.
+IN_MEMORY_SHARE = 0.25
+_SIZE_UNITS = {"": 1 << 20, "k": 1 << 10, "m": 1 << 20, "g": 1 << 30, "t": 1 << 40}
+STAGING = ("auto", "memory", "file")
+LIGHT_MODELS = ("auto", "near", "directional")
+# Per-pixel light vectors (float64 x 3) held beside a band's observations in near-light mode.
+NEAR_BYTES_PER_OBSERVATION = 24
+
+ProgressBars = Callable[[int, str], Any]
+
+
+def parse_memory_size(text: str) -> int:
+    """Parse a memory size such as ``"512MB"``, ``"1.5G"``, ``"2 GiB"`` or ``"800"`` (MB), in bytes.
+
+    Raises
+    ------
+    OutputError
+        Not a positive size.
+
+    """
+    match = re.fullmatch(r"\s*([0-9]*\.?[0-9]+)\s*([kKmMgGtT]?)(?:i?[bB])?\s*", str(text))
+    if match is None:
+        raise OutputError(f"--memory-budget {text!r}: expected a size such as 800MB or 2GB")
+    size = int(float(match.group(1)) * _SIZE_UNITS[match.group(2).lower()])
+    if size <= 0:
+        raise OutputError(f"--memory-budget {text!r} must be positive")
+    return size
+
+
+# Solver fields of ReconstructOptions -> (command-line flag, methods they apply to).
+SOLVER_OPTIONS = {
+    "lam": ("--lambda", ("sbl", "rpca")),
+    "sigma_x2": ("--sigma-x2", ("sbl",)),
+    "max_iter": ("--max-iter", ("l1", "sbl", "rpca")),
+    "tol": ("--tol", ("l1", "sbl", "rpca")),
+}
+
+
+def _check_solver_options(options: ReconstructOptions) -> None:
+    """Raise :class:`SolverInputError` for a bad solver field.
+
+    A field must be finite and positive (``max_iter`` whole) and apply to ``options.method``.
+    """
+    for name, (flag, methods) in SOLVER_OPTIONS.items():
+        value = getattr(options, name)
+        if value is None:
+            continue
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
+            raise SolverInputError(f"{flag} must be a number, got {value!r}")
+        if not math.isfinite(value) or value <= 0:
+            raise SolverInputError(f"{flag} must be finite and positive, got {value!r}")
+        if name == "max_iter" and int(value) != value:
+            raise SolverInputError(f"{flag} must be a whole number, got {value!r}")
+        if options.method not in methods:
+            raise SolverInputError(
+                f"{flag} does not apply to method {options.method} (only {', '.join(methods)})"
+            )
+
+
+def band_pixels(memory_budget: int, n_lights: int) -> int:
+    """Most mask pixels per band that keep one band's solve within ``memory_budget`` bytes."""
+    per_pixel = n_lights * BYTES_PER_OBSERVATION + BYTES_PER_PIXEL
+    return max(int(memory_budget) // per_pixel, 1)
+
+
+@dataclass(frozen=True)
+class ReconstructOptions:
+    """Every choice of one reconstruction; passed whole to each stage of the pipeline.
+
+    Attributes
+    ----------
+    method : {"ls", "l1", "sbl", "rpca"}
+        Solver. Noise level and outlier threshold are estimated once for the whole image; R-PCA's
+        low-rank model is fitted per band.
+    channel : {"r", "g", "b", "mean"}
+        As for :func:`ps_lab.io.dataset.load_dataset`.
+    shadow_threshold : float or None
+        Observations at or below it are dropped (as for :func:`ps_lab.io.dataset.load_dataset`).
+    threads : int or None
+        Solver threads (default all cores).
+    refine_lights : int
+        Iterations of light refinement (0 = none); the refined lights are written as
+        ``light_directions.txt`` / ``light_intensities.txt``.
+    fixed_intensities : bool
+        Refine directions only.
+    memory_budget : int or str
+        Bytes, or a size such as ``"1GB"`` (:func:`parse_memory_size`; stored as bytes), that one
+        band's solve may use; sets the band height.
+    staging : {"auto", "memory", "file"}
+        Backing of the observation store: in memory when small (``auto``), or forced.
+    lights : {"auto", "near", "directional"}
+        Light model: ``near`` solves with per-pixel light vectors from ``light_positions.txt``
+        (LEDs at a finite distance, alternating normals and depth; :mod:`ps_lab.reconstruct.near`),
+        ``directional`` with ``light_directions.txt`` alone; ``auto`` is near when the dataset
+        has ``light_positions.txt``.
+    scheduler : str or None
+        Address of a Dask scheduler (``tcp://host:8786``): the frames are staged and the bands
+        solved as tasks on its workers (:mod:`ps_lab.reconstruct.distributed`; the dataset and
+        the output folder must be on a filesystem the workers share). None: in this process.
+    lam, sigma_x2, max_iter, tol : float, float, int, float, or None
+        Solver parameters in the units of ``docs/solvers.md`` (relative to each pixel's robust
+        scale); None keeps the method's default. ``lam``: SBL's noise variance, or R-PCA's
+        sparse weight; ``sigma_x2``: SBL's prior variance of ``x``; ``max_iter`` and ``tol``:
+        SBL, L1 and R-PCA. Each must be finite and positive, and apply to ``method``.
+    depth : {"poisson", "bilateral"} or None
+        Also integrate the normals into depth maps and a mesh (:mod:`ps_lab.reconstruct.depth`).
+    """
+
+    method: str = "sbl"
+    channel: str = "mean"
+    shadow_threshold: float | None = None
+    threads: int | None = None
+    refine_lights: int = 0
+    fixed_intensities: bool = False
+    memory_budget: int = DEFAULT_MEMORY_BUDGET
+    staging: str = "auto"
+    lights: str = "auto"
+    scheduler: str | None = None
+    lam: float | None = None
+    sigma_x2: float | None = None
+    max_iter: int | None = None
+    tol: float | None = None
+
+    depth: str | None = None
+
+    def __post_init__(self) -> None:
+        if self.depth is not None:
+            DepthOptions(method=self.depth)  # validates the method
+        _check_solver_options(self)
+        if self.shadow_threshold is not None and not math.isfinite(self.shadow_threshold):
+            raise OutputError(f"--shadow-threshold {self.shadow_threshold} is not a finite number")
+        if self.staging not in STAGING:
+            raise OutputError(f"staging must be auto, memory or file, got {self.staging!r}")
+        if self.lights not in LIGHT_MODELS:
+            raise OutputError(f"lights must be auto, near or directional, got {self.lights!r}")
+        budget = self.memory_budget
+        if not isinstance(budget, int):
+            object.__setattr__(self, "memory_budget", parse_memory_size(budget))
+        elif budget <= 0:
+            raise OutputError(f"memory budget must be positive, got {budget}")
+
+    def solver_parameters(self) -> dict[str, Any]:
+        """Keyword arguments for :func:`ps_lab.reconstruct.solve` that these options fix.
+
+        The solver fields that are set (``lam`` is R-PCA's ``lam_sparse``); every band's solve
+        receives them.
+        """
+        given = {name: getattr(self, name) for name in SOLVER_OPTIONS}
+        names = {"lam": "lam_sparse"} if self.method == "rpca" else {}
+        return {names.get(k, k): v for k, v in given.items() if v is not None}
+
+    def replace(self, **changes: Any) -> ReconstructOptions:
+        """Return a copy with some fields changed (:func:`dataclasses.replace`)."""
+        return dataclasses.replace(self, **changes)
