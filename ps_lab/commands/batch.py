@@ -17,6 +17,7 @@ from ps_lab.commands.reconstruct import (
     Lights,
     LightsOption,
     MaxIterOption,
+    MemoryBudgetOption,
     Method,
     MethodOption,
     RefineLightsOption,
@@ -44,6 +45,7 @@ def batch(
         str | None,
         typer.Option(
             envvar="PS_LAB_SCHEDULER",
+            metavar="<address>",
             help="Dask scheduler address (tcp://host:8786); without it, a local cluster.",
             show_default=False,
         ),
@@ -61,9 +63,7 @@ def batch(
     channel: ChannelOption = Channel.mean,
     refine_lights: RefineLightsOption = 0,
     fixed_intensities: FixedIntensitiesOption = False,
-    memory_budget: Annotated[
-        str, typer.Option(help="Memory for one row band's solve on a worker, e.g. 800MB or 2GB.")
-    ] = "1GB",
+    memory_budget: MemoryBudgetOption = "1GB",
     lights: LightsOption = Lights.auto,
     lam: LambdaOption = None,
     sigma_x2: SigmaX2Option = None,
@@ -84,7 +84,7 @@ def batch(
         sigma_x2=sigma_x2,
         max_iter=max_iter,
         tol=tol,
-        depth=depth,
+        depth=None if depth is None else depth.value,
     )
     rows = run_batch(
         datasets,
