@@ -134,3 +134,67 @@ def test_a_bad_choice_names_its_option_first(args, line):
     assert result.exit_code == 2
     assert result.output.strip().splitlines() == [result.output.strip()]
     assert result.output.startswith(line), result.output
+
+
+# --- a result or a folder of datasets where a dataset belongs ------------------------------------
+
+
+@pytest.fixture(scope="module")
+def lab_folder(tmp_path_factory):
+    """lab/a and lab/b: two datasets; lab/a/recon/sbl: a's result, with depth."""
+    lab = tmp_path_factory.mktemp("lab") / "lab"
+    lab.mkdir()
+    for name in ("a", "b"):
+        result = runner.invoke(app, ["simulate", str(lab / name), "--size", "24", "--lights", "8"])
+        assert result.exit_code == 0, result.output
+    result = runner.invoke(app, ["reconstruct", str(lab / "a"), "--depth", "poisson"])
+    assert result.exit_code == 0, result.output
+    return lab
+
+
+def one_error_line(result) -> str:
+    assert result.exit_code == 2, result.output
+    lines = result.output.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("error: "), result.output
+    return lines[0]
+
+
+def files(root):
+    return sorted(str(p.relative_to(root)) for p in root.rglob("*"))
+
+
+@pytest.mark.parametrize("command", ["calibrate", "reconstruct"])
+def test_a_result_folder_is_not_taken_for_a_dataset(lab_folder, command):
+    result_folder = lab_folder / "a" / "recon" / "sbl"
+    before = files(lab_folder)
+    line = one_error_line(runner.invoke(app, [command, str(result_folder)]))
+    assert f"{result_folder}: a ps-lab reconstruct result (its metrics.json), not a dataset" in line
+    assert f"made from: {lab_folder / 'a'}" in line
+    assert "colour image" not in line and "light_directions" not in line
+    assert files(lab_folder) == before
+
+
+def test_reconstruct_on_a_folder_of_datasets_points_to_batch(lab_folder):
+    line = one_error_line(runner.invoke(app, ["reconstruct", str(lab_folder)]))
+    assert f"{lab_folder}: a folder of datasets, not a dataset" in line
+    assert "2 subfolders hold datasets: a, b" in line
+    assert f"ps-lab batch {lab_folder}/* --out-root RESULTS" in line
+
+
+def test_calibrate_on_a_folder_of_datasets_asks_for_one(lab_folder):
+    line = one_error_line(runner.invoke(app, ["calibrate", str(lab_folder)]))
+    assert f"{lab_folder}: a folder of datasets, not a dataset" in line
+    assert f"give one of them, e.g. {lab_folder / 'a'}" in line
+    assert "batch" not in line
+
+
+def test_a_folder_of_results_is_named_as_such(lab_folder):
+    line = one_error_line(runner.invoke(app, ["reconstruct", str(lab_folder / "a" / "recon")]))
+    assert "its subfolders are ps-lab reconstruct results (sbl)" in line
+
+
+def test_result_format_is_the_one_the_pipeline_writes():
+    from ps_lab.io import result
+    from ps_lab.reconstruct import pipeline
+
+    assert (result.RESULT_FORMAT, result.METRICS) == (pipeline.RESULT_FORMAT, pipeline.METRICS)

@@ -10,6 +10,8 @@ from typing import Annotated
 import typer
 
 from ps_lab._cli_util import lab_command, progress_bar
+from ps_lab.errors import DatasetError
+from ps_lab.io.frames import FolderOfDatasetsError
 from ps_lab.reconstruct.pipeline import (
     ReconstructOptions,
     parse_memory_size,
@@ -190,7 +192,11 @@ def reconstruct(
         tol=tol,
         depth=None if depth is None else depth.value,
     )
-    metrics = reconstruct_to_folder(dataset, out, options, progress_bars=_terminal_bars).metrics
+    try:
+        result = reconstruct_to_folder(dataset, out, options, progress_bars=_terminal_bars)
+    except FolderOfDatasetsError as exc:
+        raise DatasetError(f"{exc}, {batch_hint(exc.folder)}") from None
+    metrics = result.metrics
     typer.echo(
         f"{metrics['pixels']} pixels, {metrics['lights']} lights, {method.value} "
         f"in {metrics['solve_seconds']:.2f} s"
@@ -218,6 +224,11 @@ def reconstruct(
     if "depth" in metrics:
         typer.echo(_depth_line(metrics["depth"]))
     typer.echo(f"results: {out}")
+
+
+def batch_hint(folder: Path) -> str:
+    """What to type to reconstruct every dataset under ``folder``."""
+    return f"or reconstruct them all with ps-lab batch {folder}/* --out-root RESULTS"
 
 
 def _depth_line(depth: dict) -> str:
