@@ -70,8 +70,20 @@ def batch(
     max_iter: MaxIterOption = None,
     tol: TolOption = None,
     depth: DepthOption = None,
+    overwrite: Annotated[
+        bool,
+        typer.Option(
+            "--overwrite",
+            help="Replace results in OUT_ROOT made with other options (default: keep them, "
+            "with a warning naming the options).",
+        ),
+    ] = False,
 ) -> None:
-    """Reconstruct many datasets on a Dask cluster; skip those already done; print a summary."""
+    """Reconstruct many datasets on a Dask cluster; skip those already done; print a summary.
+
+    A result already in OUT_ROOT made with the same options is skipped; one made with other
+    options is kept, and a warning names the dataset and the options (--overwrite replaces it).
+    """
     options = ReconstructOptions(
         method=method.value,
         channel=channel.value,
@@ -93,6 +105,7 @@ def batch(
         scheduler=scheduler,
         workers=workers,
         progress_bars=_terminal_bars,
+        overwrite=overwrite,
     )
     typer.echo(summary_table(rows))
     failed = sum(row.status == "failed" for row in rows)
