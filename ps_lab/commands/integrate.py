@@ -8,7 +8,7 @@ from typing import Annotated
 import typer
 
 from ps_lab._cli_util import lab_command
-from ps_lab.commands.reconstruct import DepthMethod, _depth_line
+from ps_lab.commands.reconstruct import DepthMethod, _depth_line, _terminal_bars
 from ps_lab.reconstruct.depth import DepthOptions, integrate_result
 
 
@@ -37,7 +37,7 @@ def integrate(
 ) -> None:
     """Integrate normals.npy into depth.npy, depth.tiff, depth.png and mesh.ply."""
     options = DepthOptions(method=method.value, pixel_size=pixel_size, focal_length=focal_length)
-    depth = integrate_result(result, out, options)
+    depth = integrate_result(result, out, options, progress_bars=_terminal_bars)
     typer.echo(_depth_line(depth))
     typer.echo(f"results: {out if out is not None else result}")
 
