@@ -237,7 +237,8 @@ def test_without_dask_scheduler_and_batch_say_how_to_install(capture, tmp_path, 
         result = CliRunner().invoke(app, args)
         assert result.exit_code == 2
         assert result.output.strip() == (
-            "error: Dask is not installed: pip install 'ps-lab[distributed]'"
+            "error: Dask is not installed: in the ps-lab clone, run "
+            ".venv/bin/pip install -e '.[distributed]'"
         )
     assert list(tmp_path.iterdir()) == []
 
