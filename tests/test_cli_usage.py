@@ -63,6 +63,10 @@ def test_lazy_entry_point_accepts_dash_h(capsys):
         cli.main(["reconstruct", "-h"])
     assert exit_.value.code == 0
     assert "--shadow-threshold" in capsys.readouterr().out
+    with pytest.raises(SystemExit) as exit_:
+        cli.main([])  # bare `ps-lab`
+    assert exit_.value.code == 0
+    assert "Commands:" in capsys.readouterr().out
 
 
 @pytest.mark.parametrize("path", GROUPS, ids=lambda p: " ".join(p) or "ps-lab")
