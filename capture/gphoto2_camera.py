@@ -56,7 +56,11 @@ SETTING_ALIASES: dict[str, tuple[str, ...]] = {
 #: Settings whose choices are numbers: a value may match a choice numerically.
 _NUMERIC = {"shutterspeed", "aperture", "f-number", "fnumber", "iso", "isospeed"}
 
-_INSTALL_HINT = "python-gphoto2 is not installed: pip install 'ps-lab[gphoto2]'"
+# ps-lab is installed from its clone (not from a package index).
+_INSTALL_HINT = (
+    "python-gphoto2 is not installed: in the ps-lab clone, run "
+    ".venv/bin/pip install -e '.[gphoto2]'"
+)
 
 
 def _import_gphoto2() -> ModuleType:

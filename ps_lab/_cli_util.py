@@ -62,6 +62,15 @@ log = logging.getLogger("ps_lab")
 EXIT_USER_ERROR = 2
 EXIT_INTERRUPTED = 130
 
+#: Settings of every ``typer.Typer`` of the app (``typer.Typer(..., **HELP_SETTINGS)``): ``-h`` as
+#: well as ``--help`` (click passes it down to every command), and click's plain help layout,
+#: which wraps help text but never cuts an option name (typer's rich tables do at 80 columns)
+#: and prints help text as written (rich markup would eat a ``[default: ...]``).
+HELP_SETTINGS: dict[str, Any] = {
+    "context_settings": {"help_option_names": ["-h", "--help"]},
+    "rich_markup_mode": None,
+}
+
 
 _reported: list[str] = []  # error lines printed by this process
 
@@ -290,11 +299,23 @@ def param_label(param: Any) -> str:
     return (longs or opts or [f"--{param.name}"])[0]
 
 
+#: The app's own options, which go before the command (``ps-lab -v reconstruct ...``).
+_ROOT_OPTION = re.compile(r"-v+|--verbose|--version")
+
+
 def usage_line(exc: _click_exc.ClickException) -> str:
     """One line for a rejection by click/typer: ``--method: 'foo' is not one of ls, l1``."""
     if isinstance(exc, _click_exc.NoSuchOption):
         line = f"{exc.option_name}: no such option"
-        if exc.possibilities:
+        if _ROOT_OPTION.fullmatch(exc.option_name) and exc.ctx is not None and exc.ctx.parent:
+            # `ps-lab reconstruct DATA -v`: an option of the app itself, given after the command.
+            root = exc.ctx.find_root().info_name or "ps-lab"
+            command = exc.ctx.command_path[len(root) :].strip()
+            if exc.option_name == "--version":
+                line += f" of {command}: it is the app's ({root} --version)"
+            else:
+                line += f" of {command}: -v/-vv go before the command ({root} -v {command} ...)"
+        elif exc.possibilities:
             line += f" (did you mean {', '.join(sorted(exc.possibilities))}?)"
         return line
     if isinstance(exc, _click_exc.MissingParameter):
@@ -414,8 +435,25 @@ def os_error_line(exc: OSError) -> str:
 # --- the group ----------------------------------------------------------------------------------
 
 
-class LabGroup(TyperGroup):
-    """The app's click group: one line and exit 2 for every failure, 130 for a signal."""
+class HelpGroup(TyperGroup):
+    """A click group whose command list wraps each command's summary instead of cutting it."""
+
+    def format_commands(self, ctx: _click_core.Context, formatter: Any) -> None:
+        rows = []
+        for name in self.list_commands(ctx):
+            command = self.get_command(ctx, name)
+            if command is not None and not command.hidden:
+                rows.append((name, command.get_short_help_str(limit=1000)))
+        if rows:
+            with formatter.section("Commands"):
+                formatter.write_dl(rows)
+
+
+class LabGroup(HelpGroup):
+    """The app's click group: one line and exit 2 for every failure, 130 for a signal.
+
+    Bare ``ps-lab`` (and a bare command group such as ``ps-lab rig``) prints its help and exits 0.
+    """
 
     def main(self, args=None, prog_name=None, complete_var=None, standalone_mode=True, **extra):
         previous = install_signal_handlers()
@@ -433,7 +471,7 @@ class LabGroup(TyperGroup):
             code = result if isinstance(result, int) else 0
         except _click_exc.NoArgsIsHelpError as exc:
             typer.echo(exc.ctx.get_help() if exc.ctx else exc.format_message())
-            code = EXIT_USER_ERROR
+            code = 0
         except _click_exc.ClickException as exc:
             code = _say(usage_line(exc), EXIT_USER_ERROR)
         except Exit as exc:

@@ -16,7 +16,7 @@ from typing import Annotated, Any
 import typer
 
 from ps_lab import __version__
-from ps_lab._cli_util import LabGroup, configure_logging
+from ps_lab._cli_util import HELP_SETTINGS, LabGroup, configure_logging
 
 #: Command name -> module with ``register(app)``, in the order of ``ps-lab --help``.
 COMMANDS = {
@@ -44,6 +44,7 @@ def make_app(commands: Iterable[str] = tuple(COMMANDS)) -> typer.Typer:
         add_completion=False,
         pretty_exceptions_enable=False,
         cls=LabGroup,  # one `error:` line and exit 2 for every failure, 130 for a signal
+        **HELP_SETTINGS,
     )
     app.callback()(_root)
     for name in commands:
@@ -60,7 +61,13 @@ def _version(value: bool) -> None:
 def _root(
     verbose: Annotated[
         int,
-        typer.Option("--verbose", "-v", count=True, help="-v: info, -vv: debug (serial traffic)."),
+        typer.Option(
+            "--verbose",
+            "-v",
+            count=True,
+            show_default=False,
+            help="-v: info, -vv: debug (serial traffic); before the command.",
+        ),
     ] = 0,
     version: Annotated[
         bool, typer.Option("--version", callback=_version, is_eager=True, help="Print the version.")

@@ -3,14 +3,16 @@
 Each dataset is reconstructed whole by one worker, with the in-process pipeline
 (:func:`ps_lab.reconstruct.pipeline.reconstruct_to_folder`, one thread) writing its own staged
 output folder ``OUT_ROOT/<dataset name>`` (a shared filesystem is assumed, as for
-``--scheduler``). A dataset whose folder already holds a complete result is skipped, so a batch
-can be run again after an interruption; a dataset that fails is reported and does not stop the
-others; a worker that dies has its dataset run again elsewhere by Dask.
+``--scheduler``). A dataset whose folder already holds a complete result made with the same
+options is skipped, so a batch can be run again after an interruption; a result made with other
+options (another ``--method``, say) is kept and named in a warning (:func:`option_differences`),
+or replaced with ``overwrite``; a dataset that fails is reported and does not stop the others; a
+worker that dies has its dataset run again elsewhere by Dask.
 """
 
 from __future__ import annotations
 
-import json
+import logging
 import os
 import time
 from collections.abc import Callable, Sequence
@@ -20,13 +22,12 @@ from pathlib import Path
 from typing import Any
 
 from ps_lab.errors import DatasetError, PsLabError
+from ps_lab.io.frames import FolderOfDatasetsError
+from ps_lab.io.result import read_result_metrics
 from ps_lab.reconstruct import distributed
-from ps_lab.reconstruct.pipeline import (
-    METRICS,
-    RESULT_FORMAT,
-    ReconstructOptions,
-    reconstruct_to_folder,
-)
+from ps_lab.reconstruct.pipeline import SOLVER_OPTIONS, ReconstructOptions, reconstruct_to_folder
+
+log = logging.getLogger(__name__)
 
 
 @dataclass(frozen=True)
@@ -38,15 +39,16 @@ class BatchRow:
     dataset : Path
     out : Path
         Its result folder.
-    status : {"done", "skipped", "failed"}
-        ``skipped``: a complete result was already there.
+    status : {"done", "skipped", "kept", "failed"}
+        ``skipped``: a complete result made with the same options was already there; ``kept``:
+        one made with other options was there and was left as it is (``message`` names them).
     pixels : int or None
     seconds : float or None
         Wall time of its reconstruction on the worker (None when skipped or failed).
     error_deg : float or None
         Mean angular error against ground truth, when the dataset has it.
     message : str or None
-        Why it failed.
+        Why it failed, or which options of a kept result differ.
 
     """
 
@@ -75,13 +77,57 @@ def result_folders(datasets: Sequence[Path], out_root: Path) -> list[Path]:
 
 def finished_metrics(out: Path) -> dict | None:
     """The metrics of a complete result in ``out``, or None."""
-    try:
-        metrics = json.loads((Path(out) / METRICS).read_text(encoding="utf-8"))
-    except (OSError, ValueError):
-        return None
-    if not isinstance(metrics, dict) or metrics.get("format") != RESULT_FORMAT:
-        return None
-    return metrics
+    return read_result_metrics(out)
+
+
+def _shown(value: Any) -> str:
+    return "default" if value is None else str(value)
+
+
+def option_differences(metrics: dict, options: ReconstructOptions) -> list[str]:
+    """The options a stored result was made with that differ from ``options``.
+
+    Parameters
+    ----------
+    metrics : dict
+        The result's ``metrics.json``.
+    options : ReconstructOptions
+        The options asked for.
+
+    Returns
+    -------
+    list of str
+        One ``"--method sbl (asked ls)"`` per differing option, in command-line order; empty when
+        the result is what ``options`` would make. Compared: what ``metrics.json`` records
+        (method, channel, shadow threshold, solver options, light model when asked for
+        explicitly, light-refinement iterations, and depth when asked for); not ``threads`` or
+        ``memory_budget`` (they do not change the result), nor ``fixed_intensities`` (not
+        recorded). An entry an older result does not record is not compared.
+    """
+    pairs: list[tuple[str, Any, Any]] = []
+    for flag, key, asked in (
+        ("--method", "method", options.method),
+        ("--channel", "channel", options.channel),
+        ("--shadow-threshold", "shadow_threshold", options.shadow_threshold),
+    ):
+        if key in metrics:
+            pairs.append((flag, metrics[key], asked))
+    solver = metrics.get("solver_options")
+    if isinstance(solver, dict):
+        for name, (flag, _) in SOLVER_OPTIONS.items():
+            if flag[2:] in solver:
+                pairs.append((flag, solver[flag[2:]], getattr(options, name)))
+    if options.lights != "auto" and "light_model" in metrics:
+        pairs.append(("--lights", metrics["light_model"], options.lights))
+    refinement = metrics.get("refinement")
+    refined = refinement.get("iterations", 0) if isinstance(refinement, dict) else 0
+    pairs.append(("--refine-lights", refined, options.refine_lights))
+    if options.depth is not None:
+        depth = metrics.get("depth")
+        method = depth.get("method") if isinstance(depth, dict) else "none"
+        pairs.append(("--depth", method, options.depth))
+    return [f"{flag} {_shown(was)} (asked {_shown(asked)})" for flag, was, asked in pairs
+            if was != asked]
 
 
 def _row(dataset: Path, out: Path, status: str, metrics: dict, seconds=None) -> BatchRow:
@@ -96,6 +142,9 @@ def reconstruct_one(dataset: Path, out: Path, options: ReconstructOptions) -> Ba
     started = time.perf_counter()
     try:
         metrics = reconstruct_to_folder(dataset, out, options).metrics
+    except FolderOfDatasetsError as exc:
+        message = f"{exc}, or give them all: {exc.folder}/*"
+        return BatchRow(Path(dataset), Path(out), "failed", message=message)
     except PsLabError as exc:
         return BatchRow(Path(dataset), Path(out), "failed", message=str(exc))
     return _row(dataset, out, "done", metrics, time.perf_counter() - started)
@@ -108,6 +157,7 @@ def reconstruct_batch(
     client: Any,
     *,
     progress: Callable[..., None] | None = None,
+    overwrite: bool = False,
 ) -> list[BatchRow]:
     """Reconstruct every dataset as one task on ``client``'s cluster; rows in input order.
 
@@ -123,7 +173,11 @@ def reconstruct_batch(
     client : distributed.Client
         From :func:`ps_lab.reconstruct.distributed.connect` or ``local_cluster``.
     progress : callable or None
-        ``progress(1, description=name)`` after each dataset (done, skipped or failed).
+        ``progress(1, description=name)`` after each dataset (done, skipped, kept or failed).
+    overwrite : bool
+        Replace a result made with other options (else it is kept, with a warning in the log
+        naming the dataset and the differing options). A result made with these options is
+        skipped either way.
 
     Returns
     -------
@@ -136,10 +190,13 @@ def reconstruct_batch(
     futures = {}
     for index, (dataset, out) in enumerate(zip(datasets, outs, strict=True)):
         metrics = finished_metrics(out)
-        if metrics is not None:
-            rows[index] = _row(dataset, out, "skipped", metrics)
+        differences = [] if metrics is None else option_differences(metrics, options)
+        if metrics is not None and not (differences and overwrite):
+            row = _row(dataset, out, "skipped", metrics)
+            rows[index] = _kept(row, differences) if differences else row
             if progress is not None:
-                progress(1, description=f"{Path(dataset).name}: already done")
+                done = "kept (other options)" if differences else "already done"
+                progress(1, description=f"{Path(dataset).name}: {done}")
             continue
         key = f"ps-lab-dataset-{index}-{out.name}"
         future = client.submit(reconstruct_one, Path(dataset), out, task_options, key=key)
@@ -158,6 +215,20 @@ def reconstruct_batch(
     return [rows[index] for index in range(len(datasets))]
 
 
+def _kept(row: BatchRow, differences: list[str]) -> BatchRow:
+    """The row of a result made with other options, and the warning that names them."""
+    made = ", ".join(differences)
+    log.warning(
+        "%s: kept the result in %s, made with other options: %s; --overwrite replaces it "
+        "(or choose another --out-root)",
+        row.dataset,
+        row.out,
+        made,
+    )
+    return BatchRow(row.dataset, row.out, "kept", row.pixels, None, row.error_deg,
+                    f"made with {made}")
+
+
 def run_batch(
     datasets: Sequence[Path],
     out_root: Path,
@@ -166,6 +237,7 @@ def run_batch(
     scheduler: str | None = None,
     workers: int | None = None,
     progress_bars: Callable[[int, str], Any] | None = None,
+    overwrite: bool = False,
 ) -> list[BatchRow]:
     """Reconstruct many datasets on the Dask scheduler ``scheduler``, else on a local cluster.
 
@@ -181,6 +253,8 @@ def run_batch(
     progress_bars : callable or None
         ``progress_bars(total, description)`` (see :func:`ps_lab.reconstruct.pipeline.
         reconstruct_to_folder`): one bar over the datasets.
+    overwrite : bool
+        As for :func:`reconstruct_batch`.
 
     Returns
     -------
@@ -206,7 +280,9 @@ def run_batch(
         else nullcontext(lambda n=1, description=None: None)
     )
     with cluster as client, bar as advance:
-        return reconstruct_batch(datasets, out_root, options, client, progress=advance)
+        return reconstruct_batch(
+            datasets, out_root, options, client, progress=advance, overwrite=overwrite
+        )
 
 
 def summary_table(rows: Sequence[BatchRow]) -> str:

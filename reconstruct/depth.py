@@ -6,12 +6,22 @@ Used at the end of ``ps-lab reconstruct --depth METHOD`` (on the staged result f
 pixel size), ``depth.png`` (a shaded relief), ``mesh.ply`` (binary PLY, albedo-coloured vertices);
 and the normal maps for other tools written by every reconstruction: ``normal16.png`` and
 ``normals.exr``. Metrics go under ``"depth"`` in ``metrics.json``.
+
+An integration that stops before it converged (``bilateral`` at its limit of reweighting
+iterations, or a linear solve at its limit) is logged as a warning: the command prints it as one
+``warning:`` line after its results. Progress goes to a ``progress_bars`` callable, as in
+:func:`ps_lab.reconstruct.pipeline.reconstruct_to_folder`: one bar over the reweighting
+iterations.
 """
 
 from __future__ import annotations
 
 import json
+import logging
 import time
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
+from contextvars import ContextVar
 from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
@@ -24,9 +34,30 @@ from ps_lab.errors import OutputError
 from ps_lab.io.files import json_safe, staged_files, write_json_atomic
 from ps_lab.io.mesh import depth_mesh, write_ply
 from ps_lab.io.normal_maps import write_normal16, write_normals_exr
-from ps_lab.reconstruct.integrate import INTEGRATION_METHODS, IntegrationInputError, integrate
+from ps_lab.reconstruct.integrate import (
+    BILATERAL_MAX_ITERATIONS,
+    INTEGRATION_METHODS,
+    Integration,
+    IntegrationInputError,
+    integrate,
+)
 
-__all__ = ["DepthOptions", "depth_picture", "integrate_result", "write_depth", "write_normal_maps"]
+__all__ = [
+    "DepthOptions",
+    "depth_picture",
+    "depth_progress_bars",
+    "integrate_result",
+    "write_depth",
+    "write_normal_maps",
+]
+
+log = logging.getLogger(__name__)
+
+ProgressBars = Callable[[int, str], Any]
+
+# Bars for a depth stage that is given none: reconstruct_to_folder calls write_depth without
+# them, so `ps-lab reconstruct --depth` installs its bars here (depth_progress_bars).
+_STAGE_BARS: ContextVar[ProgressBars | None] = ContextVar("ps_lab_depth_bars", default=None)
 
 # Direction toward the light of the shaded relief: from the upper left, as maps are shaded.
 _RELIEF_LIGHT = np.array([-1.0, 1.0, 1.5]) / np.linalg.norm([-1.0, 1.0, 1.5])
@@ -61,6 +92,51 @@ class DepthOptions:
             raise IntegrationInputError(f"focal length must be positive, got {self.focal_length}")
 
 
+@contextmanager
+def depth_progress_bars(bars: ProgressBars | None) -> Iterator[None]:
+    """Within this block, :func:`write_depth` calls that get no ``progress_bars`` use ``bars``.
+
+    For the depth stage of :func:`ps_lab.reconstruct.pipeline.reconstruct_to_folder`, which
+    passes its own ``progress_bars`` to the read and solve stages only.
+    """
+    token = _STAGE_BARS.set(bars)
+    try:
+        yield
+    finally:
+        _STAGE_BARS.reset(token)
+
+
+@contextmanager
+def _no_bar(total: int, description: str) -> Iterator[Callable[..., None]]:
+    yield lambda n=1, description=None: None
+
+
+def _warn_unconverged(result: Integration) -> None:
+    """Log one warning (the CLI prints it as a ``warning:`` line) for an unconverged result."""
+    if result.converged:
+        return
+    if result.method == "bilateral" and result.iterations >= BILATERAL_MAX_ITERATIONS:
+        why = f"stopped at its limit of {BILATERAL_MAX_ITERATIONS} reweighting iterations"
+        change = f"{100 * result.energy_change:.2g} %"
+        if result.alternating:
+            why += (
+                f", its side weights flipping between two states (the energy alternates by "
+                f"{change})"
+            )
+        else:
+            why += f" before the energy settled (last change {change})"
+    else:
+        why = "a linear solve stopped at its iteration limit"
+    log.warning(
+        "depth (%s) did not converge: %s; depth.npy holds the last iterate (residual %.2g): "
+        "check depth.png%s",
+        result.method,
+        why,
+        result.residual,
+        ", or integrate with poisson" if result.method == "bilateral" else "",
+    )
+
+
 def depth_picture(depth: np.ndarray) -> np.ndarray:
     """Shaded relief of a depth map in pixel units: grey 8-bit, black where there is no depth.
 
@@ -92,7 +168,12 @@ def write_normal_maps(folder: Path, normals: np.ndarray, mask: np.ndarray) -> No
 
 
 def write_depth(
-    folder: Path, normals: np.ndarray, albedo: np.ndarray | None, options: DepthOptions
+    folder: Path,
+    normals: np.ndarray,
+    albedo: np.ndarray | None,
+    options: DepthOptions,
+    *,
+    progress_bars: ProgressBars | None = None,
 ) -> dict[str, Any]:
     """Integrate ``normals`` and write the depth files into ``folder``; return the metrics.
 
@@ -105,16 +186,38 @@ def write_depth(
     albedo : ndarray of shape (H, W) or (H, W, 3), optional
         Vertex colours of the mesh (scaled so that its 99th percentile is white).
     options : DepthOptions
+        Method and units.
+    progress_bars : callable or None
+        ``progress_bars(total, description)`` returning a context manager that yields
+        ``advance(n=1, description=None)`` (:func:`ps_lab._cli_util.progress_bar`): one bar over
+        the reweighting iterations (one step for ``poisson``). Default: those of an enclosing
+        :func:`depth_progress_bars`, else none.
 
     Returns
     -------
     dict
         ``method``, ``camera``, ``seconds``, ``iterations``, ``solver_iterations``, ``residual``,
-        ``components``, ``discontinuities``, ``converged``, ``pixels``, ``unit``, ``offset``.
+        ``components``, ``discontinuities``, ``converged``, ``energy_change``, ``alternating``,
+        ``pixels``, ``unit``, ``offset`` (:class:`~ps_lab.reconstruct.integrate.Integration`).
     """
+    bars = progress_bars or _STAGE_BARS.get() or _no_bar
+    total = BILATERAL_MAX_ITERATIONS if options.method == "bilateral" else 1
+    label = f"depth ({options.method})"
     started = time.perf_counter()
-    result = integrate(normals, None, options.method, focal_length=options.focal_length)
+    with bars(total, f"{label}: iterations" if total > 1 else label) as advance:
+        result = integrate(
+            normals,
+            None,
+            options.method,
+            focal_length=options.focal_length,
+            max_iterations=BILATERAL_MAX_ITERATIONS,
+            progress=advance,
+        )
+        if total > 1:
+            state = "converged" if result.converged else "not converged"
+            advance(0, description=f"{label}: {state} at iteration {result.iterations}")
     seconds = time.perf_counter() - started
+    _warn_unconverged(result)
     scale = options.pixel_size if options.pixel_size is not None else 1.0
     depth = (result.depth * np.float32(scale)).astype(np.float32)
     np.save(folder / "depth.npy", depth)
@@ -145,6 +248,8 @@ def write_depth(
         "offset": gauge,
         "discontinuities": result.discontinuities,
         "converged": result.converged,
+        "energy_change": result.energy_change,
+        "alternating": result.alternating,
         "pixels": result.pixels,
         "unit": "mm" if options.pixel_size is not None else "pixel",
         "mesh": {"vertices": len(vertices), "triangles": len(triangles)},
@@ -152,7 +257,13 @@ def write_depth(
     }
 
 
-def integrate_result(result: Path, out: Path | None, options: DepthOptions) -> dict[str, Any]:
+def integrate_result(
+    result: Path,
+    out: Path | None,
+    options: DepthOptions,
+    *,
+    progress_bars: ProgressBars | None = None,
+) -> dict[str, Any]:
     """``ps-lab integrate``: depth files for a reconstruct result folder.
 
     Parameters
@@ -163,6 +274,9 @@ def integrate_result(result: Path, out: Path | None, options: DepthOptions) -> d
         Where to write (default: ``result`` itself). The files appear together when complete; a
         ``metrics.json`` there gains (or replaces) its ``"depth"`` entry.
     options : DepthOptions
+        Method and units.
+    progress_bars : callable or None
+        As for :func:`write_depth`.
 
     Returns
     -------
@@ -184,7 +298,9 @@ def integrate_result(result: Path, out: Path | None, options: DepthOptions) -> d
     out = result if out is None else Path(out)
     try:
         with staged_files(out, prefix=".integrate-") as staging:
-            metrics = json_safe(write_depth(staging, normals, albedo, options))
+            metrics = json_safe(
+                write_depth(staging, normals, albedo, options, progress_bars=progress_bars)
+            )
         metrics_file = out / "metrics.json"
         record = json.loads(metrics_file.read_text("utf-8")) if metrics_file.is_file() else {}
         record["depth"] = metrics

@@ -1,6 +1,7 @@
 """Band work on a Dask cluster (``ps-lab reconstruct --scheduler``, ``ps-lab batch``).
 
-Dask (``dask.distributed``) is an optional dependency, ``pip install 'ps-lab[distributed]'``;
+Dask (``dask.distributed``) is an optional dependency (``make demo`` and ``make test`` install it;
+else ``.venv/bin/pip install -e '.[distributed]'`` in the clone);
 :mod:`ps_lab.reconstruct.pipeline` loads this module only when a scheduler is given, so a plain
 ``ps-lab reconstruct`` never imports Dask.
 
@@ -41,7 +42,9 @@ except ImportError:  # pragma: no cover - exercised by the missing-Dask test
 
 log = logging.getLogger(__name__)
 
-INSTALL_HINT = "Dask is not installed: pip install 'ps-lab[distributed]'"
+INSTALL_HINT = (
+    "Dask is not installed: in the ps-lab clone, run .venv/bin/pip install -e '.[distributed]'"
+)
 # Bands per worker at least (for load balance and a finer progress bar), memory budget permitting.
 BANDS_PER_WORKER = 4
 # Stage tasks per worker when a dark frame makes each task re-read it (else one light per task).

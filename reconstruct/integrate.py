@@ -68,6 +68,7 @@ References
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -78,6 +79,7 @@ from ps_lab.errors import DatasetError
 from ps_lab.reconstruct._multigrid import GridMultigrid, conjugate_gradients
 
 __all__ = [
+    "BILATERAL_MAX_ITERATIONS",
     "INTEGRATION_METHODS",
     "Integration",
     "IntegrationInputError",
@@ -86,6 +88,8 @@ __all__ = [
 ]
 
 INTEGRATION_METHODS = ("poisson", "bilateral")
+#: Most reweighting iterations of ``bilateral`` by default.
+BILATERAL_MAX_ITERATIONS = 150
 
 # Normals at grazing angles (cosine to the line of sight below this) are treated as missing: their
 # gradients are unbounded and a single such pixel would dominate its neighbourhood.
@@ -138,6 +142,12 @@ class Integration:
         0 for ``poisson``): the pixel boundaries that carry a depth step.
     converged : bool
         Whether every linear solve and, for ``bilateral``, the reweighting reached its tolerance.
+    energy_change : float
+        ``bilateral``: relative change of the energy at the last iteration (0 for ``poisson``).
+    alternating : bool
+        ``bilateral``: the last three energies alternate (the first and the last agree to within
+        ``tolerance`` while the middle one differs by more): the side weights flip between two
+        states, and further iterations do not settle them.
     """
 
     depth: np.ndarray
@@ -150,6 +160,8 @@ class Integration:
     residual: float
     discontinuities: int
     converged: bool
+    energy_change: float = 0.0
+    alternating: bool = False
 
 
 def valid_normals(normals: np.ndarray, mask: np.ndarray | None = None) -> np.ndarray:
@@ -186,9 +198,10 @@ def integrate(
     focal_length: float | None = None,
     principal_point: tuple[float, float] | None = None,
     sharpness: float = 50.0,
-    max_iterations: int = 150,
+    max_iterations: int = BILATERAL_MAX_ITERATIONS,
     tolerance: float = 1e-3,
     solver_tolerance: float | None = None,
+    progress: Callable[..., None] | None = None,
 ) -> Integration:
     """Integrate a normal map into a depth map.
 
@@ -219,6 +232,10 @@ def integrate(
     solver_tolerance : float, optional
         Relative residual of each linear solve; default 1e-6 (the depth of the benchmark relief
         agrees with a 1e-8 solve to 4 digits of its error).
+    progress : callable, optional
+        ``progress(1)`` after each reweighting iteration (``bilateral``: at most
+        ``max_iterations`` calls) or after the one solve (``poisson``), e.g. the ``advance`` of a
+        progress bar.
 
     Returns
     -------
@@ -280,6 +297,8 @@ def integrate(
         t = graph.trapezoid_targets(gradient_col, gradient_row)
         del gradient_col, gradient_row
         g, info = _least_squares(graph, t, solver_tolerance)
+        if progress is not None:
+            progress(1)
     else:
         # BiNI's residuals are the normal equations n_z D z + n_x (orthographic) and their
         # perspective form, m / f times the log-depth ones: each one-sided equation of a pixel is
@@ -290,7 +309,7 @@ def integrate(
         del m
         g, info = _bilateral(
             graph, gradient_col, gradient_row, factor**2, sharpness * unit**2,
-            max_iterations, tolerance, solver_tolerance,
+            max_iterations, tolerance, solver_tolerance, progress,
         )
     depth = np.full(shape, np.nan, dtype=np.float32)
     depth[valid] = _fix_gauge(g, graph, focal_length)
@@ -472,7 +491,7 @@ def _least_squares(graph: _Graph, t: np.ndarray, tolerance: float):
 
 
 def _bilateral(graph, gradient_col, gradient_row, factor2, sharpness, max_iterations, tolerance,
-               solver_tolerance):
+               solver_tolerance, progress=None):
     """Bilateral normal integration in pair form (module docstring), from side weights 1/2."""
     k = graph.horizontal
     # Each edge (p, q) holds p's forward and q's backward one-sided equation of its direction;
@@ -490,6 +509,7 @@ def _bilateral(graph, gradient_col, gradient_row, factor2, sharpness, max_iterat
     previous = None
     calm = 0
     iteration = 0
+    energies: list[float] = []  # the last three
     for iteration in range(1, max_iterations + 1):
         tail_weight, head_weight = _equation_weights(graph, forward, factor2)
         pair = np.maximum(tail_weight + head_weight, _MIN_WEIGHT)
@@ -504,12 +524,15 @@ def _bilateral(graph, gradient_col, gradient_row, factor2, sharpness, max_iterat
             np.sum(tail_weight * (difference - own_tail) ** 2)
             + np.sum(head_weight * (difference - own_head) ** 2)
         )
+        energies = [*energies[-2:], energy]
         misfit = difference - trapezoid
         forward = [_one_sided(fwd, bwd, misfit, sharpness) for fwd, bwd in sides]
         # Settled at the second small energy change: a first one also happens while a step is
         # still forming (measured: k = 45 stopped at 11 iterations with 3 wrong columns). Two in a
         # row would be stricter, but on real shapes (DiLiGenT) the energy then rarely settled
         # within 150 iterations.
+        if progress is not None:
+            progress(1)
         small = previous is not None and abs(previous - energy) <= tolerance * previous
         calm += small
         if calm >= 2:
@@ -520,13 +543,33 @@ def _bilateral(graph, gradient_col, gradient_row, factor2, sharpness, max_iterat
     residual = float(np.sqrt(energy / total_weight)) if total_weight else 0.0
     # A pair both of whose equations are (nearly) dropped carries a step.
     cut = int(np.count_nonzero(_cut_pairs(graph, forward)))
+    change, alternating = _last_change(energies, tolerance)
     return g, {
         "iterations": iteration,
         "solver_iterations": total,
         "residual": residual,
         "discontinuities": cut,
         "converged": bool(all_converged and settled),
+        "energy_change": change,
+        "alternating": alternating,
     }
+
+
+def _last_change(energies: list[float], tolerance: float) -> tuple[float, bool]:
+    """Relative change of the last of ``energies``, and whether the last three alternate.
+
+    Alternating: the first and the last agree to within ``tolerance`` while the last change is
+    larger, i.e. the weights flip between two states.
+    """
+    if len(energies) < 2 or energies[-2] <= 0:
+        return 0.0, False
+    change = abs(energies[-1] - energies[-2]) / energies[-2]
+    alternating = (
+        len(energies) >= 3
+        and change > tolerance
+        and abs(energies[-1] - energies[-3]) <= tolerance * energies[-3]
+    )
+    return float(change), bool(alternating)
 
 
 def _one_sided(fwd, bwd, misfit, sharpness):

@@ -520,7 +520,8 @@ def test_gphoto2_missing_library_message(monkeypatch):
         return real_import(name, *args, **kwargs)
 
     monkeypatch.setattr(builtins, "__import__", no_gphoto2)
-    with pytest.raises(CameraError, match=r"pip install 'ps-lab\[gphoto2\]'"):
+    hint = r"in the ps-lab clone, run \.venv/bin/pip install -e '\.\[gphoto2\]'"
+    with pytest.raises(CameraError, match=hint):
         Gphoto2Camera(settings={})
 
 

@@ -133,3 +133,97 @@ def test_a_dataset_with_an_lp_file_instead_of_light_directions(tmp_path):
     np.testing.assert_allclose(
         np.load(tmp_path / "lp" / "normals.npy"), np.load(reference / "normals.npy"), atol=1e-6
     )
+
+
+# --- progress and convergence of the depth stage (issue 21) ------------------------------------
+
+
+class Bars:
+    """A stand-in for the CLI's progress bars: records each bar's total, descriptions and steps."""
+
+    def __init__(self):
+        self.bars = []
+
+    def __call__(self, total, description):
+        from contextlib import contextmanager
+
+        bar = {"total": total, "descriptions": [description], "steps": 0}
+        self.bars.append(bar)
+
+        @contextmanager
+        def opened():
+            def advance(n=1, description=None):
+                bar["steps"] += n
+                if description is not None:
+                    bar["descriptions"].append(description)
+
+            yield advance
+
+        return opened()
+
+    def depth(self):
+        return [bar for bar in self.bars if bar["descriptions"][0].startswith("depth")]
+
+
+@pytest.fixture(scope="module")
+def relief_result(tmp_path_factory):
+    # A 48 px sphere: its bilateral reweighting settles (at 14 iterations); simulated reliefs and
+    # larger spheres end in a two-state cycle of the side weights (docs/results.md).
+    root = tmp_path_factory.mktemp("sphere")
+    result = runner.invoke(app, ["simulate", str(root / "sphere"), "--size", "48"])
+    assert result.exit_code == 0, result.output
+    return root / "sphere"
+
+
+def test_reconstruct_depth_shows_a_bar_over_the_reweighting(relief_result, tmp_path, monkeypatch):
+    bars = Bars()
+    monkeypatch.setattr("ps_lab.commands.reconstruct._terminal_bars", bars)
+    out = tmp_path / "out"
+    result = runner.invoke(
+        app, ["reconstruct", str(relief_result), "--out", str(out), "--depth", "bilateral"]
+    )
+    assert result.exit_code == 0, result.output
+    depth = json.loads((out / "metrics.json").read_text())["depth"]
+    assert depth["converged"] and "warning" not in result.output
+    [bar] = bars.depth()
+    assert bar["total"] == 150 and bar["steps"] == depth["iterations"]
+    assert bar["descriptions"] == [
+        "depth (bilateral): iterations",
+        f"depth (bilateral): converged at iteration {depth['iterations']}",
+    ]
+
+
+def test_integrate_shows_a_bar_and_warns_when_it_stops_unconverged(
+    relief_result, tmp_path, monkeypatch
+):
+    out = tmp_path / "out"
+    result = runner.invoke(app, ["reconstruct", str(relief_result), "--out", str(out)])
+    assert result.exit_code == 0, result.output
+    bars = Bars()
+    monkeypatch.setattr("ps_lab.commands.integrate._terminal_bars", bars)
+    monkeypatch.setattr("ps_lab.reconstruct.depth.BILATERAL_MAX_ITERATIONS", 2)
+    result = runner.invoke(app, ["integrate", str(out), "--method", "bilateral"])
+    assert result.exit_code == 0, result.output
+    depth = json.loads((out / "metrics.json").read_text())["depth"]
+    assert not depth["converged"] and depth["iterations"] == 2
+    assert bars.depth()[0]["steps"] == 2
+    warnings = [line for line in result.output.splitlines() if line.startswith("warning:")]
+    change = f"{100 * depth['energy_change']:.2g} %"
+    assert warnings == [
+        "warning: depth (bilateral) did not converge: stopped at its limit of 2 reweighting "
+        f"iterations before the energy settled (last change {change}); depth.npy holds the last "
+        f"iterate (residual {depth['residual']:.2g}): check depth.png, or integrate with poisson"
+    ]
+    assert result.output.splitlines()[-1] == warnings[0]  # after the results
+
+
+def test_reconstruct_depth_warns_when_it_stops_unconverged(relief_result, tmp_path, monkeypatch):
+    monkeypatch.setattr("ps_lab.reconstruct.depth.BILATERAL_MAX_ITERATIONS", 2)
+    result = runner.invoke(
+        app,
+        ["reconstruct", str(relief_result), "--out", str(tmp_path / "o"), "--depth", "bilateral"],
+    )
+    assert result.exit_code == 0, result.output
+    assert result.output.splitlines()[-1].startswith(
+        "warning: depth (bilateral) did not converge: stopped at its limit of 2"
+    )

@@ -237,7 +237,8 @@ def test_without_dask_scheduler_and_batch_say_how_to_install(capture, tmp_path, 
         result = CliRunner().invoke(app, args)
         assert result.exit_code == 2
         assert result.output.strip() == (
-            "error: Dask is not installed: pip install 'ps-lab[distributed]'"
+            "error: Dask is not installed: in the ps-lab clone, run "
+            ".venv/bin/pip install -e '.[distributed]'"
         )
     assert list(tmp_path.iterdir()) == []
 
@@ -326,3 +327,62 @@ def test_batch_takes_the_solver_options_of_reconstruct(three, cluster, tmp_path)
     assert metrics["solver_options"]["max-iter"] == 7
     assert metrics["solver_options"]["tol"] == 1e-3
     assert metrics["iterations"]["max"] <= 7
+
+
+def test_a_result_made_with_other_options_is_kept_and_named(three, cluster, tmp_path):
+    # Issue 21: `--method ls` into a root of SBL results used to report `skipped`, silently.
+    root = tmp_path / "results"
+    address = ["--scheduler", cluster.scheduler_address]
+    first = CliRunner().invoke(app, ["batch", str(three[0]), "--out-root", str(root), *address])
+    assert first.exit_code == 0, first.output
+    sbl = (root / "sphere0" / "metrics.json").read_text()
+    again = CliRunner().invoke(
+        app, ["batch", str(three[0]), "--out-root", str(root), "--method", "ls", *address]
+    )
+    assert again.exit_code == 0, again.output
+    lines = again.output.strip().splitlines()
+    assert lines[1].endswith("kept: made with --method sbl (asked ls)"), again.output
+    assert lines[-1] == (
+        f"warning: {three[0]}: kept the result in {root / 'sphere0'}, made with other options: "
+        "--method sbl (asked ls); --overwrite replaces it (or choose another --out-root)"
+    )
+    assert (root / "sphere0" / "metrics.json").read_text() == sbl
+    same = CliRunner().invoke(app, ["batch", str(three[0]), "--out-root", str(root), *address])
+    assert same.exit_code == 0 and "warning" not in same.output
+    assert same.output.strip().splitlines()[1].endswith("skipped")
+    replaced = CliRunner().invoke(
+        app,
+        ["batch", str(three[0]), "--out-root", str(root), "--method", "ls", "--overwrite",
+         *address],  # fmt: skip
+    )
+    assert replaced.exit_code == 0, replaced.output
+    assert replaced.output.strip().splitlines()[1].endswith("done")
+    assert json.loads((root / "sphere0" / "metrics.json").read_text())["method"] == "ls"
+
+
+def test_option_differences_compare_what_metrics_json_records():
+    from ps_lab.reconstruct.batch import option_differences
+
+    stored = {
+        "method": "sbl", "channel": "mean", "shadow_threshold": None, "light_model": "near",
+        "solver_options": {"lambda": None, "sigma-x2": None, "max-iter": 7, "tol": None},
+        "refinement": {"iterations": 2}, "depth": {"method": "poisson"},
+    }  # fmt: skip
+    same = ReconstructOptions(max_iter=7, refine_lights=2, threads=3, memory_budget="2GB")
+    assert option_differences(stored, same) == []
+    assert option_differences(stored, same.replace(depth="poisson", lights="near")) == []
+    other = ReconstructOptions(
+        method="l1", channel="r", shadow_threshold=0.01, tol=1e-3, lights="directional",
+        depth="bilateral",
+    )  # fmt: skip
+    assert option_differences(stored, other) == [
+        "--method sbl (asked l1)",
+        "--channel mean (asked r)",
+        "--shadow-threshold default (asked 0.01)",
+        "--max-iter 7 (asked default)",
+        "--tol default (asked 0.001)",
+        "--lights near (asked directional)",
+        "--refine-lights 2 (asked 0)",
+        "--depth poisson (asked bilateral)",
+    ]
+    assert option_differences({"method": "sbl"}, ReconstructOptions(method="sbl")) == []

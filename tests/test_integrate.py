@@ -138,3 +138,26 @@ def test_bad_parameters_raise_one_error_type(kwargs, message):
 def test_no_normal_at_all_is_an_error():
     with pytest.raises(IntegrationInputError, match="no pixel"):
         integrate(np.zeros((4, 4, 3)))
+
+
+@pytest.mark.parametrize("method", ["poisson", "bilateral"])
+def test_progress_is_called_once_per_reweighting_iteration(method):
+    depth, d_col, d_row, mask = bumps((48, 56), seed=1)[:4]
+    normals = normals_from_depth(np.where(mask, depth, 0.0), d_col, d_row, None)
+    calls = []
+    result = integrate(normals, mask, method, progress=calls.append)
+    assert calls == [1] * result.iterations
+    assert result.iterations == (1 if method == "poisson" else len(calls))
+
+
+def test_a_two_state_cycle_of_the_weights_is_told_from_a_slow_settling():
+    # On SBL normals of simulated reliefs the side weights of a few pixels flip back and forth:
+    # the energy alternates (0.2-0.9 %, measured) and the reweighting runs to its limit.
+    from ps_lab.reconstruct.integrate import _last_change
+
+    change, alternating = _last_change([100.43, 100.0, 100.43], 1e-3)
+    assert change == pytest.approx(0.0043, rel=1e-3) and alternating
+    change, alternating = _last_change([101.0, 100.5, 100.0], 1e-3)
+    assert change == pytest.approx(0.5 / 100.5) and not alternating
+    assert _last_change([100.0, 100.05, 100.0], 1e-3) == (pytest.approx(0.0005, rel=1e-3), False)
+    assert _last_change([5.0], 1e-3) == (0.0, False)

@@ -17,6 +17,7 @@ from ps_lab.commands.reconstruct import (
     Lights,
     LightsOption,
     MaxIterOption,
+    MemoryBudgetOption,
     Method,
     MethodOption,
     RefineLightsOption,
@@ -44,6 +45,7 @@ def batch(
         str | None,
         typer.Option(
             envvar="PS_LAB_SCHEDULER",
+            metavar="<address>",
             help="Dask scheduler address (tcp://host:8786); without it, a local cluster.",
             show_default=False,
         ),
@@ -61,17 +63,27 @@ def batch(
     channel: ChannelOption = Channel.mean,
     refine_lights: RefineLightsOption = 0,
     fixed_intensities: FixedIntensitiesOption = False,
-    memory_budget: Annotated[
-        str, typer.Option(help="Memory for one row band's solve on a worker, e.g. 800MB or 2GB.")
-    ] = "1GB",
+    memory_budget: MemoryBudgetOption = "1GB",
     lights: LightsOption = Lights.auto,
     lam: LambdaOption = None,
     sigma_x2: SigmaX2Option = None,
     max_iter: MaxIterOption = None,
     tol: TolOption = None,
     depth: DepthOption = None,
+    overwrite: Annotated[
+        bool,
+        typer.Option(
+            "--overwrite",
+            help="Replace results in OUT_ROOT made with other options (default: keep them, "
+            "with a warning naming the options).",
+        ),
+    ] = False,
 ) -> None:
-    """Reconstruct many datasets on a Dask cluster; skip those already done; print a summary."""
+    """Reconstruct many datasets on a Dask cluster; skip those already done; print a summary.
+
+    A result already in OUT_ROOT made with the same options is skipped; one made with other
+    options is kept, and a warning names the dataset and the options (--overwrite replaces it).
+    """
     options = ReconstructOptions(
         method=method.value,
         channel=channel.value,
@@ -84,7 +96,7 @@ def batch(
         sigma_x2=sigma_x2,
         max_iter=max_iter,
         tol=tol,
-        depth=depth,
+        depth=None if depth is None else depth.value,
     )
     rows = run_batch(
         datasets,
@@ -93,6 +105,7 @@ def batch(
         scheduler=scheduler,
         workers=workers,
         progress_bars=_terminal_bars,
+        overwrite=overwrite,
     )
     typer.echo(summary_table(rows))
     failed = sum(row.status == "failed" for row in rows)

@@ -8,7 +8,7 @@ from typing import Annotated
 
 import typer
 
-from ps_lab._cli_util import lab_command, progress_bar
+from ps_lab._cli_util import HELP_SETTINGS, HelpGroup, lab_command, progress_bar
 from ps_lab.bench import paper as bench_paper
 from ps_lab.bench import real as bench_real
 from ps_lab.bench import report
@@ -24,6 +24,8 @@ bench_app = typer.Typer(
     name="bench",
     help="Benchmarks on rendered scenes (the paper's tables).",
     no_args_is_help=True,
+    cls=HelpGroup,
+    **HELP_SETTINGS,
 )
 
 
@@ -48,7 +50,10 @@ def paper(
         int | None, typer.Option(min=0, help="Seed of the light sets (default 0).")
     ] = None,
     tables: Annotated[
-        str | None, typer.Option(help="Tables to run, comma-separated from 1,3,4,5 (default all).")
+        str | None,
+        typer.Option(
+            metavar="<list>", help="Tables to run, comma-separated from 1,3,4,5 (default all)."
+        ),
     ] = None,
     markdown: MarkdownFlag = False,
     json_out: JsonFile = None,
@@ -81,7 +86,7 @@ def real(
         Path | None,
         typer.Argument(
             help="Folder of object folders (DiLiGenT layout with normal_gt) "
-            "[default: ../shared/data/diligent-8bit from the repository root].",
+            "(default: ../shared/data/diligent-8bit from the repository root).",
             show_default=False,
         ),
     ] = None,
@@ -92,7 +97,7 @@ def real(
     json_out: JsonFile = None,
     threads: Annotated[
         int | None,
-        typer.Option(min=1, help="Solver threads [default: all cores].", show_default=False),
+        typer.Option(min=1, help="Solver threads (default: all cores).", show_default=False),
     ] = None,
 ) -> None:
     """LS, L1, SBL, R-PCA (defaults) and SBL at fixed lambda on every real object of a folder."""

@@ -37,16 +37,19 @@ def calibrate(
     sphere: Annotated[
         list[str] | None,
         typer.Option(
+            metavar="<cx,cy,r>",
             help="Chrome sphere circle CX,CY,R in pixels (x = column, y = row), used as given; "
             "give it twice (two spheres) for LED positions."
         ),
     ] = None,
     roi: Annotated[
-        str | None, typer.Option(help="Search the sphere only in X,Y,W,H (pixels).")
+        str | None,
+        typer.Option(metavar="<x,y,w,h>", help="Search the sphere only in X,Y,W,H (pixels)."),
     ] = None,
     matte: Annotated[
         str | None,
         typer.Option(
+            metavar="<cx,cy,r>",
             help="Matte (Lambertian) sphere CX,CY,R for light intensities (default: rig file)."
         ),
     ] = None,

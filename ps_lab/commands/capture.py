@@ -20,7 +20,11 @@ def capture(
     ],
     lights: Annotated[
         str | None,
-        typer.Option("--lights", help="Lights to shoot, e.g. 1-24 or 1,3,5-9 (default: all)."),
+        typer.Option(
+            "--lights",
+            metavar="<list>",
+            help="Lights to shoot, e.g. 1-24 or 1,3,5-9 (default: all).",
+        ),
     ] = None,
     repeat: Annotated[
         int | None,
@@ -38,7 +42,9 @@ def capture(
     port: Annotated[
         str | None,
         typer.Option(
-            "--port", help="Serial port of the light controller (overrides the rig file)."
+            "--port",
+            metavar="<port>",
+            help="Serial port of the light controller (overrides the rig file).",
         ),
     ] = None,
     exposure: Annotated[

@@ -2,22 +2,14 @@
 
 from __future__ import annotations
 
-from enum import Enum
 from pathlib import Path
 from typing import Annotated
 
 import typer
 
 from ps_lab._cli_util import lab_command
-from ps_lab.commands.reconstruct import _depth_line
+from ps_lab.commands.reconstruct import DepthMethod, _depth_line, _terminal_bars
 from ps_lab.reconstruct.depth import DepthOptions, integrate_result
-
-
-class IntegrationMethod(str, Enum):  # noqa: UP042 - typer needs str-valued choices
-    """Integration methods (see ``ps_lab.reconstruct.integrate``)."""
-
-    poisson = "poisson"
-    bilateral = "bilateral"
 
 
 @lab_command
@@ -26,24 +18,26 @@ def integrate(
         Path, typer.Argument(help="A ps-lab reconstruct output folder.", show_default=False)
     ],
     method: Annotated[
-        IntegrationMethod,
-        typer.Option(help="poisson (least squares) or bilateral (keeps depth steps)."),
-    ] = IntegrationMethod.poisson,
+        DepthMethod,
+        typer.Option(
+            case_sensitive=False, help="poisson (least squares) or bilateral (keeps depth steps)."
+        ),
+    ] = DepthMethod.poisson,
     pixel_size: Annotated[
         float | None,
         typer.Option(help="Pixel width on the object in mm: depth and mesh in mm.", min=0.0),
     ] = None,
     focal_length: Annotated[
         float | None,
-        typer.Option(help="Perspective camera: focal length in pixels [default: orthographic]."),
+        typer.Option(help="Perspective camera: focal length in pixels (default: orthographic)."),
     ] = None,
     out: Annotated[
-        Path | None, typer.Option(help="Output folder [default: RESULT].", show_default=False)
+        Path | None, typer.Option(help="Output folder (default: RESULT).", show_default=False)
     ] = None,
 ) -> None:
     """Integrate normals.npy into depth.npy, depth.tiff, depth.png and mesh.ply."""
     options = DepthOptions(method=method.value, pixel_size=pixel_size, focal_length=focal_length)
-    depth = integrate_result(result, out, options)
+    depth = integrate_result(result, out, options, progress_bars=_terminal_bars)
     typer.echo(_depth_line(depth))
     typer.echo(f"results: {out if out is not None else result}")
 

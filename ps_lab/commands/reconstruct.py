@@ -10,6 +10,9 @@ from typing import Annotated
 import typer
 
 from ps_lab._cli_util import lab_command, progress_bar
+from ps_lab.errors import DatasetError
+from ps_lab.io.frames import FolderOfDatasetsError
+from ps_lab.reconstruct.depth import depth_progress_bars
 from ps_lab.reconstruct.pipeline import (
     ReconstructOptions,
     parse_memory_size,
@@ -43,9 +46,22 @@ class Channel(str, Enum):  # noqa: UP042
     b = "b"
 
 
+class DepthMethod(str, Enum):  # noqa: UP042
+    """Normal integration methods (see ``ps_lab.reconstruct.integrate``)."""
+
+    poisson = "poisson"
+    bilateral = "bilateral"
+
+
+# Every choice is case-insensitive (`--method SBL`), as a lab user types it.
+
+
 # Options that `ps-lab batch` shares with `ps-lab reconstruct` (one declaration each).
 MethodOption = Annotated[
-    Method, typer.Option(help="Solver: ls (Woodham), l1 (IRLS), sbl (robust, default), rpca.")
+    Method,
+    typer.Option(
+        case_sensitive=False, help="Solver: ls (Woodham), l1 (IRLS), sbl (robust, default), rpca."
+    ),
 ]
 ShadowThresholdOption = Annotated[
     float | None,
@@ -57,7 +73,10 @@ ShadowThresholdOption = Annotated[
     ),
 ]
 ChannelOption = Annotated[
-    Channel, typer.Option(help="Colour rule: mean of the channels, or one of r, g, b.")
+    Channel,
+    typer.Option(
+        case_sensitive=False, help="Colour rule: mean of the channels, or one of r, g, b."
+    ),
 ]
 RefineLightsOption = Annotated[
     int, typer.Option(min=0, help="Iterations of light refinement (0 = none).")
@@ -68,6 +87,7 @@ FixedIntensitiesOption = Annotated[
 LightsOption = Annotated[
     Lights,
     typer.Option(
+        case_sensitive=False,
         help="near: per-pixel lights from light_positions.txt (LEDs at a finite distance); "
         "directional: light_directions.txt only; auto: near when light_positions.txt exists."
     ),
@@ -102,10 +122,18 @@ TolOption = Annotated[
     ),
 ]
 DepthOption = Annotated[
-    str | None,
+    DepthMethod | None,
     typer.Option(
+        case_sensitive=False,
         help="Also integrate depth and a mesh: poisson or bilateral (see ps-lab integrate).",
         show_default=False,
+    ),
+]
+MemoryBudgetOption = Annotated[
+    str,
+    typer.Option(
+        metavar="<size>",
+        help="Memory for one row band's solve, e.g. 800MB or 2GB (sets the band height).",
     ),
 ]
 
@@ -119,27 +147,23 @@ def reconstruct(
     method: MethodOption = Method.sbl,
     out: Annotated[
         Path | None,
-        typer.Option(help="Output folder [default: DATASET/recon/<method>].", show_default=False),
+        typer.Option(help="Output folder (default: DATASET/recon/<method>).", show_default=False),
     ] = None,
     shadow_threshold: ShadowThresholdOption = None,
     channel: ChannelOption = Channel.mean,
     threads: Annotated[
         int | None,
-        typer.Option(min=1, help="Solver threads [default: all cores].", show_default=False),
+        typer.Option(min=1, help="Solver threads (default: all cores).", show_default=False),
     ] = None,
     refine_lights: RefineLightsOption = 0,
     fixed_intensities: FixedIntensitiesOption = False,
-    memory_budget: Annotated[
-        str,
-        typer.Option(
-            help="Memory for one row band's solve, e.g. 800MB or 2GB (sets the band height)."
-        ),
-    ] = "1GB",
+    memory_budget: MemoryBudgetOption = "1GB",
     lights: LightsOption = Lights.auto,
     scheduler: Annotated[
         str | None,
         typer.Option(
             envvar="PS_LAB_SCHEDULER",
+            metavar="<address>",
             help="Dask scheduler address (tcp://host:8786): solve the row bands on its workers "
             "(dataset and output on a shared filesystem; needs the 'distributed' extra).",
             show_default=False,
@@ -167,9 +191,14 @@ def reconstruct(
         sigma_x2=sigma_x2,
         max_iter=max_iter,
         tol=tol,
-        depth=depth,
+        depth=None if depth is None else depth.value,
     )
-    metrics = reconstruct_to_folder(dataset, out, options, progress_bars=_terminal_bars).metrics
+    try:
+        with depth_progress_bars(_terminal_bars):  # the pipeline's depth stage takes no bars
+            result = reconstruct_to_folder(dataset, out, options, progress_bars=_terminal_bars)
+    except FolderOfDatasetsError as exc:
+        raise DatasetError(f"{exc}, {batch_hint(exc.folder)}") from None
+    metrics = result.metrics
     typer.echo(
         f"{metrics['pixels']} pixels, {metrics['lights']} lights, {method.value} "
         f"in {metrics['solve_seconds']:.2f} s"
@@ -197,6 +226,11 @@ def reconstruct(
     if "depth" in metrics:
         typer.echo(_depth_line(metrics["depth"]))
     typer.echo(f"results: {out}")
+
+
+def batch_hint(folder: Path) -> str:
+    """What to type to reconstruct every dataset under ``folder``."""
+    return f"or reconstruct them all with ps-lab batch {folder}/* --out-root RESULTS"
 
 
 def _depth_line(depth: dict) -> str:

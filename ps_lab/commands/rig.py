@@ -9,6 +9,8 @@ import typer
 
 from ps_lab._cli_util import (
     EXIT_INTERRUPTED,
+    HELP_SETTINGS,
+    HelpGroup,
     fail,
     interrupted_line,
     lab_command,
@@ -22,6 +24,8 @@ rig_app = typer.Typer(
     help="Light-controller tools: a simulated controller or the compiled sketch in simavr on a "
     "pseudo-terminal, and a rig check.",
     no_args_is_help=True,
+    cls=HelpGroup,
+    **HELP_SETTINGS,
 )
 
 
@@ -38,6 +42,7 @@ def serve_sim(
     fault: Annotated[
         list[str] | None,
         typer.Option(
+            metavar="<kind@n>",
             help="Inject a fault: KIND@N at the N-th command, or KIND@pP with probability P "
             "per command; "
             "KIND is drop, garble, delay, reboot or silence. Repeatable."
@@ -87,7 +92,10 @@ def serve_firmware_command(
     ] = None,
     pins: Annotated[
         str | None,
-        typer.Option(help="Wiring: Arduino pin of light 1,2,... (default: the sketch's table)."),
+        typer.Option(
+            metavar="<list>",
+            help="Wiring: Arduino pin of light 1,2,... (default: the sketch's table).",
+        ),
     ] = None,
 ) -> None:
     """Print the device path of the compiled sketch running in simavr and serve until Ctrl-C."""
@@ -110,6 +118,7 @@ def check(
     port: Annotated[
         str,
         typer.Option(
+            metavar="<port>",
             help="Serial port or URL: /dev/ttyACM0, /dev/pts/N, socket://host:port, pslabsim://..."
         ),
     ],

@@ -34,7 +34,11 @@ def simulate(
         typer.Argument(help="New dataset folder (must not exist or be empty).", show_default=False),
     ],
     scene: Annotated[
-        SceneKind, typer.Option(help="sphere, or relief (a height field whose bumps cast shadows).")
+        SceneKind,
+        typer.Option(
+            case_sensitive=False,
+            help="sphere, or relief (a height field whose bumps cast shadows).",
+        ),
     ] = SceneKind.sphere,
     lights: Annotated[int, typer.Option(min=3, help="Number of random lights.")] = 40,
     size: Annotated[
@@ -60,7 +64,9 @@ def simulate(
     image_format: Annotated[
         ImageFormat,
         typer.Option(
-            "--format", help="png16 (scaled: peak = 0.9 x 65535), tiff32 or npy (linear)."
+            "--format",
+            case_sensitive=False,
+            help="png16 (scaled: peak = 0.9 x 65535), tiff32 or npy (linear)."
         ),
     ] = ImageFormat.png16,
 ) -> None:

@@ -6,6 +6,7 @@
 - :mod:`~ps_lab.io.dng`: a minimal linear DNG writer (the simulated camera's files)
 - :mod:`~ps_lab.io.lights`: light-direction and light-intensity tables (DiLiGenT text files)
 - :mod:`~ps_lab.io.run`: the run format (``manifest.json``, ``"ps-lab-run"``): names, read, write
+- :mod:`~ps_lab.io.result`: the result format (``metrics.json``, ``"ps-lab-reconstruction"``)
 - :mod:`~ps_lab.io.frames`: which files are the frames of an image folder or a capture run
 - :mod:`~ps_lab.io.dataset`: load or open an image folder or a capture run
 - :mod:`~ps_lab.io.truth`: ground-truth normals, whole or band by band

@@ -31,7 +31,7 @@ import cv2
 import numpy as np
 
 from ps_lab.errors import DatasetError
-from ps_lab.io.frames import FramePlan, is_capture_run, plan_frames
+from ps_lab.io.frames import FramePlan, check_dataset_folder, is_capture_run, plan_frames
 from ps_lab.io.images import (
     RAW_SUFFIXES,
     Image,
@@ -442,6 +442,7 @@ def open_dataset(path: Path, *, channel: str = "mean", read_size: bool = True) -
     if channel not in CHANNELS:
         raise DatasetError(f"unknown channel {channel!r} (choose one of {', '.join(CHANNELS)})")
     root = Path(path)
+    check_dataset_folder(root)  # a result or a folder of datasets: said before "no lights"
     run = is_capture_run(root) if root.is_dir() else False
     # Lights are checked before pixels are read: a missing file should not cost a long load.
     directions_file = root / LIGHT_DIRECTIONS

@@ -4,6 +4,10 @@ An image folder lists one image per light (``filenames.txt``, else file names in
 never its outputs, mask or ground truth; ``dark.<ext>`` is a dark frame); a capture run lists its
 frames in ``manifest.json`` (:mod:`ps_lab.io.run`). :func:`plan_frames` returns a
 :class:`FramePlan` for either; :mod:`ps_lab.io.dataset` reads the pixels.
+
+Two folders that are not datasets are told apart before any file is taken for a frame
+(:func:`check_dataset_folder`): a ``ps-lab reconstruct`` result (:mod:`ps_lab.io.result`), and a
+folder that holds datasets in subfolders (the input of ``ps-lab batch``).
 """
 
 from __future__ import annotations
@@ -18,6 +22,7 @@ import numpy as np
 from ps_lab.errors import DatasetError
 from ps_lab.io.files import sha256
 from ps_lab.io.images import SUPPORTED_SUFFIXES, check_is_file, is_supported
+from ps_lab.io.result import is_result_folder, read_result_metrics
 from ps_lab.io.run import MANIFEST_NAME, is_run, read_manifest
 
 log = logging.getLogger("ps_lab.io.dataset")
@@ -28,12 +33,18 @@ FILENAMES = "filenames.txt"
 _NOT_FRAMES = {
     "mask.png",
     "normal.png",
+    "normal16.png",
     "normals.npy",
     "albedo.png",
     "albedo.npy",
     "corruption.png",
     "calibration.png",
+    "depth.npy",
+    "depth.tiff",
+    "depth.png",
 }
+# Subfolders named in an error about a folder of datasets.
+_NAMED_SUBFOLDERS = 3
 _GT_NAME = re.compile(r".*[_-]gt(\.[^.]+)?$", re.IGNORECASE)
 _DARK_STEM = "dark"
 
@@ -69,9 +80,84 @@ class FramePlan:
         return [files[0].name for files in self.light_files]
 
 
+class FolderOfDatasetsError(DatasetError):
+    """A folder with no frames of its own whose subfolders are datasets.
+
+    Attributes
+    ----------
+    folder : Path
+    datasets : list of Path
+        The subfolders that are image folders or capture runs, in natural order.
+    """
+
+    def __init__(self, folder: Path, datasets: list[Path]) -> None:
+        self.folder = Path(folder)
+        self.datasets = list(datasets)
+        names = [p.name for p in datasets[:_NAMED_SUBFOLDERS]]
+        more = ", ..." if len(datasets) > _NAMED_SUBFOLDERS else ""
+        kind = "subfolder holds a dataset" if len(datasets) == 1 else "subfolders hold datasets"
+        super().__init__(
+            f"{folder}: a folder of datasets, not a dataset (no frames of its own; "
+            f"{len(datasets)} {kind}: {', '.join(names)}{more}): give one of them, "
+            f"e.g. {datasets[0]}"
+        )
+
+
 def is_capture_run(path: Path) -> bool:
     """Tell whether ``path`` is a capture-run folder (it holds ``manifest.json``)."""
     return is_run(path)
+
+
+def check_dataset_folder(path: Path) -> None:
+    """Refuse a folder that is not a dataset but looks like one to a file listing.
+
+    Raises
+    ------
+    DatasetError
+        ``path`` is a ``ps-lab reconstruct`` result (its ``metrics.json``; the line names the
+        dataset it came from), or it holds no frames of its own and only results in its
+        subfolders.
+    FolderOfDatasetsError
+        It holds no frames of its own, and datasets in its subfolders.
+
+    """
+    root = Path(path)
+    if not root.is_dir():
+        return
+    metrics = read_result_metrics(root)
+    if metrics is not None:
+        source = metrics.get("dataset")
+        made_from = f"; give the dataset it was made from: {source}" if source else ""
+        raise DatasetError(
+            f"{root}: a ps-lab reconstruct result (its metrics.json), not a dataset{made_from}"
+        )
+    if is_capture_run(root) or (root / FILENAMES).exists() or _has_frames(root):
+        return
+    subfolders = sorted(
+        (p for p in root.iterdir() if p.is_dir() and not p.name.startswith(".")),
+        key=lambda p: _natural_key(p.name),
+    )
+    datasets = [p for p in subfolders if not is_result_folder(p) and _looks_like_dataset(p)]
+    if datasets:
+        raise FolderOfDatasetsError(root, datasets)
+    results = [p.name for p in subfolders if is_result_folder(p)]
+    if results:
+        more = ", ..." if len(results) > _NAMED_SUBFOLDERS else ""
+        raise DatasetError(
+            f"{root}: not a dataset: no frames of its own, and its subfolders are ps-lab "
+            f"reconstruct results ({', '.join(results[:_NAMED_SUBFOLDERS])}{more})"
+        )
+
+
+def _has_frames(folder: Path) -> bool:
+    return any(_is_light_frame(p) for p in folder.iterdir())
+
+
+def _looks_like_dataset(folder: Path) -> bool:
+    try:
+        return is_capture_run(folder) or (folder / FILENAMES).is_file() or _has_frames(folder)
+    except OSError:  # an unreadable subfolder is no dataset of ours
+        return False
 
 
 def plan_frames(path: Path) -> FramePlan:
@@ -89,7 +175,8 @@ def plan_frames(path: Path) -> FramePlan:
     Raises
     ------
     DatasetError
-        Missing folder, no images, unreadable ``filenames.txt`` or ``manifest.json``, missing files.
+        Missing folder, no images, unreadable ``filenames.txt`` or ``manifest.json``, missing files;
+        a reconstruct result or a folder of datasets (:func:`check_dataset_folder`).
 
     """
     root = Path(path)
@@ -97,6 +184,7 @@ def plan_frames(path: Path) -> FramePlan:
         raise DatasetError(f"{root}: no such dataset folder")
     if not root.is_dir():
         raise DatasetError(f"{root}: not a folder (a dataset is a folder of images)")
+    check_dataset_folder(root)
     if is_capture_run(root):
         return _plan_run(root)
     return _plan_image_folder(root)
