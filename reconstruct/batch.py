@@ -81,6 +81,8 @@ def finished_metrics(out: Path) -> dict | None:
 
 
 def _shown(value: Any) -> str:
+    if isinstance(value, bool):
+        return "on" if value else "off"
     return "default" if value is None else str(value)
 
 
@@ -99,16 +101,17 @@ def option_differences(metrics: dict, options: ReconstructOptions) -> list[str]:
     list of str
         One ``"--method sbl (asked ls)"`` per differing option, in command-line order; empty when
         the result is what ``options`` would make. Compared: what ``metrics.json`` records
-        (method, channel, shadow threshold, solver options, light model when asked for
-        explicitly, light-refinement iterations, and depth when asked for); not ``threads`` or
-        ``memory_budget`` (they do not change the result), nor ``fixed_intensities`` (not
-        recorded). An entry an older result does not record is not compared.
+        (method, channel, shadow threshold, fixed intensities, solver options, light model when
+        asked for explicitly, light-refinement iterations, and depth when asked for); not
+        ``threads`` or ``memory_budget`` (they do not change the result). An entry an older
+        result does not record is not compared.
     """
     pairs: list[tuple[str, Any, Any]] = []
     for flag, key, asked in (
         ("--method", "method", options.method),
         ("--channel", "channel", options.channel),
         ("--shadow-threshold", "shadow_threshold", options.shadow_threshold),
+        ("--fixed-intensities", "fixed_intensities", options.fixed_intensities),
     ):
         if key in metrics:
             pairs.append((flag, metrics[key], asked))

@@ -21,7 +21,6 @@ import logging
 import time
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
-from contextvars import ContextVar
 from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
@@ -45,7 +44,6 @@ from ps_lab.reconstruct.integrate import (
 __all__ = [
     "DepthOptions",
     "depth_picture",
-    "depth_progress_bars",
     "integrate_result",
     "write_depth",
     "write_normal_maps",
@@ -54,10 +52,6 @@ __all__ = [
 log = logging.getLogger(__name__)
 
 ProgressBars = Callable[[int, str], Any]
-
-# Bars for a depth stage that is given none: reconstruct_to_folder calls write_depth without
-# them, so `ps-lab reconstruct --depth` installs its bars here (depth_progress_bars).
-_STAGE_BARS: ContextVar[ProgressBars | None] = ContextVar("ps_lab_depth_bars", default=None)
 
 # Direction toward the light of the shaded relief: from the upper left, as maps are shaded.
 _RELIEF_LIGHT = np.array([-1.0, 1.0, 1.5]) / np.linalg.norm([-1.0, 1.0, 1.5])
@@ -90,20 +84,6 @@ class DepthOptions:
             raise IntegrationInputError(f"pixel size must be positive, got {self.pixel_size}")
         if self.focal_length is not None and not self.focal_length > 0:
             raise IntegrationInputError(f"focal length must be positive, got {self.focal_length}")
-
-
-@contextmanager
-def depth_progress_bars(bars: ProgressBars | None) -> Iterator[None]:
-    """Within this block, :func:`write_depth` calls that get no ``progress_bars`` use ``bars``.
-
-    For the depth stage of :func:`ps_lab.reconstruct.pipeline.reconstruct_to_folder`, which
-    passes its own ``progress_bars`` to the read and solve stages only.
-    """
-    token = _STAGE_BARS.set(bars)
-    try:
-        yield
-    finally:
-        _STAGE_BARS.reset(token)
 
 
 @contextmanager
@@ -190,8 +170,7 @@ def write_depth(
     progress_bars : callable or None
         ``progress_bars(total, description)`` returning a context manager that yields
         ``advance(n=1, description=None)`` (:func:`ps_lab._cli_util.progress_bar`): one bar over
-        the reweighting iterations (one step for ``poisson``). Default: those of an enclosing
-        :func:`depth_progress_bars`, else none.
+        the reweighting iterations (one step for ``poisson``). Default: none.
 
     Returns
     -------
@@ -200,7 +179,7 @@ def write_depth(
         ``components``, ``discontinuities``, ``converged``, ``energy_change``, ``alternating``,
         ``pixels``, ``unit``, ``offset`` (:class:`~ps_lab.reconstruct.integrate.Integration`).
     """
-    bars = progress_bars or _STAGE_BARS.get() or _no_bar
+    bars = progress_bars or _no_bar
     total = BILATERAL_MAX_ITERATIONS if options.method == "bilateral" else 1
     label = f"depth ({options.method})"
     started = time.perf_counter()

@@ -36,6 +36,7 @@ from ps_lab.errors import DatasetError, OutputError
 from ps_lab.io.bands import ObservationStore, plan_bands
 from ps_lab.io.dataset import DatasetHeader, open_dataset
 from ps_lab.io.files import json_safe, staged_folder
+from ps_lab.io.result import METRICS, RESULT_FORMAT, is_result_folder
 from ps_lab.io.truth import open_normal_gt
 from ps_lab.reconstruct._bands import LocalBands
 from ps_lab.reconstruct._kernels import start_warm_up
@@ -95,8 +96,6 @@ __all__ = [
 
 log = logging.getLogger(__name__)
 
-RESULT_FORMAT = "ps-lab-reconstruction"
-METRICS = "metrics.json"
 @dataclass(frozen=True)
 class ReconstructResult:
     """What :func:`reconstruct_to_folder` made.
@@ -141,13 +140,7 @@ class ReconstructResult:
 
 
 def _is_result_folder(folder: Path) -> bool:
-    if not any(folder.iterdir()):
-        return True
-    try:
-        metrics = json.loads((folder / METRICS).read_text(encoding="utf-8"))
-    except (OSError, ValueError):
-        return False
-    return isinstance(metrics, dict) and metrics.get("format") == RESULT_FORMAT
+    return not any(folder.iterdir()) or is_result_folder(folder)
 
 
 def check_output_folder(out: Path) -> None:
@@ -225,7 +218,7 @@ def reconstruct_to_folder(
             metrics = _write_results(writer, stage, source, options, store, solved, timings)
             timings["write_seconds"] = time.perf_counter() - written
             metrics["timings"] = dict(timings)
-            _write_surface(stage, options, metrics)
+            _write_surface(stage, options, metrics, bars)
             _write_metrics(stage, metrics)
     metrics["out"] = str(out)
     return ReconstructResult(out=out, metrics=metrics)
@@ -355,6 +348,7 @@ def _write_results(
     metrics["solver_options"] = {
         flag[2:]: getattr(options, name) for name, (flag, _) in SOLVER_OPTIONS.items()
     }
+    metrics["fixed_intensities"] = options.fixed_intensities
     metrics["shadow_threshold"] = options.shadow_threshold
     metrics["black_threshold"] = solved.black
     metrics["light_model"] = "directional" if source.near is None else "near"
@@ -373,7 +367,9 @@ def _write_results(
     return json_safe(metrics)
 
 
-def _write_surface(stage: Path, options: ReconstructOptions, metrics: dict) -> None:
+def _write_surface(
+    stage: Path, options: ReconstructOptions, metrics: dict, bars: ProgressBars
+) -> None:
     """Stage 5: normal maps for other tools and, with ``options.depth``, depth and mesh."""
     started = time.perf_counter()
     normals = np.load(stage / "normals.npy")
@@ -381,7 +377,9 @@ def _write_surface(stage: Path, options: ReconstructOptions, metrics: dict) -> N
         write_normal_maps(stage, normals, np.linalg.norm(normals, axis=-1) > 0.5)
         if options.depth is not None:
             albedo = np.load(stage / "albedo.npy")
-            depth = write_depth(stage, normals, albedo, DepthOptions(method=options.depth))
+            depth = write_depth(
+                stage, normals, albedo, DepthOptions(method=options.depth), progress_bars=bars
+            )
             metrics["depth"] = json_safe(depth)
     except OSError as exc:
         raise OutputError(f"{stage}: cannot write results ({exc.strerror or exc})") from None

@@ -195,10 +195,3 @@ def test_calibrate_on_a_folder_of_datasets_asks_for_one(lab_folder):
 def test_a_folder_of_results_is_named_as_such(lab_folder):
     line = one_error_line(runner.invoke(app, ["reconstruct", str(lab_folder / "a" / "recon")]))
     assert "its subfolders are ps-lab reconstruct results (sbl)" in line
-
-
-def test_result_format_is_the_one_the_pipeline_writes():
-    from ps_lab.io import result
-    from ps_lab.reconstruct import pipeline
-
-    assert (result.RESULT_FORMAT, result.METRICS) == (pipeline.RESULT_FORMAT, pipeline.METRICS)

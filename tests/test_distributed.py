@@ -386,3 +386,7 @@ def test_option_differences_compare_what_metrics_json_records():
         "--depth poisson (asked bilateral)",
     ]
     assert option_differences({"method": "sbl"}, ReconstructOptions(method="sbl")) == []
+    refined = {"method": "sbl", "fixed_intensities": True, "refinement": {"iterations": 2}}
+    assert option_differences(refined, ReconstructOptions(refine_lights=2)) == [
+        "--fixed-intensities on (asked off)"
+    ]

@@ -12,7 +12,6 @@ import typer
 from ps_lab._cli_util import lab_command, progress_bar
 from ps_lab.errors import DatasetError
 from ps_lab.io.frames import FolderOfDatasetsError
-from ps_lab.reconstruct.depth import depth_progress_bars
 from ps_lab.reconstruct.pipeline import (
     ReconstructOptions,
     parse_memory_size,
@@ -194,8 +193,7 @@ def reconstruct(
         depth=None if depth is None else depth.value,
     )
     try:
-        with depth_progress_bars(_terminal_bars):  # the pipeline's depth stage takes no bars
-            result = reconstruct_to_folder(dataset, out, options, progress_bars=_terminal_bars)
+        result = reconstruct_to_folder(dataset, out, options, progress_bars=_terminal_bars)
     except FolderOfDatasetsError as exc:
         raise DatasetError(f"{exc}, {batch_hint(exc.folder)}") from None
     metrics = result.metrics
