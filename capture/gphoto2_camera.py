@@ -56,6 +56,9 @@ SETTING_ALIASES: dict[str, tuple[str, ...]] = {
 #: Settings whose choices are numbers: a value may match a choice numerically.
 _NUMERIC = {"shutterspeed", "aperture", "f-number", "fnumber", "iso", "isospeed"}
 
+#: libgphoto2's model name of a generic PTP/IP camera (``gphoto2 --list-cameras``).
+PTPIP_MODEL = "PTP/IP Camera"
+
 _INSTALL_HINT = "python-gphoto2 is not installed: pip install 'ps-lab[gphoto2]'"
 
 
@@ -219,6 +222,13 @@ class Gphoto2Camera(Camera):
             except error_type:
                 raise CameraError(f"gphoto2 knows no port {port!r}") from None
             camera.set_port_info(ports[index])
+            if port.startswith(("ptpip:", "ip:")):
+                # libgphoto2 detects models on USB only: on a network port gp_camera_init fails
+                # with "Unknown model" unless the generic PTP/IP driver is chosen first.
+                abilities = gp.CameraAbilitiesList()
+                abilities.load()
+                camera.set_abilities(abilities[abilities.lookup_model(PTPIP_MODEL)])
+                self.model = self.model or PTPIP_MODEL
             camera.init()
         except CameraError:
             raise
