@@ -608,7 +608,8 @@ class PtpIpCamera:
         data, fault = obj.data, obj.fault
         obj.fault = None  # a fault fires once
         conn.sendall(ptp.packet(ptp.START_DATA, ptp.u32(transaction) + ptp.u64(len(data))))
-        chunk = _CHUNK if fault != "slow" else max(1, -(-len(data) // 20))
+        chunk = {"slow": -(-len(data) // 20), "disconnect": -(-len(data) // 4)}.get(fault, _CHUNK)
+        chunk = max(1, chunk)
         pause = self.slow_s / 20 if fault == "slow" else 0.0
         if fault == "slow":
             log.warning("PTP/IP camera: injected fault: %s downloads in %g s", obj.name, self.slow_s)
