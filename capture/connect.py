@@ -29,6 +29,8 @@ import numpy as np
 
 from ps_lab import render
 from ps_lab.capture import cameras, gphoto2_camera, lights
+from ps_lab.capture.faults import Fault
+from ps_lab.capture.lights import LightState
 from ps_lab.capture.rig import Rig, local_ptpip_port
 from ps_lab.capture.simulated import firmware as sim_lights
 from ps_lab.capture.simulated.avr_firmware import EmulatedFirmware, serve_firmware
@@ -42,8 +44,6 @@ from ps_lab.capture.simulated.pty_server import (
     state_file_reader,
     write_state_file,
 )
-from ps_lab.capture.faults import Fault
-from ps_lab.capture.lights import LightState
 from ps_lab.errors import CameraError, PsLabError, RigError
 
 log = logging.getLogger("ps_lab.capture.rig")
@@ -163,6 +163,8 @@ class OpenRig:
         #: The PTP/IP camera simulator's frames (``ServedFrame``: handle, name, sha256, size),
         #: known once the rig is closed, for a gphoto2 camera on a simulated scene.
         self.served_frames: list[Any] | None = None
+        #: ... and the InitiateCapture requests it received.
+        self.served_captures: int | None = None
         #: False when closing could not confirm that the lights are off (the controller's
         #: watchdog switches them off then).
         self.lights_off_confirmed = True
@@ -391,7 +393,7 @@ def serve_camera(
     slow_s: float = 2.0,
     on_ready: Callable[[PtpIpCamera], None] | None = None,
 ) -> None:
-    """Serve the rig's scene as a PTP/IP camera until Ctrl-C or SIGTERM (``ps-lab rig serve-camera``).
+    """Serve the rig's scene as a PTP/IP camera until Ctrl-C or SIGTERM (``rig serve-camera``).
 
     Each capture renders the scene under the lights in ``state_file`` (written by the simulated
     controller, ``ps-lab rig serve-sim --state-file``) or, without one, under lights ``lit`` at
@@ -452,7 +454,7 @@ def _camera_child(rig: Rig, state_file: str, port: int, pipe: Any) -> None:
     except PsLabError as exc:
         pipe.send(str(exc))
         return
-    pipe.send(list(served[0].frames) if served else [])
+    pipe.send((list(served[0].frames), served[0].captures) if served else ([], 0))
 
 
 def _start_camera_process(rig: Rig, opened: OpenRig) -> str:
@@ -480,7 +482,7 @@ def _start_camera_process(rig: Rig, opened: OpenRig) -> str:
             process.terminate()  # SIGTERM: the simulator stops cleanly and reports its frames
         if receiver.poll(10.0):
             try:
-                opened.served_frames = receiver.recv()
+                opened.served_frames, opened.served_captures = receiver.recv()
             except EOFError:
                 pass
         process.join(10.0)

@@ -155,6 +155,7 @@ def parse_camera_faults(spec: Any) -> tuple[Fault, ...]:
     for fault in faults:
         if fault.kind not in PTPIP_FAULT_KINDS or fault.at is None:
             raise RigError(
-                f"camera fault {fault}: write KIND@N with KIND one of {', '.join(PTPIP_FAULT_KINDS)}"
+                f"camera fault {fault}: write KIND@N with KIND one of "
+                f"{', '.join(PTPIP_FAULT_KINDS)}"
             )
     return faults

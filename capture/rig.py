@@ -321,7 +321,7 @@ def parse_rig(data: Mapping[str, Any], *, origin: str = "<rig>", source: Path | 
     if ptpip_sim and local_ptpip_port(camera.port) is None:
         raise RigError(
             f"{origin}: [scene] with a gphoto2 camera needs [camera] port = "
-            f"\"ptpip:127.0.0.1[:N]\" (the PTP/IP camera simulator), got {camera.port!r}"
+            f'"ptpip:127.0.0.1[:N]" (the PTP/IP camera simulator), got {camera.port!r}'
         )
     if camera.driver not in ("simulated", "gphoto2") and scene is not None:
         raise RigError(

@@ -12,12 +12,14 @@ from __future__ import annotations
 import hashlib
 import json
 import os
+import re
 import shutil
 import socket
 import struct
 import subprocess
 import sys
 import time
+from datetime import datetime
 from pathlib import Path
 
 import numpy as np
@@ -113,7 +115,7 @@ def gphoto2_home(tmp_path, monkeypatch):
 
 
 def _need_python_gphoto2():
-    return pytest.importorskip("gphoto2", reason="python-gphoto2 is not installed (ps-lab[gphoto2])")
+    return pytest.importorskip("gphoto2", reason="python-gphoto2 not installed: ps-lab[gphoto2]")
 
 
 # -- a minimal PTP/IP initiator (CIPA DC-005) --------------------------------------------------
@@ -248,7 +250,8 @@ def test_protocol_operations_and_refusals():
         capture_transaction = cam.transaction
         assert code == ptp.OK
         assert cam.op(ptp.INITIATE_CAPTURE, 0, 0)[0] == ptp.DEVICE_BUSY  # in progress (and #2)
-        assert cam.op(ptp.SET_DEVICE_PROP_VALUE, 0x500D, data_out=ptp.u32(500))[0] == ptp.DEVICE_BUSY
+        busy = cam.op(ptp.SET_DEVICE_PROP_VALUE, 0x500D, data_out=ptp.u32(500))
+        assert busy[0] == ptp.DEVICE_BUSY
         assert cam.next_event() == (ptp.OBJECT_ADDED, (1,))
         assert cam.next_event() == (ptp.CAPTURE_COMPLETE, (capture_transaction,))
         # exposure 0.1 s; gain (400 / 100) * (8 / 4)^2 = 16
@@ -283,8 +286,18 @@ class ServeCamera:
 
     def __init__(self, rig: Path, *args: str) -> None:
         self.process = subprocess.Popen(
-            [sys.executable, "-m", "ps_lab", "rig", "serve-camera", "--rig", str(rig),
-             "--port", "0", *args],  # fmt: skip
+            [
+                sys.executable,
+                "-m",
+                "ps_lab",
+                "rig",
+                "serve-camera",
+                "--rig",
+                str(rig),
+                "--port",
+                "0",
+                *args,
+            ],  # fmt: skip
             stdout=subprocess.PIPE,
             stderr=subprocess.PIPE,
             text=True,
@@ -369,7 +382,8 @@ def test_capture_calibrate_reconstruct_through_libgphoto2(tmp_path, gphoto2_home
     # ... and to the simulated camera's (same scene, sensor, seed; frame k's noise is [seed, k])
     reference = tmp_path / "reference"
     simulated = _rig(tmp_path, driver="simulated", name="simulated.toml")
-    code, output, _ = _capture_recording(monkeypatch, ["--rig", str(simulated), "--out", str(reference)])
+    args = ["--rig", str(simulated), "--out", str(reference)]
+    code, output, _ = _capture_recording(monkeypatch, args)
     assert code == 0, output
     assert [_sha(p) for p in _frames(reference)] == [_sha(p) for p in frames]
 
@@ -388,23 +402,24 @@ def test_capture_calibrate_reconstruct_through_libgphoto2(tmp_path, gphoto2_home
     assert metrics["angular_error_deg"]["mean"] < 2.0
 
 
+# kind: (re-shoots by the session, InitiateCapture requests, frames the camera shot)
 FAULTS = {
     # busy: the driver triggers again (0.25 s later) until the camera accepts
-    "busy": ('{ kind = "busy", at = 3 }', 0),
+    "busy": (0, 6, 5),
     # the capture is never reported: no RAW within timeout_s; the session re-shoots the frame
-    "timeout": ('{ kind = "timeout", at = 3 }', 1),
+    "timeout": (1, 6, 5),
     # both connections dropped halfway through the download: the driver reconnects, re-shoot
-    "disconnect": ('{ kind = "disconnect", at = 3 }', 1),
-    # the download takes 2 s: nothing times out
-    "slow": ('{ kind = "slow", at = 3 }', 0),
+    "disconnect": (1, 6, 6),
+    # the download takes 2 s (slow_s): nothing times out
+    "slow": (0, 5, 5),
 }
 
 
-@pytest.mark.parametrize("kind", sorted(FAULTS))
+@pytest.mark.parametrize("kind", sorted(FAULTS), ids=lambda kind: f"{kind}-fault")
 def test_each_fault_recovers_losing_no_frame(kind, tmp_path, gphoto2_home, monkeypatch):
     _need_python_gphoto2()
-    spec, reshoots = FAULTS[kind]
-    rig = _rig(tmp_path, lights=4, timeout=1.0, faults=spec)
+    reshoots, requests, shot = FAULTS[kind]
+    rig = _rig(tmp_path, lights=4, timeout=1.0, faults=f'{{ kind = "{kind}", at = 3 }}')
     run = tmp_path / "run"
     code, output, opened = _capture_recording(monkeypatch, ["--rig", str(rig), "--out", str(run)])
     assert code == 0, output
@@ -414,7 +429,10 @@ def test_each_fault_recovers_losing_no_frame(kind, tmp_path, gphoto2_home, monke
     assert sum(f.get("attempts", 1) - 1 for f in manifest["frames"]) == reshoots, manifest["frames"]
     served = {f.sha256 for f in opened[0].served_frames}
     assert {_sha(p) for p in frames} <= served  # every frame is one the camera shot, whole
-    assert len(opened[0].served_frames) == 5 + (kind == "disconnect")
+    assert (opened[0].served_captures, len(opened[0].served_frames)) == (requests, shot)
+    third = manifest["frames"][2]
+    seconds = datetime.fromisoformat(third["finished"]) - datetime.fromisoformat(third["started"])
+    assert (seconds.total_seconds() > 1.9) == (kind == "slow")
 
 
 def test_fault_without_retries_stops_with_one_line_and_resumes(tmp_path, gphoto2_home, monkeypatch):
@@ -437,6 +455,80 @@ def test_fault_without_retries_stops_with_one_line_and_resumes(tmp_path, gphoto2
     assert [f.sha256 for f in opened[0].served_frames] == [_sha(p) for p in frames[3:]]
 
 
+# -- rig files and bad input ------------------------------------------------------------------
+
+
+def test_rig_file_scene_needs_a_local_ptpip_port(tmp_path):
+    from ps_lab.capture.rig import load_rig
+    from ps_lab.errors import RigError
+
+    path = _rig(tmp_path)
+    assert load_rig(path).camera.driver == "gphoto2"
+    path.write_text(path.read_text().replace("ptpip:127.0.0.1:0", "usb:001,004"))
+    with pytest.raises(RigError, match=re.escape('needs [camera] port = "ptpip:127.0.0.1[:N]"')):
+        load_rig(path)
+
+
+def test_rig_file_faults_and_sensor_keys(tmp_path):
+    from ps_lab.capture.rig import load_rig, local_ptpip_port
+    from ps_lab.errors import RigError
+
+    with pytest.raises(RigError, match="'truncated' is not a fault of this camera"):
+        load_rig(_rig(tmp_path, faults='{ kind = "truncated", at = 2 }'))
+    with pytest.raises(RigError, match="'busy' is not a fault of this camera"):
+        load_rig(_rig(tmp_path, driver="simulated", faults='{ kind = "busy", at = 2 }'))
+    no_scene = tmp_path / "no-scene.toml"
+    no_scene.write_text(
+        '[controller]\ndriver = "simulated"\nlights = 4\n'
+        '[camera]\ndriver = "gphoto2"\nexposure_s = 0.05\ngain = 5.0\n'
+    )
+    with pytest.raises(RigError, match="gain: applies to a gphoto2 camera only on a"):
+        load_rig(no_scene)
+    assert load_rig(ROOT / "rigs" / "simulated-ptpip.toml").camera.port == "ptpip:127.0.0.1:15740"
+    assert [local_ptpip_port(p) for p in ("ptpip:127.0.0.1", "ptpip:localhost:99:99")] == [
+        15740,
+        99,
+    ]
+    assert local_ptpip_port("ptpip:192.168.1.5") is None
+
+
+@pytest.mark.parametrize(
+    ("args", "message"),
+    [
+        (["--lit", "99"], "--lit '99': the rig has lights 1-16"),
+        (["--fault", "garble@2"], "camera fault garble@2: write KIND@N with KIND one of busy"),
+        (["--fault", "busy@p0.5"], "camera fault busy@p0.5: write KIND@N"),
+    ],
+)
+def test_serve_camera_bad_input(tmp_path, args, message):
+    rig = _rig(tmp_path)
+    result = CliRunner().invoke(app, ["rig", "serve-camera", "--rig", str(rig), *args])
+    assert result.exit_code == 2
+    lines = result.output.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith(f"error: {message}"), result.output
+
+
+def test_serve_camera_port_in_use_and_rig_without_scene(tmp_path):
+    rig = _rig(tmp_path)
+    with socket.socket() as taken:
+        taken.bind(("127.0.0.1", 0))
+        taken.listen(1)
+        port = taken.getsockname()[1]
+        result = CliRunner().invoke(
+            app, ["rig", "serve-camera", "--rig", str(rig), "--port", str(port)]
+        )
+    assert result.exit_code == 2
+    assert f"error: cannot listen on 127.0.0.1:{port}" in result.output
+    plain = tmp_path / "plain.toml"
+    plain.write_text(
+        '[controller]\ndriver = "simulated"\nlights = 4\n'
+        '[camera]\ndriver = "folder"\nfolder = "x"\nexposure_s = 0.05\n'
+    )
+    result = CliRunner().invoke(app, ["rig", "serve-camera", "--rig", str(plain)])
+    assert result.exit_code == 2
+    assert "has no [scene] for the camera to see" in result.output
+
+
 # -- from outside: Debian's gphoto2 command-line tool ------------------------------------------
 
 
@@ -453,15 +545,27 @@ def test_gphoto2_command_line_tool(tmp_path, gphoto2_home):
     try:
         summary = subprocess.run(
             [tool, "--port", server.address, "--summary"],
-            capture_output=True, text=True, timeout=60, env=env,  # fmt: skip
+            capture_output=True,
+            text=True,
+            timeout=60,
+            env=env,  # fmt: skip
         )
         assert summary.returncode == 0, summary.stdout + summary.stderr
         assert "Model: ps-lab simulated camera" in summary.stdout
-        assert "Exposure Time(0x500d)" in summary.stdout.replace(" ", "") or "500d" in summary.stdout
+        assert "500d" in summary.stdout.lower()  # ExposureTime in the property summary
         shot = subprocess.run(
-            [tool, "--port", server.address, "--capture-image-and-download",
-             "--filename", str(tmp_path / "cli.dng")],  # fmt: skip
-            capture_output=True, text=True, timeout=60, env=env,  # fmt: skip
+            [
+                tool,
+                "--port",
+                server.address,
+                "--capture-image-and-download",
+                "--filename",
+                str(tmp_path / "cli.dng"),
+            ],  # fmt: skip
+            capture_output=True,
+            text=True,
+            timeout=60,
+            env=env,  # fmt: skip
         )
         assert shot.returncode == 0, shot.stdout + shot.stderr
     finally:

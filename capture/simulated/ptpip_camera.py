@@ -315,11 +315,8 @@ class PtpIpCamera:
         initiator = ptp.utf16_name(payload[16:])
         log.info("PTP/IP camera: initiator %r connected (connection %d)", initiator, number)
         name = self.model.encode("utf-16-le") + b"\x00\x00"
-        conn.sendall(
-            ptp.packet(
-                ptp.INIT_COMMAND_ACK, ptp.u32(number) + self.guid + name + ptp.u32(ptp.PTPIP_VERSION)
-            )
-        )
+        ack = ptp.u32(number) + self.guid + name + ptp.u32(ptp.PTPIP_VERSION)
+        conn.sendall(ptp.packet(ptp.INIT_COMMAND_ACK, ack))
         try:
             while not self._stop.is_set():
                 kind, payload = _read_packet(conn)
@@ -383,7 +380,6 @@ class PtpIpCamera:
     # -- operations -------------------------------------------------------------------------
     def _operation(self, conn: socket.socket, req: ptp.Request) -> None:
         data_out = None
-        log.debug("PTP/IP camera: request 0x%04x phase %d", req.code, req.phase)
         if req.code == ptp.SET_DEVICE_PROP_VALUE or req.phase == 2:
             data_out = _read_data(conn)
         handler = _HANDLERS.get(req.code)
@@ -393,7 +389,7 @@ class PtpIpCamera:
             code, data, params = ptp.SESSION_NOT_OPEN, None, ()
         else:
             code, data, params = handler(self, req, data_out)
-        log.debug("PTP/IP camera: op 0x%04x phase %d %s -> 0x%04x", req.code, req.phase, req.params, code)
+        log.debug("PTP/IP camera: op 0x%04x %s -> 0x%04x", req.code, req.params, code)
         if data is not None:
             if isinstance(data, _Object):
                 self._send_object(conn, req.transaction, data)
@@ -565,7 +561,7 @@ class PtpIpCamera:
                 log.info("PTP/IP camera: capture %d answered DeviceBusy", self.captures)
                 return ptp.DEVICE_BUSY, None, ()
             if fault == "timeout":
-                log.warning("PTP/IP camera: injected fault: capture %d never reports", self.captures)
+                log.warning("PTP/IP camera: injected fault: capture %d unreported", self.captures)
                 return ptp.OK, None, ()
             self._capturing = True
         worker = threading.Thread(
@@ -612,7 +608,7 @@ class PtpIpCamera:
         chunk = max(1, chunk)
         pause = self.slow_s / 20 if fault == "slow" else 0.0
         if fault == "slow":
-            log.warning("PTP/IP camera: injected fault: %s downloads in %g s", obj.name, self.slow_s)
+            log.warning("PTP/IP camera: injected fault: %s takes %g s", obj.name, self.slow_s)
         for start in range(0, len(data), chunk):
             if fault == "disconnect" and start >= len(data) // 2:
                 log.warning("PTP/IP camera: injected fault: dropped during %s", obj.name)

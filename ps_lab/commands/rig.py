@@ -141,7 +141,10 @@ def serve_camera_command(
     """Print the gphoto2 port of a simulated PTP/IP camera and serve until Ctrl-C."""
     loaded = load_rig(rig)
     faults = parse_camera_faults(",".join(fault or [])) if fault else None
-    lights = parse_light_selection(lit, loaded.n_lights) if lit.strip() else ()
+    try:
+        lights = parse_light_selection(lit, loaded.n_lights) if lit.strip() else ()
+    except RigError as exc:
+        raise RigError(str(exc).replace("--lights", "--lit", 1)) from None
 
     def announce(server) -> None:
         typer.echo(server.address)
