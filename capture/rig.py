@@ -320,8 +320,8 @@ def parse_rig(data: Mapping[str, Any], *, origin: str = "<rig>", source: Path | 
         raise RigError(f"{origin}: the simulated camera needs a [scene] table")
     if ptpip_sim and local_ptpip_port(camera.port) is None:
         raise RigError(
-            f"{origin}: [scene] with a gphoto2 camera needs [camera] port = "
-            f'"ptpip:127.0.0.1[:N]" (the PTP/IP camera simulator), got {camera.port!r}'
+            f"{origin}: [scene] only applies to a simulated camera, or to a gphoto2 camera on "
+            f'port = "ptpip:127.0.0.1[:N]" (the PTP/IP camera simulator); got {camera.port!r}'
         )
     if camera.driver not in ("simulated", "gphoto2") and scene is not None:
         raise RigError(

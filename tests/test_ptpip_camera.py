@@ -465,7 +465,9 @@ def test_rig_file_scene_needs_a_local_ptpip_port(tmp_path):
     path = _rig(tmp_path)
     assert load_rig(path).camera.driver == "gphoto2"
     path.write_text(path.read_text().replace("ptpip:127.0.0.1:0", "usb:001,004"))
-    with pytest.raises(RigError, match=re.escape('needs [camera] port = "ptpip:127.0.0.1[:N]"')):
+    with pytest.raises(
+        RigError, match=re.escape('a gphoto2 camera on port = "ptpip:127.0.0.1[:N]"')
+    ):
         load_rig(path)
 
 
