@@ -6,8 +6,10 @@ layer, exactly as a real ``/dev/ttyACM0`` would be opened, and hands the firmwar
 the simulated camera so that a driver bug that leaves the wrong light on shows up in the images.
 For ``driver = "firmware"`` the controller is the compiled Arduino sketch running in simavr
 (:mod:`~ps_lab.capture.simulated.avr_firmware`), and the camera sees the lights whose pins the
-emulated MCU drives. :func:`build_simulation` builds the renderer scene and true lights behind
-a simulated rig.
+emulated MCU drives. A gphoto2 camera on ``ptpip:127.0.0.1`` with a ``[scene]`` is the PTP/IP
+camera simulator (:mod:`~ps_lab.capture.simulated.ptpip_camera`), started in its own process and
+told the lit lights through a state file; the driver reaches it through the real libgphoto2.
+:func:`build_simulation` builds the renderer scene and true lights behind a simulated rig.
 
 This is the one production module that imports :mod:`ps_lab.capture.simulated` (an import-linter
 contract); the simulators run only when a rig file selects them.

@@ -8,6 +8,7 @@ array is a uint32 element count followed by the elements. A PTP/IP packet is a u
 
 from __future__ import annotations
 
+import socket
 import struct
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
@@ -212,3 +213,48 @@ EXPOSURE_TIMES = (
 )  # fmt: skip
 ISO_VALUES = (100, 200, 400, 800, 1600, 3200)
 F_NUMBERS = (280, 400, 560, 800, 1100, 1600, 2200)  # in 1/100
+
+
+class ConnectionEnded(Exception):
+    """The connection ended (end of stream, reset, or an injected disconnect)."""
+
+
+def recv_exact(conn: socket.socket, size: int) -> bytes:
+    """Read exactly ``size`` bytes; ConnectionEnded at end of stream."""
+    chunks, remaining = [], size
+    while remaining:
+        chunk = conn.recv(min(remaining, 1 << 20))
+        if not chunk:
+            raise ConnectionEnded("end of stream")
+        chunks.append(chunk)
+        remaining -= len(chunk)
+    return b"".join(chunks)
+
+
+def read_packet(conn: socket.socket) -> tuple[int, bytes]:
+    """Read one PTP/IP packet: (type, payload)."""
+    length, kind = struct.unpack("<II", recv_exact(conn, 8))
+    if length < 8 or length > (64 << 20):
+        raise ValueError(f"PTP/IP packet length {length}")
+    return kind, recv_exact(conn, length - 8)
+
+
+def read_data(conn: socket.socket) -> bytes:
+    """Read an initiator's data phase: Start Data, then Data packets up to End Data."""
+    kind, _ = read_packet(conn)
+    if kind != START_DATA:
+        raise ValueError(f"expected a Start Data packet, got type {kind}")
+    parts = []
+    while True:
+        kind, payload = read_packet(conn)
+        if kind not in (DATA, END_DATA):
+            raise ValueError(f"expected a Data packet, got type {kind}")
+        parts.append(payload[4:])
+        if kind == END_DATA:
+            return b"".join(parts)
+
+
+def send_data(conn: socket.socket, transaction: int, data: bytes) -> None:
+    """Send a data phase as one Start Data and one End Data packet."""
+    conn.sendall(packet(START_DATA, u32(transaction) + u64(len(data))))
+    conn.sendall(packet(END_DATA, u32(transaction) + data))

@@ -80,10 +80,6 @@ _PROPERTIES = {
 }
 
 
-class _Dropped(Exception):
-    """The connection ended (EOF, reset, or an injected disconnect)."""
-
-
 @dataclass(frozen=True)
 class ServedFrame:
     """A frame the camera shot: object handle, file name, SHA-256 and size of its bytes."""
@@ -290,7 +286,7 @@ class PtpIpCamera:
     def _handshake(self, conn: socket.socket) -> None:
         try:
             conn.settimeout(10.0)
-            kind, payload = _read_packet(conn)
+            kind, payload = ptp.read_packet(conn)
             conn.settimeout(None)
             if kind == ptp.INIT_COMMAND_REQUEST:
                 self._serve_command(conn, payload)
@@ -299,7 +295,7 @@ class PtpIpCamera:
             else:
                 log.info("PTP/IP camera: first packet of type %d; closing", kind)
                 conn.close()
-        except (_Dropped, OSError, struct.error, ValueError) as exc:
+        except (ptp.ConnectionEnded, OSError, struct.error, ValueError) as exc:
             log.debug("PTP/IP camera: connection ended: %s", exc)
             conn.close()
 
@@ -319,7 +315,7 @@ class PtpIpCamera:
         conn.sendall(ptp.packet(ptp.INIT_COMMAND_ACK, ack))
         try:
             while not self._stop.is_set():
-                kind, payload = _read_packet(conn)
+                kind, payload = ptp.read_packet(conn)
                 if kind == ptp.OPERATION_REQUEST:
                     self._operation(conn, ptp.Request.parse(payload))
                 elif kind == ptp.PROBE_REQUEST:
@@ -342,7 +338,7 @@ class PtpIpCamera:
         conn.sendall(ptp.packet(ptp.INIT_EVENT_ACK))
         try:
             while not self._stop.is_set():
-                kind, _ = _read_packet(conn)
+                kind, _ = ptp.read_packet(conn)
                 if kind == ptp.PROBE_REQUEST:
                     with self._event_lock:
                         conn.sendall(ptp.packet(ptp.PROBE_RESPONSE))
@@ -381,7 +377,7 @@ class PtpIpCamera:
     def _operation(self, conn: socket.socket, req: ptp.Request) -> None:
         data_out = None
         if req.code == ptp.SET_DEVICE_PROP_VALUE or req.phase == 2:
-            data_out = _read_data(conn)
+            data_out = ptp.read_data(conn)
         handler = _HANDLERS.get(req.code)
         if handler is None:
             code, data, params = ptp.OPERATION_NOT_SUPPORTED, None, ()
@@ -394,7 +390,7 @@ class PtpIpCamera:
             if isinstance(data, _Object):
                 self._send_object(conn, req.transaction, data)
             else:
-                _send_data(conn, req.transaction, data)
+                ptp.send_data(conn, req.transaction, data)
         conn.sendall(ptp.response(code, req.transaction, params))
 
     def _device_info(self, req: ptp.Request, _: bytes | None) -> tuple[int, bytes, tuple]:
@@ -613,7 +609,7 @@ class PtpIpCamera:
             if fault == "disconnect" and start >= len(data) // 2:
                 log.warning("PTP/IP camera: injected fault: dropped during %s", obj.name)
                 self._drop()
-                raise _Dropped("injected disconnect")
+                raise ptp.ConnectionEnded("injected disconnect")
             end = min(len(data), start + chunk)
             kind = ptp.END_DATA if end == len(data) else ptp.DATA
             conn.sendall(ptp.packet(kind, ptp.u32(transaction) + data[start:end]))
@@ -637,41 +633,3 @@ _HANDLERS: dict[int, Callable[..., tuple[int, Any, tuple]]] = {
     ptp.GET_DEVICE_PROP_VALUE: PtpIpCamera._prop_value,
     ptp.SET_DEVICE_PROP_VALUE: PtpIpCamera._set_prop,
 }
-
-
-def _recv_exact(conn: socket.socket, size: int) -> bytes:
-    chunks, remaining = [], size
-    while remaining:
-        chunk = conn.recv(min(remaining, 1 << 20))
-        if not chunk:
-            raise _Dropped("end of stream")
-        chunks.append(chunk)
-        remaining -= len(chunk)
-    return b"".join(chunks)
-
-
-def _read_packet(conn: socket.socket) -> tuple[int, bytes]:
-    length, kind = struct.unpack("<II", _recv_exact(conn, 8))
-    if length < 8 or length > (64 << 20):
-        raise ValueError(f"PTP/IP packet length {length}")
-    return kind, _recv_exact(conn, length - 8)
-
-
-def _read_data(conn: socket.socket) -> bytes:
-    """Read an initiator's data phase: Start Data, then Data packets up to End Data."""
-    kind, _ = _read_packet(conn)
-    if kind != ptp.START_DATA:
-        raise ValueError(f"expected a Start Data packet, got type {kind}")
-    parts = []
-    while True:
-        kind, payload = _read_packet(conn)
-        if kind not in (ptp.DATA, ptp.END_DATA):
-            raise ValueError(f"expected a Data packet, got type {kind}")
-        parts.append(payload[4:])
-        if kind == ptp.END_DATA:
-            return b"".join(parts)
-
-
-def _send_data(conn: socket.socket, transaction: int, data: bytes) -> None:
-    conn.sendall(ptp.packet(ptp.START_DATA, ptp.u32(transaction) + ptp.u64(len(data))))
-    conn.sendall(ptp.packet(ptp.END_DATA, ptp.u32(transaction) + data))
