@@ -8,11 +8,11 @@ LAUNCHER := $(abspath $(BIN))/ps-lab
 
 .PHONY: demo test test-slow bench lint lint-imports clean launcher
 
-$(STAMP): pyproject.toml
+$(STAMP): pyproject.toml Makefile
 	@command -v $(PYTHON) >/dev/null 2>&1 || { echo "need $(PYTHON) (set PYTHON=...)"; exit 1; }
 	$(PYTHON) -m venv $(VENV)
 	$(BIN)/python -m pip install -q --upgrade pip
-	$(BIN)/python -m pip install -q -e '.[test,distributed]'
+	$(BIN)/python -m pip install -q -e '.[test,distributed,gphoto2]'
 	@touch $(STAMP)
 	@sh tools/launcher.sh link $(LAUNCHER)
 

@@ -6,8 +6,10 @@ layer, exactly as a real ``/dev/ttyACM0`` would be opened, and hands the firmwar
 the simulated camera so that a driver bug that leaves the wrong light on shows up in the images.
 For ``driver = "firmware"`` the controller is the compiled Arduino sketch running in simavr
 (:mod:`~ps_lab.capture.simulated.avr_firmware`), and the camera sees the lights whose pins the
-emulated MCU drives. :func:`build_simulation` builds the renderer scene and true lights behind
-a simulated rig.
+emulated MCU drives. A gphoto2 camera on ``ptpip:127.0.0.1`` with a ``[scene]`` is the PTP/IP
+camera simulator (:mod:`~ps_lab.capture.simulated.ptpip_camera`), started in its own process and
+told the lit lights through a state file; the driver reaches it through the real libgphoto2.
+:func:`build_simulation` builds the renderer scene and true lights behind a simulated rig.
 
 This is the one production module that imports :mod:`ps_lab.capture.simulated` (an import-linter
 contract); the simulators run only when a rig file selects them.
@@ -17,7 +19,10 @@ from __future__ import annotations
 
 import logging
 import math
-from collections.abc import Callable
+import multiprocessing
+import shutil
+import tempfile
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -26,12 +31,21 @@ import numpy as np
 
 from ps_lab import render
 from ps_lab.capture import cameras, gphoto2_camera, lights
-from ps_lab.capture.rig import Rig
+from ps_lab.capture.faults import Fault
+from ps_lab.capture.lights import LightState
+from ps_lab.capture.rig import Rig, local_ptpip_port
 from ps_lab.capture.simulated import firmware as sim_lights
 from ps_lab.capture.simulated.avr_firmware import EmulatedFirmware, serve_firmware
 from ps_lab.capture.simulated.camera import SimulatedCamera
 from ps_lab.capture.simulated.firmware import parse_faults
-from ps_lab.capture.simulated.pty_server import PtyServer, serve_simulator, state_file_reader
+from ps_lab.capture.simulated.ptpip_camera import DEFAULT_PORT, PtpIpCamera, dng_shooter
+from ps_lab.capture.simulated.pty_server import (
+    PtyServer,
+    serve_simulator,
+    serve_until_interrupted,
+    state_file_reader,
+    write_state_file,
+)
 from ps_lab.errors import CameraError, PsLabError, RigError
 
 log = logging.getLogger("ps_lab.capture.rig")
@@ -48,6 +62,8 @@ __all__ = [
     "serve_simulator",
     # The compiled sketch in simavr on its own pty (``ps-lab rig serve-firmware``).
     "serve_firmware",
+    # The PTP/IP camera simulator (``ps-lab rig serve-camera``).
+    "serve_camera",
 ]
 
 # --------------------------------------------------------------------------------------------
@@ -146,6 +162,11 @@ class OpenRig:
         self.simulation: Simulation | None = None
         self.firmware: Any = None  # the simulated controller's firmware, when simulated
         self.board: EmulatedFirmware | None = None  # the emulated MCU, for driver = "firmware"
+        #: The PTP/IP camera simulator's frames (``ServedFrame``: handle, name, sha256, size),
+        #: known once the rig is closed, for a gphoto2 camera on a simulated scene.
+        self.served_frames: list[Any] | None = None
+        #: ... and the InitiateCapture requests it received.
+        self.served_captures: int | None = None
         #: False when closing could not confirm that the lights are off (the controller's
         #: watchdog switches them off then).
         self.lights_off_confirmed = True
@@ -205,8 +226,11 @@ def open_rig(
 def _open_controller(rig: Rig, opened: OpenRig) -> Callable[[], Any] | None:
     cfg = rig.controller
     light_state: Callable[[], Any] | None = None
+    state_file = _camera_state_file(rig, opened)
     if cfg.driver == "simulated":
         firmware = _make_firmware(sim_lights, rig)
+        if state_file is not None:  # for the PTP/IP camera simulator in its own process
+            firmware.add_listener(lambda state: write_state_file(state_file, state))
         server = PtyServer(firmware).start()
         opened._closers.append(server.stop)
         assert server.path is not None
@@ -216,7 +240,7 @@ def _open_controller(rig: Rig, opened: OpenRig) -> Callable[[], Any] | None:
         log.info("simulated controller on %s", port)
     elif cfg.driver == "firmware":
         # The compiled sketch in simavr: the camera sees the lights whose pins are driven.
-        board = EmulatedFirmware(cfg.elf, pins=cfg.pins).start()
+        board = EmulatedFirmware(cfg.elf, pins=cfg.pins, state_file=state_file).start()
         opened._closers.append(board.stop)
         assert board.path is not None
         port = board.path
@@ -323,8 +347,12 @@ def _open_camera(
             exposure_s=cfg.exposure_s,
         )
     elif cfg.driver == "gphoto2":
+        port = cfg.port
+        if rig.scene is not None:  # the PTP/IP camera simulator, in its own process
+            port = _start_camera_process(rig, opened)
+            opened.simulation = build_simulation(rig)  # the run's ground truth
         camera = gphoto2_camera.Gphoto2Camera(
-            cfg.port,
+            port,
             settings=dict(cfg.settings),
             timeout_s=cfg.timeout_s,
             exposure_s=cfg.exposure_s,
@@ -335,3 +363,143 @@ def _open_camera(
         raise CameraError(f"unknown camera driver {cfg.driver!r}")
     opened.camera = camera
     opened._closers.append(camera.close)
+
+
+# --------------------------------------------------------------------------------------------
+# The PTP/IP camera simulator (a gphoto2 camera on a simulated scene)
+# --------------------------------------------------------------------------------------------
+
+
+def _camera_state_file(rig: Rig, opened: OpenRig) -> Path | None:
+    """Where the controller publishes its lights for the PTP/IP camera simulator (or None)."""
+    if rig.camera.driver != "gphoto2" or rig.scene is None:
+        return None
+    if rig.controller.driver == "serial":
+        assert rig.camera.light_state_file is not None  # parse_rig requires it
+        return Path(rig.camera.light_state_file)
+    folder = Path(tempfile.mkdtemp(prefix="ps-lab-rig-"))
+    opened._closers.append(lambda: shutil.rmtree(folder, ignore_errors=True))
+    opened._state_file = folder / "lights.json"  # type: ignore[attr-defined]
+    return opened._state_file  # type: ignore[attr-defined]
+
+
+def serve_camera(
+    rig: Rig,
+    *,
+    port: int = DEFAULT_PORT,
+    state_file: Path | str | None = None,
+    lit: Iterable[int] = (),
+    level: int = 255,
+    faults: Iterable[Fault] | None = None,
+    keep_dir: Path | str | None = None,
+    slow_s: float = 2.0,
+    on_ready: Callable[[PtpIpCamera], None] | None = None,
+) -> None:
+    """Serve the rig's scene as a PTP/IP camera until Ctrl-C or SIGTERM (``rig serve-camera``).
+
+    Each capture renders the scene under the lights in ``state_file`` (written by the simulated
+    controller, ``ps-lab rig serve-sim --state-file``) or, without one, under lights ``lit`` at
+    ``level``, with the rig's [camera] sensor (black and white level, gain, noise, seed).
+    ``faults`` default to the rig's ``[faults] camera``. ``on_ready(server)`` is called once
+    the port listens.
+    """
+    if rig.scene is None:
+        raise RigError(f"rig {rig.name!r} has no [scene] for the camera to see")
+    if state_file is not None:
+        light_state = state_file_reader(Path(state_file))
+    else:
+        fixed = LightState(frozenset(int(i) for i in lit), int(level))
+
+        def light_state() -> LightState:
+            return fixed
+
+    cfg = rig.camera
+    simulation = build_simulation(rig)
+    camera = SimulatedCamera(
+        simulation.scene,
+        simulation.light_directions,
+        simulation.light_intensities,
+        light_state,
+        exposure_s=cfg.exposure_s,
+        black_level=cfg.black_level,
+        white_level=cfg.white_level,
+        gain=cfg.gain,
+        read_noise_dn=cfg.read_noise_dn,
+        shot_noise=cfg.shot_noise,
+        dn_per_electron=cfg.dn_per_electron,
+        seed=cfg.seed,
+        point_lights=simulation.point_lights,
+    )
+    server = PtpIpCamera(
+        dng_shooter(camera),
+        port=port,
+        faults=rig.faults.camera if faults is None else faults,
+        exposure_s=cfg.exposure_s,
+        iso=cfg.iso or 100,
+        f_number=cfg.aperture or 8.0,
+        slow_s=slow_s,
+        keep_dir=keep_dir,
+    )
+    serve_until_interrupted(server, on_ready, "PTP/IP camera")
+
+
+def _camera_child(rig: Rig, state_file: str, port: int, pipe: Any) -> None:
+    """In a spawned process: serve the camera, send its port, and its frames when stopped."""
+    served: list[PtpIpCamera] = []
+
+    def ready(server: PtpIpCamera) -> None:
+        served.append(server)
+        pipe.send(server.port)
+
+    try:
+        serve_camera(rig, port=port, state_file=state_file, on_ready=ready)
+    except PsLabError as exc:
+        pipe.send(str(exc))
+        return
+    pipe.send((list(served[0].frames), served[0].captures) if served else ([], 0))
+
+
+def _start_camera_process(rig: Rig, opened: OpenRig) -> str:
+    """Start the PTP/IP camera simulator in its own process; return its gphoto2 port.
+
+    Its own process, as a real camera is its own device: python-gphoto2 holds the GIL during
+    some libgphoto2 calls (``get_summary``), which would stall a simulator in the same process.
+    """
+    port = local_ptpip_port(rig.camera.port)
+    assert port is not None  # parse_rig requires a local ptpip port with a [scene]
+    state_file = getattr(opened, "_state_file", None) or rig.camera.light_state_file
+    context = multiprocessing.get_context("spawn")
+    receiver, sender = context.Pipe(duplex=False)
+    process = context.Process(
+        target=_camera_child,
+        args=(rig, str(state_file), port, sender),
+        name="ps-lab-ptpip-camera",
+        daemon=True,
+    )
+    process.start()
+    sender.close()
+
+    def stop() -> None:
+        if process.is_alive():
+            process.terminate()  # SIGTERM: the simulator stops cleanly and reports its frames
+        if receiver.poll(10.0):
+            try:
+                opened.served_frames, opened.served_captures = receiver.recv()
+            except EOFError:
+                pass
+        process.join(10.0)
+        if process.is_alive():
+            process.kill()
+            process.join()
+
+    opened._closers.append(stop)
+    if not receiver.poll(120.0):
+        raise CameraError("the PTP/IP camera simulator did not start within 120 s")
+    try:
+        message = receiver.recv()
+    except EOFError:
+        raise CameraError("the PTP/IP camera simulator exited while starting") from None
+    if isinstance(message, str):
+        raise CameraError(f"PTP/IP camera simulator: {message}")
+    log.info("PTP/IP camera simulator (pid %d) on 127.0.0.1:%d", process.pid, message)
+    return PtpIpCamera.address_of("127.0.0.1", int(message))

@@ -25,6 +25,10 @@ from ps_lab.errors import RigError
 FAULT_KINDS = ("drop", "garble", "delay", "reboot", "silence")
 #: The simulated camera's: a capture that never returns a file, a file cut short.
 CAMERA_FAULT_KINDS = ("timeout", "truncated")
+#: The PTP/IP camera simulator's (at the n-th InitiateCapture): answered DeviceBusy; accepted but
+#: never reported (no ObjectAdded); both connections dropped halfway through the download; the
+#: download spread over seconds.
+PTPIP_FAULT_KINDS = ("busy", "timeout", "disconnect", "slow")
 
 
 @dataclass(frozen=True)
@@ -50,7 +54,7 @@ class Fault:
     probability: float = 0.0
 
     def __post_init__(self) -> None:
-        if self.kind not in FAULT_KINDS + CAMERA_FAULT_KINDS:
+        if self.kind not in (*FAULT_KINDS, *CAMERA_FAULT_KINDS, *PTPIP_FAULT_KINDS):
             raise RigError(
                 f"unknown fault kind {self.kind!r}; choose from {', '.join(FAULT_KINDS)}"
             )
@@ -138,5 +142,20 @@ def parse_faults(spec: Any) -> tuple[Fault, ...]:
         if fault.kind not in FAULT_KINDS:
             raise RigError(
                 f"unknown fault kind {fault.kind!r}; choose from {', '.join(FAULT_KINDS)}"
+            )
+    return faults
+
+
+def parse_camera_faults(spec: Any) -> tuple[Fault, ...]:
+    """Read PTP/IP camera faults (``"busy@2,disconnect@5"``): kinds of :data:`PTPIP_FAULT_KINDS`.
+
+    ``at`` is the n-th InitiateCapture the camera receives; probabilities are not offered.
+    """
+    faults = _parse(spec)
+    for fault in faults:
+        if fault.kind not in PTPIP_FAULT_KINDS or fault.at is None:
+            raise RigError(
+                f"camera fault {fault}: write KIND@N with KIND one of "
+                f"{', '.join(PTPIP_FAULT_KINDS)}"
             )
     return faults

@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import logging
 import math
+import os
 import re
 import time
 from collections.abc import Mapping
@@ -56,6 +57,12 @@ SETTING_ALIASES: dict[str, tuple[str, ...]] = {
 #: Settings whose choices are numbers: a value may match a choice numerically.
 _NUMERIC = {"shutterspeed", "aperture", "f-number", "fnumber", "iso", "isospeed"}
 
+#: Seconds between triggers while the camera answers busy (PTP DeviceBusy, GP_ERROR_CAMERA_BUSY).
+BUSY_RETRY_S = 0.25
+
+#: libgphoto2's model name of a generic PTP/IP camera (``gphoto2 --list-cameras``).
+PTPIP_MODEL = "PTP/IP Camera"
+
 # ps-lab is installed from its clone (not from a package index).
 _INSTALL_HINT = (
     "python-gphoto2 is not installed: in the ps-lab clone, run "
@@ -71,6 +78,33 @@ def _import_gphoto2() -> ModuleType:
     except ImportError:
         raise CameraError(_INSTALL_HINT) from None
     return gphoto2
+
+
+def _keeping_fd0(call: Any) -> None:
+    """Run ``call()`` and put back whatever file descriptor 0 was if the call closed it.
+
+    libgphoto2's PTP/IP driver (2.5.34, the python-gphoto2 wheel's) closes descriptor 0 when it
+    disconnects, besides its two sockets: on a reconnect in the middle of a capture, 0 is then
+    the process's standard input or, once that is gone, whatever was opened next (the light
+    controller's serial port, say).
+    """
+    try:
+        before = os.fstat(0)
+        saved = os.dup(0)
+    except OSError:  # nothing at 0 now: nothing to lose
+        call()
+        return
+    try:
+        call()
+    finally:
+        try:
+            after = os.fstat(0)
+            same = (after.st_dev, after.st_ino) == (before.st_dev, before.st_ino)
+        except OSError:
+            same = False
+        if not same:
+            os.dup2(saved, 0, inheritable=True)
+        os.close(saved)
 
 
 def parse_shutter_speed(value: object) -> float | None:
@@ -172,6 +206,7 @@ class Gphoto2Camera(Camera):
         self.keep_on_camera = bool(keep_on_camera)
         self._gp = gp_module if gp_module is not None else _import_gphoto2()
         self._camera: Any = None
+        self._stale: tuple[str, str] | None = None
         self.model: str | None = None
         self._open()
         try:
@@ -223,6 +258,13 @@ class Gphoto2Camera(Camera):
             except error_type:
                 raise CameraError(f"gphoto2 knows no port {port!r}") from None
             camera.set_port_info(ports[index])
+            if port.startswith(("ptpip:", "ip:")):
+                # libgphoto2 detects models on USB only: on a network port gp_camera_init fails
+                # with "Unknown model" unless the generic PTP/IP driver is chosen first.
+                abilities = gp.CameraAbilitiesList()
+                abilities.load()
+                camera.set_abilities(abilities[abilities.lookup_model(PTPIP_MODEL)])
+                self.model = self.model or PTPIP_MODEL
             camera.init()
         except CameraError:
             raise
@@ -317,14 +359,48 @@ class Gphoto2Camera(Camera):
         except getattr(self._gp, "GPhoto2Error", Exception) as exc:
             log.debug("gphoto2: could not delete %s/%s: %s", folder, name, exc)
 
+    def _reconnect(self) -> None:
+        """Open the camera again after a capture lost it (e.g. a dropped PTP/IP connection)."""
+        log.info("gphoto2: connecting to %s again", self.port)
+        self._open()
+        try:
+            self._configure()
+        except BaseException:
+            self._do_close()
+            raise
+        if self._stale is not None:  # the file whose download was cut off
+            self._delete(*self._stale)
+            self._stale = None
+
+    def _trigger(self, deadline: float, label: str) -> None:
+        """trigger_capture, again every BUSY_RETRY_S while the camera answers busy."""
+        gp = self._gp
+        busy = getattr(gp, "GP_ERROR_CAMERA_BUSY", -110)
+        while True:
+            try:
+                self._camera.trigger_capture()
+                return
+            except getattr(gp, "GPhoto2Error", Exception) as exc:
+                if getattr(exc, "code", None) != busy:
+                    raise
+                if time.monotonic() + BUSY_RETRY_S > deadline:
+                    raise CameraError(
+                        f"gphoto2: camera stayed busy for {self.timeout_s:g} s when triggering "
+                        f"{label}"
+                    ) from None
+                log.info("gphoto2: camera busy; triggering %s again in %g s", label, BUSY_RETRY_S)
+                time.sleep(BUSY_RETRY_S)
+
     def _do_capture(self, path: Path, frame_index: int, label: str) -> float | None:
         gp = self._gp
         error_type = getattr(gp, "GPhoto2Error", Exception)
+        if self._camera is None:  # an earlier capture lost the connection
+            self._reconnect()
+        found: tuple[str, str] | None = None
         try:
             self._drain_events()
-            self._camera.trigger_capture()
             deadline = time.monotonic() + self.timeout_s
-            found: tuple[str, str] | None = None
+            self._trigger(deadline, label)
             while found is None:
                 remaining = deadline - time.monotonic()
                 if remaining <= 0:
@@ -349,7 +425,15 @@ class Gphoto2Camera(Camera):
         except CameraError:
             raise
         except error_type as exc:
-            raise self._gp_error(exc, f"capturing {label}") from None
+            # libgphoto2 cannot talk to a camera again after an I/O failure in the middle of an
+            # operation (a dropped PTP/IP connection leaves every later call failing): close it
+            # here and connect again at the next capture.
+            self._stale = found
+            self._do_close()
+            raise CameraError(
+                f"gphoto2 lost the camera while capturing {label} ({exc}); "
+                "connecting again at the next capture"
+            ) from None
         log.info("gphoto2: %s/%s -> %s", found[0], found[1], path)
         return self.exposure_s  # None: the base class reads it from the file
 
@@ -357,7 +441,7 @@ class Gphoto2Camera(Camera):
         if self._camera is None:
             return
         try:
-            self._camera.exit()
+            _keeping_fd0(self._camera.exit)
         except getattr(self._gp, "GPhoto2Error", Exception) as exc:
             log.debug("gphoto2: exit failed: %s", exc)
         finally:

@@ -14,6 +14,7 @@ from __future__ import annotations
 import dataclasses
 import logging
 import math
+import re
 import tomllib
 from collections.abc import Mapping
 from dataclasses import dataclass, field
@@ -21,7 +22,7 @@ from pathlib import Path
 from typing import Any
 
 from ps_lab.capture._rig_table import _kind, _Table
-from ps_lab.capture.faults import CAMERA_FAULT_KINDS, Fault
+from ps_lab.capture.faults import CAMERA_FAULT_KINDS, PTPIP_FAULT_KINDS, Fault
 from ps_lab.capture.faults import FAULT_KINDS as CONTROLLER_FAULT_KINDS
 from ps_lab.errors import RigError
 from ps_lab.geometry import Circle
@@ -313,17 +314,30 @@ def parse_rig(data: Mapping[str, Any], *, origin: str = "<rig>", source: Path | 
     faults = _parse_faults(faults_table) if faults_table is not None else FaultsConfig()
     top.done()
 
+    # A gphoto2 camera on ptpip:127.0.0.1 with a [scene] is the PTP/IP camera simulator.
+    ptpip_sim = camera.driver == "gphoto2" and scene is not None
     if camera.driver == "simulated" and scene is None:
         raise RigError(f"{origin}: the simulated camera needs a [scene] table")
-    if camera.driver != "simulated" and scene is not None:
+    if ptpip_sim and local_ptpip_port(camera.port) is None:
+        raise RigError(
+            f"{origin}: [scene] only applies to a simulated camera, or to a gphoto2 camera on "
+            f'port = "ptpip:127.0.0.1[:N]" (the PTP/IP camera simulator); got {camera.port!r}'
+        )
+    if camera.driver not in ("simulated", "gphoto2") and scene is not None:
         raise RigError(
             f"{origin}: [scene] only applies to a simulated camera "
             f"(camera driver is {camera.driver!r})"
         )
+    sensor = sorted(_SENSOR_KEYS & set(cam_table.data))
+    if camera.driver == "gphoto2" and scene is None and sensor:
+        raise RigError(
+            f"{origin}: [camera] {sensor[0]}: applies to a gphoto2 camera only on a [scene] "
+            "(the PTP/IP camera simulator)"
+        )
     if camera.driver == "simulated" and camera.file_type != "dng":
         raise RigError(f"{origin}: [camera] file_type: the simulated camera writes 'dng' files")
     if (
-        camera.driver == "simulated"
+        (camera.driver == "simulated" or ptpip_sim)
         and controller.driver == "serial"
         and camera.light_state_file is None
     ):
@@ -337,10 +351,17 @@ def parse_rig(data: Mapping[str, Any], *, origin: str = "<rig>", source: Path | 
             f"{origin}: [faults] controller: faults can only be injected into a simulated "
             "controller"
         )
-    if faults.camera and camera.driver != "simulated":
+    kinds = PTPIP_FAULT_KINDS if ptpip_sim else CAMERA_FAULT_KINDS
+    if faults.camera and camera.driver != "simulated" and not ptpip_sim:
         raise RigError(
             f"{origin}: [faults] camera: faults can only be injected into a simulated camera"
         )
+    for fault in faults.camera:
+        if fault.kind not in kinds:
+            raise RigError(
+                f"{origin}: [faults] camera: {fault.kind!r} is not a fault of this camera; "
+                f"choose from {', '.join(kinds)}"
+            )
     return Rig(
         name=name,
         description=description,
@@ -405,18 +426,20 @@ def _unit_vectors(t: _Table, key: str, count: int) -> tuple[tuple[float, float, 
     return tuple(out)  # type: ignore[return-value]
 
 
+_SENSOR_KEYS = {
+    "black_level",
+    "white_level",
+    "gain",
+    "read_noise_dn",
+    "shot_noise",
+    "dn_per_electron",
+    "seed",
+    "light_state_file",
+}
 _CAMERA_KEYS = {
-    "simulated": {
-        "black_level",
-        "white_level",
-        "gain",
-        "read_noise_dn",
-        "shot_noise",
-        "dn_per_electron",
-        "seed",
-        "light_state_file",
-    },
-    "gphoto2": {"iso", "aperture", "port", "settings"},
+    "simulated": _SENSOR_KEYS,
+    # and, on a [scene] (the PTP/IP camera simulator), the simulated sensor's keys
+    "gphoto2": {"iso", "aperture", "port", "settings"} | _SENSOR_KEYS,
     "folder": {"folder", "prompt", "pattern"},
 }
 
@@ -559,6 +582,9 @@ def _intensities(t: _Table, count: int) -> tuple[tuple[float, ...], ...] | None:
     return rows
 
 
+_ALL_CAMERA_FAULTS = tuple(dict.fromkeys(CAMERA_FAULT_KINDS + PTPIP_FAULT_KINDS))
+
+
 def _parse_faults(t: _Table) -> FaultsConfig:
     def faults(
         key: str, kinds: tuple[str, ...], unit: str, random_allowed: bool
@@ -577,7 +603,7 @@ def _parse_faults(t: _Table) -> FaultsConfig:
 
     cfg = FaultsConfig(
         controller=faults("controller", CONTROLLER_FAULT_KINDS, "command", True),
-        camera=faults("camera", CAMERA_FAULT_KINDS, "capture", False),
+        camera=faults("camera", _ALL_CAMERA_FAULTS, "capture", False),
         seed=t.int("seed", 0, lo=0),
     )
     t.done()
@@ -604,6 +630,17 @@ def apply_overrides(rig: Rig, *, port: str | None = None, exposure_s: float | No
             raise RigError(f"--exposure must be a positive number of seconds, got {exposure_s}")
         camera = dataclasses.replace(camera, exposure_s=float(exposure_s))
     return dataclasses.replace(rig, controller=controller, camera=camera)
+
+
+_LOCAL_PTPIP = re.compile(r"^ptpip:(?:127\.0\.0\.1|localhost)(?::(\d+))?(?::(\d+))?$")
+
+
+def local_ptpip_port(port: str | None) -> int | None:
+    """The TCP port of ``ptpip:127.0.0.1[:N[:N]]`` (15740 without one), else None."""
+    match = _LOCAL_PTPIP.match(port or "")
+    if match is None:
+        return None
+    return int(match.group(1)) if match.group(1) else 15740
 
 
 def parse_light_selection(text: str, n_lights: int) -> tuple[int, ...]:

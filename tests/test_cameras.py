@@ -504,11 +504,13 @@ def test_gphoto2_clear_errors(tmp_path):
     with pytest.raises(CameraError, match="iso='64' is not one of"):
         Gphoto2Camera(settings={"iso": "64"}, gp_module=gp)
     gp = make_gphoto2_double()
-    camera = Gphoto2Camera(settings={"imageformat": "raw"}, gp_module=gp)  # case-insensitive
+    # case-insensitive
+    camera = Gphoto2Camera(settings={"imageformat": "raw"}, timeout_s=0.6, gp_module=gp)
     assert gp.rig.config.get_child_by_name("imageformat").value == "RAW"
-    gp.rig.trigger_error = -110
-    with pytest.raises(CameraError, match="gphoto2 error while capturing frame 0"):
+    gp.rig.trigger_error = -110  # GP_ERROR_CAMERA_BUSY: triggered again until timeout_s
+    with pytest.raises(CameraError, match="camera stayed busy for 0.6 s when triggering frame 0"):
         camera.capture(tmp_path / "z.cr2")
+    assert gp.rig.calls.count(("trigger_capture",)) >= 2
 
 
 def test_gphoto2_missing_library_message(monkeypatch):

@@ -16,8 +16,10 @@ from ps_lab._cli_util import (
     lab_command,
     progress_bar,
 )
-from ps_lab.capture.connect import parse_faults, serve_firmware, serve_simulator
+from ps_lab.capture.connect import parse_faults, serve_camera, serve_firmware, serve_simulator
+from ps_lab.capture.faults import parse_camera_faults
 from ps_lab.capture.lights import SerialLightController, walk_lights
+from ps_lab.capture.rig import load_rig, parse_light_selection
 from ps_lab.errors import PsLabError, RigError
 
 rig_app = typer.Typer(
@@ -110,6 +112,69 @@ def serve_firmware_command(
         )
 
     serve_firmware(elf=elf, state_file=state_file, pins=pins, on_ready=announce)
+
+
+@rig_app.command("serve-camera")
+@lab_command
+def serve_camera_command(
+    rig: Annotated[
+        Path,
+        typer.Option(help="Rig file with the [scene] and [camera] sensor to simulate."),
+    ] = Path("rigs/simulated-ptpip.toml"),
+    port: Annotated[
+        int, typer.Option(min=0, max=65535, help="TCP port (0: any free one; PTP/IP's is 15740).")
+    ] = 15740,
+    state_file: Annotated[
+        Path | None,
+        typer.Option(help="Render the lights this file says are lit (ps-lab rig serve-sim's)."),
+    ] = None,
+    lit: Annotated[
+        str, typer.Option(help="Without --state-file: the lights lit, e.g. 1,3-5 (none: dark).")
+    ] = "",
+    level: Annotated[int, typer.Option(min=0, max=255, help="PWM level of --lit lights.")] = 255,
+    fault: Annotated[
+        list[str] | None,
+        typer.Option(
+            help="Inject a fault at the N-th capture: KIND@N, KIND is busy, timeout, disconnect "
+            "or slow. Repeatable."
+        ),
+    ] = None,
+    slow: Annotated[
+        float, typer.Option(min=0.0, max=600.0, help="Seconds a 'slow' download takes.")
+    ] = 2.0,
+    keep: Annotated[
+        Path | None, typer.Option(help="Also write every frame shot to this folder.")
+    ] = None,
+) -> None:
+    """Print the gphoto2 port of a simulated PTP/IP camera and serve until Ctrl-C."""
+    loaded = load_rig(rig)
+    faults = parse_camera_faults(",".join(fault or [])) if fault else None
+    try:
+        lights = parse_light_selection(lit, loaded.n_lights) if lit.strip() else ()
+    except RigError as exc:
+        raise RigError(str(exc).replace("--lights", "--lit", 1)) from None
+
+    def announce(server) -> None:
+        typer.echo(server.address)
+        typer.echo(
+            f"simulated PTP/IP camera ({loaded.name}) on 127.0.0.1:{server.port}"
+            + (f", lights from {state_file}" if state_file else f", lights lit: {lit or 'none'}")
+            + (f", faults {', '.join(map(str, faults))}" if faults else "")
+            + "; Ctrl-C stops",
+            err=True,
+        )
+
+    serve_camera(
+        loaded,
+        port=port,
+        state_file=state_file,
+        lit=lights,
+        level=level,
+        faults=faults,
+        keep_dir=keep,
+        slow_s=slow,
+        on_ready=announce,
+    )
 
 
 @rig_app.command("check")
