@@ -129,7 +129,10 @@ def serve_camera_command(
         typer.Option(help="Render the lights this file says are lit (ps-lab rig serve-sim's)."),
     ] = None,
     lit: Annotated[
-        str, typer.Option(help="Without --state-file: the lights lit, e.g. 1,3-5 (none: dark).")
+        str,
+        typer.Option(
+            metavar="<list>", help="Without --state-file: the lights lit, e.g. 1,3-5 (none: dark)."
+        ),
     ] = "",
     level: Annotated[int, typer.Option(min=0, max=255, help="PWM level of --lit lights.")] = 255,
     fault: Annotated[
