@@ -458,10 +458,9 @@ def consensus_circle(
     tx, ty, tr = tx[near], ty[near], tr[near]
     votes = np.zeros(len(tx), dtype=np.int64)
     for start in range(0, len(tx), 256):
-        d = np.hypot(p[None, :, 0] - tx[start : start + 256, None], p[None, :, 1] - ty[
-            start : start + 256, None
-        ])
-        votes[start : start + 256] = (np.abs(d - tr[start : start + 256, None]) <= tolerance_px).sum(1)
+        part = slice(start, start + 256)
+        d = np.hypot(p[None, :, 0] - tx[part, None], p[None, :, 1] - ty[part, None])
+        votes[part] = (np.abs(d - tr[part, None]) <= tolerance_px).sum(axis=1)
     best = int(np.argmax(votes))
     current = Circle(float(tx[best]), float(ty[best]), float(tr[best]))
     res = np.hypot(pts[:, 0] - current.x, pts[:, 1] - current.y) - current.radius

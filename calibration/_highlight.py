@@ -223,9 +223,12 @@ def _core_centroid(
     yy: np.ndarray,
     share: float,
 ) -> tuple[float, float, float] | None:
-    """Centroid ``(x, y)`` and largest second moment of the highlight's core: the blob above ``share`` of the peak contrast, opened
-    by a disc of half its inscribed radius, the piece holding the widest point (unweighted: a
-    clipped core is a plateau)."""
+    """Centroid ``(x, y)`` and largest second moment of the highlight's core.
+
+    The core is the blob above ``share`` of the peak contrast, opened by a disc of half its
+    inscribed radius, the piece holding the widest point (unweighted: a clipped core is a
+    plateau).
+    """
     core = blob & (img >= level + share * contrast)
     if not core.any():
         return None
@@ -257,6 +260,7 @@ def _threshold_spread(img, level, contrast, disc, shares, xx, yy) -> float:
         w = np.clip(img - level, 0, None)
         energy = ndimage.sum_labels(w, labels, index=np.arange(1, count + 1))
         sel = labels == int(np.argmax(energy)) + 1
-        pts.append((np.sum(w[sel] * xx[sel]) / energy.max(), np.sum(w[sel] * yy[sel]) / energy.max()))
+        top = energy.max()
+        pts.append((np.sum(w[sel] * xx[sel]) / top, np.sum(w[sel] * yy[sel]) / top))
     pts = np.array(pts)
     return float(0.5 * np.hypot(*np.ptp(pts, axis=0))) if len(pts) > 1 else 0.0

@@ -74,10 +74,13 @@ def combine_probes(calibrations: Sequence[Calibration], labels: Sequence[str]) -
     mean /= np.linalg.norm(mean, axis=1, keepdims=True)
     combined_sigma = 1.0 / np.sqrt(weights.sum(axis=0))
     disagreement = _angles(dirs, mean[None])  # (k, n)
-    pairwise = _angles(dirs[0], dirs[1])
-    # Expected spread between two probes: their uncertainties in quadrature.
-    expected = np.sqrt(sigma[0] ** 2 + sigma[1] ** 2)
-    beyond = pairwise > AGREEMENT_SIGMAS * expected
+    # Per light, the worst pair of probes, against its expected spread (the two probes'
+    # uncertainties in quadrature).
+    pairs = [(a, b) for a in range(len(dirs)) for b in range(a + 1, len(dirs))]
+    spread = np.array([_angles(dirs[a], dirs[b]) for a, b in pairs])
+    noise = np.array([np.sqrt(sigma[a] ** 2 + sigma[b] ** 2) for a, b in pairs])
+    beyond = np.any(spread > AGREEMENT_SIGMAS * noise, axis=0)
+    pairwise, expected = spread.max(axis=0), noise.max(axis=0)
     first = calibrations[0]
     warnings = [f"{labels[0]}: {w}" for w in first.warnings]
     for cal, label in zip(calibrations[1:], labels[1:], strict=True):

@@ -196,7 +196,8 @@ def _exif_colour_space(tiff: bytes) -> int | None:
         if tag == 0x8769:  # Exif IFD pointer
             for sub, kind, v in entries(struct.unpack(order + "I", value)[0]):
                 if sub == 0xA001:
-                    return struct.unpack(order + ("H" if kind == 3 else "I"), v[: 2 if kind == 3 else 4])[0]
+                    short = kind == 3
+                    return struct.unpack(order + ("H" if short else "I"), v[: 2 if short else 4])[0]
     return None
 
 
@@ -289,7 +290,8 @@ def _trc_table(tag: bytes, k: int = 1024) -> np.ndarray | None:
         sizes = {0: 1, 1: 3, 2: 4, 3: 5, 4: 7}
         if function not in sizes:
             return None
-        p = [v / 65536.0 for v in struct.unpack(f">{sizes[function]}i", tag[12 : 12 + 4 * sizes[function]])]
+        count = sizes[function]
+        p = [v / 65536.0 for v in struct.unpack(f">{count}i", tag[12 : 12 + 4 * count])]
         g = p[0]
         if function == 0:
             return x**g
