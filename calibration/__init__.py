@@ -11,6 +11,7 @@ from ps_lab.calibration._circle import (
     CircleFit,
     circle_candidates,
     circle_inside_image,
+    consensus_circle,
     fit_circle,
     refine_circle,
     summary_image,
@@ -21,6 +22,7 @@ from ps_lab.calibration._geometry import (
 )
 from ps_lab.calibration._highlight import Highlight, locate_highlight
 from ps_lab.calibration._intensity import fit_light_intensities
+from ps_lab.calibration._probes import combine_probes
 from ps_lab.calibration._positions import Triangulation, reflected_rays, triangulate_lights
 from ps_lab.calibration._report import (
     OUTPUT_FILES,
@@ -45,7 +47,9 @@ __all__ = [
     "chrome_score",
     "circle_candidates",
     "circle_inside_image",
+    "consensus_circle",
     "circle_residual",
+    "combine_probes",
     "fit_circle",
     "fit_light_intensities",
     "highlights_from_light_directions",

@@ -16,8 +16,13 @@ from ps_lab.calibration._circle import Circle, circle_inside_image, refine_circl
 from ps_lab.calibration._geometry import light_directions_from_highlights
 from ps_lab.calibration._highlight import Highlight, locate_highlight
 from ps_lab.calibration._intensity import fit_light_intensities
-from ps_lab.calibration._positions import Triangulation, reflected_rays, triangulate_lights
-from ps_lab.calibration._spheres import chrome_sphere, other_spheres
+from ps_lab.calibration._positions import (
+    MIN_RAY_ANGLE_DEG,
+    Triangulation,
+    reflected_rays,
+    triangulate_lights,
+)
+from ps_lab.calibration._spheres import LimbImages, chrome_sphere, other_spheres
 from ps_lab.errors import CalibrationError
 
 
@@ -60,6 +65,18 @@ class Calibration:
     image_shape : (H, W) or None
     pixel_size : float or None
         Millimetres per pixel (for reports only; positions stay in pixels).
+    limb_points : list of ndarray of shape (m, 2)
+        Per sphere (``circles`` order), the edge points its outline was fitted to: the part of
+        the outline that is really the sphere's edge (drawn in calibration.png).
+    uncertainty_deg : ndarray of shape (n,) or None
+        Standard uncertainty of each light direction (degrees): the highlight's position
+        uncertainty and the circle's, propagated through the mirror law.
+    estimators : list of str
+        Per light, the highlight estimator used (``"centroid"`` or ``"core"``).
+    outline_source : str
+        What the limb was fitted on: ``"frames"`` or ``"outline frame"``.
+    metadata : dict
+        Free-form facts recorded in calibration.json (the image encoding, the probes).
 
     """
 
@@ -80,6 +97,11 @@ class Calibration:
     anisotropy: float = 0.0
     image_shape: tuple[int, int] | None = None
     pixel_size: float | None = None
+    limb_points: list[np.ndarray] = field(default_factory=list)
+    uncertainty_deg: np.ndarray | None = None
+    estimators: list[str] = field(default_factory=list)
+    outline_source: str = "frames"
+    metadata: dict = field(default_factory=dict)
 
     @property
     def light_positions(self) -> np.ndarray | None:
@@ -142,6 +164,7 @@ def calibrate(
     extra_sphere_hints: Sequence[Sequence[float]] = (),
     anisotropy: float = 0.0,
     pixel_size: float | None = None,
+    outline: np.ndarray | None = None,
 ) -> Calibration:
     """Calibrate light directions (and intensities) from a chrome sphere seen in every frame.
 
@@ -180,6 +203,9 @@ def calibrate(
         The LEDs' ``cos^mu`` exponent (near-light intensities).
     pixel_size : float, optional
         Millimetres per pixel, recorded for the report.
+    outline : ndarray of shape (H, W) or (H, W, C), optional
+        A frame in which the spheres' outlines are visible (room light, PSBox's ``ref.JPG``):
+        the outlines are found and fitted on it instead of on the frames.
 
     Returns
     -------
@@ -195,25 +221,38 @@ def calibrate(
     stack, saturated = _prepare_frames(images, saturated)
     n, h, w, _ = stack.shape
     summary = summary_image(stack)
+    limb = _limb_images(summary, stack, outline)
     warnings: list[str] = []
-    circle, residual, source = chrome_sphere(summary, stack, sphere, sphere_hint, roi, warnings)
-    others = other_spheres(
-        summary, stack, circle, source, extra_spheres, extra_sphere_hints, roi, warnings
+    circle, residual, source, points = chrome_sphere(
+        limb, stack, sphere, sphere_hint, roi, warnings
     )
+    found_others = other_spheres(
+        limb, stack, circle, source, extra_spheres, extra_sphere_hints, roi, warnings
+    )
+    others = [c for c, _ in found_others]
     found = _highlights(stack, circle, saturated, safe_radius, names, progress)
     highlights = np.array([[hl.x, hl.y] for hl in found])
     warnings.extend(_second_blob_warnings(found, names))
     if focal_length_px is not None and principal_point is None:
         principal_point = ((w - 1) / 2.0, (h - 1) / 2.0)
-    directions = light_directions_from_highlights(
-        highlights, circle, focal_length_px=focal_length_px, principal_point=principal_point
+
+    def to_directions(hl: np.ndarray, c: Circle) -> np.ndarray:
+        return light_directions_from_highlights(
+            hl, c, focal_length_px=focal_length_px, principal_point=principal_point
+        )
+
+    directions = to_directions(highlights, circle)
+    uncertainty = direction_uncertainty(
+        highlights, np.array([hl.uncertainty_px for hl in found]), circle,
+        circle_uncertainty_px(residual, len(points)), to_directions,
     )
     triangulation = None
     if others:
         if focal_length_px is not None:
             raise CalibrationError("LED positions from several spheres need an orthographic camera")
         triangulation = _triangulate(
-            stack, circle, highlights, others, saturated, safe_radius, names, progress, warnings
+            stack, circle, highlights, others, saturated, safe_radius, names, progress, warnings,
+            uncertainty,
         )
         directions = triangulation.light_directions
     matte_circle, intensities = _matte_intensities(
@@ -239,7 +278,68 @@ def calibrate(
         anisotropy=float(anisotropy),
         image_shape=(h, w),
         pixel_size=pixel_size,
+        limb_points=[points, *(p for _, p in found_others)],
+        uncertainty_deg=uncertainty,
+        estimators=[hl.estimator for hl in found],
+        outline_source="frames" if outline is None else "outline frame",
     )
+
+
+def _limb_images(
+    summary: np.ndarray, stack: np.ndarray, outline: np.ndarray | None
+) -> LimbImages:
+    if outline is None:
+        return LimbImages(summary, stack)
+    frame = np.asarray(outline, dtype=np.float32)
+    if frame.ndim == 3:
+        frame = frame.mean(axis=-1)
+    if frame.shape != summary.shape:
+        raise CalibrationError(
+            f"outline frame is {frame.shape[1]}x{frame.shape[0]}, the frames are "
+            f"{summary.shape[1]}x{summary.shape[0]}"
+        )
+    return LimbImages(np.nan_to_num(frame), None)
+
+
+def circle_uncertainty_px(residual: float, n_points: int) -> float:
+    """Standard uncertainty of a fitted circle's centre (px) from its edge residual.
+
+    A circle's centre from m points spread round the outline has variance 2 s^2 / m; edge
+    points of neighbouring rays (about a pixel apart) share the limb's blur and texture, so
+    m is counted as a quarter of the points.
+    """
+    if not np.isfinite(residual) or n_points < 3:
+        return 0.0
+    return float(residual * np.sqrt(2.0 / max(n_points / 4.0, 1.0)))
+
+
+def direction_uncertainty(
+    highlights: np.ndarray,
+    highlight_px: np.ndarray,
+    circle: Circle,
+    circle_px: float,
+    to_directions: Callable[[np.ndarray, Circle], np.ndarray],
+) -> np.ndarray:
+    """Per-light direction uncertainty (degrees) by finite differences of the mirror law.
+
+    A highlight shift of ``highlight_px`` and a centre shift of ``circle_px``, each along x and
+    y, are propagated; the four angular changes add in quadrature (a circle shift moves every
+    highlight's normal the opposite way).
+    """
+    base = to_directions(highlights, circle)
+    total = np.zeros(len(highlights))
+    for dx, dy in ((1.0, 0.0), (0.0, 1.0)):
+        step = np.array([dx, dy])
+        moved = to_directions(highlights + step * highlight_px[:, None], circle)
+        total += _angles(base, moved) ** 2
+        if circle_px > 0:
+            shifted = Circle(circle.x + dx * circle_px, circle.y + dy * circle_px, circle.radius)
+            total += _angles(base, to_directions(highlights, shifted)) ** 2
+    return np.sqrt(total)
+
+
+def _angles(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    return np.degrees(np.arccos(np.clip(np.sum(a * b, axis=1), -1.0, 1.0)))
 
 
 # --- the stages of calibrate() ----------------------------------------------------------------
@@ -271,8 +371,14 @@ def _triangulate(
     names: Sequence[str] | None,
     progress: Callable[[int], None] | None,
     warnings: list[str],
+    uncertainty: np.ndarray | None = None,
 ) -> Triangulation:
-    """Every light's reflected ray on every sphere, intersected; warnings for far lights."""
+    """Every light's reflected ray on every sphere, intersected; warnings for far lights.
+
+    A light is placed only when its rays are further apart than both the baseline limit of
+    :func:`triangulate_lights` and three times the light's direction uncertainty: rays that
+    disagree within their noise say nothing about the distance.
+    """
     shape = stack.shape[1:3]
     origins, directions = [], []
     for c, hl in [(circle, highlights), *((c, None) for c in others)]:
@@ -282,7 +388,13 @@ def _triangulate(
         o, d = reflected_rays(hl, c, shape)
         origins.append(o)
         directions.append(d)
-    result = triangulate_lights(np.array(origins), np.array(directions))
+    result = triangulate_lights(
+        np.array(origins),
+        np.array(directions),
+        min_angle_deg=MIN_RAY_ANGLE_DEG
+        if uncertainty is None
+        else np.maximum(MIN_RAY_ANGLE_DEG, 3.0 * uncertainty),
+    )
     for j in np.flatnonzero(result.too_far):
         warnings.append(
             f"{_frame_label(j, names)}: its rays are {result.spread_deg[j]:.2f} deg apart, too "

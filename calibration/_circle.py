@@ -370,3 +370,116 @@ def circle_inside_image(circle: Circle, shape: tuple[int, int], margin: float = 
         and x + r <= w - 0.5 - margin
         and y + r <= h - 0.5 - margin
     )
+
+
+def _circumcircles(p: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Circles through point triples ``p`` of shape (m, 3, 2): centres x, y and radii (NaN if
+    collinear)."""
+    ax, ay = p[:, 0, 0], p[:, 0, 1]
+    bx, by = p[:, 1, 0] - ax, p[:, 1, 1] - ay
+    cx, cy = p[:, 2, 0] - ax, p[:, 2, 1] - ay
+    d = 2.0 * (bx * cy - by * cx)
+    d = np.where(np.abs(d) > 1e-9, d, np.nan)
+    b2, c2 = bx * bx + by * by, cx * cx + cy * cy
+    ux = (cy * b2 - by * c2) / d
+    uy = (bx * c2 - cx * b2) / d
+    return ax + ux, ay + uy, np.hypot(ux, uy)
+
+
+def consensus_circle(
+    image: np.ndarray,
+    circle: Circle,
+    *,
+    search_px: float | None = None,
+    tolerance_px: float = 1.0,
+    trials: int = 2000,
+    seed: int = 0,
+) -> CircleFit:
+    """Circle fit to the part of an outline that is really one circle (stands, reflections).
+
+    Real rigs hide part of a sphere's limb (its stand, a holder) and show edges near it that
+    are not the limb (the room and the rig reflected in the sphere, the stand's rim). Edge
+    points are taken along radial profiles in a wide band around ``circle`` (as in
+    :func:`refine_circle`); the circle through three of them that the most points agree with
+    (within ``tolerance_px``; seeded random triples, RANSAC) picks the rays whose edge is the
+    limb, and a geometric least-squares fit to those rays' edge points, resampled twice around
+    the new circle, is the result.
+
+    Parameters
+    ----------
+    image : ndarray of shape (H, W)
+        Summary image.
+    circle : Circle
+        Starting estimate.
+    search_px : float, optional
+        Half-width of the band searched for the limb; default ``max(10, 0.025 * radius)``.
+    tolerance_px : float
+        Distance from the consensus circle within which an edge point counts as the limb.
+    trials : int
+        Random triples tried.
+    seed : int
+        Seed of the triples (the fit is deterministic).
+
+    Returns
+    -------
+    CircleFit
+        ``coverage`` is the share of the outline used; ``used`` the rays used (for the picture).
+
+    Raises
+    ------
+    CalibrationError
+        Too few edge points, or no circle that a tenth of the outline agrees with.
+
+    """
+    img = np.asarray(image, dtype=np.float32)
+    half = search_px if search_px is not None else max(10.0, 0.025 * circle.radius)
+    pts, contrast = _edge_points(img, circle, half_width=half + 3.0)
+    ok = np.isfinite(contrast)
+    k = len(contrast)
+    if ok.sum() < 12:
+        raise CalibrationError(
+            f"no clear sphere outline near circle ({circle.x:.1f}, {circle.y:.1f}) "
+            f"r={circle.radius:.1f}: only {ok.sum()} of {k} radial profiles cross an edge"
+        )
+    p = pts[ok]
+    rng = np.random.default_rng(seed)
+    triples = p[rng.integers(0, len(p), size=(trials, 3))]
+    tx, ty, tr = _circumcircles(triples)
+    near = (
+        np.isfinite(tr)
+        & (np.abs(tr - circle.radius) <= half)
+        & (np.hypot(tx - circle.x, ty - circle.y) <= half)
+    )
+    if not near.any():
+        raise CalibrationError(
+            f"no circle fits the outline near ({circle.x:.1f}, {circle.y:.1f}) "
+            f"r={circle.radius:.1f}"
+        )
+    tx, ty, tr = tx[near], ty[near], tr[near]
+    votes = np.zeros(len(tx), dtype=np.int64)
+    for start in range(0, len(tx), 256):
+        part = slice(start, start + 256)
+        d = np.hypot(p[None, :, 0] - tx[part, None], p[None, :, 1] - ty[part, None])
+        votes[part] = (np.abs(d - tr[part, None]) <= tolerance_px).sum(axis=1)
+    best = int(np.argmax(votes))
+    current = Circle(float(tx[best]), float(ty[best]), float(tr[best]))
+    res = np.hypot(pts[:, 0] - current.x, pts[:, 1] - current.y) - current.radius
+    limb = ok & (np.abs(res) <= tolerance_px)  # the rays whose edge is the limb
+    for _ in range(4):
+        inliers = ok & (np.abs(res) <= tolerance_px) & limb
+        if inliers.sum() < max(12, 0.1 * len(limb)):
+            raise CalibrationError(
+                f"sphere outline near ({circle.x:.1f}, {circle.y:.1f}) r={circle.radius:.1f}: "
+                f"only {inliers.sum()} of {len(limb)} edge points fit one circle"
+            )
+        current = fit_circle(pts[inliers])
+        # Resample the limb rays' profiles around the new circle (same rays when k is unchanged).
+        pts, contrast = _edge_points(img, current, half_width=tolerance_px + 3.0)
+        if len(contrast) != len(limb):
+            old = len(limb)
+            limb = limb[(np.arange(len(contrast)) * old) // len(contrast)]
+        ok = np.isfinite(contrast)
+        res = np.hypot(pts[:, 0] - current.x, pts[:, 1] - current.y) - current.radius
+    used = ok & (np.abs(res) <= tolerance_px) & limb
+    res = res[used]
+    return CircleFit(current, float(np.sqrt(np.mean(res**2))), pts[used], float(used.mean()))

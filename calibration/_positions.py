@@ -95,7 +95,10 @@ def reflected_rays(
 
 
 def triangulate_lights(
-    origins: np.ndarray, directions: np.ndarray, *, min_angle_deg: float = MIN_RAY_ANGLE_DEG
+    origins: np.ndarray,
+    directions: np.ndarray,
+    *,
+    min_angle_deg: float | np.ndarray = MIN_RAY_ANGLE_DEG,
 ) -> Triangulation:
     """Least-squares intersection of each light's rays.
 
@@ -106,7 +109,7 @@ def triangulate_lights(
     ----------
     origins, directions : ndarray of shape (s, n, 3)
         Ray origins and unit directions from s >= 2 spheres for n lights.
-    min_angle_deg : float
+    min_angle_deg : float or ndarray of shape (n,)
         A light whose rays all lie within this angle of each other is too far to place: its
         position is NaN and its direction the mean of its rays.
 

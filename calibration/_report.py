@@ -34,6 +34,7 @@ _RAY_COLOURS = ((255, 170, 60), (60, 170, 255), (200, 90, 230), (90, 230, 200))
 _GREEN = (80, 220, 80)
 _RED = (60, 60, 255)
 _YELLOW = (40, 220, 255)
+_CYAN = (230, 200, 40)
 _GREY = (150, 150, 150)
 _WHITE = (235, 235, 235)
 _FONT = cv2.FONT_HERSHEY_SIMPLEX
@@ -78,6 +79,12 @@ def calibration_record(calibration: Calibration) -> dict:
                     if cal.source_radius_deg is None
                     else round(float(cal.source_radius_deg[j]), 3)
                 ),
+                "uncertainty_deg": (
+                    None
+                    if cal.uncertainty_deg is None
+                    else round(float(cal.uncertainty_deg[j]), 4)
+                ),
+                "highlight_estimator": cal.estimators[j] if j < len(cal.estimators) else None,
             }
         )
     record = {
@@ -90,6 +97,8 @@ def calibration_record(calibration: Calibration) -> dict:
             "radius": round(cal.circle.radius, 4),
             "residual_px": None if not np.isfinite(cal.residual) else round(cal.residual, 4),
             "source": cal.circle_source,
+            "outline_fitted_on": cal.outline_source,
+            "limb_points_used": int(len(cal.limb_points[0])) if cal.limb_points else None,
         },
         "matte_sphere": None
         if cal.matte_circle is None
@@ -103,6 +112,7 @@ def calibration_record(calibration: Calibration) -> dict:
         "lights": lights,
         "warnings": list(cal.warnings),
     }
+    record.update(cal.metadata)
     if cal.triangulation is not None:
         record["light_positions"] = _positions_record(cal)
     return record
@@ -213,6 +223,11 @@ def calibration_picture(calibration: Calibration, *, panel: int = 520) -> np.nda
     cv2.circle(
         left, to_left(c.x, c.y), round(c.radius * scale * one), _GREEN, 1, cv2.LINE_AA, shift
     )
+    # The part of the outline the circle was fitted to (the rest: stand, holder, reflections).
+    if cal.limb_points and len(cal.limb_points[0]):
+        for x, y in cal.limb_points[0][:: max(1, len(cal.limb_points[0]) // 720)]:
+            px, py = to_left(x, y)
+            cv2.circle(left, (px, py), 2 * one, _CYAN, -1, cv2.LINE_AA, shift)
     cx, cy = to_left(c.x, c.y)
     cv2.drawMarker(left, (cx >> shift, cy >> shift), _GREEN, cv2.MARKER_CROSS, 10, 1, cv2.LINE_AA)
     for j, (hx, hy) in enumerate(cal.highlights):
@@ -271,7 +286,8 @@ def calibration_picture(calibration: Calibration, *, panel: int = 520) -> np.nda
     _text(
         header,
         f"chrome sphere ({c.x:.2f}, {c.y:.2f}) r={c.radius:.2f} [{cal.circle_source}], "
-        f"residual {res}",
+        f"residual {res}; cyan: outline used"
+        + (f" ({cal.outline_source})" if cal.outline_source != "frames" else ""),
         (8, 16),
         _WHITE,
         0.45,

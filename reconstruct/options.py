@@ -15,6 +15,7 @@ from dataclasses import dataclass
 from typing import Any
 
 from ps_lab.errors import OutputError
+from ps_lab.io.encoding import ENCODINGS
 from ps_lab.reconstruct._solution import SolverInputError
 from ps_lab.reconstruct.depth import DepthOptions
 
@@ -144,6 +145,9 @@ class ReconstructOptions:
         SBL, L1 and R-PCA. Each must be finite and positive, and apply to ``method``.
     depth : {"poisson", "bilateral"} or None
         Also integrate the normals into depth maps and a mesh (:mod:`ps_lab.reconstruct.depth`).
+    encoding : {"auto", "linear", "srgb"}
+        How integer frames map to light (:mod:`ps_lab.io.encoding`; ``auto``: the files'
+        metadata, sRGB for JPEG).
     """
 
     method: str = "sbl"
@@ -162,8 +166,13 @@ class ReconstructOptions:
     tol: float | None = None
 
     depth: str | None = None
+    encoding: str = "auto"
 
     def __post_init__(self) -> None:
+        if self.encoding not in ENCODINGS:
+            raise OutputError(
+                f"--encoding must be one of {', '.join(ENCODINGS)}, got {self.encoding!r}"
+            )
         if self.depth is not None:
             DepthOptions(method=self.depth)  # validates the method
         _check_solver_options(self)

@@ -35,6 +35,7 @@ import numpy as np
 from ps_lab.errors import DatasetError, OutputError
 from ps_lab.io.bands import ObservationStore, plan_bands
 from ps_lab.io.dataset import DatasetHeader, open_dataset
+from ps_lab.io.encoding import frames_encoding
 from ps_lab.io.files import json_safe, staged_folder
 from ps_lab.io.result import METRICS, RESULT_FORMAT, is_result_folder
 from ps_lab.io.truth import open_normal_gt
@@ -226,7 +227,7 @@ def reconstruct_to_folder(
 
 def _read(dataset: Path, options: ReconstructOptions) -> SolveInput:
     """Stage 1: the dataset's header, mask and ground truth."""
-    header = open_dataset(dataset, channel=options.channel)
+    header = open_dataset(dataset, channel=options.channel, encoding=options.encoding)
     assert header.shape is not None
     near = _near_lights(header, options)
     return SolveInput(header, header.read_mask(), open_normal_gt(header.root, header.shape), near)
@@ -345,6 +346,7 @@ def _write_results(
     except OSError as exc:
         raise OutputError(f"{stage}: cannot write results ({exc.strerror or exc})") from None
     metrics["channel"] = options.channel
+    metrics["encoding"] = frames_encoding(source.header.plan.light_files[0][0], options.encoding)
     metrics["solver_options"] = {
         flag[2:]: getattr(options, name) for name, (flag, _) in SOLVER_OPTIONS.items()
     }

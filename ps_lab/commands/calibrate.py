@@ -11,13 +11,17 @@ import typer
 from ps_lab._cli_util import lab_command, naming_folder, parse_numbers, positive, progress_bar
 from ps_lab.calibration import calibrate as run_calibration
 from ps_lab.calibration import (
+    combine_probes,
     rig_anisotropy,
     rig_chrome_spheres,
     rig_circles,
     write_calibration,
 )
+from ps_lab.commands.reconstruct import Encoding, EncodingOption
 from ps_lab.errors import CalibrationError
-from ps_lab.io.dataset import load_frames
+from ps_lab.io.dataset import Frames, load_frames
+from ps_lab.io.encoding import frames_encoding
+from ps_lab.io.images import read_image
 
 
 def circle_in_image(circle: tuple[float, ...], width: int, height: int) -> bool:
@@ -29,9 +33,11 @@ def circle_in_image(circle: tuple[float, ...], width: int, height: int) -> bool:
 @lab_command
 def calibrate(
     data: Annotated[
-        Path,
+        list[Path],
         typer.Argument(
-            help="Capture run or image folder (one frame per light).", show_default=False
+            help="Capture run or image folder (one frame per light); several folders: one "
+            "chrome probe each, photographed under the same lights (one light set).",
+            show_default=False,
         ),
     ],
     sphere: Annotated[
@@ -77,6 +83,22 @@ def calibrate(
         float | None,
         typer.Option(min=0.0, help="Millimetres per pixel: LED positions also reported in mm."),
     ] = None,
+    encoding: EncodingOption = Encoding.auto,
+    outline_frame: Annotated[
+        list[Path] | None,
+        typer.Option(
+            help="A frame with room light in which the sphere outline is visible (e.g. "
+            "PSBox's ref.JPG): the outline is fitted on it. One per DATA folder, in order."
+        ),
+    ] = None,
+    ambient_frame: Annotated[
+        list[Path] | None,
+        typer.Option(
+            help="A frame with the rig's lights off (ambient light only), subtracted from "
+            "every frame. One per DATA folder, in order (ambient.<ext> in a folder is used "
+            "without this option)."
+        ),
+    ] = None,
 ) -> None:
     """Find the chrome sphere and its highlight in every frame; calibrate the lights.
 
@@ -95,40 +117,30 @@ def calibrate(
         )
     focal_px = None if focal_length is None else focal_length / (pixel_pitch * 1e-3)  # type: ignore[operator]
 
-    frames = load_frames(data)
-    _, rig_matte = rig_circles(frames.manifest)
-    rig_chrome = rig_chrome_spheres(frames.manifest)
-    hints = [] if sphere_c is not None or roi_v is not None else rig_chrome
-    n, height, width = frames.images.shape[:3]
-    circles = [("--sphere", c) for c in spheres] + [("--matte", matte_c)]
-    for option, circle in circles:
-        if circle is not None and not circle_in_image(circle, width, height):
+    for option, files in (("--outline-frame", outline_frame), ("--ambient-frame", ambient_frame)):
+        if files and len(files) != len(data):
             raise CalibrationError(
-                f"{option} {circle[0]:g},{circle[1]:g},{circle[2]:g} is not inside the "
-                f"{width}x{height} image of {frames.root}"
+                f"{option} given {len(files)} time(s) for {len(data)} DATA folder(s): give one "
+                "per folder, in order"
             )
-    with (
-        progress_bar(n * max(len(spheres), len(hints), 1), "highlights") as advance,
-        naming_folder(frames.root),
-    ):
-        result = run_calibration(
-            frames.images,
-            sphere=sphere_c,
-            sphere_hint=hints[0] if hints else None,
-            extra_spheres=spheres[1:],
-            extra_sphere_hints=hints[1:],
-            anisotropy=rig_anisotropy(frames.manifest),
-            pixel_size=pixel_size,
-            roi=None if roi_v is None else tuple(int(round(v)) for v in roi_v),
-            matte_sphere=matte_c,
-            matte_hint=None if matte_c is not None else rig_matte,
-            saturated=frames.saturated,
-            safe_radius=safe_radius,
-            focal_length_px=focal_px,
-            names=frames.names,
-            progress=advance,
+    results, roots = [], []
+    for k, folder in enumerate(data):
+        frames = load_frames(folder, encoding.value)
+        if ambient_frame:
+            frames = _subtract_ambient(frames, ambient_frame[k], encoding.value)
+        outline = None
+        if outline_frame:
+            outline = _side_frame(outline_frame[k], frames, encoding.value, "outline frame")
+        result = _calibrate_folder(
+            frames, spheres, sphere_c, matte_c, roi_v, safe_radius, focal_px, pixel_size, outline
         )
-    paths = write_calibration(result, out if out is not None else frames.root)
+        result.metadata["encoding"] = frames_encoding(frames.root / frames.names[0], encoding.value)
+        results.append(result)
+        roots.append(frames.root)
+    result = combine_probes(results, [str(r) for r in roots])
+    frames_root = roots[0]
+    n = len(result.light_directions)
+    paths = write_calibration(result, out if out is not None else frames_root)
     c = result.circle
     residual = "n/a" if result.residual != result.residual else f"{result.residual:.3f} px"
     typer.echo(
@@ -147,10 +159,78 @@ def calibrate(
             if (~tri.too_far).any()
             else "LED positions: every light too far to place (directional)"
         )
+    probes = result.metadata.get("probes")
+    if probes is not None:
+        worst = np.max(probes["disagreement_deg"], axis=0)
+        typer.echo(
+            f"one light set from {len(probes['labels'])} probes: probe vs probe "
+            f"{probes['pairwise_deg']['mean']:.2f} deg mean, {probes['pairwise_deg']['max']:.2f} "
+            f"max; per light, largest disagreement with the set (deg): "
+            + " ".join(f"{v:.2f}" for v in worst)
+        )
     for warning in result.warnings:
         typer.secho(f"warning: {warning}", fg=typer.colors.YELLOW, err=True)
     for path in paths.values():
         typer.echo(f"wrote {path}")
+
+
+def _calibrate_folder(
+    frames: Frames, spheres, sphere_c, matte_c, roi_v, safe_radius, focal_px, pixel_size, outline
+):
+    """One folder's calibration (the rig snapshot's spheres unless circles are given)."""
+    _, rig_matte = rig_circles(frames.manifest)
+    rig_chrome = rig_chrome_spheres(frames.manifest)
+    hints = [] if sphere_c is not None or roi_v is not None else rig_chrome
+    n, height, width = frames.images.shape[:3]
+    circles = [("--sphere", c) for c in spheres] + [("--matte", matte_c)]
+    for option, circle in circles:
+        if circle is not None and not circle_in_image(circle, width, height):
+            raise CalibrationError(
+                f"{option} {circle[0]:g},{circle[1]:g},{circle[2]:g} is not inside the "
+                f"{width}x{height} image of {frames.root}"
+            )
+    with (
+        progress_bar(n * max(len(spheres), len(hints), 1), "highlights") as advance,
+        naming_folder(frames.root),
+    ):
+        return run_calibration(
+            frames.images,
+            sphere=sphere_c,
+            sphere_hint=hints[0] if hints else None,
+            extra_spheres=spheres[1:],
+            extra_sphere_hints=hints[1:],
+            anisotropy=rig_anisotropy(frames.manifest),
+            pixel_size=pixel_size,
+            roi=None if roi_v is None else tuple(int(round(v)) for v in roi_v),
+            matte_sphere=matte_c,
+            matte_hint=None if matte_c is not None else rig_matte,
+            saturated=frames.saturated,
+            safe_radius=safe_radius,
+            focal_length_px=focal_px,
+            names=frames.names,
+            progress=advance,
+            outline=outline,
+        )
+
+
+def _side_frame(path: Path, frames: Frames, encoding: str, what: str) -> np.ndarray:
+    """An extra frame (outline, ambient) of the same size as the light frames, linear."""
+    image = read_image(path, encoding)
+    if image.shape != frames.images.shape[1:3]:
+        h, w = frames.images.shape[1:3]
+        raise CalibrationError(
+            f"{path}: {what} is {image.shape[1]}x{image.shape[0]}, the frames of {frames.root} "
+            f"are {w}x{h}"
+        )
+    return image.data
+
+
+def _subtract_ambient(frames: Frames, path: Path, encoding: str) -> Frames:
+    ambient = _side_frame(path, frames, encoding, "ambient frame")
+    if ambient.shape[-1] != frames.images.shape[-1]:
+        ambient = ambient.mean(axis=-1, keepdims=True)
+    images = frames.images - ambient[None]
+    return Frames(images, frames.saturated, frames.names, frames.root, frames.manifest)
 
 
 def register(app: typer.Typer) -> None:

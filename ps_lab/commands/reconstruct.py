@@ -71,6 +71,25 @@ ShadowThresholdOption = Annotated[
         show_default=False,
     ),
 ]
+
+
+class Encoding(str, Enum):  # noqa: UP042
+    """How integer pixel values map to light."""
+
+    auto = "auto"
+    linear = "linear"
+    srgb = "srgb"
+
+
+EncodingOption = Annotated[
+    Encoding,
+    typer.Option(
+        case_sensitive=False,
+        help="How 8-bit frames map to light: auto (the files' ICC/EXIF/PNG metadata; JPEG "
+        "without any is sRGB; 16-bit files and 8-bit PNG/TIFF without metadata are linear), "
+        "linear, or srgb."
+    ),
+]
 ChannelOption = Annotated[
     Channel,
     typer.Option(
@@ -173,6 +192,7 @@ def reconstruct(
     max_iter: MaxIterOption = None,
     tol: TolOption = None,
     depth: DepthOption = None,
+    encoding: EncodingOption = Encoding.auto,
 ) -> None:
     """Estimate surface normals and albedo; write normals.npy, normal.png, albedo, metrics.json."""
     out = out if out is not None else dataset / "recon" / method.value
@@ -191,6 +211,7 @@ def reconstruct(
         max_iter=max_iter,
         tol=tol,
         depth=None if depth is None else depth.value,
+        encoding=encoding.value,
     )
     try:
         result = reconstruct_to_folder(dataset, out, options, progress_bars=_terminal_bars)

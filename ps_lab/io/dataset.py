@@ -31,7 +31,13 @@ import cv2
 import numpy as np
 
 from ps_lab.errors import DatasetError
-from ps_lab.io.frames import FramePlan, check_dataset_folder, is_capture_run, plan_frames
+from ps_lab.io.frames import (
+    FramePlan,
+    check_dataset_folder,
+    find_mask,
+    is_capture_run,
+    plan_frames,
+)
 from ps_lab.io.images import (
     RAW_SUFFIXES,
     Image,
@@ -121,7 +127,7 @@ class Dataset:
     root: Path
 
 
-def load_frames(path: Path) -> Frames:
+def load_frames(path: Path, encoding: str = "auto") -> Frames:
     """Load the linear frames of an image folder or capture run.
 
     Repeats of a light are averaged, a dark frame (manifest ``kind: dark``, or ``dark.<ext>`` in an
@@ -132,6 +138,8 @@ def load_frames(path: Path) -> Frames:
     ----------
     path : Path
         Dataset folder.
+    encoding : {"auto", "linear", "srgb"}
+        How integer pixel values map to light (:mod:`ps_lab.io.encoding`).
 
     Returns
     -------
@@ -139,7 +147,7 @@ def load_frames(path: Path) -> Frames:
         ``images`` of shape (n, H, W, C) float32, ``saturated`` of shape (n, H, W).
 
     """
-    plan = plan_frames(path)
+    plan = plan_frames(path, encoding)
     images: np.ndarray | None = None
     saturated: np.ndarray | None = None
     n = len(plan.light_files)
@@ -187,7 +195,7 @@ def iter_frames(
 
     def read_checked(file: Path) -> Image:
         nonlocal reference, reference_path
-        image = read_image(file)
+        image = read_image(file, plan.encoding)
         if reference is None:
             reference, reference_path = image, file
         elif reference_path in darks and file not in darks:
@@ -228,7 +236,7 @@ def read_light_frame(
     common_exposure: float | None,
     dark: np.ndarray | None,
     dark_exposure: float | None,
-    read: Callable[[Path], Image] = read_image,
+    read: Callable[[Path], Image] | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """One light's frame: repeats averaged, dark frame subtracted, scaled to ``common_exposure``.
 
@@ -258,6 +266,8 @@ def read_light_frame(
         Saturated in any repeat.
 
     """
+    if read is None:
+        read = lambda file: read_image(file, plan.encoding)  # noqa: E731
     total: np.ndarray | None = None
     clipped: np.ndarray | None = None
     files = plan.light_files[light]
@@ -279,7 +289,11 @@ def read_light_frame(
 
 
 def load_dataset(
-    path: Path, *, channel: str = "mean", shadow_threshold: float | None = None
+    path: Path,
+    *,
+    channel: str = "mean",
+    shadow_threshold: float | None = None,
+    encoding: str = "auto",
 ) -> Dataset:
     """Load a dataset folder into observations, lights, mask and ground truth.
 
@@ -296,6 +310,8 @@ def load_dataset(
         How colour is reduced to one observation per light and pixel.
     shadow_threshold : float or None
         Observations at or below this value (after the intensity division) are marked invalid.
+    encoding : {"auto", "linear", "srgb"}
+        How the frames are decoded (:mod:`ps_lab.io.encoding`).
 
     Returns
     -------
@@ -308,7 +324,7 @@ def load_dataset(
         Any problem with the folder, with one line naming the file and the problem.
 
     """
-    header = open_dataset(path, channel=channel, read_size=False)
+    header = open_dataset(path, channel=channel, read_size=False, encoding=encoding)
     mask = None if header.mask_file is None else read_mask(header.mask_file)
     n = len(header.names)
     images: np.ndarray | None = None
@@ -417,7 +433,9 @@ class DatasetHeader:
         return read_mask(self.mask_file, self.shape)
 
 
-def open_dataset(path: Path, *, channel: str = "mean", read_size: bool = True) -> DatasetHeader:
+def open_dataset(
+    path: Path, *, channel: str = "mean", read_size: bool = True, encoding: str = "auto"
+) -> DatasetHeader:
     """Check a dataset folder and read everything but its pixels.
 
     Parameters
@@ -428,6 +446,8 @@ def open_dataset(path: Path, *, channel: str = "mean", read_size: bool = True) -
         Checked here so that a bad choice fails before any pixel is read.
     read_size : bool
         Read the image size from the first light frame (its header when the format allows).
+    encoding : {"auto", "linear", "srgb"}
+        How the frames are decoded (:mod:`ps_lab.io.encoding`).
 
     Returns
     -------
@@ -455,7 +475,7 @@ def open_dataset(path: Path, *, channel: str = "mean", read_size: bool = True) -
         raise DatasetError(
             f"{root}: no {LIGHT_DIRECTIONS} (one row 'x y z' per image) and no single .lp file"
         )
-    plan = plan_frames(root)
+    plan = plan_frames(root, encoding)
     n = len(plan.light_files)
     if directions_file.is_file():
         light_directions = read_light_directions(directions_file, n)
@@ -468,15 +488,15 @@ def open_dataset(path: Path, *, channel: str = "mean", read_size: bool = True) -
         light_intensities = np.ones((n, 3))
     positions_file, anisotropy_file = root / LIGHT_POSITIONS, root / LIGHT_ANISOTROPY
     shape = _common_image_size(plan) if read_size else None
-    mask_file = root / MASK
-    if mask_file.exists() or mask_file.is_symlink():
+    mask_file = find_mask(root)
+    if mask_file is not None:
         check_is_file(mask_file, "mask")
     return DatasetHeader(
         root=root,
         plan=plan,
         light_directions=light_directions,
         light_intensities=light_intensities,
-        mask_file=_find_file(root, MASK),
+        mask_file=mask_file if mask_file is not None else _find_file(root, MASK),
         names=plan.names,
         shape=shape,
         light_positions=read_light_positions(positions_file, n)

@@ -1,8 +1,11 @@
 """Which files are the frames of a dataset, before any pixel is read.
 
 An image folder lists one image per light (``filenames.txt``, else file names in natural order;
-never its outputs, mask or ground truth; ``dark.<ext>`` is a dark frame); a capture run lists its
-frames in ``manifest.json`` (:mod:`ps_lab.io.run`). :func:`plan_frames` returns a
+never its outputs, mask or ground truth; ``dark.<ext>`` and ``ambient.<ext>`` are the frame with
+the rig's lights off, subtracted from every frame; ``ref.<ext>``, ``reference.<ext>`` and
+``outline.<ext>`` are room-light frames for the sphere outline, never lights; ``<name>.mask.png``
+is a mask, as ``mask.png`` is); a capture run lists its frames in ``manifest.json``
+(:mod:`ps_lab.io.run`). docs/datasets.md lists what counts as a frame. :func:`plan_frames` returns a
 :class:`FramePlan` for either; :mod:`ps_lab.io.dataset` reads the pixels.
 
 Two folders that are not datasets are told apart before any file is taken for a frame
@@ -14,14 +17,14 @@ from __future__ import annotations
 
 import logging
 import re
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
 
 from ps_lab.errors import DatasetError
 from ps_lab.io.files import sha256
-from ps_lab.io.images import SUPPORTED_SUFFIXES, check_is_file, is_supported
+from ps_lab.io.images import ENCODINGS, SUPPORTED_SUFFIXES, check_is_file, is_supported
 from ps_lab.io.result import is_result_folder, read_result_metrics
 from ps_lab.io.run import MANIFEST_NAME, is_run, read_manifest
 
@@ -47,6 +50,12 @@ _NOT_FRAMES = {
 _NAMED_SUBFOLDERS = 3
 _GT_NAME = re.compile(r".*[_-]gt(\.[^.]+)?$", re.IGNORECASE)
 _DARK_STEM = "dark"
+# Frames with the rig's lights off (subtracted like the dark frame) and room-light frames of
+# the sphere outline (PSBox's ref.JPG): never lights.
+_AMBIENT_STEMS = ("dark", "ambient")
+REFERENCE_STEMS = ("ref", "reference", "outline")
+MASK_NAME = "mask.png"
+_MASK_SUFFIX = ".mask.png"  # <name>.mask.png beside <name>.<k>.png (a common layout)
 
 
 @dataclass(frozen=True)
@@ -64,6 +73,8 @@ class FramePlan:
     dark_exposures : list of float or None
     root : Path
     manifest : dict or None
+    encoding : str
+        How the frames' integer values map to light (``ps_lab.io.encoding``).
 
     """
 
@@ -73,6 +84,7 @@ class FramePlan:
     dark_exposures: list[float | None]
     root: Path
     manifest: dict | None
+    encoding: str = "auto"
 
     @property
     def names(self) -> list[str]:
@@ -160,13 +172,15 @@ def _looks_like_dataset(folder: Path) -> bool:
         return False
 
 
-def plan_frames(path: Path) -> FramePlan:
+def plan_frames(path: Path, encoding: str = "auto") -> FramePlan:
     """List the files of every frame of an image folder or capture run.
 
     Parameters
     ----------
     path : Path
         Dataset folder.
+    encoding : {"auto", "linear", "srgb"}
+        Recorded in the plan: how the frames are decoded (:func:`ps_lab.io.images.read_image`).
 
     Returns
     -------
@@ -184,10 +198,50 @@ def plan_frames(path: Path) -> FramePlan:
         raise DatasetError(f"{root}: no such dataset folder")
     if not root.is_dir():
         raise DatasetError(f"{root}: not a folder (a dataset is a folder of images)")
+    if encoding not in ENCODINGS:
+        raise DatasetError(
+            f"unknown encoding {encoding!r} (choose one of {', '.join(ENCODINGS)})"
+        )
     check_dataset_folder(root)
-    if is_capture_run(root):
-        return _plan_run(root)
-    return _plan_image_folder(root)
+    plan = _plan_run(root) if is_capture_run(root) else _plan_image_folder(root)
+    return replace(plan, encoding=encoding)
+
+
+def is_mask_name(name: str) -> bool:
+    """``mask.png`` or ``<name>.mask.png`` (case-insensitive)."""
+    low = name.lower()
+    return low == MASK_NAME or low.endswith(_MASK_SUFFIX)
+
+
+def find_mask(root: Path) -> Path | None:
+    """The mask of an image folder: ``mask.png``, else the one ``<name>.mask.png``, else None.
+
+    Raises
+    ------
+    DatasetError
+        Several ``*.mask.png`` and no ``mask.png``.
+    """
+    plain = root / MASK_NAME
+    if plain.exists() or plain.is_symlink():
+        return plain
+    if not root.is_dir():
+        return None
+    named = sorted(p for p in root.iterdir() if p.name.lower().endswith(_MASK_SUFFIX))
+    if len(named) > 1:
+        raise DatasetError(
+            f"{root}: more than one mask ({', '.join(p.name for p in named)}); keep one"
+        )
+    return named[0] if named else None
+
+
+def reference_frame(root: Path) -> Path | None:
+    """An image folder's room-light frame of the sphere outline (``ref.<ext>``, ...), or None."""
+    if not root.is_dir():
+        return None
+    found = sorted(
+        p for p in root.iterdir() if p.stem.lower() in REFERENCE_STEMS and is_supported(p)
+    )
+    return found[0] if found else None
 
 
 def _natural_key(name: str) -> list:
@@ -201,8 +255,10 @@ def _is_light_frame(path: Path) -> bool:
         and is_supported(path)
         and not name.startswith(".")
         and name.lower() not in _NOT_FRAMES
+        and not is_mask_name(name)
         and not _GT_NAME.match(name)
-        and path.stem.lower() != _DARK_STEM
+        and path.stem.lower() not in _AMBIENT_STEMS
+        and path.stem.lower() not in REFERENCE_STEMS
     )
 
 
@@ -234,7 +290,7 @@ def _plan_image_folder(root: Path) -> FramePlan:
             if not _is_light_frame(file):
                 raise DatasetError(
                     f"{listing}: lists {name}, which is not a light image (mask, result, "
-                    "ground truth or dark frame)"
+                    "ground truth, dark, ambient or reference frame)"
                 )
             files.append(file)
     else:
@@ -245,9 +301,13 @@ def _plan_image_folder(root: Path) -> FramePlan:
             raise DatasetError(
                 f"{root}: no images found (supported: {' '.join(SUPPORTED_SUFFIXES)})"
             )
-    darks = [p for p in sorted(root.iterdir()) if p.stem.lower() == _DARK_STEM and is_supported(p)]
+    darks = [
+        p for p in sorted(root.iterdir()) if p.stem.lower() in _AMBIENT_STEMS and is_supported(p)
+    ]
     if len(darks) > 1:
-        raise DatasetError(f"{root}: more than one dark frame ({', '.join(p.name for p in darks)})")
+        raise DatasetError(
+            f"{root}: more than one dark/ambient frame ({', '.join(p.name for p in darks)})"
+        )
     return FramePlan(
         light_files=[[f] for f in files],
         light_exposures=[[None] for _ in files],

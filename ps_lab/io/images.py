@@ -10,6 +10,11 @@ Every reader returns an :class:`Image`: linear values as float32 ``(H, W, C)`` w
 - camera RAW (``.dng .cr2 .cr3 .nef .arw``): :func:`ps_lab.io.raw.load_raw` — linear,
   (raw − black) / (white − black), 2×2 binned; saturated where the raw value reached the white
   level.
+- non-linear files (JPEG; 8-bit PNG and TIFF that say so): decoded to linear by
+  :func:`decode_nonlinear` with the transfer curve :func:`image_encoding` finds (``encoding``:
+  ``"auto"`` from the file's ICC profile, EXIF colour space or PNG ``sRGB``/``gAMA`` chunk;
+  ``"srgb"``; ``"linear"``). A JPEG without metadata is sRGB (the JPEG/JFIF default); an 8-bit
+  PNG or TIFF without metadata, and every 16-bit file, stay linear (DiLiGenT's and RAW's data).
 
 Every failure raises :class:`~ps_lab.errors.DatasetError` with one line that names the file. Readers
 work on one file at a time so that callers can stream large captures.
@@ -29,13 +34,16 @@ import numpy as np
 import tifffile
 
 from ps_lab.errors import DatasetError, PsLabError
+from ps_lab.io.encoding import ENCODINGS, JPEG_SUFFIXES, image_encoding
 from ps_lab.io.raw import load_raw
+
+__all__ = ["ENCODINGS", "JPEG_SUFFIXES", "Image", "read_image", "read_image_size"]
 
 # OpenCV logs decoder failures on stderr; we report them ourselves as one DatasetError line.
 cv2.utils.logging.setLogLevel(cv2.utils.logging.LOG_LEVEL_SILENT)
 
 RAW_SUFFIXES = (".dng", ".cr2", ".cr3", ".nef", ".arw")
-IMAGE_SUFFIXES = (".png", ".tif", ".tiff", ".pfm", ".npy")
+IMAGE_SUFFIXES = (".png", ".tif", ".tiff", ".pfm", ".npy", *JPEG_SUFFIXES)
 SUPPORTED_SUFFIXES = IMAGE_SUFFIXES + RAW_SUFFIXES
 
 _PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
@@ -64,6 +72,7 @@ class Image:
     saturated: np.ndarray
     exposure_s: float | None = None
     bit_depth: int | None = None  # bits per sample of an integer file (8, 16), else None
+    encoding: str = "linear"  # the transfer curve decoded (``image_encoding``'s answer)
 
     @property
     def shape(self) -> tuple[int, int]:
@@ -76,13 +85,16 @@ def is_supported(path: Path) -> bool:
     return Path(path).suffix.lower() in SUPPORTED_SUFFIXES
 
 
-def read_image(path: Path) -> Image:
+def read_image(path: Path, encoding: str = "auto") -> Image:
     """Read any supported image file as linear float32.
 
     Parameters
     ----------
     path : Path
-        A PNG, TIFF, PFM, ``.npy`` or camera RAW file.
+        A PNG, TIFF, JPEG, PFM, ``.npy`` or camera RAW file.
+    encoding : {"auto", "linear", "srgb"}
+        How integer pixel values map to light (:func:`image_encoding`); float and RAW files
+        are always linear.
 
     Returns
     -------
@@ -100,7 +112,9 @@ def read_image(path: Path) -> Image:
     check_is_file(path, "image file")
     if suffix in RAW_SUFFIXES:
         return _read_raw(path)
-    if suffix == ".png":
+    if suffix in JPEG_SUFFIXES:
+        array = _read_jpeg(path)
+    elif suffix == ".png":
         array = _read_png(path)
     elif suffix in (".tif", ".tiff"):
         array = _read_tiff(path)
@@ -112,7 +126,24 @@ def read_image(path: Path) -> Image:
         raise DatasetError(
             f"{path}: unsupported image type {suffix!r} (supported: {' '.join(SUPPORTED_SUFFIXES)})"
         )
-    return _to_linear(array, path)
+    image = _to_linear(array, path)
+    if image.bit_depth is None:
+        return image
+    return decoded(image, image_encoding(path, encoding))
+
+
+def decoded(image: Image, encoding) -> Image:
+    """``image`` (values / type maximum) decoded to linear light with ``encoding``
+    (:class:`ps_lab.io.encoding.Encoding`); the saturation mask is the file's."""
+    if encoding.name == "linear":
+        return Image(image.data, image.saturated, image.exposure_s, image.bit_depth, "linear")
+    return Image(
+        data=encoding.decode(image.data),
+        saturated=image.saturated,
+        exposure_s=image.exposure_s,
+        bit_depth=image.bit_depth,
+        encoding=encoding.name,
+    )
 
 
 def check_is_file(path: Path, what: str = "file") -> None:
@@ -253,6 +284,8 @@ def read_image_size(path: Path) -> tuple[int, int]:
                 size = int(shape[0]), int(shape[1])
                 claimed = int(np.prod(shape, dtype=np.float64)) * dtype.itemsize
                 stored = path.stat().st_size - offset
+        elif suffix in JPEG_SUFFIXES:
+            size = _jpeg_size(path)
         elif suffix in (".tif", ".tiff"):
             with tifffile.TiffFile(path) as tiff:
                 page = tiff.pages[0]
@@ -389,6 +422,51 @@ def _read_png(path: Path) -> np.ndarray:
     if array is None:
         raise DatasetError(f"{path}: corrupt or truncated PNG file")
     return _bgr_to_rgb(array)
+
+
+def _read_jpeg(path: Path) -> np.ndarray:
+    try:
+        raw = path.read_bytes()
+    except OSError as exc:
+        raise DatasetError(f"{path}: cannot read file ({exc.strerror})") from None
+    size = _jpeg_size_of(raw)
+    if size is None:
+        raise DatasetError(f"{path}: corrupt or truncated JPEG file (no frame header)")
+    check_decode_memory(path, size[0], size[1], 3)
+    array = cv2.imdecode(np.frombuffer(raw, np.uint8), cv2.IMREAD_UNCHANGED)
+    if array is None:
+        raise DatasetError(f"{path}: corrupt or truncated JPEG file")
+    return _bgr_to_rgb(array)
+
+
+def _jpeg_size_of(raw: bytes) -> tuple[int, int] | None:
+    """``(H, W)`` from a JPEG's frame header (SOF0-SOF15 but DHT, JPG, DAC), else None."""
+    if not raw.startswith(b"\xff\xd8"):
+        return None
+    pos = 2
+    while pos + 4 <= len(raw):
+        if raw[pos] != 0xFF:
+            return None
+        marker = raw[pos + 1]
+        if marker == 0xFF:
+            pos += 1
+            continue
+        length = struct.unpack(">H", raw[pos + 2 : pos + 4])[0]
+        if 0xC0 <= marker <= 0xCF and marker not in (0xC4, 0xC8, 0xCC):
+            if pos + 9 > len(raw):
+                return None
+            height, width = struct.unpack(">HH", raw[pos + 5 : pos + 9])
+            return (int(height), int(width)) if height and width else None
+        if marker in (0xD9, 0xDA):
+            return None
+        pos += 2 + length
+    return None
+
+
+def _jpeg_size(path: Path) -> tuple[int, int] | None:
+    with path.open("rb") as stream:
+        head = stream.read(1 << 18)  # metadata (EXIF thumbnails, ICC) precedes the frame header
+    return _jpeg_size_of(head)
 
 
 def _read_tiff(path: Path) -> np.ndarray:
