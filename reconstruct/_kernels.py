@@ -64,8 +64,9 @@ def _solve3(xx, yy, zz, xy, xz, yz, t0, t1, t2):
 
 
 # The loops over the lights are vectorised (4 lights per AVX2 instruction) when numba may
-# reassociate their sums and divides without Python's zero-division check: the sums then add in a
-# different order (rounding-level differences, far below the oracle tests' 1e-6). No nnan/ninf:
+# reassociate their sums and divides without Python's zero-division check: the sums then add in an
+# order that depends on the CPU's vector width (rounding-level differences between CPUs and between
+# two kernels; tests/helpers/tolerances.py derives how far they may go). No nnan/ninf:
 # comparisons keep their IEEE meaning. The loops read one light table and write one per-pixel
 # state array, so the compiler needs no aliasing checks between a dozen arrays (it gives up then).
 # The helpers are inlined into the kernels (a call that passes arrays costs about as much as the

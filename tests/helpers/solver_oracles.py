@@ -3,7 +3,11 @@
 Each oracle handles ONE pixel with plain numpy, exactly as the method is written in its paper
 (for SBL the n x n matrices of Ikehata et al. Eq. 13 are formed explicitly). Dropped
 observations are removed from the pixel's problem. The update and stopping rules are the ones
-the vectorised solvers document, so results agree to rounding.
+the vectorised solvers document, so results agree as far as ``tolerances.py`` derives.
+
+Each pixel oracle returns ``(x, statistic, iterations)``: ``statistic`` is what the method compares
+with ``outlier_threshold`` to flag an observation (``|residual|`` for L1, the corruption estimate
+``|e|`` for SBL, 0 for least squares).
 """
 
 from __future__ import annotations
@@ -26,10 +30,10 @@ def solvable(a: np.ndarray, scale: float, rel_det: float = 1e-6) -> bool:
 
 
 def ls_pixel(y, a):
-    return np.linalg.lstsq(a, y, rcond=None)[0], np.zeros(y.size, bool), 1
+    return np.linalg.lstsq(a, y, rcond=None)[0], np.zeros(y.size), 1
 
 
-def l1_pixel(y, a, *, max_iter=100, tol=1e-6, delta=1e-6, outlier_threshold=0.05):
+def l1_pixel(y, a, *, max_iter=100, tol=1e-6, delta=1e-6):
     x = np.linalg.lstsq(a, y, rcond=None)[0]
     it = max_iter
     for k in range(1, max_iter + 1):
@@ -40,11 +44,11 @@ def l1_pixel(y, a, *, max_iter=100, tol=1e-6, delta=1e-6, outlier_threshold=0.05
         if step < tol:
             it = k
             break
-    return x, np.abs(y - a @ x) > outlier_threshold, it
+    return x, np.abs(y - a @ x), it
 
 
 def sbl_pixel(y, a, *, lam, sigma_x2=1e6, max_iter=100, tol=1e-4, gamma_floor=1e-10,
-              gamma_start=1e3, outlier_threshold=0.05):
+              gamma_start=1e3):
     n = y.size
     gamma = np.full(n, float(gamma_start))
     z_old = np.zeros(n)
@@ -66,22 +70,30 @@ def sbl_pixel(y, a, *, lam, sigma_x2=1e6, max_iter=100, tol=1e-4, gamma_floor=1e
     m = np.eye(3) / sigma_x2 + a.T @ big_d @ a
     x = np.linalg.solve(m, a.T @ big_d @ y)
     e = gamma * np.diag(big_d) * (y - a @ x)
-    return x, np.abs(e) > outlier_threshold, it
+    return x, np.abs(e), it
 
 
 PIXEL_ORACLES = {"ls": ls_pixel, "l1": l1_pixel, "sbl": sbl_pixel}
 
 
-def solve_oracle(observations, lights, method, valid=None, **params):
-    """One pixel at a time; returns (normals (P,3), albedo (P,), outliers (n,P), iterations (P,))."""
+def solve_oracle(observations, lights, method, valid=None, *, statistic=False, **params):
+    """One pixel at a time; returns (normals (P,3), albedo (P,), outliers (n,P), iterations (P,)).
+
+    With ``statistic``, also the (n, P) statistic each flag compares with the outlier threshold
+    (scaled units; NaN for unused observations).
+    """
     obs = np.asarray(observations, float)
     n, p = obs.shape
     valid = np.ones((n, p), bool) if valid is None else np.asarray(valid, bool)
     valid = valid & np.isfinite(obs)
     if method == "rpca":
-        return rpca_oracle(obs, lights, valid, **params)
+        result = rpca_oracle(obs, lights, valid, **params)
+        return result if statistic else result[:4]
+    threshold = params.get("outlier_threshold", np.inf)
+    params = {k: v for k, v in params.items() if k != "outlier_threshold"}
     normals, albedo = np.zeros((p, 3)), np.zeros(p)
     outliers, iterations = np.zeros((n, p), bool), np.zeros(p, int)
+    statistics = np.full((n, p), np.nan)
     for j in range(p):
         v = valid[:, j]
         y, a = obs[v, j], lights[v]
@@ -99,13 +111,16 @@ def solve_oracle(observations, lights, method, valid=None, **params):
                     if k not in ("noise_sigma", "noise_floor", "light_noise")}
             lam = np.maximum(sigma**2 + (floor * factor[v] / scale) ** 2, 1e-6)
             pixel_params = {**rest, "lam": lam}
-        x, out, it = PIXEL_ORACLES[method](y / scale, a, **pixel_params)
+        x, stat, it = PIXEL_ORACLES[method](y / scale, a, **pixel_params)
         x = x * scale
         albedo[j] = np.linalg.norm(x)
         if albedo[j] > 0:
             normals[j] = x / albedo[j]
-            outliers[np.flatnonzero(v), j] = out
+            outliers[np.flatnonzero(v), j] = stat > threshold
+            statistics[np.flatnonzero(v), j] = stat
         iterations[j] = it
+    if statistic:
+        return normals, albedo, outliers, iterations, statistics
     return normals, albedo, outliers, iterations
 
 
@@ -140,4 +155,6 @@ def rpca_oracle(obs, lights, valid, *, lam_sparse=None, max_iter=500, tol=1e-7, 
     albedo[cols] = np.linalg.norm(x, axis=0)
     normals[cols] = (x / albedo[cols]).T
     outliers[:, cols] = omega & (np.abs(e) > outlier_threshold)
-    return normals, albedo, outliers, np.where(ok, it, 0)
+    statistics = np.full((n, p), np.nan)
+    statistics[:, cols] = np.where(omega, np.abs(e), np.nan)
+    return normals, albedo, outliers, np.where(ok, it, 0), statistics
