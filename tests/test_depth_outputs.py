@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
 import cv2
 import numpy as np
@@ -40,12 +41,16 @@ def test_lp_round_trip_and_matching_by_name(tmp_path):
     names, read = read_lp(tmp_path / "lights.lp")
     assert names == ["a.png", "b.png", "c.png"]
     np.testing.assert_allclose(read, directions, atol=1e-9)
-    (tmp_path / "win.lp").write_text("2\nC:\\rti\\b.png 0.6 0 0.8\nC:\\rti\\a.png 0 0 1\n")
+    (tmp_path / "win.lp").write_text(
+        "3\nC:\\rti\\b.png 0.6 0 0.8\nC:\\rti\\a.png 0 0 1\nC:\\rti\\d.png 0 -0.6 0.8\n"
+    )
     np.testing.assert_allclose(
-        lp_directions_for(tmp_path / "win.lp", ["a.png", "b.png"]), directions[:2], atol=1e-9
+        lp_directions_for(tmp_path / "win.lp", [Path("a.png"), Path("b.png"), Path("d.png")]),
+        directions,
+        atol=1e-9,
     )
     with pytest.raises(DatasetError, match="no light for image c.png"):
-        lp_directions_for(tmp_path / "win.lp", ["a.png", "c.png"])
+        lp_directions_for(tmp_path / "win.lp", [Path("a.png"), Path("c.png"), Path("d.png")])
     (tmp_path / "bad.lp").write_text("3\na.png 0 0 1\n")
     with pytest.raises(DatasetError, match="says 3 images but lists 1"):
         read_lp(tmp_path / "bad.lp")

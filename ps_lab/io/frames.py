@@ -1,7 +1,8 @@
 """Which files are the frames of a dataset, before any pixel is read.
 
-An image folder lists one image per light (``filenames.txt``, else file names in natural order;
-never its outputs, mask or ground truth; ``dark.<ext>`` is a dark frame); a capture run lists its
+An image folder lists one image per light (``filenames.txt``, else the images its ``.lp`` file
+names when it has no ``light_directions.txt``, else file names in natural order; never its
+outputs, mask or ground truth; ``dark.<ext>`` is a dark frame); a capture run lists its
 frames in ``manifest.json`` (:mod:`ps_lab.io.run`). :func:`plan_frames` returns a
 :class:`FramePlan` for either; :mod:`ps_lab.io.dataset` reads the pixels.
 """
@@ -18,17 +19,21 @@ import numpy as np
 from ps_lab.errors import DatasetError
 from ps_lab.io.files import sha256
 from ps_lab.io.images import SUPPORTED_SUFFIXES, check_is_file, is_supported
+from ps_lab.io.lights import find_lp, lp_image_files, read_lp
 from ps_lab.io.run import MANIFEST_NAME, is_run, read_manifest
 
 log = logging.getLogger("ps_lab.io.dataset")
 
 FILENAMES = "filenames.txt"
+_LIGHT_DIRECTIONS = "light_directions.txt"
 
 # Files in an image folder that are never light frames (outputs, calibration pictures, truth).
 _NOT_FRAMES = {
     "mask.png",
     "normal.png",
     "normals.npy",
+    "normals.exr",
+    "normal16.png",
     "albedo.png",
     "albedo.npy",
     "corruption.png",
@@ -149,6 +154,13 @@ def _plan_image_folder(root: Path) -> FramePlan:
                     "ground truth or dark frame)"
                 )
             files.append(file)
+    elif not (root / _LIGHT_DIRECTIONS).exists() and (lp := find_lp(root)) is not None:
+        # The images of an .lp file, in its order, wherever it says they are (RelightLab).
+        files = lp_image_files(lp, read_lp(lp)[0], is_supported)
+        for file in files:
+            check_is_file(file, "image file")
+            if not is_supported(file):
+                raise DatasetError(f"{file}: unsupported image type {file.suffix!r}")
     else:
         files = sorted(
             (p for p in root.iterdir() if _is_light_frame(p)), key=lambda p: _natural_key(p.name)
