@@ -15,6 +15,7 @@ from dataclasses import dataclass
 from typing import Any
 
 from ps_lab.errors import OutputError
+from ps_lab.io.normal_maps import CONVENTIONS
 from ps_lab.reconstruct._solution import SolverInputError
 from ps_lab.reconstruct.depth import DepthOptions
 
@@ -144,6 +145,8 @@ class ReconstructOptions:
         SBL, L1 and R-PCA. Each must be finite and positive, and apply to ``method``.
     depth : {"poisson", "bilateral"} or None
         Also integrate the normals into depth maps and a mesh (:mod:`ps_lab.reconstruct.depth`).
+    normal_map : {"opengl", "directx"}
+        The y axis of ``normal16.png`` and ``normals.exr``: up (OpenGL) or down (DirectX).
     """
 
     method: str = "sbl"
@@ -162,8 +165,13 @@ class ReconstructOptions:
     tol: float | None = None
 
     depth: str | None = None
+    normal_map: str = "opengl"
 
     def __post_init__(self) -> None:
+        if self.normal_map not in CONVENTIONS:
+            raise OutputError(
+                f"--normal-map must be one of {', '.join(CONVENTIONS)}, got {self.normal_map!r}"
+            )
         if self.depth is not None:
             DepthOptions(method=self.depth)  # validates the method
         _check_solver_options(self)

@@ -1,4 +1,5 @@
-"""Formats heritage and RTI labs bring: ``.lp`` files as RelightLab / AliceVision write them, EXR.
+"""Formats labs bring and expect: ``.lp`` files as RelightLab / AliceVision write them, EXR
+images, mesh.ply with normals, units and axes, DirectX normal maps.
 
 Each case is built from a real DiLiGenT object when ../shared/data is present (else from a
 simulated one) and compared with the same images read through ``light_directions.txt``: the
@@ -11,9 +12,11 @@ import logging
 import shutil
 from pathlib import Path
 
+import cv2
 import numpy as np
 import OpenEXR
 import pytest
+from plyfile import PlyData
 from typer.testing import CliRunner
 
 from ps_lab.cli import app
@@ -21,6 +24,7 @@ from ps_lab.errors import DatasetError
 from ps_lab.io.dataset import load_dataset, open_dataset
 from ps_lab.io.images import read_image
 from ps_lab.io.lights import read_light_directions, read_lp
+from ps_lab.io.normal_maps import read_normals_exr
 from ps_lab.render.simulate import SimulationSettings, write_simulated_dataset
 
 runner = CliRunner()
@@ -177,3 +181,31 @@ def test_an_exr_folder_reads_like_its_pngs(source, tmp_path):
     broken.write_bytes(b"v/1\x01" + bytes(40))
     with pytest.raises(DatasetError, match="broken.exr: corrupt or unreadable OpenEXR file"):
         read_image(broken)
+
+
+def test_mesh_has_vertex_normals_and_says_its_units_and_axes(tmp_path):
+    data = tmp_path / "relief"
+    write_simulated_dataset(data, SimulationSettings(scene="relief", lights=12, size=48))
+    out = tmp_path / "out"
+    result = runner.invoke(
+        app,
+        ["reconstruct", str(data), "--method", "ls", "--out", str(out), "--depth", "poisson",
+         "--normal-map", "directx"],
+    )
+    assert result.exit_code == 0, result.output
+    normals = np.load(out / "normals.npy")
+    depth = np.load(out / "depth.npy")
+    ply = PlyData.read(str(out / "mesh.ply"))
+    vertex = ply["vertex"].data
+    stored = np.stack([vertex["nx"], vertex["ny"], vertex["nz"]], axis=1)
+    np.testing.assert_array_equal(stored, normals[np.isfinite(depth)])
+    comments = " | ".join(ply.comments)
+    assert "units: pixel widths" in comments
+    assert "axes: x right, y up, z toward the camera (z = -depth)" in comments
+    # DirectX normal maps: green is -y; normals.npy keeps the camera frame (y up).
+    flipped = normals * np.array([1, -1, 1], np.float32)
+    np.testing.assert_array_equal(read_normals_exr(out / "normals.exr"), flipped)
+    picture = cv2.imread(str(out / "normal16.png"), cv2.IMREAD_UNCHANGED)[..., ::-1]
+    mask = np.linalg.norm(normals, axis=2) > 0.5
+    expected = np.rint((flipped[mask] + 1) * 0.5 * 65535)
+    np.testing.assert_array_equal(picture[mask], expected)

@@ -101,6 +101,13 @@ TolOption = Annotated[
         show_default=False,
     ),
 ]
+class NormalMap(str, Enum):  # noqa: UP042 - typer needs str-valued choices
+    """Normal-map conventions (``ps_lab.io.normal_maps``)."""
+
+    opengl = "opengl"
+    directx = "directx"
+
+
 DepthOption = Annotated[
     str | None,
     typer.Option(
@@ -150,6 +157,10 @@ def reconstruct(
     max_iter: MaxIterOption = None,
     tol: TolOption = None,
     depth: DepthOption = None,
+    normal_map: Annotated[
+        NormalMap,
+        typer.Option(help="normal16.png / normals.exr y axis: opengl (up) or directx (down)."),
+    ] = NormalMap.opengl,
 ) -> None:
     """Estimate surface normals and albedo; write normals.npy, normal.png, albedo, metrics.json."""
     out = out if out is not None else dataset / "recon" / method.value
@@ -168,6 +179,7 @@ def reconstruct(
         max_iter=max_iter,
         tol=tol,
         depth=depth,
+        normal_map=normal_map.value,
     )
     metrics = reconstruct_to_folder(dataset, out, options, progress_bars=_terminal_bars).metrics
     typer.echo(
