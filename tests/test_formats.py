@@ -8,6 +8,7 @@ observations and lights must be identical, not merely close.
 
 from __future__ import annotations
 
+import json
 import logging
 import shutil
 from pathlib import Path
@@ -23,7 +24,7 @@ from ps_lab.cli import app
 from ps_lab.errors import DatasetError
 from ps_lab.io.dataset import load_dataset, open_dataset
 from ps_lab.io.images import read_image
-from ps_lab.io.lights import read_light_directions, read_lp
+from ps_lab.io.lights import read_light_directions, read_lp, write_dome
 from ps_lab.io.normal_maps import read_normals_exr
 from ps_lab.render.simulate import SimulationSettings, write_simulated_dataset
 
@@ -209,3 +210,20 @@ def test_mesh_has_vertex_normals_and_says_its_units_and_axes(tmp_path):
     mask = np.linalg.norm(normals, axis=2) > 0.5
     expected = np.rint((flipped[mask] + 1) * 0.5 * 65535)
     np.testing.assert_array_equal(picture[mask], expected)
+
+
+def test_dome_file_for_relightlab(tmp_path):
+    # Two LEDs placed, one too far (NaN): lights3d positions as given, the far one on the dome
+    # along its direction; directions are the unit positions.
+    positions = np.array([[300.0, 0, 400], [0, -240, 320], [np.nan] * 3])
+    directions = np.array([[0.6, 0, 0.8], [0, -0.6, 0.8], [0, 0, 1.0]])
+    write_dome(tmp_path / "lights.dome", positions, directions, image_width=640)
+    dome = json.loads((tmp_path / "lights.dome").read_text())
+    assert dome["lightConfiguration"] == "lights3d" and dome["imageWidth"] == 640
+    assert dome["domeDiameter"] == pytest.approx(900.0)  # twice the median distance, 450
+    placed = np.array([[p["x"], p["y"], p["z"]] for p in dome["positions3d"]])
+    np.testing.assert_allclose(placed, [[300, 0, 400], [0, -240, 320], [0, 0, 450]])
+    toward = np.array([[p["x"], p["y"], p["z"]] for p in dome["directions"]])
+    np.testing.assert_allclose(toward, directions, atol=1e-12)
+    on_sphere = np.array([[p["x"], p["y"], p["z"]] for p in dome["positionsSphere"]])
+    np.testing.assert_allclose(np.linalg.norm(on_sphere, axis=1), 450.0)

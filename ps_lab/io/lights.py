@@ -8,6 +8,7 @@ DiLiGenT text format read by every command and written by calibration and light 
 
 from __future__ import annotations
 
+import json
 import logging
 import re
 from collections.abc import Callable
@@ -381,3 +382,61 @@ def lp_directions_for(path: Path, image_files: list[Path]) -> np.ndarray:
 
 def _lp_stem(name: str) -> str:
     return Path(name.replace("\\", "/")).stem.lower()
+
+
+def write_dome(
+    path: Path,
+    positions: np.ndarray,
+    directions: np.ndarray,
+    image_width: int,
+    label: str = "ps-lab",
+) -> None:
+    """Write LED positions as a RelightLab dome file (``.dome``, JSON, ``lights3d``).
+
+    RelightLab's dome format (relightlab/docs/formats/dome.md and its ``Dome::fromJson``):
+    ``imageWidth``, ``domeDiameter``, ``verticalOffset``, ``lightConfiguration`` and per light
+    ``{"x", "y", "z"}`` objects in ``directions``, ``positionsSphere`` and ``positions3d``; origin
+    at the image centre, x right, y toward the top of the image, z up toward the camera (ps-lab's
+    scene frame, :mod:`ps_lab.geometry`). Only lengths relative to ``imageWidth`` matter to
+    RelightLab, so positions stay in pixel units and ``imageWidth`` is the width in pixels.
+
+    Parameters
+    ----------
+    path : Path
+        The ``.dome`` file.
+    positions : ndarray of shape (n, 3)
+        LED positions in pixels; a NaN row (a light too far to place) is put on the dome along
+        its direction.
+    directions : ndarray of shape (n, 3)
+        Unit directions toward each light (used for the NaN rows and written as ``directions``).
+    image_width : int
+        Image width in pixels.
+    label : str
+        The dome's name.
+    """
+    positions = np.asarray(positions, np.float64)
+    directions = np.asarray(directions, np.float64)
+    placed = np.isfinite(positions).all(axis=1)
+    radius = float(np.median(np.linalg.norm(positions[placed], axis=1))) if placed.any() else 1.0
+    full = np.where(placed[:, None], positions, directions * radius)
+    toward = full / np.linalg.norm(full, axis=1, keepdims=True)
+    sphere = toward * radius
+
+    def points(rows: np.ndarray) -> list[dict[str, float]]:
+        return [{"x": float(x), "y": float(y), "z": float(z)} for x, y, z in rows]
+
+    dome = {
+        "label": label,
+        "notes": "written by ps-lab calibrate from two chrome spheres; lengths in image pixels "
+        "(imageWidth is the image width in pixels); origin at the image centre in the spheres' "
+        f"plane; {int((~placed).sum())} light(s) too far to place put on the dome",
+        "imageWidth": float(image_width),
+        "domeDiameter": 2.0 * radius,
+        "verticalOffset": 0.0,
+        "lightConfiguration": "lights3d",
+        "directions": points(toward),
+        "positionsSphere": points(sphere),
+        "positions3d": points(full),
+        "ledAdjust": [],
+    }
+    path.write_text(json.dumps(dome, indent=1) + "\n", encoding="utf-8")
