@@ -299,9 +299,10 @@ def lp_image_files(path: Path, names: list[str], supported: Callable[[Path], boo
     """The image file of each ``.lp`` entry, found as RelightLab and AliceVision find them.
 
     Each name is taken relative to the ``.lp`` file's folder (backslashes read as slashes).
-    When that file does not exist, the same folder is searched for the name in any letter case, then for
-    the same stem with any extension ``supported`` accepts (an ``.lp`` written for
-    ``image01.jpg`` finds ``image01.png`` or ``IMAGE01.TIF``).
+    When that file does not exist, that folder and then the ``.lp``'s own are searched for the
+    name in any letter case, then for the same stem with any extension ``supported`` accepts (an
+    ``.lp`` written for ``image01.jpg`` finds ``image01.png`` or ``IMAGE01.TIF``); a Windows or
+    absolute path is looked up by its file name beside the ``.lp``.
 
     Raises
     ------
