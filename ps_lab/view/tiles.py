@@ -85,32 +85,37 @@ def _half(layers: np.ndarray) -> np.ndarray:
     return np.clip(layers, -top, top).astype(np.float16)
 
 
+def _block_sum(x: np.ndarray) -> np.ndarray:
+    """Sums over the 2 x 2 blocks of an array with even height and width (first two axes)."""
+    return x[0::2, 0::2] + x[1::2, 0::2] + x[0::2, 1::2] + x[1::2, 1::2]
+
+
 def _halve(layers: np.ndarray) -> np.ndarray:
     """One pyramid step: 2 x 2 blocks averaged over their mask pixels (valid values only)."""
     h, w, c = layers.shape
-    padded = np.zeros((h + h % 2, w + w % 2, c), np.float32)
-    padded[:h, :w] = layers
-    blocks = padded.reshape(padded.shape[0] // 2, 2, padded.shape[1] // 2, 2, c)
-    inside = np.linalg.norm(blocks[..., :3], axis=-1) > 0.5
-    out = np.zeros((blocks.shape[0], blocks.shape[2], c), np.float32)
-    weight = inside.sum(axis=(1, 3)).astype(np.float32)
-    keep = weight >= 2  # a block is inside when at least half its pixels are
-    for k in range(c):
-        values = blocks[..., k]
-        valid = inside & np.isfinite(values) & ((values != MISSING) | (k not in (5, 6)))
-        total = np.where(valid, values, 0.0).sum(axis=(1, 3))
-        count = valid.sum(axis=(1, 3))
-        empty = np.full(total.shape, np.nan, np.float32)
-        out[..., k] = np.divide(total, count, out=empty, where=count > 0)
+    if h % 2 or w % 2:
+        padded = np.zeros((h + h % 2, w + w % 2, c), np.float32)
+        padded[:h, :w] = layers
+        layers = padded
+    n = layers[..., :3]
+    inside = np.einsum("...k,...k->...", n, n) > 0.25
+    count = _block_sum(inside.astype(np.float32))
+    keep = count >= 2  # a block is inside when at least half its pixels are
+    out = np.empty((layers.shape[0] // 2, layers.shape[1] // 2, c), np.float32)
+    # Normals, albedo and outlier share are zero outside the mask: a plain sum over it.
+    out[..., :5] = _block_sum(layers[..., :5]) / np.maximum(count, 1)[..., None]
+    # Error and relief may be missing (MISSING), depth NaN: averaged over the valid ones.
+    for k in range(5, c):
+        values = layers[..., k]
+        valid = inside & (np.isfinite(values) if k == 7 else values != MISSING)
+        kept = _block_sum(valid.astype(np.float32))
+        summed = _block_sum(np.where(valid, values, np.float32(0)))
+        empty = MISSING if k < 7 else np.nan
+        out[..., k] = np.where(keep & (kept > 0), summed / np.maximum(kept, 1), empty)
     normals = out[..., :3]
-    norms = np.linalg.norm(normals, axis=-1, keepdims=True)
+    norms = np.sqrt(np.einsum("...k,...k->...", normals, normals))[..., None]
     out[..., :3] = np.divide(normals, norms, out=np.zeros_like(normals), where=norms > 0)
-    out[~keep] = 0.0
-    for k, name in enumerate(CHANNELS):
-        if name in ("error_deg", "relief"):
-            out[..., k] = np.where(keep & np.isfinite(out[..., k]), out[..., k], MISSING)
-        elif name == "depth":
-            out[..., k] = np.where(keep, out[..., k], np.nan)
+    out[~keep, :5] = 0.0
     return out
 
 

@@ -19,12 +19,19 @@ const state = {
   view: { cx: 0.5, cy: 0.5, zoom: 1 },   // shared by all panels: centre (fraction), zoom over fit
   orbit: { yaw: 0, pitch: 0, zoom: 1 },
 };
-const stats = { frames: 0, tilesDrawn: 0, tilesLoaded: 0, pending: 0, meshTriangles: 0, glError: 0, drawMs: 0 };
+const stats = { frames: 0, tilesDrawn: 0, tilesLoaded: 0, pending: 0, meshTriangles: 0, glError: 0, drawMs: 0, fullMs: 0, reduction: 1, refined: true };
+// While the light or the view moves, frames that took longer than this are drawn at a lower
+// resolution (1/f per axis, then scaled up); the full resolution follows REFINE_MS after the
+// last change.
+const INTERACTIVE_MS = 30, REFINE_MS = 150;
 
 const canvas = document.getElementById("gl");
-const gl = canvas.getContext("webgl2", { antialias: false, preserveDrawingBuffer: true });
+const gl = canvas.getContext("webgl2", { antialias: false, preserveDrawingBuffer: false });
 let results = [];
 let dirty = true;
+let lastChange = 0;
+const lastFrame = { at: 0, f: 1, moving: false };
+let reduced = null;     // { fbo, colour, depth, width, height } for reduced-resolution frames
 
 // ---- half floats -------------------------------------------------------------------------------
 const HALF = new Float32Array(65536);
@@ -211,11 +218,10 @@ function uploadTile(result, entry, buffer) {
 }
 
 // ---- layout ------------------------------------------------------------------------------------
-function panels() {
+function panels(W = canvas.width, H = canvas.height) {
   const n = results.length;
   const cols = n <= 3 ? n : Math.ceil(Math.sqrt(n));
   const rows = Math.ceil(n / cols);
-  const W = canvas.width, H = canvas.height;
   const out = [];
   for (let i = 0; i < n; i++) {
     const c = i % cols, r = Math.floor(i / cols);
@@ -253,17 +259,61 @@ function resize() {
   if (canvas.width !== w || canvas.height !== h) { canvas.width = w; canvas.height = h; dirty = true; }
 }
 
-function redraw() { dirty = true; }
+function redraw() { dirty = true; lastChange = performance.now(); }
+
+function reducedTarget(f) {
+  const width = Math.ceil(canvas.width / f), height = Math.ceil(canvas.height / f);
+  if (reduced && reduced.width === width && reduced.height === height) return reduced;
+  if (reduced) { gl.deleteFramebuffer(reduced.fbo); gl.deleteTexture(reduced.colour); gl.deleteRenderbuffer(reduced.depth); }
+  const colour = gl.createTexture();
+  gl.bindTexture(gl.TEXTURE_2D, colour);
+  gl.texStorage2D(gl.TEXTURE_2D, 1, gl.RGBA8, width, height);
+  const depth = gl.createRenderbuffer();
+  gl.bindRenderbuffer(gl.RENDERBUFFER, depth);
+  gl.renderbufferStorage(gl.RENDERBUFFER, gl.DEPTH_COMPONENT24, width, height);
+  const fbo = gl.createFramebuffer();
+  gl.bindFramebuffer(gl.FRAMEBUFFER, fbo);
+  gl.framebufferTexture2D(gl.FRAMEBUFFER, gl.COLOR_ATTACHMENT0, gl.TEXTURE_2D, colour, 0);
+  gl.framebufferRenderbuffer(gl.FRAMEBUFFER, gl.DEPTH_ATTACHMENT, gl.RENDERBUFFER, depth);
+  gl.bindFramebuffer(gl.FRAMEBUFFER, null);
+  reduced = { fbo, colour, depth, width, height };
+  return reduced;
+}
 
 function frame() {
   resize();
-  if (dirty && results.length) {
+  const now = performance.now();
+  const moving = now - lastChange < REFINE_MS;
+  if (results.length && (dirty || (!stats.refined && !moving))) {
     dirty = false;
+    // The time a full-resolution frame takes shows as the interval to the next one while things
+    // move (WebGL work is asynchronous: the draw calls return long before the pixels exist).
+    if (moving && lastFrame.moving && lastFrame.f === 1 && now - lastFrame.at < 1000) {
+      const interval = now - lastFrame.at;
+      stats.fullMs = stats.fullMs ? 0.5 * stats.fullMs + 0.5 * interval : interval;
+    }
+    // Reduce only while things move and only when full frames are slow (software WebGL, 4K).
+    const f = moving && stats.fullMs > INTERACTIVE_MS
+      ? Math.min(4, Math.ceil(Math.sqrt(stats.fullMs / 12))) : 1;
     const started = performance.now();
-    draw();
+    if (f > 1) {
+      const target = reducedTarget(f);
+      gl.bindFramebuffer(gl.FRAMEBUFFER, target.fbo);
+      draw(target.width, target.height);
+      gl.bindFramebuffer(gl.READ_FRAMEBUFFER, target.fbo);
+      gl.bindFramebuffer(gl.DRAW_FRAMEBUFFER, null);
+      gl.blitFramebuffer(0, 0, target.width, target.height, 0, 0, canvas.width, canvas.height, gl.COLOR_BUFFER_BIT, gl.LINEAR);
+      gl.bindFramebuffer(gl.FRAMEBUFFER, null);
+    } else {
+      draw(canvas.width, canvas.height);
+    }
     stats.drawMs = performance.now() - started;
+    Object.assign(lastFrame, { at: now, f, moving });
+    stats.reduction = f;
+    stats.refined = f === 1;
     stats.frames++;
     stats.glError = gl.getError();
+    placeTitles(panels());
   }
   requestAnimationFrame(frame);
 }
@@ -275,17 +325,17 @@ function lightVector() {
   return [Math.cos(elevation) * Math.cos(azimuth), Math.cos(elevation) * Math.sin(azimuth), Math.sin(elevation)];
 }
 
-function draw() {
+function draw(W, H) {
   gl.disable(gl.SCISSOR_TEST);
-  gl.viewport(0, 0, canvas.width, canvas.height);
+  gl.viewport(0, 0, W, H);
   gl.clearColor(0.08, 0.08, 0.09, 1);
   gl.clear(gl.COLOR_BUFFER_BIT | gl.DEPTH_BUFFER_BIT);
   gl.enable(gl.SCISSOR_TEST);
-  const layout = panels();
+  const layout = panels(W, H);
   let tiles = 0, triangles = 0;
   results.forEach((result, i) => {
     const panel = layout[i];
-    const glY = canvas.height - panel.y - panel.h;
+    const glY = H - panel.y - panel.h;
     gl.viewport(panel.x, glY, panel.w, panel.h);
     gl.scissor(panel.x, glY, panel.w, panel.h);
     gl.clearColor(...BACKGROUND, 1);
@@ -296,7 +346,6 @@ function draw() {
   gl.disable(gl.SCISSOR_TEST);
   stats.tilesDrawn = tiles;
   stats.meshTriangles = triangles;
-  placeTitles(layout);
 }
 
 function drawImage(result, panel) {
@@ -319,9 +368,9 @@ function drawImage(result, panel) {
   gl.uniform3fv(p.u.u_bg, BACKGROUND);
   gl.uniform1i(p.u.u_a, 0);
   gl.uniform1i(p.u.u_b, 1);
-  let drawn = 0;
-  const base = requestTile(result.index, top, 0, 0);
-  if (base.ready) { drawTile(result, base); drawn++; }
+  // The tiles of that level over the panel; the one-tile top level is drawn under them until
+  // they have all arrived.
+  const visible = [];
   if (level < top) {
     const [x0, y0] = panelToImage(result, panel, 0, 0);
     const [x1, y1] = panelToImage(result, panel, panel.w, panel.h);
@@ -329,12 +378,13 @@ function drawImage(result, panel) {
     const c0 = Math.max(0, Math.floor(x0 / span)), c1 = Math.min(size.cols - 1, Math.floor(x1 / span));
     const r0 = Math.max(0, Math.floor(y0 / span)), r1 = Math.min(size.rows - 1, Math.floor(y1 / span));
     for (let row = r0; row <= r1; row++) {
-      for (let col = c0; col <= c1; col++) {
-        const entry = requestTile(result.index, level, col, row);
-        if (entry.ready) { drawTile(result, entry); drawn++; }
-      }
+      for (let col = c0; col <= c1; col++) visible.push(requestTile(result.index, level, col, row));
     }
   }
+  let drawn = 0;
+  const base = requestTile(result.index, top, 0, 0);
+  if (base.ready && !(visible.length && visible.every((entry) => entry.ready))) { drawTile(result, base); drawn++; }
+  for (const entry of visible) if (entry.ready) { drawTile(result, entry); drawn++; }
   return drawn;
 }
 
@@ -659,7 +709,7 @@ window.psView = {
   // Zoom so that one image pixel is `s` device pixels in panel i.
   pixelScale(i, s) { const p = panels()[i], r = results[i]; state.view.zoom = s / Math.min(p.w / r.width, p.h / r.height); redraw(); },
   probe(i, x, y) { return probeAt(results[i], x, y); },
-  idle() { return !dirty && stats.pending === 0 && results.every((r) => !r.mesh || state.mode !== "mesh" || (r.meshState && r.meshState.ready)); },
+  idle() { return !dirty && stats.refined && stats.pending === 0 && results.every((r) => !r.mesh || state.mode !== "mesh" || (r.meshState && r.meshState.ready)); },
   ready: null,
 };
 window.psView.ready = start().then(() => true, (error) => { status(String(error)); return String(error); });
