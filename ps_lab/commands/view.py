@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import os
+import sys
+import threading
 import webbrowser
 from pathlib import Path
 from typing import Annotated
@@ -46,8 +49,16 @@ def view(
 
     def ready(address: str) -> None:
         typer.echo(f"ps-lab view: {address}  (Ctrl-C stops)")
-        if not no_browser:
-            webbrowser.open(address)
+        if no_browser:
+            return
+        if sys.platform.startswith("linux") and not (
+            os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY")
+        ):
+            # webbrowser would start a console browser (lynx, w3m) in this terminal.
+            typer.echo("no display here: open the address in a browser (an SSH tunnel works)")
+            return
+        # In a thread: some browsers' launchers wait until the browser exits.
+        threading.Thread(target=webbrowser.open, args=(address,), daemon=True).start()
 
     try:
         serve(site, port, on_ready=ready)

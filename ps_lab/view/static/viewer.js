@@ -490,7 +490,8 @@ function placeTitles(layout) {
   results.forEach((result, i) => {
     const div = box.children[i];
     const error = result.angular_error_deg ? `, mean error ${result.angular_error_deg.mean.toFixed(2)}°` : "";
-    div.textContent = `${result.name}${result.method ? ` (${result.method}${error})` : ""}`;
+    const missing = state.mode === "mesh" && !result.mesh ? " - no mesh.ply (ps-lab integrate makes one)" : "";
+    div.textContent = `${result.name}${result.method ? ` (${result.method}${error})` : ""}${missing}`;
     div.style.left = `${layout[i].x / dpr}px`;
     div.style.top = `${layout[i].y / dpr}px`;
   });
