@@ -505,9 +505,8 @@ def _lp_instead_of_light_directions(ds: Path, rows: np.ndarray, names: list[str]
     (ds / "light_directions.txt").unlink()
     (ds / "filenames.txt").unlink()
     lp = ds / "dirs.lp"
-    lp.write_text(
-        f"{len(names)}\n" + "".join(f"{n} {x} {y} {z}\n" for n, (x, y, z) in zip(names, rows, strict=True))
-    )
+    lines = [f"{n} {x} {y} {z}\n" for n, (x, y, z) in zip(names, rows, strict=True)]
+    lp.write_text(f"{len(names)}\n" + "".join(lines))
     return lp
 
 
