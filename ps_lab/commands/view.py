@@ -25,7 +25,10 @@ def view(
         ),
     ],
     port: Annotated[
-        int, typer.Option(min=0, max=65535, help="Port on 127.0.0.1 [default: a free one].")
+        int,
+        typer.Option(
+            min=0, max=65535, help="Port on 127.0.0.1 [default: a free one].", show_default=False
+        ),
     ] = 0,
     no_browser: Annotated[
         bool, typer.Option("--no-browser", help="Print the address only; open no browser.")
