@@ -27,7 +27,7 @@ def view(
     port: Annotated[
         int,
         typer.Option(
-            min=0, max=65535, help="Port on 127.0.0.1 [default: a free one].", show_default=False
+            min=0, max=65535, help="Port on 127.0.0.1 (default: a free one).", show_default=False
         ),
     ] = 0,
     no_browser: Annotated[
