@@ -1,7 +1,7 @@
 """The viewer as files: served on 127.0.0.1 (``ps-lab view``) or written out (``--export``).
 
 :class:`ViewSite` maps a page-relative path to its bytes: the static page (``index.html``,
-``viewer.js``, ``viewer.css``, shipped in ``ps_lab/view/static``) and the data of
+``render.js``, ``viewer.js``, ``viewer.css``, shipped in ``ps_lab/view/static``) and the data of
 :mod:`ps_lab.view.tiles`, built on first request. :func:`serve` answers GET requests for those
 paths only, from one address on the loopback interface; :func:`export_site` writes every path
 into a folder that any static web server (or ``python -m http.server``) serves as it is.
@@ -33,6 +33,7 @@ HOST = "127.0.0.1"
 #: The page's own files, in ``ps_lab/view/static``.
 STATIC_FILES = {
     "index.html": "text/html; charset=utf-8",
+    "render.js": "text/javascript; charset=utf-8",
     "viewer.js": "text/javascript; charset=utf-8",
     "viewer.css": "text/css; charset=utf-8",
 }
