@@ -198,11 +198,11 @@ class ViewServer:
         return self.process.returncode, err
 
 
-def expected_shading(result: Path, light, exposure: float = 1.0):
+def expected_shading(result: Path, light, exposure: float = 1.0, use_albedo: bool = True):
     """The page's relight formula in float64 on float16-rounded normals and albedo, 0..255."""
     view = load_result(result)
     normals = view.layers[..., :3].astype(np.float16).astype(np.float64)
-    albedo = view.layers[..., 3].astype(np.float16).astype(np.float64)
+    albedo = view.layers[..., 3].astype(np.float16).astype(np.float64) if use_albedo else 1.0
     norm = np.linalg.norm(normals, axis=2)
     mask = norm > 0.5
     unit = normals / np.where(mask, norm, 1.0)[..., None]
@@ -219,6 +219,21 @@ def shown_pixels(browser, panel: int, shape) -> tuple[np.ndarray, np.ndarray, np
     rows = np.floor(y0 + np.arange(h)).astype(int)
     cols = np.floor(x0 + np.arange(w)).astype(int)
     return rows, cols, picture
+
+
+def interior(mask: np.ndarray) -> np.ndarray:
+    """The mask without the image's border rows and columns (half-pixel alignment there)."""
+    inner = mask.copy()
+    inner[[0, -1], :] = inner[:, [0, -1]] = False
+    return inner
+
+
+def assert_shown(browser, panel: int, expected: np.ndarray, mask: np.ndarray) -> None:
+    """Panel ``panel`` shown 1:1 equals ``expected`` (0..255 grey) within 2 levels in the mask."""
+    rows, cols, picture = shown_pixels(browser, panel, expected.shape)
+    shown = picture[rows][:, cols].astype(np.float64).mean(axis=2)
+    difference = np.abs(shown - expected)[interior(mask)]
+    assert difference.max() <= 2.0, (difference.mean(), difference.max())
 
 
 def settle(browser) -> None:
@@ -285,7 +300,18 @@ def test_relight_in_chromium_matches_n_dot_l_and_3d_shows_the_mesh(browser, sim_
         assert np.degrees(np.arcsin(raking[2])) == pytest.approx(10.0, abs=1e-4)
         assert np.arctan2(raking[1], raking[0]) == pytest.approx(azimuth, abs=1e-6)
         assert browser.evaluate("psView.state.useAlbedo") is False
+        expected, mask = expected_shading(sim_result, raking, use_albedo=False)
+        assert_shown(browser, 0, expected, mask)
         browser.evaluate("document.getElementById('raking').click()")
+        # The normal-map layer: RGB = (n + 1) / 2 of the unit half-float normals.
+        browser.evaluate("psView.setMode('layers'); psView.setLayer('normal')")
+        settle(browser)
+        normals16 = np.load(sim_result / "normals.npy").astype(np.float16).astype(np.float64)
+        norm = np.linalg.norm(normals16, axis=2, keepdims=True)
+        rgb = (normals16 / np.maximum(norm, 1e-9) + 1) * 0.5 * 255
+        rows, cols, picture = shown_pixels(browser, 0, mask.shape)
+        shown = picture[rows][:, cols].astype(np.float64)
+        assert np.abs(shown - rgb)[interior(mask)].max() <= 1.0
         # Layers and the probe under the cursor.
         browser.evaluate("psView.setMode('layers'); psView.setLayer('error')")
         settle(browser)
@@ -334,11 +360,7 @@ def test_compare_a_diligent_result_beside_the_simulated_one(browser, sim_result,
         expected, mask = expected_shading(sim_result, light)
         browser.evaluate("psView.pixelScale(1, 1)")
         settle(browser)
-        rows, cols, picture = shown_pixels(browser, 1, expected.shape)
-        shown = picture[rows][:, cols].astype(np.float64).mean(axis=2)
-        inner = mask.copy()
-        inner[[0, -1], :] = inner[:, [0, -1]] = False
-        assert np.abs(shown - expected)[inner].max() <= 2.0
+        assert_shown(browser, 1, expected, mask)
     finally:
         server.stop()
 
