@@ -564,6 +564,12 @@ async function start() {
     const need = { outliers: "outliers", error: "error", relief: "depth" }[option.value];
     option.disabled = need ? !results.some((r) => r.has[need]) : false;
   }
+  // The error layer's scale: 1.5 x the largest p90 error of the results (at least 1 degree).
+  const p90 = Math.max(0, ...results.map((r) => (r.angular_error_deg ? r.angular_error_deg.p90 : 0)));
+  if (p90 > 0) {
+    state.errorMax = Math.max(1, Math.ceil(1.5 * p90));
+    document.getElementById("errmax").value = state.errorMax;
+  }
   setMode("relight");
   drawLightWidget();
   results.forEach((r) => requestTile(r.index, r.levels.length - 1, 0, 0));
