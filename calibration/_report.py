@@ -16,7 +16,7 @@ import numpy as np
 from ps_lab.calibration._calibrate import Calibration
 from ps_lab.errors import CalibrationError
 from ps_lab.io.files import staged_files
-from ps_lab.io.lights import write_lp
+from ps_lab.io.lights import write_dome, write_lp
 
 CALIBRATION_FORMAT = "ps-lab-calibration"
 OUTPUT_FILES = (
@@ -29,6 +29,8 @@ OUTPUT_FILES = (
 # Written with two or more chrome spheres (LED positions); removed from the output folder otherwise,
 # so an earlier near-light calibration cannot outlive a new one.
 POSITION_FILES = ("light_positions.txt", "light_anisotropy.txt")
+#: The LED positions as a RelightLab dome (``ps_lab.io.lights.write_dome``).
+DOME_FILE = "lights.dome"
 _RAY_COLOURS = ((255, 170, 60), (60, 170, 255), (200, 90, 230), (90, 230, 200))
 
 _GREEN = (80, 220, 80)
@@ -346,6 +348,14 @@ def write_calibration(calibration: Calibration, out_dir: Path) -> dict[str, Path
                     staging / POSITION_FILES[0], calibration.triangulation.positions, fmt="%.6f"
                 )
                 names.append(POSITION_FILES[0])
+                if calibration.image_shape is not None:  # the LEDs for RelightLab
+                    write_dome(
+                        staging / DOME_FILE,
+                        calibration.triangulation.positions,
+                        calibration.light_directions,
+                        calibration.image_shape[1],
+                    )
+                    names.append(DOME_FILE)
                 if calibration.anisotropy:
                     count = len(calibration.light_directions)
                     anisotropy = np.full((count, 1), calibration.anisotropy)
@@ -353,7 +363,7 @@ def write_calibration(calibration: Calibration, out_dir: Path) -> dict[str, Path
                     names.append(POSITION_FILES[1])
             if not cv2.imwrite(str(staging / "calibration.png"), picture):
                 raise OSError("PNG encoder failed")
-        for name in POSITION_FILES:
+        for name in (*POSITION_FILES, DOME_FILE):
             if name not in names:
                 (out / name).unlink(missing_ok=True)
     except OSError as exc:

@@ -24,6 +24,7 @@ COMMANDS = {
     "reconstruct": "ps_lab.commands.reconstruct",
     "batch": "ps_lab.commands.batch",
     "integrate": "ps_lab.commands.integrate",
+    "view": "ps_lab.commands.view",
     "capture": "ps_lab.commands.capture",
     "calibrate": "ps_lab.commands.calibrate",
     "rig": "ps_lab.commands.rig",

@@ -110,6 +110,7 @@ def main(argv: list[str] | None = None) -> None:
     print(f"calibration:     {run / 'calibration.png'}")
     print(f"depth picture:   {recon / 'depth.png'}")
     print(f"mesh:            {recon / 'mesh.ply'}")
+    print(f"see it relit:    ps-lab view {recon}")
     if not args.no_near:
         _near_variant(args.near_rig, args.out / "near")
 

@@ -141,10 +141,15 @@ def depth_picture(depth: np.ndarray) -> np.ndarray:
     return picture
 
 
-def write_normal_maps(folder: Path, normals: np.ndarray, mask: np.ndarray) -> None:
-    """Write ``normal16.png`` and ``normals.exr`` (``ps_lab.io.normal_maps``) into ``folder``."""
-    write_normal16(folder / "normal16.png", normals, mask)
-    write_normals_exr(folder / "normals.exr", normals)
+def write_normal_maps(
+    folder: Path, normals: np.ndarray, mask: np.ndarray, convention: str = "opengl"
+) -> None:
+    """Write ``normal16.png`` and ``normals.exr`` (``ps_lab.io.normal_maps``) into ``folder``.
+
+    ``convention``: ``opengl`` (y up, the camera frame) or ``directx`` (y down).
+    """
+    write_normal16(folder / "normal16.png", normals, mask, convention)
+    write_normals_exr(folder / "normals.exr", normals, convention)
 
 
 def write_depth(
@@ -210,7 +215,14 @@ def write_depth(
     vertices, vertex_colours, triangles = depth_mesh(
         depth, colours, pixel_size=scale, focal_length=options.focal_length
     )
-    write_ply(folder / "mesh.ply", vertices, vertex_colours, triangles)
+    write_ply(
+        folder / "mesh.ply",
+        vertices,
+        vertex_colours,
+        triangles,
+        normals=np.asarray(normals, np.float32)[np.isfinite(depth)],
+        comments=mesh_comments(options, result.method),
+    )
     gauge = (
         "unknown: each component's median depth is set to 0"
         if options.focal_length is None
@@ -234,6 +246,30 @@ def write_depth(
         "mesh": {"vertices": len(vertices), "triangles": len(triangles)},
         "options": asdict(options),
     }
+
+
+def mesh_comments(options: DepthOptions, method: str) -> tuple[str, ...]:
+    """The header comments of ``mesh.ply``: what it is, its unit and its axes."""
+    if options.focal_length is not None:
+        camera = f"perspective camera, focal length {options.focal_length:g} px"
+    else:
+        camera = "orthographic camera"
+    unit = (
+        f"mm (pixel size {options.pixel_size:g} mm)"
+        if options.pixel_size is not None
+        else "pixel widths"
+    )
+    return (
+        f"ps-lab mesh: depth integrated from photometric normals ({method}), {camera}",
+        f"units: {unit}; "
+        + (
+            "scale unknown (each part's median depth is the focal length)"
+            if options.focal_length is not None
+            else "depth offset unknown (each part's median depth is 0)"
+        ),
+        "axes: x right, y up, z toward the camera (z = -depth), right-handed",
+        "faces counter-clockwise seen from the camera; nx ny nz: unit photometric normals",
+    )
 
 
 def integrate_result(

@@ -16,6 +16,7 @@ from typing import Any
 
 from ps_lab.errors import OutputError
 from ps_lab.io.encoding import ENCODINGS
+from ps_lab.io.normal_maps import CONVENTIONS
 from ps_lab.reconstruct._solution import SolverInputError
 from ps_lab.reconstruct.depth import DepthOptions
 
@@ -148,6 +149,8 @@ class ReconstructOptions:
     encoding : {"auto", "linear", "srgb"}
         How integer frames map to light (:mod:`ps_lab.io.encoding`; ``auto``: the files'
         metadata, sRGB for JPEG).
+    normal_map : {"opengl", "directx"}
+        The y axis of ``normal16.png`` and ``normals.exr``: up (OpenGL) or down (DirectX).
     """
 
     method: str = "sbl"
@@ -167,11 +170,16 @@ class ReconstructOptions:
 
     depth: str | None = None
     encoding: str = "auto"
+    normal_map: str = "opengl"
 
     def __post_init__(self) -> None:
         if self.encoding not in ENCODINGS:
             raise OutputError(
                 f"--encoding must be one of {', '.join(ENCODINGS)}, got {self.encoding!r}"
+            )
+        if self.normal_map not in CONVENTIONS:
+            raise OutputError(
+                f"--normal-map must be one of {', '.join(CONVENTIONS)}, got {self.normal_map!r}"
             )
         if self.depth is not None:
             DepthOptions(method=self.depth)  # validates the method

@@ -376,7 +376,9 @@ def _write_surface(
     started = time.perf_counter()
     normals = np.load(stage / "normals.npy")
     try:
-        write_normal_maps(stage, normals, np.linalg.norm(normals, axis=-1) > 0.5)
+        mask = np.linalg.norm(normals, axis=-1) > 0.5
+        write_normal_maps(stage, normals, mask, options.normal_map)
+        metrics["normal_maps"] = {"convention": options.normal_map}
         if options.depth is not None:
             albedo = np.load(stage / "albedo.npy")
             depth = write_depth(

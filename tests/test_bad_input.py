@@ -500,6 +500,39 @@ light_table_case("g4-lights-identical", lambda rows: np.repeat(rows[:1], len(row
 light_table_case("g4-lights-antiparallel", lambda rows: np.array([[0, 0, 1], [0, 0, -1]] * 4))
 
 
+def _lp_instead_of_light_directions(ds: Path, rows: np.ndarray, names: list[str]) -> Path:
+    """Replace light_directions.txt and filenames.txt by a RelightLab ``dirs.lp``."""
+    (ds / "light_directions.txt").unlink()
+    (ds / "filenames.txt").unlink()
+    lp = ds / "dirs.lp"
+    lines = [f"{n} {x} {y} {z}\n" for n, (x, y, z) in zip(names, rows, strict=True)]
+    lp.write_text(f"{len(names)}\n" + "".join(lines))
+    return lp
+
+
+@case("x-lp-lists-more-images-than-the-folder", ("dirs.lp", "009.png", "010.png"))
+def _(w):
+    ds = w.png()
+    rows = read_rows(ds / "light_directions.txt")
+    names = [f.name for f in image_files(ds)] + ["009.png", "010.png"]
+    _lp_instead_of_light_directions(ds, np.vstack([rows, rows[:2]]), names)
+    return ["reconstruct", str(ds)]
+
+
+@case("x-lp-coplanar", ("dirs.lp", "one plane"), check=lambda w, r, line: _not_named(line, "003"))
+def _(w):
+    ds = w.png()
+    rows = _coplanar(read_rows(ds / "light_directions.txt"))
+    _lp_instead_of_light_directions(ds, rows, [f.name for f in image_files(ds)])
+    (ds / "003.png").write_bytes(b"not a png")  # refused before any frame is read
+    return ["reconstruct", str(ds)]
+
+
+@case("x-view-not-a-result", lambda w: (str(w.ds), "normals.npy"))
+def _(w):
+    return ["view", str(w.png()), "--no-browser"]
+
+
 @case("g4-two-lights-two-images", ("light_directions.txt",))
 def _(w):
     ds = w.png()
@@ -1217,6 +1250,9 @@ CI_CASES = {
     "x-rig-check-port-regular-file",
     "x-tiff-five-channels",
     "x-simulate-seed-negative",
+    "x-lp-lists-more-images-than-the-folder",
+    "x-lp-coplanar",
+    "x-view-not-a-result",
 }
 
 

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
 import cv2
 import numpy as np
@@ -43,13 +44,17 @@ def test_lp_round_trip_and_matching_by_name(tmp_path):
     # 9 decimals, then each row normalised: a unit vector moved by d moves by <= 2 |d|
     atol = 2.0 * np.sqrt(3.0) * LIGHT_TABLE_ROUNDING
     np.testing.assert_allclose(read, directions, rtol=0, atol=atol)
-    (tmp_path / "win.lp").write_text("2\nC:\\rti\\b.png 0.6 0 0.8\nC:\\rti\\a.png 0 0 1\n")
+    (tmp_path / "win.lp").write_text(
+        "3\nC:\\rti\\b.png 0.6 0 0.8\nC:\\rti\\a.png 0 0 1\nC:\\rti\\d.png 0 -0.6 0.8\n"
+    )
     np.testing.assert_allclose(
-        lp_directions_for(tmp_path / "win.lp", ["a.png", "b.png"]), directions[:2], rtol=0,
+        lp_directions_for(tmp_path / "win.lp", [Path("a.png"), Path("b.png"), Path("d.png")]),
+        directions,
+        rtol=0,
         atol=atol,
-    )  # fmt: skip
+    )
     with pytest.raises(DatasetError, match="no light for image c.png"):
-        lp_directions_for(tmp_path / "win.lp", ["a.png", "c.png"])
+        lp_directions_for(tmp_path / "win.lp", [Path("a.png"), Path("c.png"), Path("d.png")])
     (tmp_path / "bad.lp").write_text("3\na.png 0 0 1\n")
     with pytest.raises(DatasetError, match="says 3 images but lists 1"):
         read_lp(tmp_path / "bad.lp")

@@ -212,6 +212,9 @@ def test_near_rig_end_to_end(tmp_path: Path) -> None:
     dome = float(np.linalg.norm(truth, axis=1).mean())
     error = np.linalg.norm(positions - truth, axis=1) / dome
     assert error.mean() < 0.006 and error.max() < 0.0125, error  # target: within 1 % of the dome
+    relightlab = json.loads((near_run / "lights.dome").read_text())  # the LEDs for RelightLab
+    stored = [[p["x"], p["y"], p["z"]] for p in relightlab["positions3d"]]
+    np.testing.assert_allclose(stored, positions, atol=1e-6)
     # default options (the automatic shadow threshold): what a user gets
     threshold: list[str] = []
     _invoke(["reconstruct", str(near_run), *threshold, "--out", str(near_run / "near")])
@@ -225,6 +228,7 @@ def test_near_rig_end_to_end(tmp_path: Path) -> None:
     _invoke(["capture", "--rig", str(far_rig), "--out", str(far_run), "--quiet"])
     _invoke(["calibrate", str(far_run), "--sphere", "55,55,50"])
     assert not (far_run / "light_positions.txt").exists()
+    assert not (far_run / "lights.dome").exists()
     _invoke(["reconstruct", str(far_run), *threshold, "--out", str(far_run / "sbl")])
     e_near, e_dir = _mean_error(near_run / "near"), _mean_error(near_run / "dir")
     e_far = _mean_error(far_run / "sbl")

@@ -139,6 +139,15 @@ TolOption = Annotated[
         show_default=False,
     ),
 ]
+
+
+class NormalMap(str, Enum):  # noqa: UP042 - typer needs str-valued choices
+    """Normal-map conventions (``ps_lab.io.normal_maps``)."""
+
+    opengl = "opengl"
+    directx = "directx"
+
+
 DepthOption = Annotated[
     DepthMethod | None,
     typer.Option(
@@ -193,6 +202,13 @@ def reconstruct(
     tol: TolOption = None,
     depth: DepthOption = None,
     encoding: EncodingOption = Encoding.auto,
+    normal_map: Annotated[
+        NormalMap,
+        typer.Option(
+            case_sensitive=False,
+            help="normal16.png / normals.exr y axis: opengl (up) or directx (down).",
+        ),
+    ] = NormalMap.opengl,
 ) -> None:
     """Estimate surface normals and albedo; write normals.npy, normal.png, albedo, metrics.json."""
     out = out if out is not None else dataset / "recon" / method.value
@@ -212,6 +228,7 @@ def reconstruct(
         tol=tol,
         depth=None if depth is None else depth.value,
         encoding=encoding.value,
+        normal_map=normal_map.value,
     )
     try:
         result = reconstruct_to_folder(dataset, out, options, progress_bars=_terminal_bars)

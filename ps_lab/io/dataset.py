@@ -47,6 +47,7 @@ from ps_lab.io.images import (
     read_png_bytes,
 )
 from ps_lab.io.lights import (
+    find_lp,
     lp_directions_for,
     read_light_anisotropy,
     read_light_directions,
@@ -468,19 +469,19 @@ def open_dataset(
     directions_file = root / LIGHT_DIRECTIONS
     if directions_file.exists() or directions_file.is_symlink():
         check_is_file(directions_file, "light directions file")
-    lp_files = sorted(root.glob("*.lp")) if root.is_dir() else []
-    if root.is_dir() and not directions_file.is_file() and len(lp_files) != 1:
+    lp_file = find_lp(root) if root.is_dir() and not directions_file.is_file() else None
+    if root.is_dir() and not directions_file.is_file() and lp_file is None:
         if run:
             raise DatasetError(f"run {root} is not calibrated: run `ps-lab calibrate {root}` first")
         raise DatasetError(
-            f"{root}: no {LIGHT_DIRECTIONS} (one row 'x y z' per image) and no single .lp file"
+            f"{root}: no {LIGHT_DIRECTIONS} (one row 'x y z' per image) and no .lp light file"
         )
     plan = plan_frames(root, encoding)
     n = len(plan.light_files)
     if directions_file.is_file():
         light_directions = read_light_directions(directions_file, n)
     else:  # a RelightLab / RTIBuilder light file, matched to the images by file name
-        light_directions = lp_directions_for(lp_files[0], plan.names)
+        light_directions = lp_directions_for(lp_file, [files[0] for files in plan.light_files])
     intensities_file = root / LIGHT_INTENSITIES
     if intensities_file.exists() or intensities_file.is_symlink():
         light_intensities = read_light_intensities(intensities_file, n)

@@ -1,11 +1,12 @@
 """Which files are the frames of a dataset, before any pixel is read.
 
-An image folder lists one image per light (``filenames.txt``, else file names in natural order;
-never its outputs, mask or ground truth; ``dark.<ext>`` and ``ambient.<ext>`` are the frame with
-the rig's lights off, subtracted from every frame; ``ref.<ext>``, ``reference.<ext>`` and
-``outline.<ext>`` are room-light frames for the sphere outline, never lights; ``<name>.mask.png``
-is a mask, as ``mask.png`` is); a capture run lists its frames in ``manifest.json``
-(:mod:`ps_lab.io.run`). docs/datasets.md lists what counts as a frame. :func:`plan_frames` returns a
+An image folder lists one image per light (``filenames.txt``, else the images its ``.lp`` file
+names when it has no ``light_directions.txt``, else file names in natural order; never its
+outputs, mask or ground truth; ``dark.<ext>`` and ``ambient.<ext>`` are the frame with the rig's
+lights off, subtracted from every frame; ``ref.<ext>``, ``reference.<ext>`` and ``outline.<ext>``
+are room-light frames for the sphere outline, never lights; ``<name>.mask.png`` is a mask, as
+``mask.png`` is); a capture run lists its frames in ``manifest.json`` (:mod:`ps_lab.io.run`).
+docs/datasets.md lists what counts as a frame. :func:`plan_frames` returns a
 :class:`FramePlan` for either; :mod:`ps_lab.io.dataset` reads the pixels.
 
 Two folders that are not datasets are told apart before any file is taken for a frame
@@ -26,11 +27,13 @@ from ps_lab.errors import DatasetError
 from ps_lab.io.files import sha256
 from ps_lab.io.images import ENCODINGS, SUPPORTED_SUFFIXES, check_is_file, is_supported
 from ps_lab.io.result import is_result_folder, read_result_metrics
+from ps_lab.io.lights import find_lp, lp_image_files, read_lp
 from ps_lab.io.run import MANIFEST_NAME, is_run, read_manifest
 
 log = logging.getLogger("ps_lab.io.dataset")
 
 FILENAMES = "filenames.txt"
+_LIGHT_DIRECTIONS = "light_directions.txt"
 
 # Files in an image folder that are never light frames (outputs, calibration pictures, truth).
 _NOT_FRAMES = {
@@ -38,6 +41,8 @@ _NOT_FRAMES = {
     "normal.png",
     "normal16.png",
     "normals.npy",
+    "normals.exr",
+    "normal16.png",
     "albedo.png",
     "albedo.npy",
     "corruption.png",
@@ -293,6 +298,13 @@ def _plan_image_folder(root: Path) -> FramePlan:
                     "ground truth, dark, ambient or reference frame)"
                 )
             files.append(file)
+    elif not (root / _LIGHT_DIRECTIONS).exists() and (lp := find_lp(root)) is not None:
+        # The images of an .lp file, in its order, wherever it says they are (RelightLab).
+        files = lp_image_files(lp, read_lp(lp)[0], is_supported)
+        for file in files:
+            check_is_file(file, "image file")
+            if not is_supported(file):
+                raise DatasetError(f"{file}: unsupported image type {file.suffix!r}")
     else:
         files = sorted(
             (p for p in root.iterdir() if _is_light_frame(p)), key=lambda p: _natural_key(p.name)

@@ -7,6 +7,7 @@ Every reader returns an :class:`Image`: linear values as float32 ``(H, W, C)`` w
   saturated where any channel equals the type maximum.
 - 32-bit float TIFF, PFM and float ``.npy``: values as stored; never saturated. Non-finite values
   are set to 0 and marked saturated, so the solvers drop them.
+- OpenEXR (``.exr``, half or float channels): values as stored (:func:`read_exr`).
 - camera RAW (``.dng .cr2 .cr3 .nef .arw``): :func:`ps_lab.io.raw.load_raw` — linear,
   (raw − black) / (white − black), 2×2 binned; saturated where the raw value reached the white
   level.
@@ -31,6 +32,7 @@ from pathlib import Path
 
 import cv2
 import numpy as np
+import OpenEXR
 import tifffile
 
 from ps_lab.errors import DatasetError, PsLabError
@@ -43,7 +45,7 @@ __all__ = ["ENCODINGS", "JPEG_SUFFIXES", "Image", "read_image", "read_image_size
 cv2.utils.logging.setLogLevel(cv2.utils.logging.LOG_LEVEL_SILENT)
 
 RAW_SUFFIXES = (".dng", ".cr2", ".cr3", ".nef", ".arw")
-IMAGE_SUFFIXES = (".png", ".tif", ".tiff", ".pfm", ".npy", *JPEG_SUFFIXES)
+IMAGE_SUFFIXES = (".png", ".tif", ".tiff", ".pfm", ".npy", ".exr", *JPEG_SUFFIXES)
 SUPPORTED_SUFFIXES = IMAGE_SUFFIXES + RAW_SUFFIXES
 
 _PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
@@ -91,7 +93,7 @@ def read_image(path: Path, encoding: str = "auto") -> Image:
     Parameters
     ----------
     path : Path
-        A PNG, TIFF, JPEG, PFM, ``.npy`` or camera RAW file.
+        A PNG, TIFF, JPEG, PFM, ``.npy``, OpenEXR or camera RAW file.
     encoding : {"auto", "linear", "srgb"}
         How integer pixel values map to light (:func:`image_encoding`); float and RAW files
         are always linear.
@@ -122,6 +124,8 @@ def read_image(path: Path, encoding: str = "auto") -> Image:
         array = read_pfm(path)
     elif suffix == ".npy":
         array = _read_npy(path)
+    elif suffix == ".exr":
+        array = read_exr(path)
     else:
         raise DatasetError(
             f"{path}: unsupported image type {suffix!r} (supported: {' '.join(SUPPORTED_SUFFIXES)})"
@@ -524,6 +528,39 @@ def _read_npy(path: Path) -> np.ndarray:
         return np.load(path, allow_pickle=False)
     except (OSError, ValueError, EOFError) as exc:
         raise DatasetError(f"{path}: corrupt or unreadable .npy file ({exc})") from None
+
+
+def read_exr(path: Path) -> np.ndarray:
+    """Read an OpenEXR image (its first part) as float32 (H, W) or (H, W, 3).
+
+    Channels: ``R G B`` (an ``A`` dropped), else ``Y`` (luminance), else a single channel of any
+    name; half and float samples are returned as float32, linear as stored.
+
+    Raises
+    ------
+    DatasetError
+        Not an OpenEXR file, or no channel layout above (the message names the file).
+    """
+    try:
+        with OpenEXR.File(str(path)) as exr:
+            low, high = exr.header()["dataWindow"]
+            width, height = int(high[0] - low[0] + 1), int(high[1] - low[1] + 1)
+            check_decode_memory(path, height, width, len(exr.channels()))
+            channels = {name: np.asarray(c.pixels) for name, c in exr.channels().items()}
+    except PsLabError:
+        raise
+    except Exception as exc:  # noqa: BLE001 - the OpenEXR bindings raise several types
+        raise DatasetError(f"{path}: corrupt or unreadable OpenEXR file ({exc})") from None
+    for name in ("RGB", "RGBA"):
+        if name in channels:
+            return channels[name][..., :3].astype(np.float32)
+    if all(c in channels for c in "RGB"):
+        return np.stack([channels[c] for c in "RGB"], axis=-1).astype(np.float32)
+    if "Y" in channels or len(channels) == 1:
+        return np.asarray(channels.get("Y", next(iter(channels.values()))), np.float32)
+    raise DatasetError(
+        f"{path}: OpenEXR channels {', '.join(sorted(channels))}: expected R, G, B or Y"
+    )
 
 
 def _read_raw(path: Path) -> Image:

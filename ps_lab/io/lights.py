@@ -8,7 +8,10 @@ DiLiGenT text format read by every command and written by calibration and light 
 
 from __future__ import annotations
 
+import json
 import logging
+import re
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -193,46 +196,93 @@ def _read_table(path: Path, widths: tuple[int, ...], *, allow_nan: bool = False)
     return np.asarray(rows, dtype=np.float64)
 
 
+def find_lp(folder: Path) -> Path | None:
+    """The one ``.lp`` light file of ``folder`` (suffix in any case: ``dirs.LP``), or None.
+
+    Raises
+    ------
+    DatasetError
+        The folder holds two or more (they are named: which one is meant cannot be guessed).
+    """
+    found = sorted(p for p in Path(folder).iterdir() if p.suffix.lower() == ".lp" and p.is_file())
+    if len(found) > 1:
+        raise DatasetError(
+            f"{folder}: {len(found)} .lp light files ({', '.join(p.name for p in found)}): "
+            "keep one, or write light_directions.txt"
+        )
+    return found[0] if found else None
+
+
 def read_lp(path: Path) -> tuple[list[str], np.ndarray]:
-    """Read a RelightLab / RTIBuilder ``.lp`` light file.
+    """Read a RelightLab / RTIBuilder / AliceVision ``.lp`` light file.
 
     The first line is the number of images, then one line ``filename x y z`` per image (the
-    direction toward the light, in the same frame as ``light_directions.txt``).
+    direction toward the light, in the same frame as ``light_directions.txt``). Read as those
+    tools read it: a UTF-8 byte-order mark is skipped, ``#`` lines are comments, the file name may
+    contain spaces and a folder (``jpg/Name_0001.jpg``, relative to the ``.lp``), and lines after
+    the counted ones are ignored (with a logged warning).
 
     Returns
     -------
     names : list of str
-        The image file names as written (a path; compare by base name).
+        The image file names as written (a path; see :func:`lp_image_files`).
     directions : ndarray of shape (n, 3), float64, unit rows
+
+    Raises
+    ------
+    DatasetError
+        Fewer rows than the count, a malformed row, a zero-length direction, or lights that
+        cannot determine a normal (fewer than 3, collinear or coplanar); the message names the
+        ``.lp`` file.
     """
     try:
-        lines = [line.strip() for line in path.read_text(encoding="utf-8").splitlines()]
+        text = path.read_text(encoding="utf-8-sig")
     except FileNotFoundError:
         raise DatasetError(f"{path}: file not found") from None
     except (OSError, UnicodeDecodeError) as exc:
         raise DatasetError(f"{path}: cannot read file ({exc})") from None
-    lines = [line for line in lines if line and not line.startswith("#")]
+    lines = [
+        (number, line.strip())
+        for number, line in enumerate(text.splitlines(), start=1)
+        if line.strip() and not line.strip().startswith("#")
+    ]
     try:
-        count = int(lines[0].split()[0])
+        count = int(lines[0][1].split()[0])
     except (IndexError, ValueError):
         raise DatasetError(f"{path}: first line must be the number of images") from None
-    if len(lines) - 1 != count:
-        raise DatasetError(f"{path}: says {count} images but lists {len(lines) - 1}")
+    if count < 1:
+        raise DatasetError(f"{path}: says {count} images")
+    rows_given = len(lines) - 1
+    if rows_given < count:
+        raise DatasetError(f"{path}: says {count} images but lists {rows_given}")
+    if rows_given > count:
+        log.warning(
+            "%s: %d line(s) after the %d counted images ignored (from line %d)",
+            path,
+            rows_given - count,
+            count,
+            lines[count + 1][0],
+        )
     names: list[str] = []
     rows = np.empty((count, 3))
-    for number, line in enumerate(lines[1:], start=2):
+    for k, (number, line) in enumerate(lines[1 : count + 1]):
         fields = line.rsplit(maxsplit=3)
         try:
-            rows[number - 2] = [float(v) for v in fields[1:]]
+            rows[k] = [float(v) for v in fields[1:]]
         except (ValueError, IndexError):
             raise DatasetError(f"{path}: line {number}: expected 'filename x y z'") from None
-        if len(fields) != 4 or not np.all(np.isfinite(rows[number - 2])):
+        if len(fields) != 4 or not np.all(np.isfinite(rows[k])):
             raise DatasetError(f"{path}: line {number}: expected 'filename x y z'")
         names.append(fields[0])
     norms = np.linalg.norm(rows, axis=1)
     if np.any(norms < 1e-12):
-        raise DatasetError(f"{path}: a light direction has zero length")
-    return names, rows / norms[:, None]
+        first = int(np.flatnonzero(norms < 1e-12)[0])
+        raise DatasetError(f"{path}: line {lines[first + 1][0]}: light direction has zero length")
+    unit = rows / norms[:, None]
+    problem = light_geometry_problem(unit)
+    if problem is not None:
+        raise DatasetError(f"{path}: {problem}")
+    return names, unit
 
 
 def write_lp(path: Path, names: list[str], directions: np.ndarray) -> None:
@@ -245,14 +295,149 @@ def write_lp(path: Path, names: list[str], directions: np.ndarray) -> None:
     path.write_text("\n".join(lines) + "\n", encoding="utf-8")
 
 
-def lp_directions_for(path: Path, image_names: list[str]) -> np.ndarray:
-    """Directions of an ``.lp`` file in the order of ``image_names`` (matched by base name)."""
+def lp_image_files(path: Path, names: list[str], supported: Callable[[Path], bool]) -> list[Path]:
+    """The image file of each ``.lp`` entry, found as RelightLab and AliceVision find them.
+
+    Each name is taken relative to the ``.lp`` file's folder (backslashes read as slashes).
+    When that file does not exist, that folder and then the ``.lp``'s own are searched for the
+    name in any letter case, then for the same stem with any extension ``supported`` accepts (an
+    ``.lp`` written for ``image01.jpg`` finds ``image01.png`` or ``IMAGE01.TIF``); a Windows or
+    absolute path is looked up by its file name beside the ``.lp``.
+
+    Raises
+    ------
+    DatasetError
+        Images not found (one line: how many, and the first few names), or two entries that find
+        the same file.
+    """
+    base = Path(path).parent
+    listings: dict[Path, list[Path]] = {}
+    files: list[Path] = []
+    missing: list[str] = []
+    for name in names:
+        written = name.replace("\\", "/")
+        relative = Path(written)
+        # A Windows or absolute path (C:/rti/a.png) is looked up by its name beside the .lp.
+        portable = not (relative.is_absolute() or re.match(r"^[A-Za-z]:/", written))
+        if portable and (base / relative).is_file():
+            files.append(base / relative)
+            continue
+        folders = [base / relative.parent] if portable and relative.parent != Path(".") else []
+        found = None
+        for folder in [*folders, base]:
+            if folder not in listings:
+                listings[folder] = sorted(folder.iterdir()) if folder.is_dir() else []
+            entries = listings[folder]
+            same_name = [p for p in entries if p.name.lower() == relative.name.lower()]
+            same_stem = [
+                p for p in entries if p.stem.lower() == relative.stem.lower() and supported(p)
+            ]
+            if same_name or same_stem:
+                found = (same_name or same_stem)[0]
+                break
+        if found is None:
+            missing.append(name)
+        else:
+            files.append(found)
+    if missing:
+        raise DatasetError(
+            f"{path}: lists {len(names)} images but {len(missing)} are not in {base} "
+            f"({', '.join(missing[:3])}{', ...' if len(missing) > 3 else ''})"
+        )
+    seen: dict[Path, str] = {}
+    for name, file in zip(names, files, strict=True):
+        if file in seen:
+            raise DatasetError(f"{path}: {seen[file]} and {name} are both {file.name}")
+        seen[file] = name
+    return files
+
+
+def lp_directions_for(path: Path, image_files: list[Path]) -> np.ndarray:
+    """Directions of an ``.lp`` file in the order of ``image_files``, matched by file stem.
+
+    Names are compared without folder, extension or letter case (as :func:`lp_image_files`
+    finds files), so ``jpg/Image01.JPG`` in the ``.lp`` is the light of ``image01.png``.
+
+    Raises
+    ------
+    DatasetError
+        An ``.lp`` file that lists more lights than the dataset has images, or an image with no
+        entry in it.
+    """
     names, directions = read_lp(path)
-    by_name = {Path(name.replace("\\", "/")).name: i for i, name in enumerate(names)}
+    if len(names) > len(image_files):
+        raise DatasetError(
+            f"{path}: lists {len(names)} lights but the dataset has {len(image_files)} images"
+        )
+    by_stem: dict[str, int] = {}
+    for i, name in enumerate(names):
+        by_stem.setdefault(_lp_stem(name), i)
     order = []
-    for image in image_names:
-        key = Path(image).name
-        if key not in by_name:
-            raise DatasetError(f"{path}: no light for image {key}")
-        order.append(by_name[key])
+    for image in image_files:
+        index = by_stem.get(Path(image).stem.lower())
+        if index is None:
+            raise DatasetError(f"{path}: no light for image {Path(image).name}")
+        order.append(index)
     return directions[order]
+
+
+def _lp_stem(name: str) -> str:
+    return Path(name.replace("\\", "/")).stem.lower()
+
+
+def write_dome(
+    path: Path,
+    positions: np.ndarray,
+    directions: np.ndarray,
+    image_width: int,
+    label: str = "ps-lab",
+) -> None:
+    """Write LED positions as a RelightLab dome file (``.dome``, JSON, ``lights3d``).
+
+    RelightLab's dome format (relightlab/docs/formats/dome.md and its ``Dome::fromJson``):
+    ``imageWidth``, ``domeDiameter``, ``verticalOffset``, ``lightConfiguration`` and per light
+    ``{"x", "y", "z"}`` objects in ``directions``, ``positionsSphere`` and ``positions3d``; origin
+    at the image centre, x right, y toward the top of the image, z up toward the camera (ps-lab's
+    scene frame, :mod:`ps_lab.geometry`). Only lengths relative to ``imageWidth`` matter to
+    RelightLab, so positions stay in pixel units and ``imageWidth`` is the width in pixels.
+
+    Parameters
+    ----------
+    path : Path
+        The ``.dome`` file.
+    positions : ndarray of shape (n, 3)
+        LED positions in pixels; a NaN row (a light too far to place) is put on the dome along
+        its direction.
+    directions : ndarray of shape (n, 3)
+        Unit directions toward each light (used for the NaN rows and written as ``directions``).
+    image_width : int
+        Image width in pixels.
+    label : str
+        The dome's name.
+    """
+    positions = np.asarray(positions, np.float64)
+    directions = np.asarray(directions, np.float64)
+    placed = np.isfinite(positions).all(axis=1)
+    radius = float(np.median(np.linalg.norm(positions[placed], axis=1))) if placed.any() else 1.0
+    full = np.where(placed[:, None], positions, directions * radius)
+    toward = full / np.linalg.norm(full, axis=1, keepdims=True)
+    sphere = toward * radius
+
+    def points(rows: np.ndarray) -> list[dict[str, float]]:
+        return [{"x": float(x), "y": float(y), "z": float(z)} for x, y, z in rows]
+
+    dome = {
+        "label": label,
+        "notes": "written by ps-lab calibrate from two chrome spheres; lengths in image pixels "
+        "(imageWidth is the image width in pixels); origin at the image centre in the spheres' "
+        f"plane; {int((~placed).sum())} light(s) too far to place put on the dome",
+        "imageWidth": float(image_width),
+        "domeDiameter": 2.0 * radius,
+        "verticalOffset": 0.0,
+        "lightConfiguration": "lights3d",
+        "directions": points(toward),
+        "positionsSphere": points(sphere),
+        "positions3d": points(full),
+        "ledAdjust": [],
+    }
+    path.write_text(json.dumps(dome, indent=1) + "\n", encoding="utf-8")

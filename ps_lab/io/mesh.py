@@ -1,7 +1,8 @@
 """Triangle meshes from depth maps, written as binary PLY (plyfile).
 
 Vertices are the pixels with a depth, in the camera frame x right, y up, z toward the camera
-(``z = -depth``), with the albedo as vertex colour; each 2 x 2 block of pixels gives two triangles,
+(``z = -depth``), with the albedo as vertex colour and, from ps-lab's writers, the photometric
+normals as vertex normals; each 2 x 2 block of pixels gives two triangles,
 counter-clockwise seen from the camera, unless one of their sides crosses a depth discontinuity.
 """
 
@@ -100,20 +101,46 @@ def depth_mesh(
     return vertices, vertex_colours, triangles
 
 
-def write_ply(path: Path, vertices: np.ndarray, colours: np.ndarray, triangles: np.ndarray) -> None:
-    """Write a binary little-endian PLY with coloured vertices and triangles."""
-    vertex = np.empty(
-        len(vertices),
-        dtype=[
-            ("x", "f4"), ("y", "f4"), ("z", "f4"), ("red", "u1"), ("green", "u1"), ("blue", "u1")
-        ],
-    )
+def write_ply(
+    path: Path,
+    vertices: np.ndarray,
+    colours: np.ndarray,
+    triangles: np.ndarray,
+    normals: np.ndarray | None = None,
+    comments: tuple[str, ...] = (),
+) -> None:
+    """Write a binary little-endian PLY with coloured vertices (and their normals) and triangles.
+
+    Parameters
+    ----------
+    path : Path
+        The ``.ply`` file.
+    vertices : ndarray of shape (V, 3)
+        Positions.
+    colours : ndarray of shape (V, 3), uint8
+        Vertex colours.
+    triangles : ndarray of shape (T, 3), int
+        Vertex indices, counter-clockwise seen from the front.
+    normals : ndarray of shape (V, 3), optional
+        Unit vertex normals, written as ``nx ny nz`` (the names MeshLab, Blender and Open3D read).
+    comments : tuple of str
+        Header ``comment`` lines (units, axes).
+    """
+    fields = [("x", "f4"), ("y", "f4"), ("z", "f4")]
+    if normals is not None:
+        fields += [("nx", "f4"), ("ny", "f4"), ("nz", "f4")]
+    fields += [("red", "u1"), ("green", "u1"), ("blue", "u1")]
+    vertex = np.empty(len(vertices), dtype=fields)
     vertex["x"], vertex["y"], vertex["z"] = np.asarray(vertices, np.float32).T
+    if normals is not None:
+        vertex["nx"], vertex["ny"], vertex["nz"] = np.asarray(normals, np.float32).T
     vertex["red"], vertex["green"], vertex["blue"] = np.asarray(colours, np.uint8).T
     face = np.empty(len(triangles), dtype=[("vertex_indices", "i4", (3,))])
     face["vertex_indices"] = triangles
     ply = PlyData(
-        [PlyElement.describe(vertex, "vertex"), PlyElement.describe(face, "face")], text=False
+        [PlyElement.describe(vertex, "vertex"), PlyElement.describe(face, "face")],
+        text=False,
+        comments=list(comments),
     )
     try:
         ply.write(str(path))

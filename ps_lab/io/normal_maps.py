@@ -1,7 +1,8 @@
 """Normal maps other tools read: 16-bit PNG and float32 OpenEXR.
 
 Both hold the normals in the camera frame x right, y up, z toward the camera (the convention of
-OpenGL normal maps): ``normal16.png`` as RGB = (n + 1) / 2 scaled to 0..65535 (the same mapping as
+OpenGL normal maps; ``convention="directx"`` stores y down instead, as DirectX, Unreal and 3ds Max
+expect): ``normal16.png`` as RGB = (n + 1) / 2 scaled to 0..65535 (the same mapping as
 the 8-bit ``normal.png``), ``normals.exr`` as float32 channels R, G, B = x, y, z (zeros where there
 is no normal).
 """
@@ -16,37 +17,68 @@ import OpenEXR
 
 from ps_lab.errors import OutputError
 
-__all__ = ["normal16_picture", "read_normals_exr", "write_normal16", "write_normals_exr"]
+__all__ = [
+    "CONVENTIONS",
+    "normal16_picture",
+    "read_normals_exr",
+    "to_convention",
+    "write_normal16",
+    "write_normals_exr",
+]
+
+#: Normal-map conventions: the axis of green (y) points up (OpenGL) or down (DirectX).
+CONVENTIONS = ("opengl", "directx")
 
 
-def normal16_picture(normals: np.ndarray, mask: np.ndarray) -> np.ndarray:
+def to_convention(normals: np.ndarray, convention: str = "opengl") -> np.ndarray:
+    """Camera-frame normals (y up) in a normal-map convention: ``directx`` negates y."""
+    if convention not in CONVENTIONS:
+        raise ValueError(f"normal-map convention must be one of {CONVENTIONS}, got {convention!r}")
+    if convention == "opengl":
+        return np.asarray(normals)
+    return np.asarray(normals) * np.array([1.0, -1.0, 1.0], dtype=np.asarray(normals).dtype)
+
+
+def normal16_picture(
+    normals: np.ndarray, mask: np.ndarray, convention: str = "opengl"
+) -> np.ndarray:
     """Colour-code normals as 16-bit RGB = (n + 1) / 2 · 65535, black outside the mask.
 
     Parameters
     ----------
     normals : ndarray of shape (H, W, 3)
+        Camera frame (y up).
     mask : ndarray of shape (H, W), bool
+    convention : {"opengl", "directx"}
+        See :func:`to_convention`.
 
     Returns
     -------
     ndarray of shape (H, W, 3), uint16, RGB
     """
+    normals = to_convention(normals, convention)
     picture = np.clip(np.rint((np.asarray(normals) + 1.0) * 0.5 * 65535.0), 0, 65535)
     picture = picture.astype(np.uint16)
     picture[~np.asarray(mask, bool)] = 0
     return picture
 
 
-def write_normal16(path: Path, normals: np.ndarray, mask: np.ndarray) -> None:
+def write_normal16(
+    path: Path, normals: np.ndarray, mask: np.ndarray, convention: str = "opengl"
+) -> None:
     """Write ``normal16.png`` (see :func:`normal16_picture`)."""
-    picture = normal16_picture(normals, mask)
+    picture = normal16_picture(normals, mask, convention)
     if not cv2.imwrite(str(path), np.ascontiguousarray(picture[..., ::-1])):
         raise OutputError(f"{path}: OpenCV could not write the PNG")
 
 
-def write_normals_exr(path: Path, normals: np.ndarray) -> None:
-    """Write float32 normals (H, W, 3) as an OpenEXR file with channels R, G, B = x, y, z."""
-    pixels = np.ascontiguousarray(np.nan_to_num(np.asarray(normals, np.float32)))
+def write_normals_exr(path: Path, normals: np.ndarray, convention: str = "opengl") -> None:
+    """Write float32 normals (H, W, 3) as an OpenEXR file with channels R, G, B = x, y, z.
+
+    With ``convention="directx"`` G holds -y (see :func:`to_convention`).
+    """
+    normals = to_convention(np.asarray(normals, np.float32), convention)
+    pixels = np.ascontiguousarray(np.nan_to_num(normals))
     header = {"type": OpenEXR.scanlineimage, "compression": OpenEXR.ZIP_COMPRESSION}
     try:
         with OpenEXR.File(header, {"RGB": pixels}) as exr:

@@ -1,0 +1,74 @@
+"""`ps-lab view`: relight and inspect results in the browser, or export them as a static folder."""
+
+from __future__ import annotations
+
+import os
+import sys
+import threading
+import webbrowser
+from pathlib import Path
+from typing import Annotated
+
+import typer
+
+from ps_lab._cli_util import EXIT_INTERRUPTED, fail, interrupted_line, lab_command
+from ps_lab.view import ViewSite, export_site, load_result, serve
+
+
+@lab_command
+def view(
+    results: Annotated[
+        list[Path],
+        typer.Argument(
+            help="One or more ps-lab reconstruct result folders (two or more: side by side).",
+            show_default=False,
+        ),
+    ],
+    port: Annotated[
+        int,
+        typer.Option(
+            min=0, max=65535, help="Port on 127.0.0.1 (default: a free one).", show_default=False
+        ),
+    ] = 0,
+    no_browser: Annotated[
+        bool, typer.Option("--no-browser", help="Print the address only; open no browser.")
+    ] = False,
+    export: Annotated[
+        Path | None,
+        typer.Option(
+            help="Write the viewer and its data into this folder (for any static web server) "
+            "instead of serving.",
+            show_default=False,
+        ),
+    ] = None,
+) -> None:
+    """Relight results under a virtual light, see their layers and mesh, compare them."""
+    site = ViewSite([load_result(result) for result in results])
+    if export is not None:
+        size = export_site(site, export)
+        typer.echo(f"viewer written to {export} ({size / 2**20:.1f} MiB); serve the folder, e.g.")
+        typer.echo(f"  python3 -m http.server -d {export} 8000   then open http://127.0.0.1:8000/")
+        return
+
+    def ready(address: str) -> None:
+        typer.echo(f"ps-lab view: {address}  (Ctrl-C stops)")
+        if no_browser:
+            return
+        if sys.platform.startswith("linux") and not (
+            os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY")
+        ):
+            # webbrowser would start a console browser (lynx, w3m) in this terminal.
+            typer.echo("no display here: open the address in a browser (an SSH tunnel works)")
+            return
+        # In a thread: some browsers' launchers wait until the browser exits.
+        threading.Thread(target=webbrowser.open, args=(address,), daemon=True).start()
+
+    try:
+        serve(site, port, on_ready=ready)
+    except KeyboardInterrupt as exc:
+        raise fail(f"{interrupted_line(exc)}; viewer stopped", EXIT_INTERRUPTED) from None
+
+
+def register(app: typer.Typer) -> None:
+    """Add ``view`` to the app."""
+    app.command()(view)

@@ -1,0 +1,126 @@
+// ps-lab view, part 1 of 2: what does not depend on the page's state. Half-float decoding, the
+// shaders (relight and layers on tiles; the mesh), compiling them, 4 x 4 matrices. Loaded before
+// viewer.js (classic scripts share one global scope).
+"use strict";
+
+// ---- half floats -------------------------------------------------------------------------------
+const HALF = new Float32Array(65536);
+for (let h = 0; h < 65536; h++) {
+  const s = h & 0x8000 ? -1 : 1, e = (h >> 10) & 0x1f, f = h & 0x3ff;
+  HALF[h] = e === 0 ? s * f * 2 ** -24 : e === 31 ? (f ? NaN : s * Infinity) : s * (1 + f / 1024) * 2 ** (e - 15);
+}
+
+// ---- shaders -----------------------------------------------------------------------------------
+const IMAGE_VS = `#version 300 es
+in vec2 a_corner;
+uniform vec4 u_rect;      // tile rectangle in level-0 image pixels: x, y, w, h
+uniform vec2 u_center;    // image pixel at the panel's origin
+uniform vec2 u_origin;    // that origin in panel pixels
+uniform vec2 u_panel;     // panel size in device pixels
+uniform float u_scale;    // device pixels per image pixel
+out vec2 v_uv;
+void main() {
+  vec2 p = u_rect.xy + a_corner * u_rect.zw;
+  vec2 q = u_origin + (p - u_center) * u_scale;
+  gl_Position = vec4(q.x / u_panel.x * 2.0 - 1.0, 1.0 - q.y / u_panel.y * 2.0, 0.0, 1.0);
+  v_uv = a_corner;
+}`;
+const IMAGE_FS = `#version 300 es
+precision highp float;
+uniform sampler2D u_a;
+uniform sampler2D u_b;
+uniform int u_mode;
+uniform vec3 u_light;
+uniform float u_exposure;
+uniform bool u_albedo;
+uniform float u_errmax;
+uniform vec3 u_bg;
+in vec2 v_uv;
+out vec4 o;
+vec3 srgb(vec3 c) {
+  c = clamp(c, 0.0, 1.0);
+  return mix(c * 12.92, 1.055 * pow(c, vec3(1.0 / 2.4)) - 0.055, step(0.0031308, c));
+}
+vec3 heat(float t) {       // black - red - yellow - white
+  t = clamp(t, 0.0, 1.0);
+  return clamp(vec3(3.0 * t, 3.0 * t - 1.0, 3.0 * t - 2.0), 0.0, 1.0);
+}
+void main() {
+  vec4 a = texture(u_a, v_uv);
+  vec4 b = texture(u_b, v_uv);
+  float len = length(a.xyz);
+  if (len < 0.5) { o = vec4(u_bg, 1.0); return; }
+  vec3 n = a.xyz / len;
+  vec3 c;
+  if (u_mode == 0) {
+    float shade = max(dot(n, u_light), 0.0) * (u_albedo ? a.w : 1.0);
+    c = srgb(vec3(shade * u_exposure));
+  } else if (u_mode == 1) {
+    c = (n + 1.0) * 0.5;
+  } else if (u_mode == 2) {
+    c = vec3(clamp(a.w, 0.0, 1.0));
+  } else if (u_mode == 3) {
+    c = heat(b.x);
+  } else if (u_mode == 4) {
+    c = b.y < 0.0 ? vec3(0.3, 0.3, 0.5) : heat(b.y / u_errmax);
+  } else {
+    c = b.z < 0.0 ? vec3(0.3, 0.3, 0.5) : vec3(b.z);
+  }
+  o = vec4(c, 1.0);
+}`;
+const MESH_VS = `#version 300 es
+in vec3 a_position;
+in vec3 a_normal;
+in vec4 a_colour;
+uniform mat4 u_mvp;
+out vec3 v_normal;
+out vec3 v_colour;
+void main() {
+  gl_Position = u_mvp * vec4(a_position, 1.0);
+  v_normal = a_normal;
+  v_colour = a_colour.rgb;
+}`;
+const MESH_FS = `#version 300 es
+precision highp float;
+uniform vec3 u_light;
+uniform bool u_albedo;
+uniform float u_exposure;
+in vec3 v_normal;
+in vec3 v_colour;
+out vec4 o;
+void main() {
+  vec3 n = normalize(v_normal);
+  float shade = 0.08 + 0.92 * max(dot(n, u_light), 0.0);
+  vec3 c = (u_albedo ? v_colour : vec3(0.8)) * shade * u_exposure;
+  o = vec4(pow(clamp(c, 0.0, 1.0), vec3(1.0 / 2.2)), 1.0);
+}`;
+
+function program(gl, vs, fs) {
+  const p = gl.createProgram();
+  for (const [kind, src] of [[gl.VERTEX_SHADER, vs], [gl.FRAGMENT_SHADER, fs]]) {
+    const s = gl.createShader(kind);
+    gl.shaderSource(s, src);
+    gl.compileShader(s);
+    if (!gl.getShaderParameter(s, gl.COMPILE_STATUS)) throw new Error(gl.getShaderInfoLog(s));
+    gl.attachShader(p, s);
+  }
+  gl.linkProgram(p);
+  if (!gl.getProgramParameter(p, gl.LINK_STATUS)) throw new Error(gl.getProgramInfoLog(p));
+  const u = {};
+  const count = gl.getProgramParameter(p, gl.ACTIVE_UNIFORMS);
+  for (let i = 0; i < count; i++) {
+    const name = gl.getActiveUniform(p, i).name;
+    u[name] = gl.getUniformLocation(p, name);
+  }
+  return { p, u };
+}
+
+function multiply(a, b) {
+  const o = new Float32Array(16);
+  for (let c = 0; c < 4; c++) for (let r = 0; r < 4; r++) {
+    let s = 0;
+    for (let k = 0; k < 4; k++) s += a[k * 4 + r] * b[c * 4 + k];
+    o[c * 4 + r] = s;
+  }
+  return o;
+}

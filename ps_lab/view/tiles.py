@@ -1,0 +1,174 @@
+"""The files the viewer page loads: a manifest, tiled image pyramids, mesh buffers.
+
+Each result's layers (:data:`ps_lab.view.result.CHANNELS`) become a pyramid: level 0 is the full
+image, level k+1 halves level k (2 x 2 blocks averaged over their mask pixels; normals
+renormalised), up to the first level that fits one tile. Every level is cut into tiles of
+:data:`TILE` x :data:`TILE` pixels, each stored as two RGBA half-float (IEEE binary16,
+little-endian) planes, ``(nx, ny, nz, albedo)`` then ``(outliers, error, relief, depth)``, which
+WebGL 2 uploads as ``RGBA16F`` textures without conversion. The page draws the one-tile top level
+first, then the tiles of the level that matches the zoom (so a 12 MP result is interactive at
+once and sharpens as its tiles arrive).
+
+Paths, relative to the page: ``data/manifest.json``, ``data/r{i}/{level}/{col}_{row}.bin``,
+``data/r{i}/mesh.bin`` (float32 positions, float32 normals, uint32 triangles, RGBA8 colours).
+"""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Iterator
+
+import numpy as np
+
+from ps_lab.view.result import CHANNELS, ViewResult
+
+__all__ = ["TILE", "Pyramid", "manifest", "mesh_bytes", "pyramid"]
+
+#: Tile side in pixels.
+TILE = 512
+
+#: Stored in place of a missing value in the error and relief channels (the shader tests < 0).
+MISSING = -1.0
+
+
+class Pyramid:
+    """The levels of one result, float16 (H_k, W_k, 8), with tile access."""
+
+    def __init__(self, levels: list[np.ndarray]) -> None:
+        self.levels = levels
+
+    def level_sizes(self) -> list[dict[str, int]]:
+        """Per level: ``width``, ``height``, ``cols``, ``rows`` (tiles)."""
+        sizes = []
+        for level in self.levels:
+            h, w = level.shape[:2]
+            sizes.append({"width": w, "height": h, "cols": -(-w // TILE), "rows": -(-h // TILE)})
+        return sizes
+
+    def tile(self, level: int, col: int, row: int) -> bytes | None:
+        """The bytes of one tile (two RGBA16F planes), or None when it does not exist."""
+        if not 0 <= level < len(self.levels):
+            return None
+        data = self.levels[level]
+        h, w = data.shape[:2]
+        if not (0 <= col and col * TILE < w and 0 <= row and row * TILE < h):
+            return None
+        block = data[row * TILE : (row + 1) * TILE, col * TILE : (col + 1) * TILE]
+        planes = np.concatenate([block[..., :4].ravel(), block[..., 4:].ravel()])
+        return planes.astype("<f2").tobytes()
+
+    def tiles(self) -> Iterator[tuple[int, int, int]]:
+        """Every ``(level, col, row)``."""
+        for level, size in enumerate(self.level_sizes()):
+            for row in range(size["rows"]):
+                for col in range(size["cols"]):
+                    yield level, col, row
+
+
+def pyramid(result: ViewResult) -> Pyramid:
+    """Build the tiled pyramid of a result's layers (see the module docstring)."""
+    layers = result.layers.astype(np.float32)
+    for channel in (CHANNELS.index("error_deg"), CHANNELS.index("relief")):
+        layers[..., channel] = np.where(
+            np.isfinite(layers[..., channel]), layers[..., channel], MISSING
+        )
+    levels = [_half(layers)]
+    current = layers
+    while max(current.shape[:2]) > TILE:
+        current = _halve(current)
+        levels.append(_half(current))
+    return Pyramid(levels)
+
+
+def _half(layers: np.ndarray) -> np.ndarray:
+    top = float(np.finfo(np.float16).max)
+    return np.clip(layers, -top, top).astype(np.float16)
+
+
+def _block_sum(x: np.ndarray) -> np.ndarray:
+    """Sums over the 2 x 2 blocks of an array with even height and width (first two axes)."""
+    return x[0::2, 0::2] + x[1::2, 0::2] + x[0::2, 1::2] + x[1::2, 1::2]
+
+
+def _halve(layers: np.ndarray) -> np.ndarray:
+    """One pyramid step: 2 x 2 blocks averaged over their mask pixels (valid values only)."""
+    h, w, c = layers.shape
+    if h % 2 or w % 2:
+        padded = np.zeros((h + h % 2, w + w % 2, c), np.float32)
+        padded[:h, :w] = layers
+        layers = padded
+    n = layers[..., :3]
+    inside = np.einsum("...k,...k->...", n, n) > 0.25
+    count = _block_sum(inside.astype(np.float32))
+    keep = count >= 2  # a block is inside when at least half its pixels are
+    out = np.empty((layers.shape[0] // 2, layers.shape[1] // 2, c), np.float32)
+    # Normals, albedo and outlier share are zero outside the mask: a plain sum over it.
+    out[..., :5] = _block_sum(layers[..., :5]) / np.maximum(count, 1)[..., None]
+    # Error and relief may be missing (MISSING), depth NaN: averaged over the valid ones.
+    for k in range(5, c):
+        values = layers[..., k]
+        valid = inside & (np.isfinite(values) if k == 7 else values != MISSING)
+        kept = _block_sum(valid.astype(np.float32))
+        summed = _block_sum(np.where(valid, values, np.float32(0)))
+        empty = MISSING if k < 7 else np.nan
+        out[..., k] = np.where(keep & (kept > 0), summed / np.maximum(kept, 1), empty)
+    normals = out[..., :3]
+    norms = np.sqrt(np.einsum("...k,...k->...", normals, normals))[..., None]
+    out[..., :3] = np.divide(normals, norms, out=np.zeros_like(normals), where=norms > 0)
+    out[~keep, :5] = 0.0
+    return out
+
+
+def mesh_bytes(result: ViewResult) -> bytes | None:
+    """The 3-D view's buffers: positions, normals (float32), triangles (uint32), RGBA8 colours."""
+    if result.mesh is None:
+        return None
+    vertices, normals, colours, triangles = result.mesh
+    rgba = np.full((len(colours), 4), 255, np.uint8)
+    rgba[:, :3] = colours
+    return b"".join(
+        [
+            np.ascontiguousarray(vertices, "<f4").tobytes(),
+            np.ascontiguousarray(normals, "<f4").tobytes(),
+            np.ascontiguousarray(triangles, "<u4").tobytes(),
+            rgba.tobytes(),
+        ]
+    )
+
+
+def manifest(results: list[ViewResult], pyramids: list[Pyramid]) -> bytes:
+    """``data/manifest.json``: per result its size, levels, layers, metrics and mesh counts."""
+    entries = []
+    for result, levels in zip(results, pyramids, strict=True):
+        h, w = result.shape
+        mesh = None
+        if result.mesh is not None:
+            vertices = result.mesh[0]
+            mesh = {
+                "vertices": int(len(vertices)),
+                "triangles": int(len(result.mesh[3])),
+                "min": [float(x) for x in vertices.min(axis=0)] if len(vertices) else [0, 0, 0],
+                "max": [float(x) for x in vertices.max(axis=0)] if len(vertices) else [0, 0, 0],
+            }
+        metrics = result.metrics
+        error = metrics.get("angular_error_deg") if isinstance(metrics, dict) else None
+        entries.append(
+            {
+                "name": result.name,
+                "width": w,
+                "height": h,
+                "tile": TILE,
+                "levels": levels.level_sizes(),
+                "albedo_scale": result.albedo_scale,
+                "has": result.has,
+                "method": metrics.get("method"),
+                "lights": metrics.get("lights"),
+                "pixels": metrics.get("pixels"),
+                "angular_error_deg": error,
+                "depth_unit": (metrics.get("depth") or {}).get("unit")
+                if isinstance(metrics.get("depth"), dict)
+                else None,
+                "mesh": mesh,
+            }
+        )
+    return json.dumps({"format": "ps-lab-view-1", "results": entries}, indent=1).encode()

@@ -1,0 +1,398 @@
+"""``ps-lab view``: the result's layers and tiles (numpy), then the page in headless Chromium.
+
+The browser tests start the real command (``ps-lab view --no-browser``), load its page in
+Chromium over the DevTools protocol (tests/helpers/browser.py), drag the light and compare
+screenshots with a numpy render of the same normals and albedo: the page shows
+``srgb(clip(albedo / albedo_scale * max(n . l, 0)))`` from half-float textures, so a pixel shown
+1:1 may differ from the float64 render by the half-float rounding of n and albedo
+(< 2^-11 relative, under 0.2 of an 8-bit level) plus the 8-bit rounding: at most 1 level; 2 are
+allowed. They skip with a message when no Chromium is installed (`.ci/run` installs Debian's).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import re
+import signal
+import socket
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+from typer.testing import CliRunner
+
+from ps_lab.cli import app
+from ps_lab.view import ViewSite, export_site, load_result
+from ps_lab.view.result import CHANNELS, decimate_mesh, vertex_normals
+from ps_lab.view.tiles import TILE, pyramid
+from tests.helpers.browser import Browser, find_chromium
+
+runner = CliRunner()
+DILIGENT = Path(__file__).resolve().parents[2] / "shared" / "data" / "diligent-8bit"
+
+
+@pytest.fixture(scope="module")
+def sim_result(tmp_path_factory) -> Path:
+    """A simulated relief (96 px, 24 lights) reconstructed with depth and mesh."""
+    root = tmp_path_factory.mktemp("view")
+    data, out = root / "relief", root / "relief-sbl"
+    result = runner.invoke(
+        app, ["simulate", str(data), "--scene", "relief", "--size", "96", "--lights", "24"]
+    )
+    assert result.exit_code == 0, result.output
+    result = runner.invoke(
+        app, ["reconstruct", str(data), "--method", "ls", "--depth", "poisson", "--out", str(out)]
+    )
+    assert result.exit_code == 0, result.output
+    return out
+
+
+@pytest.fixture(scope="module")
+def diligent_result(tmp_path_factory) -> Path:
+    """DiLiGenT cat (320 x 296, 96 lights), least squares, when the shared data is present."""
+    data = DILIGENT / "cat"
+    if not (data / "light_directions.txt").exists():
+        pytest.skip(f"DiLiGenT data not found at {DILIGENT}")
+    out = tmp_path_factory.mktemp("view-diligent") / "cat-ls"
+    result = runner.invoke(app, ["reconstruct", str(data), "--method", "ls", "--out", str(out)])
+    assert result.exit_code == 0, result.output
+    return out
+
+
+# ---- layers and tiles --------------------------------------------------------------------------
+
+
+def test_layers_hold_the_result_files(sim_result):
+    view = load_result(sim_result)
+    normals = np.load(sim_result / "normals.npy")
+    albedo = np.load(sim_result / "albedo.npy")
+    mask = np.linalg.norm(normals, axis=2) > 0.5
+    assert view.layers.shape == (*normals.shape[:2], len(CHANNELS))
+    np.testing.assert_array_equal(view.layers[..., :3], normals)
+    np.testing.assert_allclose(view.layers[..., 3][mask] * view.albedo_scale, albedo[mask], 1e-6)
+    assert view.has == {"outliers": True, "error": True, "depth": True, "mesh": True}
+    # The error layer reproduces metrics.json's mean from the ground truth. metrics.json comes
+    # from the solver's float64 normals, the layer from the float32 file: arccos near 0 turns
+    # their 6e-8 rounding into up to ~0.02 deg at the smallest errors, 1e-3 of this mean.
+    error = view.layers[..., CHANNELS.index("error_deg")]
+    metrics = json.loads((sim_result / "metrics.json").read_text())
+    assert np.nanmean(error) == pytest.approx(metrics["angular_error_deg"]["mean"], rel=1e-3)
+    vertices, vertex_n, colours, triangles = view.mesh
+    assert len(triangles) == metrics["depth"]["mesh"]["triangles"]
+    # Unit vertex normals that face the camera on a relief seen from the front.
+    np.testing.assert_allclose(np.linalg.norm(vertex_n, axis=1), 1.0, atol=1e-5)
+    assert np.mean(vertex_n[:, 2] > 0) > 0.99
+
+
+def test_pyramid_levels_average_and_tiles_round_trip():
+    # A 1100 x 700 plane of constant normal, albedo ramp: every level keeps the normal, and a tile
+    # decoded from its bytes is the level's float16 values.
+    from ps_lab.view.result import ViewResult
+
+    h, w = 700, 1100
+    n = np.array([0.3, -0.2, 0.9327379])
+    layers = np.zeros((h, w, 8), np.float32)
+    layers[..., :3] = n
+    layers[..., 3] = np.linspace(0, 1, w)[None, :]
+    layers[..., 5:8] = np.nan
+    levels = pyramid(ViewResult(Path("."), "plane", layers, 1.0, {}))
+    sizes = levels.level_sizes()
+    assert [(s["width"], s["height"]) for s in sizes] == [(1100, 700), (550, 350), (275, 175)]
+    assert sizes[0]["cols"] == 3 and sizes[0]["rows"] == 2 and sizes[2]["cols"] == 1
+    ramp = layers[0, :, 3].astype(np.float64)
+    np.testing.assert_allclose(levels.levels[1][0, :, 3], (ramp[0::2] + ramp[1::2]) / 2, atol=1e-3)
+    for level in levels.levels:
+        plane = np.broadcast_to(n, (*level.shape[:2], 3))
+        np.testing.assert_allclose(level[..., :3].astype(float), plane, atol=1e-3)
+    data = np.frombuffer(levels.tile(0, 2, 1), "<f2")
+    tile_h, tile_w = h - TILE, w - 2 * TILE
+    planes = data.reshape(2, tile_h, tile_w, 4)
+    np.testing.assert_array_equal(planes[0], levels.levels[0][TILE:, 2 * TILE :, :4])
+    assert np.all(planes[1][..., 1] == -1)  # no ground truth: the error channel says "missing"
+    assert levels.tile(0, 3, 0) is None and levels.tile(3, 0, 0) is None
+
+
+def test_vertex_normals_of_a_tilted_plane_and_decimation():
+    ys, xs = np.mgrid[0:60, 0:60].astype(np.float64)
+    z = 0.5 * xs - 0.25 * ys
+    vertices = np.stack([xs.ravel(), -ys.ravel(), z.ravel()], axis=1)
+    index = np.arange(3600).reshape(60, 60)
+    a, b, c, d = index[:-1, :-1], index[1:, :-1], index[:-1, 1:], index[1:, 1:]
+    triangles = np.concatenate(
+        [np.stack([a, b, c], -1).reshape(-1, 3), np.stack([c, b, d], -1).reshape(-1, 3)]
+    )
+    expected = np.array([-0.5, -0.25, 1.0]) / np.linalg.norm([-0.5, -0.25, 1.0])
+    normals = vertex_normals(vertices, triangles)
+    np.testing.assert_allclose(normals, np.broadcast_to(expected, normals.shape), atol=1e-6)
+    colours = np.full((3600, 3), 100, np.uint8)
+    v2, c2, t2 = decimate_mesh(vertices, colours, triangles, 2000)
+    assert 500 < len(t2) <= 2000
+    kept = vertex_normals(v2, t2)[np.unique(t2)]
+    # Merged positions are float32 (about 4e-6 px at 60 px): 1e-5 on the normals of small faces.
+    np.testing.assert_allclose(kept, np.broadcast_to(expected, kept.shape), atol=1e-5)
+
+
+def test_export_writes_every_path_and_refuses_a_foreign_folder(sim_result, tmp_path):
+    site = ViewSite([load_result(sim_result)])
+    out = tmp_path / "site"
+    export_site(site, out)
+    written = sorted(str(p.relative_to(out)) for p in out.rglob("*") if p.is_file())
+    assert written == sorted(site.paths())
+    assert "data/r0/mesh.bin" in written
+    # Written again over itself: replaced; over a folder that is not an export: refused.
+    export_site(site, out)
+    foreign = tmp_path / "notes"
+    foreign.mkdir()
+    (foreign / "keep.txt").write_text("mine")
+    result = runner.invoke(app, ["view", str(sim_result), "--export", str(foreign)])
+    assert result.exit_code == 2
+    assert "not a ps-lab view export" in result.output
+    assert (foreign / "keep.txt").read_text() == "mine"
+
+
+def test_view_refuses_a_folder_that_is_not_a_result(tmp_path):
+    result = runner.invoke(app, ["view", str(tmp_path), "--no-browser"])
+    assert result.exit_code == 2
+    assert result.output.strip().splitlines() == [
+        f"error: {tmp_path}: not a ps-lab result (no normals.npy)"
+    ]
+
+
+# ---- in the browser ----------------------------------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def browser():
+    executable = find_chromium()
+    if executable is None:
+        pytest.skip("no Chromium installed (apt-get install chromium): browser tests skipped")
+    with Browser(executable, width=1100, height=700) as b:
+        yield b
+
+
+class ViewServer:
+    """``ps-lab view --no-browser`` in a child process; its address from the first line."""
+
+    def __init__(self, *results: Path) -> None:
+        env = dict(os.environ, PYTHONUNBUFFERED="1")
+        self.process = subprocess.Popen(
+            [sys.executable, "-m", "ps_lab", "view", *map(str, results), "--no-browser"],
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            text=True,
+            env=env,
+        )
+        line = self.process.stdout.readline()
+        match = re.search(r"http://127\.0\.0\.1:(\d+)/", line)
+        assert match, line + self.process.stderr.read()
+        self.url = match.group(0)
+
+    def stop(self) -> tuple[int, str]:
+        """Ctrl-C: the exit code and stderr."""
+        self.process.send_signal(signal.SIGINT)
+        _, err = self.process.communicate(timeout=10)
+        return self.process.returncode, err
+
+
+def expected_shading(result: Path, light, exposure: float = 1.0, use_albedo: bool = True):
+    """The page's relight formula in float64 on float16-rounded normals and albedo, 0..255."""
+    view = load_result(result)
+    normals = view.layers[..., :3].astype(np.float16).astype(np.float64)
+    albedo = view.layers[..., 3].astype(np.float16).astype(np.float64) if use_albedo else 1.0
+    norm = np.linalg.norm(normals, axis=2)
+    mask = norm > 0.5
+    unit = normals / np.where(mask, norm, 1.0)[..., None]
+    linear = np.clip(np.maximum(unit @ np.asarray(light), 0) * albedo * exposure, 0, 1)
+    srgb = np.where(linear <= 0.0031308, linear * 12.92, 1.055 * linear ** (1 / 2.4) - 0.055)
+    return srgb * 255.0, mask
+
+
+def shown_pixels(browser, panel: int, shape) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Screen (row, col) of every image pixel of panel ``panel`` at 1:1, and the screenshot."""
+    h, w = shape
+    x0, y0 = browser.evaluate(f"psView.imageToClient({panel}, 0, 0)")
+    picture = browser.screenshot()
+    rows = np.floor(y0 + np.arange(h)).astype(int)
+    cols = np.floor(x0 + np.arange(w)).astype(int)
+    return rows, cols, picture
+
+
+def interior(mask: np.ndarray) -> np.ndarray:
+    """The mask without the image's border rows and columns (half-pixel alignment there)."""
+    inner = mask.copy()
+    inner[[0, -1], :] = inner[:, [0, -1]] = False
+    return inner
+
+
+def assert_shown(browser, panel: int, expected: np.ndarray, mask: np.ndarray) -> None:
+    """Panel ``panel`` shown 1:1 equals ``expected`` (0..255 grey) within 2 levels in the mask."""
+    rows, cols, picture = shown_pixels(browser, panel, expected.shape)
+    shown = picture[rows][:, cols].astype(np.float64).mean(axis=2)
+    difference = np.abs(shown - expected)[interior(mask)]
+    assert difference.max() <= 2.0, (difference.mean(), difference.max())
+
+
+def settle(browser) -> None:
+    frames = browser.evaluate("psView.stats.frames")
+    browser.evaluate("psView.redraw()")
+    browser.wait_for(f"psView.idle() && psView.stats.frames > {frames}", timeout=20)
+
+
+def check_relight(browser, result: Path, panel: int = 0) -> dict:
+    """Drag the light on the disc twice; each screenshot matches n . l; return the numbers."""
+    view = load_result(result)
+    shape = view.shape
+    browser.evaluate(f"psView.pixelScale({panel}, 1)")
+    browser.evaluate("psView.setView({cx: 0.5, cy: 0.5})")
+    disc = browser.evaluate(
+        "(() => { const b = document.getElementById('light').getBoundingClientRect();"
+        " return [b.left + b.width / 2, b.top + b.height / 2, b.width / 2]; })()"
+    )
+    cx, cy, r = disc
+    numbers = {}
+    shots = []
+    for name, (u, v) in (("left", (-0.6, 0.3)), ("right", (0.5, -0.4))):
+        browser.drag((cx, cy), (cx + u * r, cy - v * r))
+        settle(browser)
+        light = browser.evaluate("psView.state.light")
+        # The disc maps (u, v) to (u, v, sqrt(1 - u^2 - v^2)) up to the pointer's pixel.
+        assert light[0] == pytest.approx(u, abs=0.03) and light[1] == pytest.approx(v, abs=0.03)
+        expected, mask = expected_shading(result, light)
+        rows, cols, picture = shown_pixels(browser, panel, shape)
+        shown = picture[rows][:, cols].astype(np.float64).mean(axis=2)
+        inner = mask.copy()
+        inner[[0, -1], :] = inner[:, [0, -1]] = False
+        difference = np.abs(shown - expected)[inner]
+        numbers[name] = {
+            "light": light,
+            "pixels": int(inner.sum()),
+            "mean_abs_levels": float(difference.mean()),
+            "max_abs_levels": float(difference.max()),
+        }
+        assert difference.max() <= 2.0, numbers[name]
+        shots.append((shown, expected, inner))
+    # The change between the two lights is the one n . l predicts.
+    (s1, e1, m), (s2, e2, _) = shots
+    change = np.corrcoef((s2 - s1)[m], (e2 - e1)[m])[0, 1]
+    numbers["change_correlation"] = float(change)
+    assert change > 0.999
+    return numbers
+
+
+def test_relight_in_chromium_matches_n_dot_l_and_3d_shows_the_mesh(browser, sim_result):
+    server = ViewServer(sim_result)
+    try:
+        browser.open(server.url)
+        assert browser.evaluate("psView.ready") is True
+        assert browser.evaluate("psView.stats.glError") == 0
+        assert browser.evaluate("!!document.createElement('canvas').getContext('webgl2')")
+        numbers = check_relight(browser, sim_result)
+        print("relight vs numpy:", json.dumps(numbers))
+        # Raking light: the disc sets the azimuth, the slider the elevation (10 degrees).
+        azimuth = np.arctan2(numbers["right"]["light"][1], numbers["right"]["light"][0])
+        browser.evaluate("document.getElementById('raking').click()")
+        settle(browser)
+        raking = browser.evaluate("psView.lightVector()")
+        assert np.degrees(np.arcsin(raking[2])) == pytest.approx(10.0, abs=1e-4)
+        assert np.arctan2(raking[1], raking[0]) == pytest.approx(azimuth, abs=1e-6)
+        assert browser.evaluate("psView.state.useAlbedo") is False
+        expected, mask = expected_shading(sim_result, raking, use_albedo=False)
+        assert_shown(browser, 0, expected, mask)
+        browser.evaluate("document.getElementById('raking').click()")
+        # The normal-map layer: RGB = (n + 1) / 2 of the unit half-float normals.
+        browser.evaluate("psView.setMode('layers'); psView.setLayer('normal')")
+        settle(browser)
+        normals16 = np.load(sim_result / "normals.npy").astype(np.float16).astype(np.float64)
+        norm = np.linalg.norm(normals16, axis=2, keepdims=True)
+        rgb = (normals16 / np.maximum(norm, 1e-9) + 1) * 0.5 * 255
+        rows, cols, picture = shown_pixels(browser, 0, mask.shape)
+        shown = picture[rows][:, cols].astype(np.float64)
+        assert np.abs(shown - rgb)[interior(mask)].max() <= 1.0
+        # Layers and the probe under the cursor.
+        browser.evaluate("psView.setMode('layers'); psView.setLayer('error')")
+        settle(browser)
+        x, y = browser.evaluate("psView.imageToClient(0, 48, 48)")
+        browser.mouse("mouseMoved", x, y)
+        probe = browser.evaluate("document.getElementById('probe').textContent")
+        normals = np.load(sim_result / "normals.npy")
+        assert "pixel   48, 48" in probe
+        assert f"{normals[48, 48, 0]:.3f}"[:-1] in probe and "error" in probe
+        # 3-D: every triangle drawn, and the mesh covers the panel's centre.
+        browser.evaluate("psView.setMode('mesh')")
+        browser.wait_for("psView.idle() && psView.stats.meshTriangles > 0", timeout=20)
+        triangles = json.loads((sim_result / "metrics.json").read_text())["depth"]["mesh"]
+        assert browser.evaluate("psView.stats.meshTriangles") == triangles["triangles"]
+        panel = browser.evaluate("psView.panels()[0]")
+        picture = browser.screenshot()
+        x0, y0 = int(panel["x"] + panel["w"] / 2), int(panel["y"] + panel["h"] / 2)
+        centre = picture[y0 - 50 : y0 + 50, x0 - 50 : x0 + 50].astype(int)
+        background = np.array([32, 33, 36])
+        assert np.mean(np.abs(centre - background).sum(axis=2) > 30) > 0.9
+        browser.evaluate("psView.setOrbit({yaw: 0.6, pitch: 0.3})")
+        settle(browser)
+        turned = browser.screenshot()[y0 - 50 : y0 + 50, x0 - 50 : x0 + 50].astype(int)
+        assert np.abs(turned - centre).mean() > 3  # the orbit moved the view
+    finally:
+        code, err = server.stop()
+    assert code == 130, err
+    assert err.strip().splitlines() == ["error: interrupted (Ctrl-C); viewer stopped"]
+
+
+def test_compare_a_diligent_result_beside_the_simulated_one(browser, sim_result, diligent_result):
+    server = ViewServer(diligent_result, sim_result)
+    try:
+        browser.open(server.url)
+        assert browser.evaluate("psView.ready") is True
+        results = browser.evaluate("psView.results()")
+        h, w = np.load(diligent_result / "normals.npy", mmap_mode="r").shape[:2]
+        assert [(r["width"], r["height"]) for r in results] == [(w, h), (96, 96)]
+        assert results[0]["has"]["error"] is True
+        panels = browser.evaluate("psView.panels()")
+        assert panels[0]["x"] + panels[0]["w"] <= panels[1]["x"]  # side by side
+        numbers = check_relight(browser, diligent_result, panel=0)
+        print("DiLiGenT cat relight vs numpy:", json.dumps(numbers))
+        # The light is shared: the second panel shows the same light's shading.
+        light = browser.evaluate("psView.state.light")
+        expected, mask = expected_shading(sim_result, light)
+        browser.evaluate("psView.pixelScale(1, 1)")
+        settle(browser)
+        assert_shown(browser, 1, expected, mask)
+    finally:
+        server.stop()
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def test_export_opens_from_a_plain_static_server(browser, sim_result, tmp_path):
+    out = tmp_path / "site"
+    result = runner.invoke(app, ["view", str(sim_result), "--export", str(out)])
+    assert result.exit_code == 0, result.output
+    port = free_port()
+    server = subprocess.Popen(
+        [sys.executable, "-m", "http.server", str(port), "-b", "127.0.0.1", "-d", str(out)],
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+    )
+    try:
+        deadline = time.monotonic() + 10
+        while True:
+            try:
+                socket.create_connection(("127.0.0.1", port), timeout=1).close()
+                break
+            except OSError:
+                assert time.monotonic() < deadline, "http.server did not start"
+                time.sleep(0.05)
+        browser.open(f"http://127.0.0.1:{port}/")
+        assert browser.evaluate("psView.ready") is True
+        check_relight(browser, sim_result)
+    finally:
+        server.terminate()
+        server.wait(timeout=10)
