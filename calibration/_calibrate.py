@@ -15,7 +15,7 @@ import numpy as np
 from ps_lab.calibration._circle import Circle, circle_inside_image, refine_circle, summary_image
 from ps_lab.calibration._geometry import light_directions_from_highlights
 from ps_lab.calibration._highlight import Highlight, locate_highlight
-from ps_lab.calibration._intensity import fit_light_intensities
+from ps_lab.calibration._intensity import fit_light_intensities, led_intensities_at_origin
 from ps_lab.calibration._positions import Triangulation, reflected_rays, triangulate_lights
 from ps_lab.calibration._spheres import chrome_sphere, other_spheres
 from ps_lab.errors import CalibrationError
@@ -60,6 +60,11 @@ class Calibration:
     image_shape : (H, W) or None
     pixel_size : float or None
         Millimetres per pixel (for reports only; positions stay in pixels).
+    intensity_source : str
+        How ``light_intensities`` were obtained (``calibration.json``).
+    object_outline : float or None
+        Height of the object's outline above the spheres' plane (pixels) when stated
+        (``object_outline.txt``); None: ``ps-lab reconstruct`` finds it.
 
     """
 
@@ -80,6 +85,8 @@ class Calibration:
     anisotropy: float = 0.0
     image_shape: tuple[int, int] | None = None
     pixel_size: float | None = None
+    intensity_source: str = "all ones (no matte target)"
+    object_outline: float | None = None
 
     @property
     def light_positions(self) -> np.ndarray | None:
@@ -142,6 +149,8 @@ def calibrate(
     extra_sphere_hints: Sequence[Sequence[float]] = (),
     anisotropy: float = 0.0,
     pixel_size: float | None = None,
+    led_intensities: str | np.ndarray = "equal",
+    object_outline: str | float | None = None,
 ) -> Calibration:
     """Calibrate light directions (and intensities) from a chrome sphere seen in every frame.
 
@@ -180,6 +189,14 @@ def calibrate(
         The LEDs' ``cos^mu`` exponent (near-light intensities).
     pixel_size : float, optional
         Millimetres per pixel, recorded for the report.
+    led_intensities : {"equal", "origin"} or ndarray of shape (n,) or (n, 3)
+        Without a matte sphere, with LED positions: the LEDs' intensity model
+        (:func:`._intensity.led_intensities_at_origin`; default identical LEDs). Ignored with a
+        matte sphere and with one chrome sphere (then all ones, or the array as given).
+    object_outline : "table", float or None
+        Where the object's outline lies (near lights): ``"table"`` on the table the chrome
+        spheres rest on (their mean radius below the spheres' plane), or a height in pixels
+        above that plane; None: not stated.
 
     Returns
     -------
@@ -220,6 +237,17 @@ def calibrate(
         stack, summary, directions, saturated, matte_sphere, matte_hint, warnings,
         None if triangulation is None else triangulation.positions, anisotropy,
     )
+    source = "matte sphere fit" if matte_circle is not None else "all ones (no matte target)"
+    if matte_circle is None and triangulation is not None:
+        intensities, source = led_intensities_at_origin(triangulation.positions, led_intensities)
+    elif matte_circle is None and not isinstance(led_intensities, str):
+        intensities, source = led_intensities_at_origin(np.full((n, 3), np.nan), led_intensities)
+    if isinstance(object_outline, str):
+        if object_outline != "table":
+            raise CalibrationError(f"object outline {object_outline!r}: give table or a number")
+        outline = -float(np.mean([c.radius for c in [circle, *others]]))
+    else:
+        outline = None if object_outline is None else float(object_outline)
     preview, preview_origin = _preview(stack, circle)
     return Calibration(
         circle=circle,
@@ -239,6 +267,8 @@ def calibrate(
         anisotropy=float(anisotropy),
         image_shape=(h, w),
         pixel_size=pixel_size,
+        intensity_source=source,
+        object_outline=outline,
     )
 
 

@@ -30,7 +30,6 @@ from ps_lab.reconstruct._solve import estimate_noise_model, light_noise_factors
 from ps_lab.reconstruct.near import (
     NearLights,
     NearRounds,
-    estimate_noise_near,
     near_light_rounds,
     solve_near,
 )
@@ -49,6 +48,7 @@ class SolveInput:
     mask: np.ndarray
     truth: Any
     near: NearLights | None = None  # lights at a finite distance, when the options choose them
+    outline: float | None = None  # the object's outline height the dataset states (near lights)
 
 
 @dataclass
@@ -176,10 +176,11 @@ def solve_near_bands(
 
     Each round solves every band with per-pixel light vectors at the current depth
     (:func:`ps_lab.reconstruct.near.solve_near`) into a whole-image normal map, which
-    :func:`ps_lab.reconstruct.near.near_light_rounds` integrates to depth; the noise level is
-    estimated once, on the store's sample at the starting plane, so bands agree. The final pass
-    at the settled depth hands every band to ``writer``; ``depth.npy`` (heights above the spheres'
-    plane, pixel units, NaN off the mask) is written beside the normals.
+    :func:`ps_lab.reconstruct.near.near_light_rounds` integrates to depth (the outline's height
+    as stated by the options or the dataset's ``object_outline.txt``, else searched); the noise
+    level is estimated on the store's sample, so bands agree. The final pass at the settled depth
+    hands every band to ``writer``; ``depth.npy`` (heights above the spheres' plane, pixel
+    units, NaN off the mask) is written beside the normals.
     """
     started = time.perf_counter()
     lights, mask = source.near, store.mask
@@ -188,12 +189,10 @@ def solve_near_bands(
     method = options.method
     fixed: dict = {}
     sample = (store.sample_observations, store.sample_valid, store.sample_index)
+    set_noise = None
     if method != "ls" and store.sample_index.size:
-        index = store.sample_index
-        plane = scene_points(mask.shape, rows[index], cols[index], np.zeros(index.size))
-        fixed["noise_sigma"] = estimate_noise_near(
-            store.sample_observations, lights.vectors(plane), store.sample_valid
-        )
+        # the same level for every band, re-estimated on the sample at each height tried
+        set_noise = lambda sigma: fixed.__setitem__("noise_sigma", sigma)  # noqa: E731
     params: dict = {}
 
     def solve_pass(depth: np.ndarray, advance, final: bool) -> np.ndarray:
@@ -229,7 +228,10 @@ def solve_near_bands(
             advance(0, description=f"{method} (near lights): round {round_count[0]}")
             return solve_pass(depth, advance, final=False)
 
-        rounds = near_light_rounds(round_normals, mask, lights, sample, sample_solve)
+        rounds = near_light_rounds(round_normals, mask, lights, sample, sample_solve,
+                                   outline_depth=options.object_outline if
+                                   options.object_outline is not None else source.outline,
+                                   set_noise=set_noise)
         advance(0, description=f"{method} (near lights): final pass")
         solve_pass(rounds.depth, advance, final=True)
     np.save(stage / "depth.npy", np.where(mask, rounds.depth, np.nan).astype(np.float32))

@@ -236,7 +236,8 @@ def _read(dataset: Path, options: ReconstructOptions) -> SolveInput:
     header = open_dataset(dataset, channel=options.channel)
     assert header.shape is not None
     near = _near_lights(header, options)
-    return SolveInput(header, header.read_mask(), open_normal_gt(header.root, header.shape), near)
+    truth = open_normal_gt(header.root, header.shape)
+    return SolveInput(header, header.read_mask(), truth, near, header.object_outline)
 
 
 def _near_lights(header: DatasetHeader, options: ReconstructOptions) -> NearLights | None:

@@ -14,10 +14,13 @@ from ps_lab.calibration import (
     rig_anisotropy,
     rig_chrome_spheres,
     rig_circles,
+    rig_led_intensities,
+    rig_object_outline,
     write_calibration,
 )
 from ps_lab.errors import CalibrationError
 from ps_lab.io.dataset import load_frames
+from ps_lab.io.lights import read_led_intensities
 
 
 def circle_in_image(circle: tuple[float, ...], width: int, height: int) -> bool:
@@ -74,6 +77,23 @@ def calibrate(
         float | None,
         typer.Option(min=0.0, help="Millimetres per pixel: LED positions also reported in mm."),
     ] = None,
+    object_outline: Annotated[
+        str | None,
+        typer.Option(
+            "--object",
+            help="Near lights: where the object's outline lies, 'table' (on the table the "
+            "spheres rest on) or its height in pixels above the spheres' centres (default: rig "
+            "file, else reconstruct finds it).",
+        ),
+    ] = None,
+    led_intensities: Annotated[
+        str | None,
+        typer.Option(
+            help="Near lights without a matte sphere: 'equal' (identical LEDs, the default), "
+            "'origin' (equal irradiance at the scene origin) or a file of each LED's relative "
+            "radiant intensity (one row per light).",
+        ),
+    ] = None,
 ) -> None:
     """Find the chrome sphere and its highlight in every frame; calibrate the lights.
 
@@ -93,6 +113,20 @@ def calibrate(
     focal_px = None if focal_length is None else focal_length / (pixel_pitch * 1e-3)  # type: ignore[operator]
 
     frames = load_frames(data)
+    outline = object_outline if object_outline is not None else rig_object_outline(
+        frames.manifest)
+    if isinstance(outline, str) and outline != "table":
+        try:
+            outline = float(outline)
+        except ValueError:
+            raise CalibrationError(
+                f"--object {outline}: give 'table' or a height in pixels"
+            ) from None
+        if not np.isfinite(outline):
+            raise CalibrationError(f"--object {object_outline}: must be a finite number")
+    model: str | np.ndarray = led_intensities or rig_led_intensities(frames.manifest)
+    if model not in ("equal", "origin"):
+        model = read_led_intensities(Path(model), frames.images.shape[0])
     _, rig_matte = rig_circles(frames.manifest)
     rig_chrome = rig_chrome_spheres(frames.manifest)
     hints = [] if sphere_c is not None or roi_v is not None else rig_chrome
@@ -124,6 +158,8 @@ def calibrate(
             focal_length_px=focal_px,
             names=frames.names,
             progress=advance,
+            led_intensities=model,
+            object_outline=outline,
         )
     paths = write_calibration(result, out if out is not None else frames.root)
     c = result.circle
@@ -132,9 +168,7 @@ def calibrate(
         f"chrome sphere ({c.x:.2f}, {c.y:.2f}) r={c.radius:.2f} px [{result.circle_source}], "
         f"outline residual {residual}"
     )
-    intensities = (
-        "matte sphere" if result.matte_circle is not None else "all ones (no matte target)"
-    )
+    intensities = result.intensity_source
     typer.echo(f"{n} lights calibrated; intensities: {intensities}")
     if result.triangulation is not None:
         tri = result.triangulation

@@ -43,6 +43,7 @@ from ps_lab.io.images import (
 from ps_lab.io.lights import (
     lp_directions_for,
     read_light_anisotropy,
+    read_object_outline,
     read_light_directions,
     read_light_intensities,
     read_light_positions,
@@ -58,6 +59,7 @@ LIGHT_DIRECTIONS = "light_directions.txt"
 LIGHT_INTENSITIES = "light_intensities.txt"
 LIGHT_POSITIONS = "light_positions.txt"
 LIGHT_ANISOTROPY = "light_anisotropy.txt"
+OBJECT_OUTLINE = "object_outline.txt"
 MASK = "mask.png"
 
 @dataclass(frozen=True)
@@ -396,6 +398,9 @@ class DatasetHeader:
         LED positions from ``light_positions.txt`` (two-sphere calibration), else None.
     light_anisotropy : ndarray of shape (n,) or None
         The LEDs' ``cos^mu`` exponents from ``light_anisotropy.txt``, else None.
+    object_outline : float or None
+        Height of the object's outline above the spheres' plane (pixels) from
+        ``object_outline.txt`` (near lights), else None.
 
     """
 
@@ -408,6 +413,7 @@ class DatasetHeader:
     shape: tuple[int, int] | None
     light_positions: np.ndarray | None = None
     light_anisotropy: np.ndarray | None = None
+    object_outline: float | None = None
 
     def read_mask(self) -> np.ndarray:
         """The object mask of shape (H, W), bool (all pixels when there is no mask file)."""
@@ -483,6 +489,9 @@ def open_dataset(path: Path, *, channel: str = "mean", read_size: bool = True) -
         else None,
         light_anisotropy=read_light_anisotropy(anisotropy_file, n)
         if anisotropy_file.is_file()
+        else None,
+        object_outline=read_object_outline(root / OBJECT_OUTLINE)
+        if (root / OBJECT_OUTLINE).is_file()
         else None,
     )
 
