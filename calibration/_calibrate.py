@@ -237,11 +237,17 @@ def calibrate(
         stack, summary, directions, saturated, matte_sphere, matte_hint, warnings,
         None if triangulation is None else triangulation.positions, anisotropy,
     )
-    source = "matte sphere fit" if matte_circle is not None else "all ones (no matte target)"
+    intensity_source = (
+        "matte sphere fit" if matte_circle is not None else "all ones (no matte target)"
+    )
     if matte_circle is None and triangulation is not None:
-        intensities, source = led_intensities_at_origin(triangulation.positions, led_intensities)
+        intensities, intensity_source = led_intensities_at_origin(
+            triangulation.positions, led_intensities
+        )
     elif matte_circle is None and not isinstance(led_intensities, str):
-        intensities, source = led_intensities_at_origin(np.full((n, 3), np.nan), led_intensities)
+        intensities, intensity_source = led_intensities_at_origin(
+            np.full((n, 3), np.nan), led_intensities
+        )
     if isinstance(object_outline, str):
         if object_outline != "table":
             raise CalibrationError(f"object outline {object_outline!r}: give table or a number")
@@ -267,7 +273,7 @@ def calibrate(
         anisotropy=float(anisotropy),
         image_shape=(h, w),
         pixel_size=pixel_size,
-        intensity_source=source,
+        intensity_source=intensity_source,
         object_outline=outline,
     )
 

@@ -1,0 +1,106 @@
+"""Near lights on a second rig, rendered apart from the rest (``ps_lab.render.table_rig``).
+
+24 isotropic LEDs of equal power on three rings of a dome (radius 3x the object) centred on the
+table, two chrome spheres resting on that table, the object a height field on it whose top is
+below the spheres' centres, no matte sphere, orthographic, 16-bit PNG, and a far twin lit from
+the same directions at infinity. Only the two ``--sphere`` circles are given, as a lab would.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+from typer.testing import CliRunner
+
+from ps_lab.calibration import led_intensities_at_origin
+from ps_lab.cli import app
+from ps_lab.errors import CalibrationError
+from ps_lab.io.lights import read_light_positions
+from ps_lab.render.table_rig import TableRig, write_table_rig
+
+RIG = TableRig()
+SPHERES = [f"{c:g},{r:g},{rad:g}" for c, r, rad in RIG.spheres]
+
+
+def _invoke(args: list[str]) -> str:
+    result = CliRunner().invoke(app, args)
+    assert result.exit_code == 0, result.output
+    return result.output
+
+
+def _metrics(folder: Path) -> dict:
+    return json.loads((folder / "metrics.json").read_text())
+
+
+def _truth_in_scene_frame(leds: np.ndarray) -> np.ndarray:
+    """World (table) frame -> ps-lab's scene frame (image centre, spheres' centre plane)."""
+    h, w = RIG.shape
+    out = np.array(leds, dtype=float)
+    out[:, 0] += RIG.origin_px[0] - (w - 1) / 2
+    out[:, 1] += (h - 1) / 2 - RIG.origin_px[1]
+    out[:, 2] -= RIG.spheres[0][2]
+    return out
+
+
+def test_equal_leds_give_the_inverse_square_at_the_origin() -> None:
+    positions = np.array([[0, 0, 100.0], [0, 200.0, 0], [np.nan] * 3])
+    e, _ = led_intensities_at_origin(positions)
+    expected = np.array([1e-4, 2.5e-5, 6.25e-5])  # the unplaced light: the placed ones' mean
+    np.testing.assert_allclose(e[:, 0], expected / expected.mean())
+    ones, _ = led_intensities_at_origin(positions, "origin")
+    np.testing.assert_array_equal(ones, 1.0)
+    per_led, _ = led_intensities_at_origin(positions, np.array([2.0, 1.0, 1.0]))
+    np.testing.assert_allclose(per_led[0, 0] / per_led[1, 0], 8.0)
+    with pytest.raises(CalibrationError):
+        led_intensities_at_origin(positions, np.array([1.0, -1.0, 1.0]))
+
+
+def test_table_rig_end_to_end(tmp_path: Path) -> None:
+    """The issue's targets, with margin, on a rig the near-light path was not written against."""
+    near, far = tmp_path / "near", tmp_path / "far"
+    scene = write_table_rig(near, RIG)
+    write_table_rig(far, RIG, far=True, reference_peak=scene["raw_peak"])
+    spheres = [arg for circle in SPHERES for arg in ("--sphere", circle)]
+    _invoke(["calibrate", str(near), *spheres])
+    _invoke(["calibrate", str(far), *spheres])
+    assert not np.isfinite(read_light_positions(far / "light_positions.txt")).any()  # at infinity
+    positions = read_light_positions(near / "light_positions.txt")
+    truth = _truth_in_scene_frame(scene["leds"])
+    error = np.linalg.norm(positions - truth, axis=1) / RIG.dome_radius
+    assert error.max() < 0.006, error  # target: 1 % of the dome radius
+    _invoke(["reconstruct", str(near), "--out", str(tmp_path / "n")])
+    _invoke(["reconstruct", str(near), "--lights", "directional", "--out", str(tmp_path / "d")])
+    _invoke(["reconstruct", str(far), "--out", str(tmp_path / "f")])
+    m_near = _metrics(tmp_path / "n")
+    e_near = m_near["angular_error_deg"]["mean"]
+    e_dir = _metrics(tmp_path / "d")["angular_error_deg"]["mean"]
+    e_far = _metrics(tmp_path / "f")["angular_error_deg"]["mean"]
+    assert e_near <= 0.1 * e_dir, (e_near, e_dir)  # target 1/4
+    assert e_near <= 1.2 * e_far, (e_near, e_far)  # target 1.5x
+    # the outline's height is found, not stated: the table lies 40 px below the spheres' centres
+    heights = np.load(tmp_path / "n" / "depth.npy")
+    true_heights = scene["height"] - RIG.spheres[0][2]
+    mask = scene["mask"]
+    bias = float(np.mean(heights[mask] - true_heights[mask]))
+    assert m_near["near"]["outline_height_source"] == "fitted"
+    assert abs(bias) < 3.0, bias
+    print(f"table rig: LED mean {100 * error.mean():.2f} % max {100 * error.max():.2f} %, near "
+          f"{e_near:.3f} directional {e_dir:.3f} far {e_far:.3f}, height bias {bias:+.2f} px")
+
+
+def test_table_rig_stated_outline(tmp_path: Path) -> None:
+    """``--object table``: the outline at minus the spheres' radius, used as stated."""
+    near = tmp_path / "near"
+    write_table_rig(near, RIG)
+    spheres = [arg for circle in SPHERES for arg in ("--sphere", circle)]
+    _invoke(["calibrate", str(near), *spheres, "--object", "table"])
+    assert float(np.loadtxt(near / "object_outline.txt")) == pytest.approx(-40.0, abs=0.01)
+    _invoke(["reconstruct", str(near), "--out", str(tmp_path / "n")])
+    record = _metrics(tmp_path / "n")["near"]
+    assert record["outline_height_source"] == "stated"
+    assert record["outline_height_px"] == pytest.approx(-40.0, abs=0.01)
+    result = CliRunner().invoke(app, ["calibrate", str(near), *spheres, "--object", "shelf"])
+    assert result.exit_code == 2 and "--object" in result.output
