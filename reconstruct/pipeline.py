@@ -250,9 +250,10 @@ def _near_lights(header: DatasetHeader, options: ReconstructOptions) -> NearLigh
             f"{header.root}: --lights near needs light_positions.txt "
             "(calibrate with two chrome spheres)"
         )
-    if options.refine_lights:
+    if options.refine_lights and options.fixed_intensities:
         raise DatasetError(
-            "--refine-lights refines directional lights: add --lights directional"
+            "--fixed-intensities: near lights refine intensities only (positions stay); "
+            "add --lights directional to refine directions"
         )
     if options.method == "rpca":
         raise DatasetError("rpca needs one light matrix for all pixels: add --lights directional")

@@ -209,7 +209,9 @@ def test_near_rig_end_to_end(tmp_path: Path) -> None:
     assert (near_run / "near" / "depth.npy").is_file()
 
 
-@pytest.mark.parametrize("args", [["--refine-lights", "1"], ["--method", "rpca"]])
+@pytest.mark.parametrize(
+    "args", [["--refine-lights", "1", "--fixed-intensities"], ["--method", "rpca"]]
+)
 def test_near_lights_refuse_what_they_cannot_do(tmp_path: Path, args: list[str]) -> None:
     h, w = 12, 16
     folder = tmp_path / "data"

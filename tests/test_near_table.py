@@ -18,7 +18,11 @@ from typer.testing import CliRunner
 from ps_lab.calibration import led_intensities_at_origin
 from ps_lab.cli import app
 from ps_lab.errors import CalibrationError
+from ps_lab.geometry import near_light_vectors
 from ps_lab.io.lights import read_light_positions
+from ps_lab.reconstruct import SolverInputError
+from ps_lab.reconstruct.near import fit_near_intensities
+from ps_lab.render.lights import random_light_directions
 from ps_lab.render.table_rig import TableRig, write_table_rig
 
 RIG = TableRig()
@@ -104,3 +108,46 @@ def test_table_rig_stated_outline(tmp_path: Path) -> None:
     assert record["outline_height_px"] == pytest.approx(-40.0, abs=0.01)
     result = CliRunner().invoke(app, ["calibrate", str(near), *spheres, "--object", "shelf"])
     assert result.exit_code == 2 and "--object" in result.output
+
+
+def test_intensities_from_the_object_itself() -> None:
+    """Noise-free: the eliminated least squares returns the factors exactly (up to scale)."""
+    rng = np.random.default_rng(5)
+    positions = 400.0 * random_light_directions(12, rng, max_zenith_deg=60)
+    points = np.column_stack([rng.uniform(-80, 80, (500, 2)), rng.uniform(-10, 10, 500)])
+    normals = random_light_directions(500, rng, max_zenith_deg=60)
+    x = normals * rng.uniform(0.3, 1.0, (500, 1))
+    vectors = near_light_vectors(points, positions, positions)
+    truth = 1.0 + 0.1 * rng.uniform(-1, 1, 12)
+    y = truth[:, None] * np.einsum("mnk,mk->nm", vectors, x)
+    use = y > 0
+    factors, conditioning = fit_near_intensities(np.where(use, y, 0.0), use, vectors)
+    np.testing.assert_allclose(factors, truth / truth.mean(), rtol=1e-9)
+    assert conditioning > 10
+    # with noise: conditioning = the next-best intensities' cost over the noise's; a plane (one
+    # normal) has only the lights' variation over it to tell an intensity from the normal
+    noise = rng.normal(0.0, 1e-3, y.shape)
+    _, curved = fit_near_intensities(np.where(use, y + noise, 0.0), use, vectors)
+    assert curved > 10
+    flat = truth[:, None] * np.einsum("mnk,k->nm", vectors, x[0]) + noise
+    with pytest.raises(SolverInputError, match="not determined"):
+        fit_near_intensities(flat, flat > 0, vectors)
+
+
+def test_table_rig_refined_intensities(tmp_path: Path) -> None:
+    """Wrong intensities (the old convention), the outline stated: --refine-lights recovers
+    the identical LEDs' intensities from the object's images."""
+    near = tmp_path / "near"
+    write_table_rig(near, RIG)
+    spheres = [arg for circle in SPHERES for arg in ("--sphere", circle)]
+    _invoke(["calibrate", str(near), *spheres, "--object", "table", "--led-intensities",
+             "origin"])
+    output = _invoke(["reconstruct", str(near), "--refine-lights", "2", "--out",
+                      str(tmp_path / "n")])
+    assert "light refinement 2: intensity change rms" in output
+    refined = np.loadtxt(tmp_path / "n" / "light_intensities.txt")[:, 0]
+    positions = read_light_positions(near / "light_positions.txt")
+    equal = 1.0 / np.einsum("nk,nk->n", positions, positions)
+    ratio = refined / equal
+    assert np.std(ratio / ratio.mean()) < 0.006  # from 3.4 % (the old convention)
+    assert _metrics(tmp_path / "n")["angular_error_deg"]["mean"] < 0.4  # 0.93 unrefined
