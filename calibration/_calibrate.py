@@ -19,6 +19,7 @@ from ps_lab.calibration._intensity import fit_light_intensities, led_intensities
 from ps_lab.calibration._positions import Triangulation, reflected_rays, triangulate_lights
 from ps_lab.calibration._spheres import chrome_sphere, other_spheres
 from ps_lab.errors import CalibrationError
+from ps_lab.geometry import Camera
 
 
 @dataclass
@@ -65,6 +66,9 @@ class Calibration:
     object_outline : float or None
         Height of the object's outline above the spheres' plane (pixels) when stated
         (``object_outline.txt``); None: ``ps-lab reconstruct`` finds it.
+    camera : Camera or None
+        With LED positions and a focal length: the perspective camera they were triangulated
+        through (``camera.txt``: ``f cx cy`` in pixels), which near-light solving then uses.
 
     """
 
@@ -87,6 +91,7 @@ class Calibration:
     pixel_size: float | None = None
     intensity_source: str = "all ones (no matte target)"
     object_outline: float | None = None
+    camera: Camera | None = None
 
     @property
     def light_positions(self) -> np.ndarray | None:
@@ -226,11 +231,13 @@ def calibrate(
         highlights, circle, focal_length_px=focal_length_px, principal_point=principal_point
     )
     triangulation = None
+    camera = None
+    if focal_length_px is not None:
+        camera = Camera(float(focal_length_px), tuple(map(float, principal_point)))  # type: ignore[arg-type]
     if others:
-        if focal_length_px is not None:
-            raise CalibrationError("LED positions from several spheres need an orthographic camera")
         triangulation = _triangulate(
-            stack, circle, highlights, others, saturated, safe_radius, names, progress, warnings
+            stack, circle, highlights, others, saturated, safe_radius, names, progress, warnings,
+            camera,
         )
         directions = triangulation.light_directions
     matte_circle, intensities = _matte_intensities(
@@ -275,6 +282,7 @@ def calibrate(
         pixel_size=pixel_size,
         intensity_source=intensity_source,
         object_outline=outline,
+        camera=camera if triangulation is not None else None,
     )
 
 
@@ -307,6 +315,7 @@ def _triangulate(
     names: Sequence[str] | None,
     progress: Callable[[int], None] | None,
     warnings: list[str],
+    camera: Camera | None = None,
 ) -> Triangulation:
     """Every light's reflected ray on every sphere, intersected; warnings for far lights."""
     shape = stack.shape[1:3]
@@ -315,7 +324,7 @@ def _triangulate(
         if hl is None:
             found = _highlights(stack, c, saturated, safe_radius, names, progress)
             hl = np.array([[f.x, f.y] for f in found])
-        o, d = reflected_rays(hl, c, shape)
+        o, d = reflected_rays(hl, c, shape, camera)
         origins.append(o)
         directions.append(d)
     result = triangulate_lights(np.array(origins), np.array(directions))

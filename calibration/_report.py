@@ -28,7 +28,9 @@ OUTPUT_FILES = (
 )
 # Written with two or more chrome spheres (LED positions); removed from the output folder otherwise,
 # so an earlier near-light calibration cannot outlive a new one.
-POSITION_FILES = ("light_positions.txt", "light_anisotropy.txt", "object_outline.txt")
+POSITION_FILES = (
+    "light_positions.txt", "light_anisotropy.txt", "object_outline.txt", "camera.txt"
+)
 _RAY_COLOURS = ((255, 170, 60), (60, 170, 255), (200, 90, 230), (90, 230, 200))
 
 _GREEN = (80, 220, 80)
@@ -338,6 +340,11 @@ def write_calibration(calibration: Calibration, out_dir: Path) -> dict[str, Path
                     np.savetxt(staging / POSITION_FILES[2], [calibration.object_outline],
                                fmt="%.6f")
                     names.append(POSITION_FILES[2])
+                if calibration.camera is not None:
+                    f, (cx, cy) = calibration.camera
+                    np.savetxt(staging / POSITION_FILES[3], [[f, cx, cy]], fmt="%.6f",
+                               header="focal length and principal point (x, y), pixels")
+                    names.append(POSITION_FILES[3])
             if not cv2.imwrite(str(staging / "calibration.png"), picture):
                 raise OSError("PNG encoder failed")
         for name in POSITION_FILES:

@@ -20,7 +20,6 @@ from typing import Any
 
 import numpy as np
 
-from ps_lab.geometry import scene_points
 from ps_lab.io.bands import ObservationStore
 from ps_lab.io.dataset import DatasetHeader
 from ps_lab.reconstruct._bands import BandResult
@@ -213,7 +212,7 @@ def solve_near_bands(
                 valid &= observations > black[:, None]
             pixels = slice(band.pixel_start, band.pixel_start + band.pixel_count)
             r, c = rows[pixels], cols[pixels]
-            vectors = lights.vectors(scene_points(mask.shape, r, c, depth[r, c]))
+            vectors = lights.vectors(lights.points(mask.shape, r, c, depth[r, c]))
             solution = solve_near(
                 observations, vectors, method=method, valid=valid, threads=options.threads,
                 progress=advance, **fixed, **options.solver_parameters(),
@@ -270,7 +269,7 @@ def _refine_near_intensities(lights: NearLights, rounds: NearRounds, store: Obse
     """One intensity refinement step on the store's sample at the rounds' settled points."""
     rows, cols = np.nonzero(store.mask)
     index = store.sample_index
-    points = scene_points(store.mask.shape, rows[index], cols[index],
+    points = lights.points(store.mask.shape, rows[index], cols[index],
                           rounds.depth[rows[index], cols[index]])
     vectors = lights.vectors(points)
     observations, valid = store.sample_observations, store.sample_valid

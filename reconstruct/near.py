@@ -25,7 +25,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy import ndimage
 
-from ps_lab.geometry import near_light_vectors, scene_points
+from ps_lab.geometry import Camera, near_light_vectors, scene_points
 
 from . import _near_kernels
 from ._linalg import inverse6
@@ -43,6 +43,7 @@ from ._solve import (
     residual_noise,
 )
 from .integrate import integrate
+from .integrate import integrate as integrate_depth
 
 __all__ = [
     "DEPTH_TOLERANCE_PX",
@@ -86,12 +87,21 @@ class NearLights:
     intensities : ndarray of shape (n,)
         Factors on the intensities the observations were divided by (empty: ones); set by the
         intensity refinement (:func:`fit_near_intensities`).
+    camera : Camera or None
+        The perspective camera that sees them (:class:`ps_lab.geometry.Camera`); None:
+        orthographic. Each pixel's point then lies on its own ray (:meth:`points`), and depth is
+        integrated under perspective.
     """
 
     positions: np.ndarray
     directions: np.ndarray
     anisotropy: np.ndarray = field(default_factory=lambda: np.zeros(0))
     intensities: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    camera: Camera | None = None
+
+    def points(self, shape, rows, cols, heights) -> np.ndarray:
+        """Scene-frame points (m, 3) of pixels at heights above the spheres' plane."""
+        return scene_points(shape, rows, cols, heights, self.camera)
 
     def vectors(self, points: np.ndarray) -> np.ndarray:
         """Light vectors (m, n, 3) at scene-frame points (m, 3), the intensity factors applied."""
@@ -265,6 +275,25 @@ def _height_poisson(normals, mask, method="poisson", focal_length=None):
     """
     depth = integrate(normals, mask, method=method, focal_length=focal_length).depth
     return np.where(mask, -np.nan_to_num(depth.astype(float)), 0.0)
+
+
+def _anchored_heights(normals, mask, outline, height, lights: NearLights, integrate):
+    """Heights above the spheres' plane from normals, the outline's mean height at ``height``.
+
+    Orthographic: ``integrate``'s heights shifted. Perspective: :func:`integrate` gives depth
+    ``D`` along the viewing axis up to a scale ``s``; a point at height ``z`` lies at depth
+    ``f - z`` (the camera is ``f`` above the plane), so ``z = f - s D`` with ``s`` setting the
+    outline's mean height.
+    """
+    if lights.camera is None:
+        raw = np.asarray(integrate(normals, mask, method="poisson", focal_length=None), float)
+        return np.where(mask, raw - raw[outline].mean() + height, height)
+    f = float(lights.camera.focal_length)
+    depth = integrate_depth(normals, mask, method="poisson", focal_length=f,
+                            principal_point=tuple(lights.camera.principal_point)).depth
+    depth = np.nan_to_num(np.asarray(depth, float), nan=0.0)
+    scale = (f - height) / depth[outline].mean()
+    return np.where(mask, f - scale * depth, height)
 
 
 def _inlier_residual(observations, use, vectors):
@@ -496,13 +525,12 @@ def near_light_rounds(
     def settle(height: float, start: np.ndarray, rounds: int) -> np.ndarray:
         depth = np.where(mask, start, height)
         if set_noise is not None and index.size:
-            points = scene_points(mask.shape, rows[index], cols[index], depth[rows, cols][index])
+            points = lights.points(mask.shape, rows[index], cols[index], depth[rows, cols][index])
             set_noise(estimate_noise_near(observations, lights.vectors(points), valid))
         for _ in range(rounds):
             started = time.perf_counter()
             normals = solve_normals(depth)
-            new = np.asarray(integrate(normals, mask, method="poisson", focal_length=None), float)
-            new = np.where(mask, new - new[outline].mean() + height, height)
+            new = _anchored_heights(normals, mask, outline, height, lights, integrate)
             change = float(np.max(np.abs(new - depth)[mask])) if mask.any() else 0.0
             depth = new
             result.changes.append(change)
@@ -529,7 +557,7 @@ def near_light_rounds(
             depth = settle(height, start, max(2, max_rounds // 2))
         else:
             depth = settle(height, np.full(mask.shape, height), max_rounds)
-        points = scene_points(mask.shape, rows[index], cols[index], depth[rows, cols][index])
+        points = lights.points(mask.shape, rows[index], cols[index], depth[rows, cols][index])
         vectors = lights.vectors(points)
         use = valid & np.isfinite(observations) & ~sample_solve(observations, valid,
                                                                  vectors).outliers
@@ -565,19 +593,18 @@ def near_light_rounds(
     # demo's rig, and SBL's lambda = sigma^2 then too small for the model error there (0.283
     # vs 0.265 deg; docs/solvers.md)
     if set_noise is not None:
-        points = scene_points(mask.shape, rows[index], cols[index], np.full(index.size, centre))
+        points = lights.points(mask.shape, rows[index], cols[index], np.full(index.size, centre))
         set_noise(estimate_noise_near(observations, lights.vectors(points), valid))
     shift = 0.0
     for _ in range(max_rounds):
         started = time.perf_counter()
         normals = solve_normals(depth)
-        new = np.asarray(integrate(normals, mask, method="poisson", focal_length=None), float)
-        new = new - new[outline].mean() + centre
-        points = scene_points(mask.shape, rows[index], cols[index], new[rows, cols][index])
+        new = _anchored_heights(normals, mask, outline, centre, lights, integrate)
+        points = lights.points(mask.shape, rows[index], cols[index], new[rows, cols][index])
         use = valid & np.isfinite(observations) & ~sample_solve(
             observations, valid, lights.vectors(points)).outliers
         shift = fit_depth_offset(observations, use, points, lights)
-        new = np.where(mask, new + shift, centre + shift)
+        new = _anchored_heights(normals, mask, outline, centre + shift, lights, integrate)
         change = float(np.max(np.abs(new - depth)[mask]))
         depth = new
         result.changes.append(change)
@@ -636,7 +663,7 @@ def near_light_reconstruct(
         set_noise = lambda sigma: method_params.__setitem__("noise_sigma", sigma)  # noqa: E731
 
     def solve_at(depth: np.ndarray) -> Solution:
-        points = scene_points(mask.shape, rows, cols, depth[rows, cols])
+        points = lights.points(mask.shape, rows, cols, depth[rows, cols])
         return solve_near(obs, lights.vectors(points), method=method, valid=usable,
                           threads=threads, **method_params)
 

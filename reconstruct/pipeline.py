@@ -59,6 +59,7 @@ from ps_lab.reconstruct._passes import (
 )
 from ps_lab.reconstruct._solve import estimate_noise
 from ps_lab.reconstruct.depth import DepthOptions, write_depth, write_normal_maps
+from ps_lab.geometry import Camera
 from ps_lab.reconstruct.near import NearLights
 from ps_lab.reconstruct.options import (
     BYTES_PER_OBSERVATION,
@@ -261,7 +262,11 @@ def _near_lights(header: DatasetHeader, options: ReconstructOptions) -> NearLigh
         raise DatasetError("--scheduler solves directional lights only: add --lights directional")
     n = len(header.names)
     anisotropy = header.light_anisotropy if header.light_anisotropy is not None else np.zeros(n)
-    return NearLights(positions, header.light_directions, anisotropy)
+    camera = None
+    if header.camera is not None:
+        f, cx, cy = header.camera
+        camera = Camera(f, (cx, cy))
+    return NearLights(positions, header.light_directions, anisotropy, camera=camera)
 
 
 @contextmanager

@@ -43,6 +43,7 @@ from ps_lab.io.images import (
 from ps_lab.io.lights import (
     lp_directions_for,
     read_light_anisotropy,
+    read_camera,
     read_object_outline,
     read_light_directions,
     read_light_intensities,
@@ -60,6 +61,7 @@ LIGHT_INTENSITIES = "light_intensities.txt"
 LIGHT_POSITIONS = "light_positions.txt"
 LIGHT_ANISOTROPY = "light_anisotropy.txt"
 OBJECT_OUTLINE = "object_outline.txt"
+CAMERA = "camera.txt"
 MASK = "mask.png"
 
 @dataclass(frozen=True)
@@ -401,6 +403,9 @@ class DatasetHeader:
     object_outline : float or None
         Height of the object's outline above the spheres' plane (pixels) from
         ``object_outline.txt`` (near lights), else None.
+    camera : (f, cx, cy) or None
+        The perspective camera of a near-light calibration from ``camera.txt`` (pixels), else
+        None (orthographic).
 
     """
 
@@ -414,6 +419,7 @@ class DatasetHeader:
     light_positions: np.ndarray | None = None
     light_anisotropy: np.ndarray | None = None
     object_outline: float | None = None
+    camera: tuple[float, float, float] | None = None
 
     def read_mask(self) -> np.ndarray:
         """The object mask of shape (H, W), bool (all pixels when there is no mask file)."""
@@ -493,6 +499,7 @@ def open_dataset(path: Path, *, channel: str = "mean", read_size: bool = True) -
         object_outline=read_object_outline(root / OBJECT_OUTLINE)
         if (root / OBJECT_OUTLINE).is_file()
         else None,
+        camera=read_camera(root / CAMERA) if (root / CAMERA).is_file() else None,
     )
 
 

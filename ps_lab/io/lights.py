@@ -158,6 +158,15 @@ def read_object_outline(path: Path) -> float:
     return float(values[0, 0])
 
 
+def read_camera(path: Path) -> tuple[float, float, float]:
+    """Read ``camera.txt``: ``f cx cy`` (pixels), the perspective camera of a near-light
+    calibration (focal length > 0, principal point)."""
+    values = _read_table(path, (3,))
+    if values.shape != (1, 3) or not values[0, 0] > 0:
+        raise DatasetError(f"{path}: expected one row 'f cx cy' (pixels) with f > 0")
+    return float(values[0, 0]), float(values[0, 1]), float(values[0, 2])
+
+
 def read_led_intensities(path: Path, count: int | None = None) -> np.ndarray:
     """Read a per-LED intensity file: each LED's relative radiant intensity (W/sr, any unit),
     one row per light (one value, or r g b); returned as (n, 3), all > 0."""

@@ -84,7 +84,27 @@ class TableRig:
     full_well: float = 30000.0
     read_noise: float = 1.5e-4
     seed: int = 24
+    focal_px: float | None = None
+    principal_px: tuple[float, float] | None = None
     extra: dict = field(default_factory=dict)
+
+    def camera_centre(self) -> np.ndarray | None:
+        """(3,) world position of a perspective camera's centre (None: orthographic): above the
+        principal point, at the height where the spheres' centres are imaged at scale 1."""
+        if self.focal_px is None:
+            return None
+        h, w = self.shape
+        cx, cy = self.principal_px or ((w - 1) / 2.0, (h - 1) / 2.0)
+        return np.array([cx - self.origin_px[0], self.origin_px[1] - cy,
+                         self.focal_px + self.spheres[0][2]])
+
+    def rays(self, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
+        """Unit directions (..., 3) of pixels' viewing rays, away from the camera."""
+        h, w = self.shape
+        cx, cy = self.principal_px or ((w - 1) / 2.0, (h - 1) / 2.0)
+        d = np.stack([cols - cx, cy - rows, np.full(np.shape(rows), -float(self.focal_px))],
+                     axis=-1)
+        return d / np.linalg.norm(d, axis=-1, keepdims=True)
 
     def led_positions(self) -> np.ndarray:
         """(24, 3) world positions of the LEDs."""
@@ -118,9 +138,20 @@ def _object_height(rig: TableRig, x: np.ndarray, y: np.ndarray) -> np.ndarray:
     return rig.object_top * (base + bumps * inside ** 2 + groove)
 
 
-def _object(rig: TableRig) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Mask (H, W), heights (H, W) and unit normals (H, W, 3) of the object."""
+def _object(rig: TableRig) -> tuple[np.ndarray, ...]:
+    """Mask (H, W), heights (H, W), unit normals (H, W, 3) and the world x, y (H, W) of the
+    surface point each pixel sees (perspective: where its ray meets the height field)."""
     x, y = rig.pixel_xy()
+    eye = rig.camera_centre()
+    if eye is not None:
+        h, w = rig.shape
+        rows, cols = np.mgrid[0:h, 0:w].astype(np.float64)
+        d = rig.rays(rows, cols)
+        z = np.zeros(rows.shape)
+        for _ in range(60):  # z = h(ray(z)): a contraction (slopes x field of view << 1)
+            t = (z - eye[2]) / d[..., 2]
+            x, y = eye[0] + t * d[..., 0], eye[1] + t * d[..., 1]
+            z = _object_height(rig, x, y)
     ox = rig.object_center[0] - rig.origin_px[0]
     oy = rig.origin_px[1] - rig.object_center[1]
     mask = np.hypot(x - ox, y - oy) < rig.object_radius - 1.0
@@ -130,7 +161,7 @@ def _object(rig: TableRig) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     gy = (_object_height(rig, x, y + eps) - _object_height(rig, x, y - eps)) / (2 * eps)
     normals = np.stack([-gx, -gy, np.ones_like(gx)], axis=-1)
     normals /= np.linalg.norm(normals, axis=-1, keepdims=True)
-    return mask, height, normals
+    return mask, height, normals, x, y
 
 
 def _shadowed(height: np.ndarray, x: np.ndarray, y: np.ndarray, z: np.ndarray, rig: TableRig,
@@ -163,13 +194,16 @@ def _shadowed(height: np.ndarray, x: np.ndarray, y: np.ndarray, z: np.ndarray, r
 def _object_images(rig: TableRig, lights: np.ndarray, far: bool) -> np.ndarray:
     """Radiance of the object (n, H, W); 0 off the object. ``lights`` (n, 3): positions, or unit
     directions when ``far`` (irradiance of an LED at the dome centre)."""
-    mask, height, normals = _object(rig)
-    x, y = rig.pixel_xy()
+    mask, height, normals, x, y = _object(rig)
     rows, cols = np.nonzero(mask)
     px, py, pz = x[rows, cols], y[rows, cols], height[rows, cols]
     nrm = normals[rows, cols]
     out = np.zeros((lights.shape[0], *rig.shape))
     points = np.column_stack([px, py, pz])
+    eye = rig.camera_centre()
+    view = np.array([0.0, 0.0, 1.0]) if eye is None else eye[None, :] - points
+    view = view / np.linalg.norm(view, axis=-1, keepdims=True)
+    grid = _object_height(rig, *rig.pixel_xy())  # world grid, 1 unit apart, for the shadows
     for j, light in enumerate(lights):
         if far:
             u = np.broadcast_to(light / np.linalg.norm(light), points.shape)
@@ -180,12 +214,12 @@ def _object_images(rig: TableRig, lights: np.ndarray, far: bool) -> np.ndarray:
             u = d / np.sqrt(dist2)[:, None]
             irradiance = 1.0 / dist2  # equal radiant intensity, isotropic
         cos = np.einsum("mk,mk->m", nrm, u)
-        half = u + np.array([0.0, 0.0, 1.0])
+        half = u + view
         half /= np.linalg.norm(half, axis=1, keepdims=True)
         lobe = (rig.shininess + 8.0) / 8.0 * np.clip(np.einsum("mk,mk->m", nrm, half), 0,
                                                      None) ** rig.shininess
         lit = cos > 0
-        lit[lit] &= ~_shadowed(height, px[lit], py[lit], pz[lit], rig,
+        lit[lit] &= ~_shadowed(grid, px[lit], py[lit], pz[lit], rig,
                                light if not far else light / np.linalg.norm(light), far)
         value = np.where(lit, irradiance * cos * (rig.albedo + rig.specular * lobe), 0.0)
         out[j, rows, cols] = value
@@ -195,11 +229,24 @@ def _object_images(rig: TableRig, lights: np.ndarray, far: bool) -> np.ndarray:
 def _mirror_share(rig, light, far, centre, radius, sub_c, sub_r, col0, row0):
     """Share of an LED's disc seen in the mirror at sub-sample pixels (any shape); NaN off the
     sphere."""
-    dx, dy = (sub_c - col0) / radius, (row0 - sub_r) / radius
-    inside = dx * dx + dy * dy < 1.0
-    nz = np.sqrt(np.clip(1.0 - dx * dx - dy * dy, 0.0, 1.0))
-    # mirror of the view vector (0, 0, 1) about n
-    rx, ry, rz = 2 * nz * dx, 2 * nz * dy, 2 * nz * nz - 1.0
+    eye = rig.camera_centre()
+    if eye is None:
+        dx, dy = (sub_c - col0) / radius, (row0 - sub_r) / radius
+        inside = dx * dx + dy * dy < 1.0
+        nz = np.sqrt(np.clip(1.0 - dx * dx - dy * dy, 0.0, 1.0))
+        # mirror of the view vector (0, 0, 1) about n
+        rx, ry, rz = 2 * nz * dx, 2 * nz * dy, 2 * nz * nz - 1.0
+    else:  # each sub-sample's ray meets the sphere; its mirror image about the normal there
+        d = rig.rays(*np.broadcast_arrays(sub_r, sub_c))
+        offset = eye - centre
+        b = d @ offset
+        disc2 = b * b - (offset @ offset - radius * radius)
+        inside = disc2 > 0
+        t = -b - np.sqrt(np.clip(disc2, 0.0, None))
+        n = (eye + t[..., None] * d - centre) / radius
+        dx, dy, nz = n[..., 0], n[..., 1], n[..., 2]
+        dn = np.einsum("...k,...k->...", d, n)
+        rx, ry, rz = (d[..., k] - 2 * dn * n[..., k] for k in range(3))
     if far:
         to = light / np.linalg.norm(light)
         disc = np.arctan(rig.led_radius / rig.dome_radius)
@@ -257,7 +304,7 @@ def render_table_rig(rig: TableRig, *, far: bool = False) -> dict:
     directions = leds / np.linalg.norm(leds, axis=1, keepdims=True)
     lights = directions if far else leds
     objects = _object_images(rig, lights, far)
-    mask, height, normals = _object(rig)
+    mask, height, normals, _, _ = _object(rig)
     # the same exposure for both twins: the near rig's brightest object pixel sets it
     scale = rig.peak / float(rig.extra.get("reference_peak") or objects.max())
     frames = objects * scale + _chrome_images(rig, lights, far)
