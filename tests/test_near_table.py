@@ -9,6 +9,7 @@ the same directions at infinity. Only the two ``--sphere`` circles are given, as
 from __future__ import annotations
 
 import json
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -18,7 +19,7 @@ from typer.testing import CliRunner
 from ps_lab.calibration import led_intensities_at_origin
 from ps_lab.cli import app
 from ps_lab.errors import CalibrationError
-from ps_lab.geometry import near_light_vectors
+from ps_lab.geometry import Camera, near_light_vectors, scene_points
 from ps_lab.io.lights import read_light_positions
 from ps_lab.reconstruct import SolverInputError
 from ps_lab.reconstruct.near import fit_near_intensities
@@ -151,3 +152,39 @@ def test_table_rig_refined_intensities(tmp_path: Path) -> None:
     ratio = refined / equal
     assert np.std(ratio / ratio.mean()) < 0.006  # from 3.4 % (the old convention)
     assert _metrics(tmp_path / "n")["angular_error_deg"]["mean"] < 0.4  # 0.93 unrefined
+
+
+def test_perspective_points_lie_on_their_rays() -> None:
+    camera = Camera(900.0, (210.0, 140.0))
+    shape = (300, 400)
+    rows, cols = np.array([10.0, 150.0, 280.0]), np.array([5.0, 200.0, 390.0])
+    heights = np.array([-40.0, 0.0, 25.0])
+    points = scene_points(shape, rows, cols, heights, camera)
+    eye = camera.centre(shape)
+    on_plane = scene_points(shape, rows, cols, np.zeros(3))  # magnification 1 at z = 0
+    np.testing.assert_allclose(on_plane, scene_points(shape, rows, cols, np.zeros(3), camera))
+    ray = on_plane - eye
+    t = (points - eye) / ray
+    np.testing.assert_allclose(t, np.repeat(t[:, :1], 3, axis=1))  # collinear with the eye
+    np.testing.assert_allclose(points[:, 2], heights)
+
+
+def test_table_rig_through_a_lens(tmp_path: Path) -> None:
+    """A perspective camera (f = 1500 px): with the focal length the LEDs and normals are as good
+    as orthographic; assuming an orthographic camera misplaces the LEDs by tens of %."""
+    rig = replace(RIG, focal_px=1500.0)
+    near = tmp_path / "near"
+    scene = write_table_rig(near, rig)
+    spheres = [arg for circle in SPHERES for arg in ("--sphere", circle)]
+    lens = ["--focal-length", "15", "--pixel-pitch", "10"]  # 15 mm / 10 um = 1500 px
+    truth = _truth_in_scene_frame(scene["leds"])
+    errors = {}
+    for name, extra in (("perspective", lens), ("orthographic", [])):
+        _invoke(["calibrate", str(near), *spheres, *extra])
+        assert (near / "camera.txt").is_file() == (name == "perspective")
+        positions = read_light_positions(near / "light_positions.txt")
+        leds = np.linalg.norm(positions - truth, axis=1).max() / RIG.dome_radius
+        _invoke(["reconstruct", str(near), "--out", str(tmp_path / name)])
+        errors[name] = (leds, _metrics(tmp_path / name)["angular_error_deg"]["mean"])
+    assert errors["perspective"][0] < 0.006 and errors["perspective"][1] < 0.4, errors
+    assert errors["orthographic"][0] > 0.1 and errors["orthographic"][1] > 1.5, errors
