@@ -20,7 +20,7 @@ from ps_lab.calibration._geometry import (
     light_directions_from_highlights,
 )
 from ps_lab.calibration._highlight import Highlight, locate_highlight
-from ps_lab.calibration._intensity import fit_light_intensities
+from ps_lab.calibration._intensity import fit_light_intensities, led_intensities_at_origin
 from ps_lab.calibration._positions import Triangulation, reflected_rays, triangulate_lights
 from ps_lab.calibration._report import (
     OUTPUT_FILES,
@@ -29,7 +29,6 @@ from ps_lab.calibration._report import (
     write_calibration,
     zenith_azimuth_deg,
 )
-from ps_lab.calibration._intensity import led_intensities_at_origin
 from ps_lab.calibration._rig_spheres import (
     rig_anisotropy,
     rig_chrome_spheres,

@@ -160,6 +160,7 @@ def led_intensities_at_origin(
     light_positions : ndarray of shape (n, 3)
         Scene-frame LED positions (pixels), NaN rows for directional lights.
     model : {"equal", "origin"} or ndarray of shape (n,) or (n, 3)
+        The intensity model, or each LED's relative radiant intensity.
 
     Returns
     -------

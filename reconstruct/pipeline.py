@@ -33,6 +33,7 @@ from typing import Any
 import numpy as np
 
 from ps_lab.errors import DatasetError, OutputError
+from ps_lab.geometry import Camera
 from ps_lab.io.bands import ObservationStore, plan_bands
 from ps_lab.io.dataset import DatasetHeader, open_dataset
 from ps_lab.io.files import json_safe, staged_folder
@@ -59,7 +60,6 @@ from ps_lab.reconstruct._passes import (
 )
 from ps_lab.reconstruct._solve import estimate_noise
 from ps_lab.reconstruct.depth import DepthOptions, write_depth, write_normal_maps
-from ps_lab.geometry import Camera
 from ps_lab.reconstruct.near import NearLights
 from ps_lab.reconstruct.options import (
     BYTES_PER_OBSERVATION,

@@ -42,12 +42,12 @@ from ps_lab.io.images import (
 )
 from ps_lab.io.lights import (
     lp_directions_for,
-    read_light_anisotropy,
     read_camera,
-    read_object_outline,
+    read_light_anisotropy,
     read_light_directions,
     read_light_intensities,
     read_light_positions,
+    read_object_outline,
 )
 from ps_lab.io.run import SIMULATION_DIR
 from ps_lab.io.truth import _find_normal_gt

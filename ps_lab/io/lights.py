@@ -150,8 +150,11 @@ def read_light_anisotropy(path: Path, count: int | None = None) -> np.ndarray:
 
 
 def read_object_outline(path: Path) -> float:
-    """Read ``object_outline.txt``: one number, the height (pixels) of the object's outline above
-    the spheres' plane (the scene frame of near lights; ``ps-lab calibrate --object``)."""
+    """Read ``object_outline.txt``: the height of the object's outline (pixels).
+
+    One number: the outline's height above the spheres' plane (the scene frame of near lights;
+    ``ps-lab calibrate --object``).
+    """
     values = _read_table(path, (1,))
     if values.shape != (1, 1):
         raise DatasetError(f"{path}: expected one number (pixels), got {values.shape[0]} rows")
@@ -159,8 +162,10 @@ def read_object_outline(path: Path) -> float:
 
 
 def read_camera(path: Path) -> tuple[float, float, float]:
-    """Read ``camera.txt``: ``f cx cy`` (pixels), the perspective camera of a near-light
-    calibration (focal length > 0, principal point)."""
+    """Read ``camera.txt``: ``f cx cy`` (pixels), the perspective camera of a calibration.
+
+    Focal length > 0 and principal point, of a near-light calibration through a lens.
+    """
     values = _read_table(path, (3,))
     if values.shape != (1, 3) or not values[0, 0] > 0:
         raise DatasetError(f"{path}: expected one row 'f cx cy' (pixels) with f > 0")
@@ -168,8 +173,10 @@ def read_camera(path: Path) -> tuple[float, float, float]:
 
 
 def read_led_intensities(path: Path, count: int | None = None) -> np.ndarray:
-    """Read a per-LED intensity file: each LED's relative radiant intensity (W/sr, any unit),
-    one row per light (one value, or r g b); returned as (n, 3), all > 0."""
+    """Read a per-LED intensity file: each LED's relative radiant intensity.
+
+    One row per light (one value, or r g b; W/sr in any unit); returned as (n, 3), all > 0.
+    """
     table = _read_table(path, (1, 3))
     if table.shape[1] == 1:
         table = np.repeat(table, 3, axis=1)

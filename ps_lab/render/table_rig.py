@@ -1,4 +1,4 @@
-"""A second near-light rig, built apart from the rest of the renderer: LEDs, spheres, object on a table.
+"""A second near-light rig, apart from the rest of the renderer: LEDs, spheres, object, table.
 
 This module shares no geometry with :mod:`ps_lab.render.near` or :mod:`ps_lab.geometry`: it has
 its own world frame, its own sphere, shadow and mirror code, and writes a plain image folder of
@@ -89,8 +89,10 @@ class TableRig:
     extra: dict = field(default_factory=dict)
 
     def camera_centre(self) -> np.ndarray | None:
-        """(3,) world position of a perspective camera's centre (None: orthographic): above the
-        principal point, at the height where the spheres' centres are imaged at scale 1."""
+        """(3,) world position of a perspective camera's centre (None: orthographic).
+
+        Above the principal point, at the height where the spheres' centres are imaged at scale 1.
+        """
         if self.focal_px is None:
             return None
         h, w = self.shape
@@ -139,8 +141,10 @@ def _object_height(rig: TableRig, x: np.ndarray, y: np.ndarray) -> np.ndarray:
 
 
 def _object(rig: TableRig) -> tuple[np.ndarray, ...]:
-    """Mask (H, W), heights (H, W), unit normals (H, W, 3) and the world x, y (H, W) of the
-    surface point each pixel sees (perspective: where its ray meets the height field)."""
+    """Mask (H, W), heights (H, W), unit normals (H, W, 3), world x and y (H, W) of the object.
+
+    x, y: the surface point each pixel sees (perspective: where its ray meets the height field).
+    """
     x, y = rig.pixel_xy()
     eye = rig.camera_centre()
     if eye is not None:
@@ -166,8 +170,11 @@ def _object(rig: TableRig) -> tuple[np.ndarray, ...]:
 
 def _shadowed(height: np.ndarray, x: np.ndarray, y: np.ndarray, z: np.ndarray, rig: TableRig,
               toward: np.ndarray, far: bool) -> np.ndarray:
-    """Points (m,) whose path to the light (a position, or a direction when ``far``) hits the
-    height field (sampled bilinearly, half-pixel steps)."""
+    """Points (m,) whose path to the light hits the height field.
+
+    The light is a position, or a direction when ``far``; the field is sampled bilinearly in
+    half-pixel steps.
+    """
     top = float(height.max())
     hit = np.zeros(x.shape, bool)
     d = np.broadcast_to(toward, (x.size, 3)) if far else toward[None, :] - np.column_stack(
@@ -192,8 +199,11 @@ def _shadowed(height: np.ndarray, x: np.ndarray, y: np.ndarray, z: np.ndarray, r
 
 
 def _object_images(rig: TableRig, lights: np.ndarray, far: bool) -> np.ndarray:
-    """Radiance of the object (n, H, W); 0 off the object. ``lights`` (n, 3): positions, or unit
-    directions when ``far`` (irradiance of an LED at the dome centre)."""
+    """Radiance of the object (n, H, W); 0 off the object.
+
+    ``lights`` (n, 3): positions, or unit directions when ``far`` (irradiance of an LED at the
+    dome centre).
+    """
     mask, height, normals, x, y = _object(rig)
     rows, cols = np.nonzero(mask)
     px, py, pz = x[rows, cols], y[rows, cols], height[rows, cols]
@@ -227,8 +237,10 @@ def _object_images(rig: TableRig, lights: np.ndarray, far: bool) -> np.ndarray:
 
 
 def _mirror_share(rig, light, far, centre, radius, sub_c, sub_r, col0, row0):
-    """Share of an LED's disc seen in the mirror at sub-sample pixels (any shape); NaN off the
-    sphere."""
+    """Share of an LED's disc seen in the mirror at sub-sample pixels (any shape).
+
+    NaN off the sphere.
+    """
     eye = rig.camera_centre()
     if eye is None:
         dx, dy = (sub_c - col0) / radius, (row0 - sub_r) / radius
@@ -266,9 +278,11 @@ def _mirror_share(rig, light, far, centre, radius, sub_c, sub_r, col0, row0):
 
 def _chrome_images(rig: TableRig, lights: np.ndarray, far: bool, supersample: int = 8
                    ) -> np.ndarray:
-    """Mirror spheres (n, H, W): each sub-sample's reflected view ray against the LED's disc,
-    blurred by the lens at the sub-sample grid, then integrated over each pixel (blur before
-    sampling: a centroid of pixel values then has no pixel-locking bias)."""
+    """Mirror spheres (n, H, W): each sub-sample's reflected view ray against the LED's disc.
+
+    Blurred by the lens at the sub-sample grid, then integrated over each pixel (blur before
+    sampling: a centroid of pixel values then has no pixel-locking bias).
+    """
     out = np.zeros((lights.shape[0], *rig.shape))
     s = supersample
     offsets = (np.arange(s) + 0.5) / s - 0.5
@@ -314,9 +328,11 @@ def render_table_rig(rig: TableRig, *, far: bool = False) -> dict:
 
 def write_table_rig(folder: Path, rig: TableRig, *, far: bool = False,
                     reference_peak: float | None = None) -> dict:
-    """Write the rig as an image folder: ``001.png`` ... (16-bit, shot and read noise, clipped),
-    ``mask.png``, ``normal_gt.npy``, and the truth under ``truth/`` (LEDs and heights in the world
-    frame). Returns :func:`render_table_rig`'s dict."""
+    """Write the rig as an image folder; return :func:`render_table_rig`'s dict.
+
+    ``001.png`` ... (16-bit, shot and read noise, clipped), ``mask.png``, ``normal_gt.npy``, and
+    the truth under ``truth/`` (LEDs and heights in the world frame).
+    """
     if reference_peak is not None:
         rig = replace(rig, extra={"reference_peak": reference_peak})
     scene = render_table_rig(rig, far=far)
