@@ -206,6 +206,11 @@ class Rig:
                 {"center": list(c.center), "radius": c.radius}
                 for c in self.calibration.chrome_spheres
             ]
+        # near-light statements, recorded only when set (older runs' snapshots stay equal)
+        if self.calibration.object_outline is not None:
+            cal["object_outline"] = self.calibration.object_outline
+        if self.calibration.led_intensities != "equal":
+            cal["led_intensities"] = self.calibration.led_intensities
         snap["calibration"] = cal
         return snap
 

@@ -16,9 +16,14 @@ import numpy as np
 import pytest
 from typer.testing import CliRunner
 
-from ps_lab.calibration import led_intensities_at_origin
+from ps_lab.calibration import (
+    led_intensities_at_origin,
+    rig_led_intensities,
+    rig_object_outline,
+)
+from ps_lab.capture.rig import load_rig
 from ps_lab.cli import app
-from ps_lab.errors import CalibrationError
+from ps_lab.errors import CalibrationError, RigError
 from ps_lab.geometry import Camera, near_light_vectors, scene_points
 from ps_lab.io.lights import read_light_positions
 from ps_lab.reconstruct import SolverInputError
@@ -26,6 +31,7 @@ from ps_lab.reconstruct.near import fit_near_intensities
 from ps_lab.render.lights import random_light_directions
 from ps_lab.render.table_rig import TableRig, write_table_rig
 
+RIGS = Path(__file__).resolve().parents[1] / "rigs"
 RIG = TableRig()
 SPHERES = [f"{c:g},{r:g},{rad:g}" for c, r, rad in RIG.spheres]
 
@@ -188,3 +194,33 @@ def test_table_rig_through_a_lens(tmp_path: Path) -> None:
         errors[name] = (leds, _metrics(tmp_path / name)["angular_error_deg"]["mean"])
     assert errors["perspective"][0] < 0.006 and errors["perspective"][1] < 0.4, errors
     assert errors["orthographic"][0] > 0.1 and errors["orthographic"][1] > 1.5, errors
+
+
+@pytest.mark.parametrize(("value", "expected"), [('"table"', "table"), ("-12.5", -12.5)])
+def test_rig_file_states_the_outline_and_the_led_model(tmp_path: Path, value, expected) -> None:
+    text = (RIGS / "simulated-near.toml").read_text().replace(
+        "[calibration.matte_sphere]",
+        f'[calibration]\nobject_outline = {value}\nled_intensities = "origin"\n\n'
+        "[calibration.matte_sphere]",
+    )
+    rig_file = tmp_path / "rig.toml"
+    rig_file.write_text(_calibration_keys_first(text))
+    rig = load_rig(rig_file)
+    assert rig.calibration.object_outline == expected
+    assert rig.calibration.led_intensities == "origin"
+    manifest = {"rig": rig.snapshot()}
+    assert rig_object_outline(manifest) == expected
+    assert rig_led_intensities(manifest) == "origin"
+    bad = rig_file.read_text().replace('"origin"', '"brightest"')
+    rig_file.write_text(bad)
+    with pytest.raises(RigError, match="led_intensities"):
+        load_rig(rig_file)
+
+
+def _calibration_keys_first(text: str) -> str:
+    """Move the ``[calibration]`` table (keys only) before the first ``calibration.`` sub-table."""
+    start = text.index("[calibration]\n")
+    end = text.index("\n\n", start) + 2
+    block, text = text[start:end], text[:start] + text[end:]
+    first = text.index("[[calibration.chrome_spheres]]")
+    return text[:first] + block + text[first:]
