@@ -29,6 +29,7 @@ from ps_lab.geometry import Camera, near_light_vectors, scene_points
 
 from . import _near_kernels
 from ._linalg import inverse6
+from ._near_refine import fit_near_intensities
 from ._solution import Solution, SolverInputError
 from ._solve import (
     DEFAULT_TILE_SIZE,
@@ -70,6 +71,8 @@ _KERNELS = {
 # (pixels): below it the criterion's change is within its noise (docs/solvers.md).
 _OFFSET_STEPS = 8
 _OUTLINE_RESOLUTION_PX = 3.0
+# At most this many searches: a polish that leaves the basin found starts another from there.
+_OUTLINE_SEARCHES = 3
 
 
 @dataclass(frozen=True)
@@ -359,59 +362,27 @@ def fit_depth_offset(observations, use, points, lights: NearLights, *, step=None
     return centre
 
 
-def fit_near_intensities(
-    observations: np.ndarray, use: np.ndarray, light_vectors: np.ndarray
-) -> tuple[np.ndarray, float]:
-    """Relative light intensities from the object's own images (near lights, points known).
+def _search_outline(score, tried, centre, step, mask):
+    """Three-point parabolas over the outline height from ``centre``.
 
-    With light j's unknown factor ``f_j`` on its light vectors, pixel p sees
-    ``y_jp = f_j v_jp . x_p``; with ``g_j = 1 / f_j`` the model ``g_j y_jp = v_jp . x_p`` is linear
-    in ``g`` and ``x_p`` together. Eliminating each pixel's ``x_p`` (least squares on its inlier
-    rows, hat matrix ``H_p``) leaves ``min_g g^T M g`` with ``M = sum_p D(y_p) (I - H_p) D(y_p)``,
-    whose solution, up to the scale the albedo absorbs, is the eigenvector of M's smallest
-    eigenvalue. An alternation (normals, then each light's least-squares factor given them, as
-    the 2012 paper refines directional lights) converges slowly here, since the normals absorb
-    much of an intensity error at each step; the eliminated form does not (docs/solvers.md).
-
-    Parameters
-    ----------
-    observations : ndarray of shape (n, m)
-        Observations of m (sample) pixels, divided by the current intensities.
-    use : ndarray of shape (n, m), bool
-        Inliers (usable and not flagged by the solver).
-    light_vectors : ndarray of shape (m, n, 3)
-        The pixels' light vectors at their current points (current factors applied).
-
-    Returns
-    -------
-    factors : ndarray of shape (n,)
-        Multiply the current intensities by these (mean 1).
-    conditioning : float
-        Ratio of M's second-smallest to smallest eigenvalue: how well ``g`` is determined (large:
-        well posed; near 1: another ``g`` explains the images as well).
+    First step ``step``, moves of at most three steps, down to ``_OUTLINE_RESOLUTION_PX``.
+    Returns the height found and the settled depth of the nearest height tried, shifted to it.
     """
-    y = np.asarray(observations, dtype=np.float64)
-    use = np.asarray(use, dtype=bool) & np.isfinite(y)
-    y = np.where(use, y, 0.0)
-    weighted = light_vectors * use.T[:, :, None]
-    normal = np.einsum("mni,mnj->mij", weighted, light_vectors)
-    ok = np.linalg.det(normal) > 1e-12 * np.einsum("mii->m", normal) ** 3
-    if ok.sum() < 3:
-        raise SolverInputError("too few solvable pixels to fit the light intensities")
-    inverse = np.linalg.inv(normal[ok])
-    rows = weighted[ok]
-    hat = np.einsum("mni,mij,mkj->mnk", rows, inverse, rows)
-    dy = y.T[ok]
-    # D(y) (I - H) D(y), summed over the pixels (outlier rows are zero in both terms)
-    m = np.einsum("mn,mn->n", dy, dy * use.T[ok])
-    system = np.diag(m) - np.einsum("mn,mnk,mk->nk", dy, hat, dy)
-    values, vectors = np.linalg.eigh(system)
-    g = vectors[:, 0]
-    g = g / g.mean()
-    if np.any(g <= 0):
-        raise SolverInputError("the light intensities are not determined by these pixels")
-    factors = 1.0 / g
-    return factors / factors.mean(), float(values[1] / max(values[0], 1e-300))
+    h = step
+    for _ in range(_OFFSET_STEPS if step > 0 else 0):
+        f0, fm, fp = score(centre), score(centre - h), score(centre + h)
+        curvature = fp + fm - 2.0 * f0
+        move = 0.5 * h * (fm - fp) / curvature if curvature > 0 else (h if fp < fm else -h)
+        move = float(np.clip(move, -3.0 * h, 3.0 * h))
+        centre = round(centre + move, 6)
+        if abs(move) < h:  # bracketed: refine around it
+            h = max(abs(move), h / 4.0)
+            if h < _OUTLINE_RESOLUTION_PX:
+                break
+    if not tried:
+        return centre, np.full(mask.shape, centre)
+    nearest = min(tried, key=lambda c: abs(c - centre))
+    return centre, tried[nearest][1] + (centre - nearest)
 
 
 @dataclass
@@ -477,11 +448,15 @@ def near_light_rounds(
     ``tolerance``. Integration cannot tell ``c``; without ``outline_depth`` it is searched (a
     profile fit): each height tried is settled by its own rounds (warm-started from the nearest
     one tried), and scored by the least-squares residual of the sample's inliers at its settled
-    points (:func:`_inlier_residual`). The score has one clear minimum at the true height, which
-    three-point parabolas find (first step 2 % of the median LED distance, moves of at most three
-    steps, down to 1 px). Shifting a settled depth instead (:func:`fit_depth_offset`) is
-    biased: normals solved at a wrong height integrate to a distorted shape that a shift partly
-    explains (measured in ``docs/solvers.md``).
+    points (:func:`_inlier_residual`). The score has a clear minimum at the true height, which
+    three-point parabolas find (:func:`_search_outline`: first step 2 % of the median LED
+    distance, moves of at most three steps, down to 3 px); then rounds from there, each shifted
+    by :func:`fit_depth_offset` (the shift of the settled shape that minimises the same residual,
+    finer than the search). That shift alone, from a height far off, is biased: normals solved
+    at a wrong height integrate to a distorted shape that a shift partly explains. Far from the
+    truth the score can be flat or bumpy; when the shifted rounds move more than two search
+    steps, the search starts again from where they went (at most 3 searches). Measured in
+    ``docs/solvers.md``.
 
     Parameters
     ----------
@@ -567,53 +542,54 @@ def near_light_rounds(
         result.residuals.append(value)
         return value
 
+    def polish(centre: float, depth: np.ndarray) -> tuple[np.ndarray, float]:
+        """Rounds from the height found, each shifted to explain its shape best.
+
+        The shift (:func:`fit_depth_offset`) is unbiased near the truth and finer than the
+        search; returns the depth and the last shift.
+        """
+        # the noise level on the plane of the outline found, as the rounds had on their
+        # starting plane before the search (issue 15): at the settled shape it is ~3x lower on
+        # the demo's rig, and SBL's lambda = sigma^2 then too small for the model error there
+        # (0.283 vs 0.265 deg; docs/solvers.md)
+        if set_noise is not None:
+            plane = np.full(index.size, centre)
+            points = lights.points(mask.shape, rows[index], cols[index], plane)
+            set_noise(estimate_noise_near(observations, lights.vectors(points), valid))
+        shift = 0.0
+        for _ in range(max_rounds):
+            started = time.perf_counter()
+            normals = solve_normals(depth)
+            new = _anchored_heights(normals, mask, outline, centre, lights, integrate)
+            points = lights.points(mask.shape, rows[index], cols[index], new[rows, cols][index])
+            use = valid & np.isfinite(observations) & ~sample_solve(
+                observations, valid, lights.vectors(points)).outliers
+            shift = fit_depth_offset(observations, use, points, lights)
+            new = _anchored_heights(normals, mask, outline, centre + shift, lights, integrate)
+            change = float(np.max(np.abs(new - depth)[mask]))
+            depth = new
+            result.changes.append(change)
+            result.offsets.append(centre + shift)
+            result.seconds.append(time.perf_counter() - started)
+            if change < tolerance:
+                break
+        return depth, shift
+
     finite = np.all(np.isfinite(lights.positions), axis=1)
     distance = float(np.median(np.linalg.norm(lights.positions[finite], axis=1))) if \
         finite.any() else 0.0
     step = 0.02 * distance
     centre = 0.0
-    if step > 0:
-        h = step
-        for _ in range(_OFFSET_STEPS):
-            f0, fm, fp = score(centre), score(centre - h), score(centre + h)
-            curvature = fp + fm - 2.0 * f0
-            move = 0.5 * h * (fm - fp) / curvature if curvature > 0 else (h if fp < fm else -h)
-            move = float(np.clip(move, -3.0 * h, 3.0 * h))
-            centre = round(centre + move, 6)
-            if abs(move) < h:  # bracketed: refine around it
-                h = max(abs(move), h / 4.0)
-                if h < _OUTLINE_RESOLUTION_PX:
-                    break
-    final = min(tried, key=lambda c: abs(c - centre)) if tried else centre
-    depth = tried[final][1] + (centre - final) if tried else np.full(mask.shape, centre)
-    # within the basin found: the rounds with the shift that best explains each round's shape
-    # (fit_depth_offset), which is unbiased near the truth and measures finer than the search;
-    # with the noise level on the plane of the outline found, as the rounds had on their
-    # starting plane before the search (issue 15): at the settled shape it is ~3x lower on the
-    # demo's rig, and SBL's lambda = sigma^2 then too small for the model error there (0.283
-    # vs 0.265 deg; docs/solvers.md)
-    if set_noise is not None:
-        points = lights.points(mask.shape, rows[index], cols[index], np.full(index.size, centre))
-        set_noise(estimate_noise_near(observations, lights.vectors(points), valid))
-    shift = 0.0
-    for _ in range(max_rounds):
-        started = time.perf_counter()
-        normals = solve_normals(depth)
-        new = _anchored_heights(normals, mask, outline, centre, lights, integrate)
-        points = lights.points(mask.shape, rows[index], cols[index], new[rows, cols][index])
-        use = valid & np.isfinite(observations) & ~sample_solve(
-            observations, valid, lights.vectors(points)).outliers
-        shift = fit_depth_offset(observations, use, points, lights)
-        new = _anchored_heights(normals, mask, outline, centre + shift, lights, integrate)
-        change = float(np.max(np.abs(new - depth)[mask]))
-        depth = new
-        result.changes.append(change)
-        result.offsets.append(centre + shift)
-        result.seconds.append(time.perf_counter() - started)
-        if change < tolerance:
+    for _ in range(_OUTLINE_SEARCHES):
+        centre, depth = _search_outline(score, tried, centre, step, mask)
+        depth, shift = polish(centre, depth)
+        centre = round(centre + shift, 6)
+        if abs(shift) <= 2.0 * step:
             break
+        # the polish left the basin the search settled in (the score can be flat or bumpy far
+        # from the truth): search again from where it went
     result.depth = depth
-    result.outline = centre + shift
+    result.outline = centre
     return result
 
 
