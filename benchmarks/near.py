@@ -5,11 +5,14 @@ Usage (from the repository root):
     .venv/bin/python benchmarks/near.py sweep [--ratios 2 3 5 10 20]
     .venv/bin/python benchmarks/near.py speed
     .venv/bin/python benchmarks/near.py table [--focal-px 1500]
+    .venv/bin/python benchmarks/near.py outline
 
 ``table`` renders the second rig (``ps_lab.render.table_rig``: identical LEDs, spheres and object
 on one table, no matte sphere, 16-bit PNG, and its far twin), runs ``ps-lab calibrate`` with the
 two ``--sphere`` circles (plus the variants of the intensity model and the outline statement)
 and ``ps-lab reconstruct`` near / directional / far, and prints the table of docs/solvers.md.
+``outline`` measures the searched outline height's error on that rig over dome sizes and object
+heights (default options).
 
 ``sweep`` renders the scene of ``rigs/simulated-near.toml`` (400x300, a glossy relief of 200 px,
 two chrome spheres and a matte sphere of radius 50) with 24 LEDs on a dome of ``ratio`` x 200 px
@@ -223,6 +226,31 @@ def table(focal_px: float | None) -> None:
                       f"{e_near / e_far:.2f} | {record['outline_height_px']:.1f} |", flush=True)
 
 
+def outline() -> None:
+    print("| dome / object | object top (px) | outline found (truth −40) | mean height bias (px) "
+          "| near SBL | directional | rounds |")
+    print("|---|---|---|---|---|---|---|")
+    for dome in (360.0, 540.0, 900.0):
+        for top in (12.0, 30.0, 50.0):
+            rig = replace(TableRig(), dome_radius=dome, object_top=top)
+            spheres = [a for c in rig.spheres for a in ("--sphere", f"{c[0]:g},{c[1]:g},{c[2]:g}")]
+            with tempfile.TemporaryDirectory() as tmp:
+                near = Path(tmp) / "near"
+                scene = write_table_rig(near, rig)
+                _cli(["calibrate", str(near), *spheres])
+                _cli(["reconstruct", str(near), "--out", str(Path(tmp) / "n")])
+                _cli(["reconstruct", str(near), "--lights", "directional", "--out",
+                      str(Path(tmp) / "d")])
+                e_near, record = _mean(Path(tmp) / "n")
+                e_dir, _ = _mean(Path(tmp) / "d")
+                heights = np.load(Path(tmp) / "n" / "depth.npy")
+                mask = scene["mask"]
+                bias = np.mean(heights[mask] - (scene["height"][mask] - rig.spheres[0][2]))
+                print(f"| {dome / 180:g}x | {scene['height'][mask].max():.0f} | "
+                      f"{record['outline_height_px']:.1f} | {bias:+.2f} | {e_near:.3f} | "
+                      f"{e_dir:.2f} | {record['rounds']} |", flush=True)
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     sub = parser.add_subparsers(dest="command", required=True)
@@ -232,11 +260,14 @@ def main() -> None:
     sub.add_parser("speed")
     p = sub.add_parser("table")
     p.add_argument("--focal-px", type=float, default=None)
+    sub.add_parser("outline")
     args = parser.parse_args()
     if args.command == "sweep":
         sweep(args.ratios, None if args.no_threshold else THRESHOLD)
     elif args.command == "table":
         table(args.focal_px)
+    elif args.command == "outline":
+        outline()
     else:
         speed()
 
