@@ -4,6 +4,15 @@ Usage (from the repository root):
 
     .venv/bin/python benchmarks/near.py sweep [--ratios 2 3 5 10 20]
     .venv/bin/python benchmarks/near.py speed
+    .venv/bin/python benchmarks/near.py table [--focal-px 1500]
+    .venv/bin/python benchmarks/near.py outline
+
+``table`` renders the second rig (``ps_lab.render.table_rig``: identical LEDs, spheres and object
+on one table, no matte sphere, 16-bit PNG, and its far twin), runs ``ps-lab calibrate`` with the
+two ``--sphere`` circles (plus the variants of the intensity model and the outline statement)
+and ``ps-lab reconstruct`` near / directional / far, and prints the table of docs/solvers.md.
+``outline`` measures the searched outline height's error on that rig over dome sizes and object
+heights (default options).
 
 ``sweep`` renders the scene of ``rigs/simulated-near.toml`` (400x300, a glossy relief of 200 px,
 two chrome spheres and a matte sphere of radius 50) with 24 LEDs on a dome of ``ratio`` x 200 px
@@ -21,19 +30,27 @@ same problems) and the seconds per near-light round on the sweep's scene at 3x.
 from __future__ import annotations
 
 import argparse
+import json
 import os
 import platform
+import tempfile
 import time
+from dataclasses import replace
+from pathlib import Path
 
 import numpy as np
+from typer.testing import CliRunner
 
 from ps_lab import render
 from ps_lab.calibration import calibrate
+from ps_lab.cli import app
 from ps_lab.geometry import Circle
+from ps_lab.io.lights import read_light_positions
 from ps_lab.reconstruct import angular_errors_deg, solve
 from ps_lab.reconstruct._kernels import sbl_tile
 from ps_lab.reconstruct._near_kernels import sbl_tile_pp
 from ps_lab.reconstruct.near import NearLights, near_light_reconstruct
+from ps_lab.render.table_rig import TableRig, write_table_rig
 
 SHAPE = (300, 400)
 CHROME = (Circle(55.0, 55.0, 50.0), Circle(344.0, 244.0, 50.0))
@@ -159,6 +176,81 @@ def speed() -> None:
           "2 threads, wall time)")
 
 
+def _cli(args: list[str]) -> None:
+    result = CliRunner().invoke(app, args)
+    if result.exit_code != 0:
+        raise SystemExit(result.output)
+
+
+def _mean(folder: Path) -> tuple[float, dict]:
+    metrics = json.loads((folder / "metrics.json").read_text())
+    return metrics["angular_error_deg"]["mean"], metrics.get("near", {})
+
+
+def table(focal_px: float | None) -> None:
+    rig = replace(TableRig(), focal_px=focal_px)
+    spheres = [a for c in rig.spheres for a in ("--sphere", f"{c[0]:g},{c[1]:g},{c[2]:g}")]
+    lens = [] if focal_px is None else ["--focal-length", f"{focal_px / 100:g}",
+                                        "--pixel-pitch", "10"]
+    with tempfile.TemporaryDirectory() as tmp:
+        near, far = Path(tmp) / "near", Path(tmp) / "far"
+        scene = write_table_rig(near, rig)
+        write_table_rig(far, rig, far=True, reference_peak=scene["raw_peak"])
+        _cli(["calibrate", str(far), *spheres, *lens])
+        _cli(["reconstruct", str(far), "--out", str(Path(tmp) / "f")])
+        e_far, _ = _mean(Path(tmp) / "f")
+        h, w = rig.shape
+        truth = np.array(scene["leds"], dtype=float)
+        truth += [rig.origin_px[0] - (w - 1) / 2, (h - 1) / 2 - rig.origin_px[1],
+                  -rig.spheres[0][2]]
+        print(f"# table rig ({platform.node()}), focal length {focal_px or 'orthographic'}")
+        print("| intensities | outline | LED positions mean / max (%) | near | directional | "
+              "near / directional | far twin | near / far | outline found (px) |")
+        print("|---|---|---|---|---|---|---|---|---|")
+        for model in ("origin", "equal"):
+            for outline in ("searched", "stated (table)"):
+                extra = ["--led-intensities", model]
+                extra += ["--object", "table"] if outline != "searched" else []
+                for name in ("object_outline.txt",):
+                    (near / name).unlink(missing_ok=True)
+                _cli(["calibrate", str(near), *spheres, *lens, *extra])
+                positions = read_light_positions(near / "light_positions.txt")
+                error = 100 * np.linalg.norm(positions - truth, axis=1) / rig.dome_radius
+                _cli(["reconstruct", str(near), "--out", str(Path(tmp) / "n")])
+                _cli(["reconstruct", str(near), "--lights", "directional", "--out",
+                      str(Path(tmp) / "d")])
+                e_near, record = _mean(Path(tmp) / "n")
+                e_dir, _ = _mean(Path(tmp) / "d")
+                print(f"| {model} | {outline} | {error.mean():.2f} / {error.max():.2f} | "
+                      f"{e_near:.3f} | {e_dir:.2f} | {e_near / e_dir:.3f} | {e_far:.3f} | "
+                      f"{e_near / e_far:.2f} | {record['outline_height_px']:.1f} |", flush=True)
+
+
+def outline() -> None:
+    print("| dome / object | object top (px) | outline found (truth −40) | mean height bias (px) "
+          "| near SBL | directional | rounds |")
+    print("|---|---|---|---|---|---|---|")
+    for dome in (360.0, 540.0, 900.0):
+        for top in (12.0, 30.0, 50.0):
+            rig = replace(TableRig(), dome_radius=dome, object_top=top)
+            spheres = [a for c in rig.spheres for a in ("--sphere", f"{c[0]:g},{c[1]:g},{c[2]:g}")]
+            with tempfile.TemporaryDirectory() as tmp:
+                near = Path(tmp) / "near"
+                scene = write_table_rig(near, rig)
+                _cli(["calibrate", str(near), *spheres])
+                _cli(["reconstruct", str(near), "--out", str(Path(tmp) / "n")])
+                _cli(["reconstruct", str(near), "--lights", "directional", "--out",
+                      str(Path(tmp) / "d")])
+                e_near, record = _mean(Path(tmp) / "n")
+                e_dir, _ = _mean(Path(tmp) / "d")
+                heights = np.load(Path(tmp) / "n" / "depth.npy")
+                mask = scene["mask"]
+                bias = np.mean(heights[mask] - (scene["height"][mask] - rig.spheres[0][2]))
+                print(f"| {dome / 180:g}x | {scene['height'][mask].max():.0f} | "
+                      f"{record['outline_height_px']:.1f} | {bias:+.2f} | {e_near:.3f} | "
+                      f"{e_dir:.2f} | {record['rounds']} |", flush=True)
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     sub = parser.add_subparsers(dest="command", required=True)
@@ -166,9 +258,16 @@ def main() -> None:
     p.add_argument("--ratios", type=float, nargs="+", default=[2, 3, 5, 10, 20])
     p.add_argument("--no-threshold", action="store_true")
     sub.add_parser("speed")
+    p = sub.add_parser("table")
+    p.add_argument("--focal-px", type=float, default=None)
+    sub.add_parser("outline")
     args = parser.parse_args()
     if args.command == "sweep":
         sweep(args.ratios, None if args.no_threshold else THRESHOLD)
+    elif args.command == "table":
+        table(args.focal_px)
+    elif args.command == "outline":
+        outline()
     else:
         speed()
 

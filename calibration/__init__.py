@@ -21,7 +21,7 @@ from ps_lab.calibration._geometry import (
     light_directions_from_highlights,
 )
 from ps_lab.calibration._highlight import Highlight, locate_highlight
-from ps_lab.calibration._intensity import fit_light_intensities
+from ps_lab.calibration._intensity import fit_light_intensities, led_intensities_at_origin
 from ps_lab.calibration._probes import combine_probes
 from ps_lab.calibration._positions import Triangulation, reflected_rays, triangulate_lights
 from ps_lab.calibration._report import (
@@ -31,7 +31,13 @@ from ps_lab.calibration._report import (
     write_calibration,
     zenith_azimuth_deg,
 )
-from ps_lab.calibration._rig_spheres import rig_anisotropy, rig_chrome_spheres, rig_circles
+from ps_lab.calibration._rig_spheres import (
+    rig_anisotropy,
+    rig_chrome_spheres,
+    rig_circles,
+    rig_led_intensities,
+    rig_object_outline,
+)
 from ps_lab.calibration._spheres import chrome_score, circle_residual
 
 __all__ = [
@@ -53,6 +59,7 @@ __all__ = [
     "fit_circle",
     "fit_light_intensities",
     "highlights_from_light_directions",
+    "led_intensities_at_origin",
     "light_directions_from_highlights",
     "locate_highlight",
     "reflected_rays",
@@ -60,6 +67,8 @@ __all__ = [
     "rig_anisotropy",
     "rig_chrome_spheres",
     "rig_circles",
+    "rig_led_intensities",
+    "rig_object_outline",
     "summary_image",
     "triangulate_lights",
     "write_calibration",

@@ -15,7 +15,7 @@ import numpy as np
 from ps_lab.calibration._circle import Circle, circle_inside_image, refine_circle, summary_image
 from ps_lab.calibration._geometry import light_directions_from_highlights
 from ps_lab.calibration._highlight import Highlight, locate_highlight
-from ps_lab.calibration._intensity import fit_light_intensities
+from ps_lab.calibration._intensity import fit_light_intensities, led_intensities_at_origin
 from ps_lab.calibration._positions import (
     MIN_RAY_ANGLE_DEG,
     Triangulation,
@@ -24,6 +24,7 @@ from ps_lab.calibration._positions import (
 )
 from ps_lab.calibration._spheres import LimbImages, chrome_sphere, other_spheres
 from ps_lab.errors import CalibrationError
+from ps_lab.geometry import Camera
 
 
 @dataclass
@@ -77,6 +78,14 @@ class Calibration:
         What the limb was fitted on: ``"frames"`` or ``"outline frame"``.
     metadata : dict
         Free-form facts recorded in calibration.json (the image encoding, the probes).
+    intensity_source : str
+        How ``light_intensities`` were obtained (``calibration.json``).
+    object_outline : float or None
+        Height of the object's outline above the spheres' plane (pixels) when stated
+        (``object_outline.txt``); None: ``ps-lab reconstruct`` finds it.
+    camera : Camera or None
+        With LED positions and a focal length: the perspective camera they were triangulated
+        through (``camera.txt``: ``f cx cy`` in pixels), which near-light solving then uses.
 
     """
 
@@ -102,6 +111,9 @@ class Calibration:
     estimators: list[str] = field(default_factory=list)
     outline_source: str = "frames"
     metadata: dict = field(default_factory=dict)
+    intensity_source: str = "all ones (no matte target)"
+    object_outline: float | None = None
+    camera: Camera | None = None
 
     @property
     def light_positions(self) -> np.ndarray | None:
@@ -165,6 +177,8 @@ def calibrate(
     anisotropy: float = 0.0,
     pixel_size: float | None = None,
     outline: np.ndarray | None = None,
+    led_intensities: str | np.ndarray = "equal",
+    object_outline: str | float | None = None,
 ) -> Calibration:
     """Calibrate light directions (and intensities) from a chrome sphere seen in every frame.
 
@@ -206,6 +220,14 @@ def calibrate(
     outline : ndarray of shape (H, W) or (H, W, C), optional
         A frame in which the spheres' outlines are visible (room light, PSBox's ``ref.JPG``):
         the outlines are found and fitted on it instead of on the frames.
+    led_intensities : {"equal", "origin"} or ndarray of shape (n,) or (n, 3)
+        Without a matte sphere, with LED positions: the LEDs' intensity model
+        (:func:`._intensity.led_intensities_at_origin`; default identical LEDs). Ignored with a
+        matte sphere and with one chrome sphere (then all ones, or the array as given).
+    object_outline : "table", float or None
+        Where the object's outline lies (near lights): ``"table"`` on the table the chrome
+        spheres rest on (their mean radius below the spheres' plane), or a height in pixels
+        above that plane; None: not stated.
 
     Returns
     -------
@@ -247,18 +269,37 @@ def calibrate(
         circle_uncertainty_px(residual, len(points)), to_directions,
     )
     triangulation = None
+    camera = None
+    if focal_length_px is not None:
+        camera = Camera(float(focal_length_px), tuple(map(float, principal_point)))  # type: ignore[arg-type]
     if others:
-        if focal_length_px is not None:
-            raise CalibrationError("LED positions from several spheres need an orthographic camera")
         triangulation = _triangulate(
             stack, circle, highlights, others, saturated, safe_radius, names, progress, warnings,
             uncertainty,
+            camera,
         )
         directions = triangulation.light_directions
     matte_circle, intensities = _matte_intensities(
         stack, summary, directions, saturated, matte_sphere, matte_hint, warnings,
         None if triangulation is None else triangulation.positions, anisotropy,
     )
+    intensity_source = (
+        "matte sphere fit" if matte_circle is not None else "all ones (no matte target)"
+    )
+    if matte_circle is None and triangulation is not None:
+        intensities, intensity_source = led_intensities_at_origin(
+            triangulation.positions, led_intensities
+        )
+    elif matte_circle is None and not isinstance(led_intensities, str):
+        intensities, intensity_source = led_intensities_at_origin(
+            np.full((n, 3), np.nan), led_intensities
+        )
+    if isinstance(object_outline, str):
+        if object_outline != "table":
+            raise CalibrationError(f"object outline {object_outline!r}: give table or a number")
+        outline_height = -float(np.mean([c.radius for c in [circle, *others]]))
+    else:
+        outline_height = None if object_outline is None else float(object_outline)
     preview, preview_origin = _preview(stack, circle)
     return Calibration(
         circle=circle,
@@ -282,6 +323,9 @@ def calibrate(
         uncertainty_deg=uncertainty,
         estimators=[hl.estimator for hl in found],
         outline_source="frames" if outline is None else "outline frame",
+        intensity_source=intensity_source,
+        object_outline=outline_height,
+        camera=camera if triangulation is not None else None,
     )
 
 
@@ -372,6 +416,7 @@ def _triangulate(
     progress: Callable[[int], None] | None,
     warnings: list[str],
     uncertainty: np.ndarray | None = None,
+    camera: Camera | None = None,
 ) -> Triangulation:
     """Every light's reflected ray on every sphere, intersected; warnings for far lights.
 
@@ -385,7 +430,7 @@ def _triangulate(
         if hl is None:
             found = _highlights(stack, c, saturated, safe_radius, names, progress)
             hl = np.array([[f.x, f.y] for f in found])
-        o, d = reflected_rays(hl, c, shape)
+        o, d = reflected_rays(hl, c, shape, camera)
         origins.append(o)
         directions.append(d)
     result = triangulate_lights(

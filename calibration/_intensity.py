@@ -1,4 +1,4 @@
-"""Relative light intensities from the shading of a matte (Lambertian) sphere."""
+"""Relative light intensities: from a matte (Lambertian) sphere, or the LEDs' intensity model."""
 
 from __future__ import annotations
 
@@ -134,3 +134,61 @@ def fit_light_intensities(
     if c == 1:
         out = np.repeat(out, 3, axis=1)
     return out, warnings
+
+
+LED_INTENSITY_MODELS = ("equal", "origin")
+
+
+def led_intensities_at_origin(
+    light_positions: np.ndarray, model: str | np.ndarray = "equal"
+) -> tuple[np.ndarray, str]:
+    """Each LED's intensity at the scene origin (``e_j`` of the near-light model), no matte target.
+
+    A point source of radiant intensity ``I_j`` (its axis aimed at the origin O, so its
+    ``cos^mu`` emission is 1 there) gives O the irradiance ``I_j / |P_j - O|^2``:
+
+    - ``"equal"`` (default): identical LEDs, equal radiant intensity, ``e_j ∝ 1 / |P_j|^2``;
+    - ``"origin"``: equal irradiance at O, ``e_j = 1`` (what "all ones" meant before);
+    - an array (n,) or (n, 3): each LED's relative radiant intensity (a per-LED file),
+      ``e_j ∝ I_j / |P_j|^2``.
+
+    Lights without a position (NaN rows: directional) get the mean of the placed ones (times
+    their ``I_j`` for an array). The result is normalised to mean 1 over lights and channels.
+
+    Parameters
+    ----------
+    light_positions : ndarray of shape (n, 3)
+        Scene-frame LED positions (pixels), NaN rows for directional lights.
+    model : {"equal", "origin"} or ndarray of shape (n,) or (n, 3)
+        The intensity model, or each LED's relative radiant intensity.
+
+    Returns
+    -------
+    intensities : ndarray of shape (n, 3)
+    source : str
+        What they are, for ``calibration.json``.
+    """
+    pos = np.asarray(light_positions, dtype=np.float64).reshape(-1, 3)
+    n = pos.shape[0]
+    if isinstance(model, str):
+        if model not in LED_INTENSITY_MODELS:
+            raise CalibrationError(
+                f"unknown LED intensity model {model!r} (choose equal, origin or a file)"
+            )
+        radiant = np.ones((n, 3))
+        if model == "origin":
+            return radiant, "equal irradiance at the scene origin (no matte target)"
+        source = "identical LEDs: equal radiant intensity, 1/d^2 to the scene origin"
+    else:
+        radiant = np.asarray(model, dtype=np.float64).reshape(n, -1)
+        radiant = np.repeat(radiant, 3, axis=1) if radiant.shape[1] == 1 else radiant
+        if radiant.shape != (n, 3) or not np.all(np.isfinite(radiant)) or np.any(radiant <= 0):
+            raise CalibrationError(f"LED intensities must be {n} positive rows (1 or 3 values)")
+        source = "per-LED radiant intensities from a file, 1/d^2 to the scene origin"
+    placed = np.all(np.isfinite(pos), axis=1)
+    falloff = np.ones(n)
+    if placed.any():
+        falloff[placed] = 1.0 / np.einsum("nk,nk->n", pos[placed], pos[placed])
+        falloff[~placed] = falloff[placed].mean()
+    out = radiant * falloff[:, None]
+    return out / out.mean(), source

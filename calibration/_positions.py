@@ -18,7 +18,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ps_lab.calibration._circle import Circle
-from ps_lab.geometry import scene_points
+from ps_lab.geometry import Camera, scene_points
 
 _VIEW = np.array([0.0, 0.0, 1.0])
 # Rays of one light closer than this to parallel cannot place it: it is too far for the baseline
@@ -59,7 +59,7 @@ class Triangulation:
 
 
 def reflected_rays(
-    highlights: np.ndarray, circle: Circle, shape: tuple[int, int]
+    highlights: np.ndarray, circle: Circle, shape: tuple[int, int], camera: Camera | None = None
 ) -> tuple[np.ndarray, np.ndarray]:
     """Rays from a chrome sphere's highlight points toward the lights.
 
@@ -71,6 +71,12 @@ def reflected_rays(
         The sphere's outline; its centre lies in the spheres' plane.
     shape : (H, W)
         Image size (the frame's origin is the image centre).
+    camera : Camera, optional
+        Perspective (:class:`ps_lab.geometry.Camera`): the sphere's centre is where its circle
+        centre's ray meets the spheres' plane, its radius the circle's (the magnification is 1
+        there, to first order in the sphere's angular size), and each highlight is where its
+        pixel's ray meets the sphere (the closest approach for a ray just past the limb); the
+        view vector is that ray's, reversed.
 
     Returns
     -------
@@ -80,6 +86,8 @@ def reflected_rays(
         Unit mirror reflections of the view vector, ``2 (n.v) n - v``.
     """
     hl = np.asarray(highlights, dtype=np.float64).reshape(-1, 2)
+    if camera is not None:
+        return _perspective_rays(hl, circle, shape, camera)
     cx, cy, r = circle
     nx = (hl[:, 0] - cx) / r
     ny = -(hl[:, 1] - cy) / r
@@ -90,6 +98,27 @@ def reflected_rays(
     normals = np.column_stack([nx, ny, nz])
     centre = scene_points(shape, [cy], [cx], 0.0)[0]
     directions = 2.0 * nz[:, None] * normals - _VIEW[None, :]
+    directions /= np.linalg.norm(directions, axis=1, keepdims=True)
+    return centre[None, :] + r * normals, directions
+
+
+def _perspective_rays(hl, circle, shape, camera):
+    """:func:`reflected_rays` through a perspective camera."""
+    cx, cy, r = circle
+    centre = scene_points(shape, [cy], [cx], 0.0)[0]
+    eye = camera.centre(shape)
+    through = scene_points(shape, hl[:, 1], hl[:, 0], np.zeros(len(hl)))  # on the plane
+    d = through - eye[None, :]
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    offset = eye - centre
+    b = d @ offset
+    c = float(offset @ offset) - r * r
+    t = -b - np.sqrt(np.clip(b * b - c, 0.0, None))
+    surface = eye[None, :] + t[:, None] * d
+    normals = surface - centre[None, :]
+    normals /= np.linalg.norm(normals, axis=1, keepdims=True)
+    view = -d
+    directions = 2.0 * np.einsum("nk,nk->n", normals, view)[:, None] * normals - view
     directions /= np.linalg.norm(directions, axis=1, keepdims=True)
     return centre[None, :] + r * normals, directions
 

@@ -28,7 +28,9 @@ OUTPUT_FILES = (
 )
 # Written with two or more chrome spheres (LED positions); removed from the output folder otherwise,
 # so an earlier near-light calibration cannot outlive a new one.
-POSITION_FILES = ("light_positions.txt", "light_anisotropy.txt")
+POSITION_FILES = (
+    "light_positions.txt", "light_anisotropy.txt", "object_outline.txt", "camera.txt"
+)
 #: The LED positions as a RelightLab dome (``ps_lab.io.lights.write_dome``).
 DOME_FILE = "lights.dome"
 _RAY_COLOURS = ((255, 170, 60), (60, 170, 255), (200, 90, 230), (90, 230, 200))
@@ -108,9 +110,8 @@ def calibration_record(calibration: Calibration) -> dict:
             "center": [round(cal.matte_circle.x, 4), round(cal.matte_circle.y, 4)],
             "radius": round(cal.matte_circle.radius, 4),
         },
-        "intensities": "matte sphere fit"
-        if cal.matte_circle is not None
-        else "all ones (no matte target)",
+        "intensities": cal.intensity_source,
+        "object_outline_px": cal.object_outline,
         "lights": lights,
         "warnings": list(cal.warnings),
     }
@@ -361,6 +362,15 @@ def write_calibration(calibration: Calibration, out_dir: Path) -> dict[str, Path
                     anisotropy = np.full((count, 1), calibration.anisotropy)
                     np.savetxt(staging / POSITION_FILES[1], anisotropy, fmt="%.6f")
                     names.append(POSITION_FILES[1])
+                if calibration.object_outline is not None:
+                    np.savetxt(staging / POSITION_FILES[2], [calibration.object_outline],
+                               fmt="%.6f")
+                    names.append(POSITION_FILES[2])
+                if calibration.camera is not None:
+                    f, (cx, cy) = calibration.camera
+                    np.savetxt(staging / POSITION_FILES[3], [[f, cx, cy]], fmt="%.6f",
+                               header="focal length and principal point (x, y), pixels")
+                    names.append(POSITION_FILES[3])
             if not cv2.imwrite(str(staging / "calibration.png"), picture):
                 raise OSError("PNG encoder failed")
         for name in (*POSITION_FILES, DOME_FILE):

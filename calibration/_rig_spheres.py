@@ -46,6 +46,18 @@ def rig_anisotropy(manifest: dict | None) -> float:
     return float(value) if isinstance(value, int | float) else 0.0
 
 
+def rig_object_outline(manifest: dict | None) -> str | float | None:
+    """Where the rig file says the object's outline lies (``[calibration] object_outline``)."""
+    value = (calibration_target(manifest) or {}).get("object_outline")
+    return value if isinstance(value, str | int | float) and not isinstance(value, bool) else None
+
+
+def rig_led_intensities(manifest: dict | None) -> str:
+    """The rig file's LED intensity model without a matte target (``"equal"`` when absent)."""
+    value = (calibration_target(manifest) or {}).get("led_intensities")
+    return value if isinstance(value, str) else "equal"
+
+
 def rig_circles(manifest: dict | None) -> tuple[Circle | None, Circle | None]:
     """Nominal chrome and matte sphere circles from a capture run's rig snapshot.
 

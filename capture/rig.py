@@ -60,6 +60,9 @@ OPERATIONAL_KEYS = (
 # --------------------------------------------------------------------------------------------
 
 
+LED_INTENSITY_MODELS = ("equal", "origin")
+
+
 @dataclass(frozen=True)
 class ControllerConfig:
     """``[controller]``: the light controller."""
@@ -116,6 +119,14 @@ class CalibrationConfig:
     matte_sphere: Circle | None = None
     # Every chrome sphere (``chrome_sphere`` is the first): two or more give LED positions.
     chrome_spheres: tuple[Circle, ...] = ()
+    # Where the object's outline lies (near lights): "table" (on the table the chrome spheres
+    # rest on: their radius below their centres), a height in pixels above the spheres' centre
+    # plane, or None (found from the shading by `ps-lab reconstruct`).
+    object_outline: str | float | None = None
+    # LEDs' intensities without a matte target: "equal" (identical LEDs: equal radiant
+    # intensity) or "origin" (equal irradiance at the scene origin); a per-LED file is given to
+    # `ps-lab calibrate --led-intensities FILE`.
+    led_intensities: str = "equal"
 
 
 @dataclass(frozen=True)
@@ -196,6 +207,11 @@ class Rig:
                 {"center": list(c.center), "radius": c.radius}
                 for c in self.calibration.chrome_spheres
             ]
+        # near-light statements, recorded only when set (older runs' snapshots stay equal)
+        if self.calibration.object_outline is not None:
+            cal["object_outline"] = self.calibration.object_outline
+        if self.calibration.led_intensities != "equal":
+            cal["led_intensities"] = self.calibration.led_intensities
         snap["calibration"] = cal
         return snap
 
@@ -509,10 +525,18 @@ def _parse_calibration(t: _Table) -> CalibrationConfig:
         raise t.error("chrome_spheres", "give chrome_sphere or chrome_spheres, not both")
     if chrome is not None:
         spheres = (_parse_circle(chrome),)
+    outline = t.data.get("object_outline")
+    if isinstance(outline, str):
+        outline = t.str("object_outline", choices=("table",))
+    elif outline is not None:
+        outline = t.float("object_outline", lo=-1e6, hi=1e6)
+    t.used.add("object_outline")
     cfg = CalibrationConfig(
         chrome_sphere=spheres[0] if spheres else None,
         matte_sphere=_parse_circle(matte) if matte is not None else None,
         chrome_spheres=spheres,
+        object_outline=outline,
+        led_intensities=t.str("led_intensities", "equal", choices=LED_INTENSITY_MODELS),
     )
     t.done()
     return cfg

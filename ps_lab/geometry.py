@@ -48,8 +48,31 @@ def frame_origin(shape: tuple[int, int]) -> tuple[float, float]:
     return (w - 1) / 2.0, (h - 1) / 2.0
 
 
+class Camera(NamedTuple):
+    """A perspective camera for near lights: focal length and principal point, in pixels.
+
+    In the scene frame (units: pixels *at the spheres' plane*, where the magnification is 1) the
+    camera's centre is ``(cx - ox, oy - cy, f)``, ``f`` above the plane, with ``(ox, oy)`` the
+    frame origin (:func:`frame_origin`): pixel (row, col) sees the ray from the centre through the
+    plane point ``(col - ox, oy - row, 0)``.
+    """
+
+    focal_length: float
+    principal_point: tuple[float, float]
+
+    def centre(self, shape: tuple[int, int]) -> np.ndarray:
+        """(3,) the camera's centre in the scene frame."""
+        ox, oy = frame_origin(shape)
+        cx, cy = self.principal_point
+        return np.array([cx - ox, oy - cy, self.focal_length])
+
+
 def scene_points(
-    shape: tuple[int, int], rows: np.ndarray, cols: np.ndarray, heights: np.ndarray
+    shape: tuple[int, int],
+    rows: np.ndarray,
+    cols: np.ndarray,
+    heights: np.ndarray,
+    camera: Camera | None = None,
 ) -> np.ndarray:
     """Scene-frame points of pixels at given heights above the spheres' plane.
 
@@ -61,17 +84,25 @@ def scene_points(
         Pixel rows and columns (may be fractional).
     heights : ndarray of shape (m,) or float
         z of each point (pixel units).
+    camera : Camera, optional
+        Perspective: each point lies on its pixel's ray. Default orthographic.
 
     Returns
     -------
     ndarray of shape (m, 3)
-        ``(col - (W-1)/2, (H-1)/2 - row, z)``.
+        Orthographic ``(col - (W-1)/2, (H-1)/2 - row, z)``; perspective
+        ``(cx - ox + (col - cx) s, oy - cy + (cy - row) s, z)`` with ``s = (f - z) / f``.
     """
     ox, oy = frame_origin(shape)
     cols = np.asarray(cols, dtype=np.float64)
     rows = np.asarray(rows, dtype=np.float64)
     z = np.broadcast_to(np.asarray(heights, dtype=np.float64), cols.shape)
-    return np.column_stack([cols - ox, oy - rows, z])
+    if camera is None:
+        return np.column_stack([cols - ox, oy - rows, z])
+    f = float(camera.focal_length)
+    cx, cy = camera.principal_point
+    s = (f - z) / f
+    return np.column_stack([cx - ox + (cols - cx) * s, oy - cy + (cy - rows) * s, z])
 
 
 def near_light_vectors(

@@ -10,6 +10,7 @@ shadow threshold first. The flow that calls them is
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import time
 from collections.abc import Callable
@@ -19,18 +20,18 @@ from typing import Any
 
 import numpy as np
 
-from ps_lab.geometry import scene_points
 from ps_lab.io.bands import ObservationStore
 from ps_lab.io.dataset import DatasetHeader
 from ps_lab.reconstruct._bands import BandResult
 from ps_lab.reconstruct._outputs import _OutputWriter
 from ps_lab.reconstruct._refine import fit_lights
 from ps_lab.reconstruct._shadows import black_threshold
+from ps_lab.reconstruct._solution import SolverInputError
 from ps_lab.reconstruct._solve import estimate_noise_model, light_noise_factors
 from ps_lab.reconstruct.near import (
     NearLights,
     NearRounds,
-    estimate_noise_near,
+    fit_near_intensities,
     near_light_rounds,
     solve_near,
 )
@@ -49,6 +50,7 @@ class SolveInput:
     mask: np.ndarray
     truth: Any
     near: NearLights | None = None  # lights at a finite distance, when the options choose them
+    outline: float | None = None  # the object's outline height the dataset states (near lights)
 
 
 @dataclass
@@ -176,10 +178,16 @@ def solve_near_bands(
 
     Each round solves every band with per-pixel light vectors at the current depth
     (:func:`ps_lab.reconstruct.near.solve_near`) into a whole-image normal map, which
-    :func:`ps_lab.reconstruct.near.near_light_rounds` integrates to depth; the noise level is
-    estimated once, on the store's sample at the starting plane, so bands agree. The final pass
-    at the settled depth hands every band to ``writer``; ``depth.npy`` (heights above the spheres'
-    plane, pixel units, NaN off the mask) is written beside the normals.
+    :func:`ps_lab.reconstruct.near.near_light_rounds` integrates to depth (the outline's height
+    as stated by the options or the dataset's ``object_outline.txt``, else searched); the noise
+    level is estimated on the store's sample, so bands agree. The final pass at the settled depth
+    hands every band to ``writer``; ``depth.npy`` (heights above the spheres' plane, pixel
+    units, NaN off the mask) is written beside the normals.
+
+    With ``options.refine_lights`` = K, K times: the rounds settle, then every light's relative
+    intensity is re-fitted on the store's sample at the settled points
+    (:func:`ps_lab.reconstruct.near.fit_near_intensities`) and the rounds run again; the refined
+    intensities are returned (``light_intensities.txt`` of the result).
     """
     started = time.perf_counter()
     lights, mask = source.near, store.mask
@@ -188,12 +196,10 @@ def solve_near_bands(
     method = options.method
     fixed: dict = {}
     sample = (store.sample_observations, store.sample_valid, store.sample_index)
+    set_noise = None
     if method != "ls" and store.sample_index.size:
-        index = store.sample_index
-        plane = scene_points(mask.shape, rows[index], cols[index], np.zeros(index.size))
-        fixed["noise_sigma"] = estimate_noise_near(
-            store.sample_observations, lights.vectors(plane), store.sample_valid
-        )
+        # the same level for every band, re-estimated on the sample at each height tried
+        set_noise = lambda sigma: fixed.__setitem__("noise_sigma", sigma)  # noqa: E731
     params: dict = {}
 
     def solve_pass(depth: np.ndarray, advance, final: bool) -> np.ndarray:
@@ -206,7 +212,7 @@ def solve_near_bands(
                 valid &= observations > black[:, None]
             pixels = slice(band.pixel_start, band.pixel_start + band.pixel_count)
             r, c = rows[pixels], cols[pixels]
-            vectors = lights.vectors(scene_points(mask.shape, r, c, depth[r, c]))
+            vectors = lights.vectors(lights.points(mask.shape, r, c, depth[r, c]))
             solution = solve_near(
                 observations, vectors, method=method, valid=valid, threads=options.threads,
                 progress=advance, **fixed, **options.solver_parameters(),
@@ -221,6 +227,9 @@ def solve_near_bands(
         return solve_near(observations, vectors, method=method, valid=valid,
                           threads=options.threads, **fixed, **options.solver_parameters())
 
+    outline = options.object_outline if options.object_outline is not None else source.outline
+    factors = np.ones(store.n_lights)
+    history: list[dict] = [{"iteration": 0}] if options.refine_lights else []
     with bars(store.pixels, f"{method} (near lights): round 1") as advance:
         round_count = [0]
 
@@ -229,13 +238,58 @@ def solve_near_bands(
             advance(0, description=f"{method} (near lights): round {round_count[0]}")
             return solve_pass(depth, advance, final=False)
 
-        rounds = near_light_rounds(round_normals, mask, lights, sample, sample_solve)
+        for k in range(options.refine_lights + 1):
+            rounds = near_light_rounds(round_normals, mask, lights, sample, sample_solve,
+                                       outline_depth=outline, set_noise=set_noise)
+            if k == options.refine_lights:
+                break
+            lights, step = _refine_near_intensities(lights, rounds, store, sample_solve)
+            factors = lights.intensities
+            history.append({"iteration": k + 1, **step})
+            log.info("near intensity refinement %d: rms change %.3f %%, conditioning %.3g",
+                     k + 1, step["intensity_change_rms_pct"], step["conditioning"])
         advance(0, description=f"{method} (near lights): final pass")
         solve_pass(rounds.depth, advance, final=True)
     np.save(stage / "depth.npy", np.where(mask, rounds.depth, np.nan).astype(np.float32))
     log.info("near lights: %d rounds, depth changes %s px", len(rounds.changes), rounds.changes)
     listed = None if black is None else black.tolist()
-    return Solved(params, None, None, [], time.perf_counter() - started, rounds, listed)
+    intensities = None
+    if options.refine_lights:
+        params["refine_iterations"] = options.refine_lights
+        intensities = source.header.light_intensities * factors.reshape(-1, 1)
+        if outline is None:
+            log.warning("near-light intensities refined with the outline's height unknown: the "
+                        "two trade off (docs/solvers.md); state it with calibrate --object")
+    return Solved(params, None, intensities, history, time.perf_counter() - started, rounds,
+                  listed)
+
+
+def _refine_near_intensities(lights: NearLights, rounds: NearRounds, store: ObservationStore,
+                             sample_solve) -> tuple[NearLights, dict]:
+    """One intensity refinement step on the store's sample at the rounds' settled points."""
+    rows, cols = np.nonzero(store.mask)
+    index = store.sample_index
+    points = lights.points(store.mask.shape, rows[index], cols[index],
+                          rounds.depth[rows[index], cols[index]])
+    vectors = lights.vectors(points)
+    observations, valid = store.sample_observations, store.sample_valid
+    use = valid & np.isfinite(observations) & ~sample_solve(observations, valid, vectors).outliers
+    current = lights.intensities if np.size(lights.intensities) else np.ones(store.n_lights)
+    try:
+        factors, conditioning = fit_near_intensities(observations, use, vectors)
+    except SolverInputError as exc:
+        log.warning("near-light intensities kept: %s", exc)
+        factors, conditioning = np.ones(current.size), float("nan")
+    updated = current * factors
+    updated = updated / updated.mean()
+    change = 100.0 * (factors - 1.0)
+    step = {
+        "intensity_change_rms_pct": float(np.sqrt(np.mean(change ** 2))),
+        "intensity_change_max_pct": float(np.abs(change).max()),
+        "conditioning": conditioning,
+        "outline_height_px": rounds.outline,
+    }
+    return dataclasses.replace(lights, intensities=updated), step
 
 
 # --- one solve pass over the bands ----------------------------------------------------------

@@ -151,6 +151,11 @@ class ReconstructOptions:
         metadata, sRGB for JPEG).
     normal_map : {"opengl", "directx"}
         The y axis of ``normal16.png`` and ``normals.exr``: up (OpenGL) or down (DirectX).
+    object_outline : float or None
+        Near lights: height of the object's outline above the spheres' plane (pixels; for an
+        object on the spheres' table, minus their radius). None: the dataset's
+        ``object_outline.txt`` (``ps-lab calibrate --object``), else found from the shading
+        (:func:`ps_lab.reconstruct.near.near_light_rounds`).
     """
 
     method: str = "sbl"
@@ -171,6 +176,7 @@ class ReconstructOptions:
     depth: str | None = None
     encoding: str = "auto"
     normal_map: str = "opengl"
+    object_outline: float | None = None
 
     def __post_init__(self) -> None:
         if self.encoding not in ENCODINGS:
@@ -186,6 +192,8 @@ class ReconstructOptions:
         _check_solver_options(self)
         if self.shadow_threshold is not None and not math.isfinite(self.shadow_threshold):
             raise OutputError(f"--shadow-threshold {self.shadow_threshold} is not a finite number")
+        if self.object_outline is not None and not math.isfinite(self.object_outline):
+            raise OutputError(f"object outline height {self.object_outline} is not finite")
         if self.staging not in STAGING:
             raise OutputError(f"staging must be auto, memory or file, got {self.staging!r}")
         if self.lights not in LIGHT_MODELS:

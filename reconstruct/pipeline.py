@@ -33,6 +33,7 @@ from typing import Any
 import numpy as np
 
 from ps_lab.errors import DatasetError, OutputError
+from ps_lab.geometry import Camera
 from ps_lab.io.bands import ObservationStore, plan_bands
 from ps_lab.io.dataset import DatasetHeader, open_dataset
 from ps_lab.io.encoding import frames_encoding
@@ -230,7 +231,8 @@ def _read(dataset: Path, options: ReconstructOptions) -> SolveInput:
     header = open_dataset(dataset, channel=options.channel, encoding=options.encoding)
     assert header.shape is not None
     near = _near_lights(header, options)
-    return SolveInput(header, header.read_mask(), open_normal_gt(header.root, header.shape), near)
+    truth = open_normal_gt(header.root, header.shape)
+    return SolveInput(header, header.read_mask(), truth, near, header.object_outline)
 
 
 def _near_lights(header: DatasetHeader, options: ReconstructOptions) -> NearLights | None:
@@ -243,9 +245,10 @@ def _near_lights(header: DatasetHeader, options: ReconstructOptions) -> NearLigh
             f"{header.root}: --lights near needs light_positions.txt "
             "(calibrate with two chrome spheres)"
         )
-    if options.refine_lights:
+    if options.refine_lights and options.fixed_intensities:
         raise DatasetError(
-            "--refine-lights refines directional lights: add --lights directional"
+            "--fixed-intensities: near lights refine intensities only (positions stay); "
+            "add --lights directional to refine directions"
         )
     if options.method == "rpca":
         raise DatasetError("rpca needs one light matrix for all pixels: add --lights directional")
@@ -253,7 +256,11 @@ def _near_lights(header: DatasetHeader, options: ReconstructOptions) -> NearLigh
         raise DatasetError("--scheduler solves directional lights only: add --lights directional")
     n = len(header.names)
     anisotropy = header.light_anisotropy if header.light_anisotropy is not None else np.zeros(n)
-    return NearLights(positions, header.light_directions, anisotropy)
+    camera = None
+    if header.camera is not None:
+        f, cx, cy = header.camera
+        camera = Camera(f, (cx, cy))
+    return NearLights(positions, header.light_directions, anisotropy, camera=camera)
 
 
 @contextmanager

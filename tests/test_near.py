@@ -186,7 +186,9 @@ def test_near_light_sbl_against_directional() -> None:
     assert e_dir > 5.0
     assert e_near < 0.1 * e_dir
     assert e_near < 0.5
-    assert 2 <= len(rounds.changes) <= 5 and rounds.changes[-1] < 0.5
+    # the outline's height searched (no statement), then the last height settled
+    assert rounds.outline_source == "fitted" and rounds.changes[-1] < 0.5
+    assert len(rounds.offsets) <= 3 * 8
     depth_error = rounds.depth[surface.mask] - surface.height[surface.mask]
     assert abs(depth_error.mean()) < 1.5
 
@@ -235,11 +237,16 @@ def test_near_rig_end_to_end(tmp_path: Path) -> None:
     assert e_near <= 0.1 * e_dir, (e_near, e_dir)  # target 1/4
     assert e_near <= 1.3 * e_far, (e_near, e_far)  # target 1.5x
     metrics = json.loads((near_run / "near" / "metrics.json").read_text())
-    assert metrics["light_model"] == "near" and metrics["near"]["rounds"] <= 5
+    assert metrics["light_model"] == "near" and metrics["near"]["rounds"] <= 30
+    print(f"near-rig end to end: LED mean {error.mean():.4f} max {error.max():.4f}, "
+          f"near {e_near:.3f} directional {e_dir:.3f} far {e_far:.3f}, outline "
+          f"{metrics['near']['outline_height_px']} px")
     assert (near_run / "near" / "depth.npy").is_file()
 
 
-@pytest.mark.parametrize("args", [["--refine-lights", "1"], ["--method", "rpca"]])
+@pytest.mark.parametrize(
+    "args", [["--refine-lights", "1", "--fixed-intensities"], ["--method", "rpca"]]
+)
 def test_near_lights_refuse_what_they_cannot_do(tmp_path: Path, args: list[str]) -> None:
     h, w = 12, 16
     folder = tmp_path / "data"

@@ -15,6 +15,8 @@ from ps_lab.calibration import (
     rig_anisotropy,
     rig_chrome_spheres,
     rig_circles,
+    rig_led_intensities,
+    rig_object_outline,
     write_calibration,
 )
 from ps_lab.commands.reconstruct import Encoding, EncodingOption
@@ -22,6 +24,7 @@ from ps_lab.errors import CalibrationError
 from ps_lab.io.dataset import Frames, load_frames
 from ps_lab.io.encoding import frames_encoding
 from ps_lab.io.images import read_image
+from ps_lab.io.lights import read_led_intensities
 
 
 def circle_in_image(circle: tuple[float, ...], width: int, height: int) -> bool:
@@ -83,6 +86,25 @@ def calibrate(
         float | None,
         typer.Option(min=0.0, help="Millimetres per pixel: LED positions also reported in mm."),
     ] = None,
+    object_outline: Annotated[
+        str | None,
+        typer.Option(
+            "--object",
+            metavar="<table|z>",
+            help="Near lights: where the object's outline lies, 'table' (on the table the "
+            "spheres rest on) or its height in pixels above the spheres' centres (default: rig "
+            "file, else reconstruct finds it).",
+        ),
+    ] = None,
+    led_intensities: Annotated[
+        str | None,
+        typer.Option(
+            metavar="<equal|origin|file>",
+            help="Near lights without a matte sphere: 'equal' (identical LEDs, the default), "
+            "'origin' (equal irradiance at the scene origin) or a file of each LED's relative "
+            "radiant intensity (one row per light).",
+        ),
+    ] = None,
     encoding: EncodingOption = Encoding.auto,
     outline_frame: Annotated[
         list[Path] | None,
@@ -132,7 +154,8 @@ def calibrate(
         if outline_frame:
             outline = _side_frame(outline_frame[k], frames, encoding.value, "outline frame")
         result = _calibrate_folder(
-            frames, spheres, sphere_c, matte_c, roi_v, safe_radius, focal_px, pixel_size, outline
+            frames, spheres, sphere_c, matte_c, roi_v, safe_radius, focal_px, pixel_size, outline,
+            *_near_models(frames, object_outline, led_intensities),
         )
         result.metadata["encoding"] = frames_encoding(frames.root / frames.names[0], encoding.value)
         results.append(result)
@@ -147,9 +170,7 @@ def calibrate(
         f"chrome sphere ({c.x:.2f}, {c.y:.2f}) r={c.radius:.2f} px [{result.circle_source}], "
         f"outline residual {residual}"
     )
-    intensities = (
-        "matte sphere" if result.matte_circle is not None else "all ones (no matte target)"
-    )
+    intensities = result.intensity_source
     typer.echo(f"{n} lights calibrated; intensities: {intensities}")
     if result.triangulation is not None:
         tri = result.triangulation
@@ -174,8 +195,31 @@ def calibrate(
         typer.echo(f"wrote {path}")
 
 
+def _near_models(
+    frames: Frames, object_outline: str | None, led_intensities: str | None
+) -> tuple[str | float | None, str | np.ndarray]:
+    """Where the object's outline lies and the LEDs' intensity model (options, else rig file)."""
+    outline = object_outline if object_outline is not None else rig_object_outline(
+        frames.manifest
+    )
+    if isinstance(outline, str) and outline != "table":
+        try:
+            outline = float(outline)
+        except ValueError:
+            raise CalibrationError(
+                f"--object {outline}: give 'table' or a height in pixels"
+            ) from None
+        if not np.isfinite(outline):
+            raise CalibrationError(f"--object {object_outline}: must be a finite number")
+    model: str | np.ndarray = led_intensities or rig_led_intensities(frames.manifest)
+    if isinstance(model, str) and model not in ("equal", "origin"):
+        model = read_led_intensities(Path(model), frames.images.shape[0])
+    return outline, model
+
+
 def _calibrate_folder(
-    frames: Frames, spheres, sphere_c, matte_c, roi_v, safe_radius, focal_px, pixel_size, outline
+    frames: Frames, spheres, sphere_c, matte_c, roi_v, safe_radius, focal_px, pixel_size, outline,
+    object_outline, led_intensities,
 ):
     """One folder's calibration (the rig snapshot's spheres unless circles are given)."""
     _, rig_matte = rig_circles(frames.manifest)
@@ -210,6 +254,8 @@ def _calibrate_folder(
             names=frames.names,
             progress=advance,
             outline=outline,
+            led_intensities=led_intensities,
+            object_outline=object_outline,
         )
 
 

@@ -255,6 +255,9 @@ def reconstruct(
         line = (
             f"light refinement {step['iteration']}: mean direction change "
             f"{step['mean_direction_change_deg']:.3f} deg"
+            if "intensity_change_rms_pct" not in step  # near lights refine intensities only
+            else f"light refinement {step['iteration']}: intensity change rms "
+            f"{step['intensity_change_rms_pct']:.2f} %"
         )
         if step.get("normal_error_deg") is not None:
             line += f", mean normal error {step['normal_error_deg']:.2f} deg"

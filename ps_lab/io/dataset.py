@@ -49,10 +49,12 @@ from ps_lab.io.images import (
 from ps_lab.io.lights import (
     find_lp,
     lp_directions_for,
+    read_camera,
     read_light_anisotropy,
     read_light_directions,
     read_light_intensities,
     read_light_positions,
+    read_object_outline,
 )
 from ps_lab.io.run import SIMULATION_DIR
 from ps_lab.io.truth import _find_normal_gt
@@ -65,6 +67,8 @@ LIGHT_DIRECTIONS = "light_directions.txt"
 LIGHT_INTENSITIES = "light_intensities.txt"
 LIGHT_POSITIONS = "light_positions.txt"
 LIGHT_ANISOTROPY = "light_anisotropy.txt"
+OBJECT_OUTLINE = "object_outline.txt"
+CAMERA = "camera.txt"
 MASK = "mask.png"
 
 @dataclass(frozen=True)
@@ -413,6 +417,12 @@ class DatasetHeader:
         LED positions from ``light_positions.txt`` (two-sphere calibration), else None.
     light_anisotropy : ndarray of shape (n,) or None
         The LEDs' ``cos^mu`` exponents from ``light_anisotropy.txt``, else None.
+    object_outline : float or None
+        Height of the object's outline above the spheres' plane (pixels) from
+        ``object_outline.txt`` (near lights), else None.
+    camera : (f, cx, cy) or None
+        The perspective camera of a near-light calibration from ``camera.txt`` (pixels), else
+        None (orthographic).
 
     """
 
@@ -425,6 +435,8 @@ class DatasetHeader:
     shape: tuple[int, int] | None
     light_positions: np.ndarray | None = None
     light_anisotropy: np.ndarray | None = None
+    object_outline: float | None = None
+    camera: tuple[float, float, float] | None = None
 
     def read_mask(self) -> np.ndarray:
         """The object mask of shape (H, W), bool (all pixels when there is no mask file)."""
@@ -506,6 +518,10 @@ def open_dataset(
         light_anisotropy=read_light_anisotropy(anisotropy_file, n)
         if anisotropy_file.is_file()
         else None,
+        object_outline=read_object_outline(root / OBJECT_OUTLINE)
+        if (root / OBJECT_OUTLINE).is_file()
+        else None,
+        camera=read_camera(root / CAMERA) if (root / CAMERA).is_file() else None,
     )
 
 

@@ -152,6 +152,44 @@ def read_light_anisotropy(path: Path, count: int | None = None) -> np.ndarray:
     return rows
 
 
+def read_object_outline(path: Path) -> float:
+    """Read ``object_outline.txt``: the height of the object's outline (pixels).
+
+    One number: the outline's height above the spheres' plane (the scene frame of near lights;
+    ``ps-lab calibrate --object``).
+    """
+    values = _read_table(path, (1,))
+    if values.shape != (1, 1):
+        raise DatasetError(f"{path}: expected one number (pixels), got {values.shape[0]} rows")
+    return float(values[0, 0])
+
+
+def read_camera(path: Path) -> tuple[float, float, float]:
+    """Read ``camera.txt``: ``f cx cy`` (pixels), the perspective camera of a calibration.
+
+    Focal length > 0 and principal point, of a near-light calibration through a lens.
+    """
+    values = _read_table(path, (3,))
+    if values.shape != (1, 3) or not values[0, 0] > 0:
+        raise DatasetError(f"{path}: expected one row 'f cx cy' (pixels) with f > 0")
+    return float(values[0, 0]), float(values[0, 1]), float(values[0, 2])
+
+
+def read_led_intensities(path: Path, count: int | None = None) -> np.ndarray:
+    """Read a per-LED intensity file: each LED's relative radiant intensity.
+
+    One row per light (one value, or r g b; W/sr in any unit); returned as (n, 3), all > 0.
+    """
+    table = _read_table(path, (1, 3))
+    if table.shape[1] == 1:
+        table = np.repeat(table, 3, axis=1)
+    if count is not None and table.shape[0] != count:
+        raise DatasetError(f"{path}: {table.shape[0]} rows for {count} lights")
+    if np.any(table <= 0):
+        raise DatasetError(f"{path}: LED intensities must be > 0")
+    return table
+
+
 def write_light_table(path: Path, rows: np.ndarray) -> None:
     """Write a light table (directions or intensities) in the DiLiGenT text format."""
     rows = np.atleast_2d(np.asarray(rows, dtype=np.float64))
