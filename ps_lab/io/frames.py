@@ -148,7 +148,12 @@ def check_dataset_folder(path: Path) -> None:
         raise DatasetError(
             f"{root}: a ps-lab reconstruct result (its metrics.json), not a dataset{made_from}"
         )
-    if is_capture_run(root) or (root / FILENAMES).exists() or _has_frames(root):
+    if (
+        is_capture_run(root)
+        or (root / FILENAMES).exists()
+        or _has_frames(root)
+        or find_lp(root) is not None  # its images may lie in a subfolder (jpg/Name_0001.jpg)
+    ):
         return
     subfolders = sorted(
         (p for p in root.iterdir() if p.is_dir() and not p.name.startswith(".")),
