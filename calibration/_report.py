@@ -16,6 +16,7 @@ import numpy as np
 from ps_lab.calibration._calibrate import Calibration
 from ps_lab.errors import CalibrationError
 from ps_lab.io.files import staged_files
+from ps_lab.io.images import imwrite
 from ps_lab.io.lights import write_lp
 
 CALIBRATION_FORMAT = "ps-lab-calibration"
@@ -335,7 +336,7 @@ def write_calibration(calibration: Calibration, out_dir: Path) -> dict[str, Path
                     anisotropy = np.full((count, 1), calibration.anisotropy)
                     np.savetxt(staging / POSITION_FILES[1], anisotropy, fmt="%.6f")
                     names.append(POSITION_FILES[1])
-            if not cv2.imwrite(str(staging / "calibration.png"), picture):
+            if not imwrite(staging / "calibration.png", picture):
                 raise OSError("PNG encoder failed")
         for name in POSITION_FILES:
             if name not in names:

@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import logging
 import os
+import socket
 from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
 from pathlib import Path
@@ -67,17 +68,90 @@ def connect(address: str, *, timeout: float | None = None) -> Iterator[Any]:
 
     """
     dask = require_dask()
+    probe_scheduler(address)
     with _quiet_dask():
         try:
             limit = {} if timeout is None else {"timeout": timeout}
             client = dask.Client(address, set_as_default=False, **limit)
-        except (OSError, TimeoutError, ValueError, TypeError) as exc:
-            raise ClusterError(f"cannot reach the Dask scheduler at {address}: {exc}") from None
+        except Exception as exc:  # noqa: BLE001 - whatever answered is not a usable scheduler
+            _abandon_client(exc, dask.Client)
+            detail = f"{type(exc).__name__}: {exc}" if str(exc) else type(exc).__name__
+            raise ClusterError(
+                f"--scheduler {address}: cannot reach a Dask scheduler there ({detail})"
+            ) from None
         log.info("Dask scheduler %s, dashboard %s", address, client.dashboard_link)
         try:
             yield client
         finally:
             client.close()
+
+
+#: Seconds a TCP scheduler address has to accept a connection before Dask is asked to connect.
+PROBE_SECONDS = 3.0
+
+
+def probe_scheduler(address: str, timeout: float = PROBE_SECONDS) -> None:
+    """Refuse, in one line and within ``timeout`` seconds, an address no scheduler can be at.
+
+    The address is parsed first (``tcp://HOST:PORT``; a port that is not a number is refused
+    before Dask, whose client would otherwise hang in its destructor); a TCP address must then
+    accept a connection within ``timeout`` (Dask itself retries for 30 s). Other transports
+    are left to Dask.
+
+    Raises
+    ------
+    ClusterError
+        Naming ``--scheduler`` and the address.
+    """
+    dask = require_dask()
+    addressing = dask.comm.addressing
+    try:
+        scheme, location = addressing.parse_address(address, strict=False)
+        known = scheme in dask.comm.registry.backends
+        host, port = addressing.parse_host_port(location) if scheme in ("tcp", "tls") else ("", 0)
+    except (ValueError, TypeError) as exc:
+        raise ClusterError(
+            f"--scheduler {address}: not a Dask scheduler address ({exc}); expected "
+            "tcp://HOST:PORT"
+        ) from None
+    if not known:
+        raise ClusterError(
+            f"--scheduler {address}: unknown transport {scheme!r}; expected tcp://HOST:PORT"
+        )
+    if scheme not in ("tcp", "tls"):
+        return
+    if not 0 < port < 65536:
+        raise ClusterError(f"--scheduler {address}: port {port} is not a TCP port (1-65535)")
+    try:
+        with socket.create_connection((host, port), timeout=timeout):
+            pass
+    except OSError as exc:
+        reason = "timed out" if isinstance(exc, TimeoutError) else (exc.strerror or str(exc))
+        raise ClusterError(
+            f"--scheduler {address}: no Dask scheduler answers there ({reason}); start one with "
+            "`dask scheduler`, or leave --scheduler out for a local cluster"
+        ) from None
+
+
+def _abandon_client(exc: BaseException, client_type: type) -> None:
+    """Mark the half-made client of a failed ``Client(...)`` closed, and stop its event loop.
+
+    Its destructor would otherwise wait 60 s on a connection that never came and then print a
+    traceback ("Exception ignored in Client.__del__") after the error line.
+    """
+    tb = exc.__traceback__
+    while tb is not None:
+        candidate = tb.tb_frame.f_locals.get("self")
+        if isinstance(candidate, client_type):
+            candidate.status = "closed"
+            runner = getattr(candidate, "_loop_runner", None)
+            try:
+                if runner is not None:
+                    runner.stop()
+            except Exception:  # noqa: BLE001 - best effort, the error line matters
+                pass
+            return
+        tb = tb.tb_next
 
 
 @contextmanager

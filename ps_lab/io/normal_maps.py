@@ -8,13 +8,14 @@ is no normal).
 
 from __future__ import annotations
 
+import io
 from pathlib import Path
 
-import cv2
 import numpy as np
 import OpenEXR
 
 from ps_lab.errors import OutputError
+from ps_lab.io.images import imwrite, utf8_path
 
 __all__ = ["normal16_picture", "read_normals_exr", "write_normal16", "write_normals_exr"]
 
@@ -40,7 +41,7 @@ def normal16_picture(normals: np.ndarray, mask: np.ndarray) -> np.ndarray:
 def write_normal16(path: Path, normals: np.ndarray, mask: np.ndarray) -> None:
     """Write ``normal16.png`` (see :func:`normal16_picture`)."""
     picture = normal16_picture(normals, mask)
-    if not cv2.imwrite(str(path), np.ascontiguousarray(picture[..., ::-1])):
+    if not imwrite(path, np.ascontiguousarray(picture[..., ::-1])):
         raise OutputError(f"{path}: OpenCV could not write the PNG")
 
 
@@ -50,7 +51,12 @@ def write_normals_exr(path: Path, normals: np.ndarray) -> None:
     header = {"type": OpenEXR.scanlineimage, "compression": OpenEXR.ZIP_COMPRESSION}
     try:
         with OpenEXR.File(header, {"RGB": pixels}) as exr:
-            exr.write(str(path))
+            if utf8_path(path):
+                exr.write(str(path))
+            else:  # the library takes UTF-8 names only: encode in memory, write from Python
+                buffer = io.BytesIO()
+                exr.write(buffer)
+                Path(path).write_bytes(buffer.getvalue())
     except (OSError, RuntimeError) as exc:
         raise OutputError(f"{path}: cannot write the OpenEXR file ({exc})") from None
 
