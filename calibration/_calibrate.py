@@ -17,7 +17,13 @@ from ps_lab.calibration._geometry import light_directions_from_highlights
 from ps_lab.calibration._highlight import Highlight, locate_highlight
 from ps_lab.calibration._intensity import fit_light_intensities
 from ps_lab.calibration._positions import Triangulation, reflected_rays, triangulate_lights
-from ps_lab.calibration._spheres import chrome_sphere, other_spheres
+from ps_lab.calibration._spheres import (
+    chrome_score,
+    chrome_sphere,
+    given_sphere_without_highlights,
+    missing_rig_sphere,
+    other_spheres,
+)
 from ps_lab.errors import CalibrationError
 
 
@@ -197,10 +203,17 @@ def calibrate(
     summary = summary_image(stack)
     warnings: list[str] = []
     circle, residual, source = chrome_sphere(summary, stack, sphere, sphere_hint, roi, warnings)
+    if source == "auto" and sphere_hint is not None and extra_sphere_hints:
+        raise missing_rig_sphere(1, sphere_hint)  # the search would find another of the rig's
     others = other_spheres(
         summary, stack, circle, source, extra_spheres, extra_sphere_hints, roi, warnings
     )
-    found = _highlights(stack, circle, saturated, safe_radius, names, progress)
+    try:
+        found = _highlights(stack, circle, saturated, safe_radius, names, progress)
+    except CalibrationError:
+        if source == "given" and chrome_score(stack, circle) < 0.5:
+            raise given_sphere_without_highlights(circle) from None
+        raise
     highlights = np.array([[hl.x, hl.y] for hl in found])
     warnings.extend(_second_blob_warnings(found, names))
     if focal_length_px is not None and principal_point is None:
@@ -277,7 +290,13 @@ def _triangulate(
     origins, directions = [], []
     for c, hl in [(circle, highlights), *((c, None) for c in others)]:
         if hl is None:
-            found = _highlights(stack, c, saturated, safe_radius, names, progress)
+            try:
+                found = _highlights(stack, c, saturated, safe_radius, names, progress)
+            except CalibrationError:
+                # The rig's spheres were confirmed to be chrome: this one is a given --sphere.
+                if chrome_score(stack, c) < 0.5:
+                    raise given_sphere_without_highlights(c) from None
+                raise
             hl = np.array([[f.x, f.y] for f in found])
         o, d = reflected_rays(hl, c, shape)
         origins.append(o)

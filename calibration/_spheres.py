@@ -184,7 +184,10 @@ def other_spheres(
 ) -> list[Circle]:
     """The chrome spheres beyond the first: given, refined from hints, or found automatically."""
     others = [chrome_sphere(summary, stack, c, None, None, warnings)[0] for c in given]
-    for hint in hints:
+    for number, hint in enumerate(hints, start=2):
+        # An extra sphere of the rig must be where the rig says: a search would find the first.
+        if _confirm_hint(summary, stack, hint, []) is None:
+            raise missing_rig_sphere(number, hint)
         others.append(chrome_sphere(summary, stack, None, hint, None, warnings)[0])
     if source == "auto" and not given and not hints:
         fits = _find_spheres(summary, stack, None if roi is None else tuple(roi))
@@ -196,6 +199,25 @@ def other_spheres(
                 "overlap: give each sphere once"
             )
     return others
+
+
+def missing_rig_sphere(number: int, hint: Sequence[float]) -> CalibrationError:
+    """The error for the rig's chrome sphere ``number`` (1-based) not found where the rig says."""
+    x, y, r = (float(v) for v in hint)
+    return CalibrationError(
+        f"the rig's chrome sphere {number} (calibration.chrome_spheres in manifest.json) at "
+        f"({x:.1f}, {y:.1f}) r={r:.1f} is not in the images (no outline with highlights "
+        "there); give the chrome spheres in view with --sphere CX,CY,R, once each"
+    )
+
+
+def given_sphere_without_highlights(circle: Circle) -> CalibrationError:
+    """The error for a ``--sphere`` circle in which most frames show no chrome highlight."""
+    return CalibrationError(
+        f"--sphere {circle.x:g},{circle.y:g},{circle.radius:g}: no chrome sphere there (most "
+        "frames show no highlight inside the circle); check the circle (x = column, y = row, "
+        "pixels) or leave --sphere out to search"
+    )
 
 
 def _confirm_hint(

@@ -22,6 +22,7 @@ from __future__ import annotations
 import logging
 import os
 import socket
+import tempfile
 from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
 from pathlib import Path
@@ -37,6 +38,7 @@ from ps_lab.reconstruct._bands import BandResult, band_truth, solve_band
 
 try:  # the optional dependency: the error below names the extra to install
     import distributed as _dask
+    from dask import config as dask_config
 except ImportError:  # pragma: no cover - exercised by the missing-Dask test
     _dask = None
 
@@ -183,12 +185,16 @@ def local_cluster(workers: int) -> Iterator[Any]:
     free port (logged at ``-v``); worker logs are silenced (errors come back through the futures).
     """
     dask = require_dask()
-    with _quiet_dask(), dask.LocalCluster(
+    # The workers' scratch space is this run's own (Dask's default stays behind in TMPDIR).
+    with tempfile.TemporaryDirectory(
+        prefix="ps-lab-dask-", ignore_cleanup_errors=True
+    ) as scratch, dask_config.set({"temporary-directory": scratch}), _quiet_dask(), dask.LocalCluster(
         n_workers=workers,
         threads_per_worker=1,
         processes=True,
         dashboard_address=":0",
         silence_logs=logging.CRITICAL,
+        local_directory=scratch,
     ) as cluster, dask.Client(cluster, set_as_default=False) as client:
         log.info("local Dask cluster of %d workers, dashboard %s", workers, client.dashboard_link)
         yield client

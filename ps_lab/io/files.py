@@ -88,6 +88,15 @@ def remove_stale_staging(folder: Path, pattern: str) -> list[Path]:
     return removed
 
 
+def utf8_path(path: Path) -> bool:
+    """Whether ``path``'s bytes are UTF-8 (what C++ libraries taking a name as text need)."""
+    try:
+        os.fsencode(path).decode("utf-8")
+    except (UnicodeError, ValueError):
+        return False
+    return True
+
+
 def remove_tree(path: Path) -> None:
     """Remove ``path`` (a folder, a file or a link, never what a link points to), best effort.
 
@@ -119,6 +128,8 @@ def remove_tree(path: Path) -> None:
         shutil.rmtree(path, ignore_errors=True)
 
 
+#: numpy's ``tofile`` (used by tifffile) reports a full disk as a short write, without errno.
+_SHORT_WRITE = re.compile(r"\d+ requested and \d+ written")
 #: ``errno`` values of a full disk or an exhausted quota.
 NO_SPACE = frozenset({errno.ENOSPC, errno.EDQUOT, errno.EFBIG})
 
@@ -131,7 +142,9 @@ def no_space_error(exc: BaseException | None) -> OSError | None:
     """
     seen = 0
     while exc is not None and seen < 8:
-        if isinstance(exc, OSError) and exc.errno in NO_SPACE:
+        if isinstance(exc, OSError) and (
+            exc.errno in NO_SPACE or (exc.errno is None and _SHORT_WRITE.search(str(exc)))
+        ):
             return exc
         exc = exc.__cause__ or exc.__context__
         seen += 1
@@ -266,7 +279,7 @@ def check_writable_folder(out: Path, error: type[PsLabError] = PsLabError) -> No
 
 
 def _no_space_line(out: Path, exc: OSError | None) -> str:
-    reason = os.strerror(exc.errno) if exc is not None and exc.errno else "no space left"
+    reason = os.strerror(exc.errno) if exc is not None and exc.errno else "No space left on device"
     return (
         f"{out}: cannot write, {reason[:1].lower() + reason[1:]}; no output written (an earlier "
         "result there is untouched): free some space and run again"

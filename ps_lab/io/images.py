@@ -34,6 +34,7 @@ import numpy as np
 import tifffile
 
 from ps_lab.errors import DatasetError, PsLabError
+from ps_lab.io.files import utf8_path
 from ps_lab.io.raw import load_raw
 
 # OpenCV logs decoder failures on stderr; we report them ourselves as one DatasetError line.
@@ -433,7 +434,8 @@ def native_stderr_captured() -> Iterator[list[str]]:
 
 
 def _decoder_said(messages: list[str]) -> str:
-    return f" ({'; '.join(messages)})" if messages else ""
+    said = [re.sub(r"^lib(\w+) error: ", r"lib\1: ", m) for m in messages]
+    return f" ({'; '.join(said)})" if said else ""
 
 
 def decode_image(
@@ -452,15 +454,6 @@ def imread(path: Path, flags: int = cv2.IMREAD_UNCHANGED) -> np.ndarray | None:
     UTF-8 crashes them (SIGSEGV). Raises ``OSError`` when the file cannot be read.
     """
     return decode_image(Path(path).read_bytes(), flags)[0]
-
-
-def utf8_path(path: Path) -> bool:
-    """Whether ``path``'s bytes are UTF-8 (what C++ libraries taking a name as text need)."""
-    try:
-        os.fsencode(path).decode("utf-8")
-    except (UnicodeError, ValueError):
-        return False
-    return True
 
 
 def imwrite(path: Path, picture: np.ndarray) -> bool:

@@ -15,7 +15,8 @@ import numpy as np
 import OpenEXR
 
 from ps_lab.errors import OutputError
-from ps_lab.io.images import imwrite, utf8_path
+from ps_lab.io.files import utf8_path
+from ps_lab.io.images import imwrite
 
 __all__ = ["normal16_picture", "read_normals_exr", "write_normal16", "write_normals_exr"]
 
