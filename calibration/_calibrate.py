@@ -210,8 +210,8 @@ def calibrate(
     )
     try:
         found = _highlights(stack, circle, saturated, safe_radius, names, progress)
-    except CalibrationError:
-        if source == "given" and chrome_score(stack, circle) < 0.5:
+    except CalibrationError as exc:
+        if source == "given" and "saturated" not in str(exc) and chrome_score(stack, circle) < 0.5:
             raise given_sphere_without_highlights(circle) from None
         raise
     highlights = np.array([[hl.x, hl.y] for hl in found])
@@ -292,9 +292,9 @@ def _triangulate(
         if hl is None:
             try:
                 found = _highlights(stack, c, saturated, safe_radius, names, progress)
-            except CalibrationError:
+            except CalibrationError as exc:
                 # The rig's spheres were confirmed to be chrome: this one is a given --sphere.
-                if chrome_score(stack, c) < 0.5:
+                if "saturated" not in str(exc) and chrome_score(stack, c) < 0.5:
                     raise given_sphere_without_highlights(c) from None
                 raise
             hl = np.array([[f.x, f.y] for f in found])

@@ -186,18 +186,19 @@ def local_cluster(workers: int) -> Iterator[Any]:
     """
     dask = require_dask()
     # The workers' scratch space is this run's own (Dask's default stays behind in TMPDIR).
-    with tempfile.TemporaryDirectory(
-        prefix="ps-lab-dask-", ignore_cleanup_errors=True
-    ) as scratch, dask_config.set({"temporary-directory": scratch}), _quiet_dask(), dask.LocalCluster(
-        n_workers=workers,
-        threads_per_worker=1,
-        processes=True,
-        dashboard_address=":0",
-        silence_logs=logging.CRITICAL,
-        local_directory=scratch,
-    ) as cluster, dask.Client(cluster, set_as_default=False) as client:
-        log.info("local Dask cluster of %d workers, dashboard %s", workers, client.dashboard_link)
-        yield client
+    with tempfile.TemporaryDirectory(prefix="ps-lab-dask-", ignore_cleanup_errors=True) as scratch:
+        with dask_config.set({"temporary-directory": scratch}), _quiet_dask(), dask.LocalCluster(
+            n_workers=workers,
+            threads_per_worker=1,
+            processes=True,
+            dashboard_address=":0",
+            silence_logs=logging.CRITICAL,
+            local_directory=scratch,
+        ) as cluster, dask.Client(cluster, set_as_default=False) as client:
+            log.info(
+                "local Dask cluster of %d workers, dashboard %s", workers, client.dashboard_link
+            )
+            yield client
 
 
 def completed(

@@ -24,7 +24,6 @@ import struct
 import subprocess
 import sys
 import time
-import zlib
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
@@ -753,3 +752,20 @@ def test_sigterm_during_batch_counts_the_finished_datasets(made, tmp_path) -> No
     assert f"{len(finished)} of 4 datasets finished" in line, (line, finished)
     hidden = [p.name for p in results.iterdir() if p.name.startswith(".")]
     assert not hidden, hidden  # the stopped worker's staging removed by the cluster's shutdown
+
+
+def test_serve_firmware_refused_by_simavr_leaves_no_temporary_folder(tmp_path) -> None:
+    """An AVR ELF simavr cannot load: one line naming it, and the state folder is gone."""
+    from ps_lab.capture.simulated.avr_firmware import missing_packages
+
+    missing = missing_packages(sketch=False)
+    if missing:
+        pytest.skip(f"simavr harness not buildable here: {' '.join(missing)} missing")
+    home, root = tmp_path / "home", tmp_path / "case"
+    home.mkdir()
+    root.mkdir()
+    elf = root / "blank.elf"
+    elf.write_bytes(_elf32(83))  # a sound header, and nothing simavr can load
+    result = run(["rig", "serve-firmware", "--elf", str(elf), "--pins", "3,5,6"], root, home)
+    assert_one_error_line(result, (str(elf),))
+    assert not temporary_leftovers(home), temporary_leftovers(home)

@@ -34,7 +34,6 @@ import numpy as np
 import tifffile
 
 from ps_lab.errors import DatasetError, PsLabError
-from ps_lab.io.files import utf8_path
 from ps_lab.io.raw import load_raw
 
 # OpenCV logs decoder failures on stderr; we report them ourselves as one DatasetError line.
