@@ -141,7 +141,9 @@ def reconstruct_batch(
             if progress is not None:
                 progress(1, description=f"{Path(dataset).name}: already done")
             continue
-        key = f"ps-lab-dataset-{index}-{out.name}"
+        # Dask's messages are UTF-8: a name that is not is escaped in the key (a label only).
+        label = out.name.encode("utf-8", "backslashreplace").decode("ascii", "backslashreplace")
+        key = f"ps-lab-dataset-{index}-{label}"
         future = client.submit(reconstruct_one, Path(dataset), out, task_options, key=key)
         futures[future.key] = (index, future)
     keys = {future.key: index for index, future in futures.values()}

@@ -167,14 +167,15 @@ def _quiet_dask() -> Iterator[None]:
         yield
         return
     silent = logging.NullHandler()
-    propagate = logger.propagate
-    logger.addHandler(silent)
+    propagate, handlers = logger.propagate, logger.handlers[:]
+    # Dask's own stderr handler too (its CRITICAL records would print over the one line).
+    logger.handlers = [silent]
     logger.propagate = False
     try:
         yield
     finally:
         logger.propagate = propagate
-        logger.removeHandler(silent)
+        logger.handlers = handlers
 
 
 @contextmanager

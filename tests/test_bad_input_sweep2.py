@@ -283,6 +283,12 @@ def _(w):
     return ["integrate", str(w.copy("result")), "--out", str(w.root / NOT_UTF8)]
 
 
+@case("s3-batch-not-utf8", (), code=0, check=_worked)
+def _(w):
+    return ["batch", str(w.copy("png", NOT_UTF8)), "--out-root", str(w.root / NOT_UTF8 / "x"),
+            "--workers", "1"]
+
+
 # s4: links and read-only results ----------------------------------------------------------------
 
 
