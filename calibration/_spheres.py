@@ -194,9 +194,10 @@ def other_spheres(
         others = [f.circle for f, _ in fits[1:] if circle_inside_image(f.circle, summary.shape)]
     for c in others:
         if np.hypot(c.x - first.x, c.y - first.y) < first.radius + c.radius:
+            who = "--sphere: " if given or source == "given" else ""
             raise CalibrationError(
-                f"chrome spheres at ({first.x:.1f}, {first.y:.1f}) and ({c.x:.1f}, {c.y:.1f}) "
-                "overlap: give each sphere once"
+                f"{who}chrome spheres at ({first.x:.1f}, {first.y:.1f}) and ({c.x:.1f}, "
+                f"{c.y:.1f}) overlap: give each sphere once"
             )
     return others
 

@@ -11,6 +11,7 @@ and the normal maps for other tools written by every reconstruction: ``normal16.
 from __future__ import annotations
 
 import json
+import os
 import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -21,7 +22,7 @@ import tifffile
 
 from ps_lab.errors import OutputError
 from ps_lab.io.files import json_safe, staged_files
-from ps_lab.io.images import imwrite
+from ps_lab.io.images import imwrite, read_npy_header
 from ps_lab.io.mesh import depth_mesh, write_ply
 from ps_lab.io.normal_maps import write_normal16, write_normals_exr
 from ps_lab.reconstruct.integrate import INTEGRATION_METHODS, IntegrationInputError, integrate
@@ -53,7 +54,8 @@ class DepthOptions:
     def __post_init__(self) -> None:
         if self.method not in INTEGRATION_METHODS:
             raise IntegrationInputError(
-                f"unknown depth method {self.method!r}; choose {' or '.join(INTEGRATION_METHODS)}"
+                f"--depth: unknown depth method {self.method!r}; choose "
+                f"{' or '.join(INTEGRATION_METHODS)}"
             )
         if self.pixel_size is not None and not self.pixel_size > 0:
             raise IntegrationInputError(f"--pixel-size must be positive, got {self.pixel_size}")
@@ -226,7 +228,24 @@ def _folder_record(out: Path) -> dict[str, Any] | None:
 
 
 def _load_array(path: Path, what: str) -> np.ndarray:
-    """A real-valued array from ``path`` (no pickles, no complex or text), or one error line."""
+    """A real-valued array from ``path`` (no pickles, no complex or text), or one error line.
+
+    The size the header claims is checked against the file first: a forged or cut header is
+    refused before anything is allocated.
+    """
+    try:
+        with open(path, "rb") as stream:
+            shape, _, dtype, offset = read_npy_header(stream)
+            size = os.fstat(stream.fileno()).st_size
+    except (OSError, ValueError, EOFError, SyntaxError, TypeError):
+        shape, dtype, offset, size = (), None, 0, 0  # np.load below says what is wrong
+    if dtype is not None and not dtype.hasobject:
+        claimed = int(np.prod(shape, dtype=np.float64)) * dtype.itemsize
+        if claimed > size - offset:
+            raise IntegrationInputError(
+                f"{path}: its header claims {' x '.join(map(str, shape))} {dtype} values "
+                f"({claimed} bytes), the file holds {size - offset} (truncated or forged)"
+            )
     try:
         array = np.load(path, allow_pickle=False)
     except (OSError, ValueError, EOFError) as exc:

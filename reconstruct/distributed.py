@@ -22,6 +22,7 @@ from __future__ import annotations
 import logging
 import os
 import socket
+import struct
 import tempfile
 from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
@@ -88,8 +89,11 @@ def connect(address: str, *, timeout: float | None = None) -> Iterator[Any]:
             client.close()
 
 
-#: Seconds a TCP scheduler address has to accept a connection before Dask is asked to connect.
+#: Seconds a TCP scheduler address has to accept a connection (and, plain TCP, to send Dask's
+#: handshake) before Dask is asked to connect.
 PROBE_SECONDS = 3.0
+# Largest first message length taken for a Dask handshake (a real one is a few hundred bytes).
+_MAX_HANDSHAKE = 1 << 24
 
 
 def probe_scheduler(address: str, timeout: float = PROBE_SECONDS) -> None:
@@ -125,14 +129,30 @@ def probe_scheduler(address: str, timeout: float = PROBE_SECONDS) -> None:
     if not 0 < port < 65536:
         raise ClusterError(f"--scheduler {address}: port {port} is not a TCP port (1-65535)")
     try:
-        with socket.create_connection((host, port), timeout=timeout):
-            pass
+        connection = socket.create_connection((host, port), timeout=timeout)
     except OSError as exc:
         reason = "timed out" if isinstance(exc, TimeoutError) else (exc.strerror or str(exc))
         raise ClusterError(
             f"--scheduler {address}: no Dask scheduler answers there ({reason}); start one with "
             "`dask scheduler`, or leave --scheduler out for a local cluster"
         ) from None
+    if scheme == "tcp":
+        # A scheduler sends its handshake as soon as it accepts; its first 8 bytes are a message
+        # length. Another service is silent (Dask's client would then wait forever) or says
+        # something else (Dask would read a length of exabytes).
+        with connection:
+            try:
+                first = connection.recv(8, socket.MSG_WAITALL)
+            except OSError:
+                first = None
+        if not first or len(first) < 8 or struct.unpack("<Q", first)[0] > _MAX_HANDSHAKE:
+            said = "nothing" if not first else f"{first[:8]!r}"
+            raise ClusterError(
+                f"--scheduler {address}: something answers there but it is not a Dask scheduler "
+                f"(it sent {said} within {timeout:g} s instead of Dask's handshake)"
+            )
+    else:
+        connection.close()
 
 
 def _abandon_client(exc: BaseException, client_type: type) -> None:

@@ -775,3 +775,22 @@ def test_serve_firmware_refused_by_simavr_leaves_no_temporary_folder(tmp_path) -
     result = run(["rig", "serve-firmware", "--elf", str(elf), "--pins", "3,5,6"], root, home)
     assert_one_error_line(result, (str(elf),))
     assert not temporary_leftovers(home), temporary_leftovers(home)
+
+
+def test_a_service_that_is_not_a_scheduler_is_one_line_within_seconds(made, tmp_path) -> None:
+    """A TCP port that accepts but never speaks Dask (Dask's client alone would wait forever)."""
+    home, root = tmp_path / "home", tmp_path / "case"
+    home.mkdir()
+    root.mkdir()
+    with socket.socket() as silent:
+        silent.bind(("127.0.0.1", 0))
+        silent.listen(4)  # the kernel accepts; nobody ever sends a byte
+        address = f"tcp://127.0.0.1:{silent.getsockname()[1]}"
+        started = time.monotonic()
+        result = run(["batch", str(made["png"]), "--out-root", str(root / "results"),
+                      "--scheduler", address], root, home, timeout=90)
+        seconds = time.monotonic() - started
+    line = assert_one_error_line(result, ("--scheduler",))
+    assert "not a Dask scheduler" in line, line
+    assert seconds < 20, f"took {seconds:.1f} s"
+    assert not any(root.iterdir()) and not temporary_leftovers(home)

@@ -280,9 +280,14 @@ def check_writable_folder(out: Path, error: type[PsLabError] = PsLabError) -> No
 
 def _no_space_line(out: Path, exc: OSError | None) -> str:
     reason = os.strerror(exc.errno) if exc is not None and exc.errno else "No space left on device"
+    remedy = (
+        "raise the file size limit (ulimit -f)"
+        if exc is not None and exc.errno == errno.EFBIG
+        else "free some space"
+    )
     return (
         f"{out}: cannot write, {reason[:1].lower() + reason[1:]}; no output written (an earlier "
-        "result there is untouched): free some space and run again"
+        f"result there is untouched): {remedy} and run again"
     )
 
 
