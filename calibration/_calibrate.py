@@ -22,7 +22,14 @@ from ps_lab.calibration._positions import (
     reflected_rays,
     triangulate_lights,
 )
-from ps_lab.calibration._spheres import LimbImages, chrome_sphere, other_spheres
+from ps_lab.calibration._spheres import (
+    LimbImages,
+    chrome_score,
+    chrome_sphere,
+    given_sphere_without_highlights,
+    missing_rig_sphere,
+    other_spheres,
+)
 from ps_lab.errors import CalibrationError
 from ps_lab.geometry import Camera
 
@@ -248,11 +255,18 @@ def calibrate(
     circle, residual, source, points = chrome_sphere(
         limb, stack, sphere, sphere_hint, roi, warnings
     )
+    if source == "auto" and sphere_hint is not None and extra_sphere_hints:
+        raise missing_rig_sphere(1, sphere_hint)  # the search would find another of the rig's
     found_others = other_spheres(
         limb, stack, circle, source, extra_spheres, extra_sphere_hints, roi, warnings
     )
     others = [c for c, _ in found_others]
-    found = _highlights(stack, circle, saturated, safe_radius, names, progress)
+    try:
+        found = _highlights(stack, circle, saturated, safe_radius, names, progress)
+    except CalibrationError as exc:
+        if source == "given" and "saturated" not in str(exc) and chrome_score(stack, circle) < 0.5:
+            raise given_sphere_without_highlights(circle) from None
+        raise
     highlights = np.array([[hl.x, hl.y] for hl in found])
     warnings.extend(_second_blob_warnings(found, names))
     if focal_length_px is not None and principal_point is None:
@@ -428,7 +442,13 @@ def _triangulate(
     origins, directions = [], []
     for c, hl in [(circle, highlights), *((c, None) for c in others)]:
         if hl is None:
-            found = _highlights(stack, c, saturated, safe_radius, names, progress)
+            try:
+                found = _highlights(stack, c, saturated, safe_radius, names, progress)
+            except CalibrationError as exc:
+                # The rig's spheres were confirmed to be chrome: this one is a given --sphere.
+                if "saturated" not in str(exc) and chrome_score(stack, c) < 0.5:
+                    raise given_sphere_without_highlights(c) from None
+                raise
             hl = np.array([[f.x, f.y] for f in found])
         o, d = reflected_rays(hl, c, shape, camera)
         origins.append(o)

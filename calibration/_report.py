@@ -16,6 +16,7 @@ import numpy as np
 from ps_lab.calibration._calibrate import Calibration
 from ps_lab.errors import CalibrationError
 from ps_lab.io.files import staged_files
+from ps_lab.io.images import imwrite
 from ps_lab.io.lights import write_dome, write_lp
 
 CALIBRATION_FORMAT = "ps-lab-calibration"
@@ -371,7 +372,7 @@ def write_calibration(calibration: Calibration, out_dir: Path) -> dict[str, Path
                     np.savetxt(staging / POSITION_FILES[3], [[f, cx, cy]], fmt="%.6f",
                                header="focal length and principal point (x, y), pixels")
                     names.append(POSITION_FILES[3])
-            if not cv2.imwrite(str(staging / "calibration.png"), picture):
+            if not imwrite(staging / "calibration.png", picture):
                 raise OSError("PNG encoder failed")
         for name in (*POSITION_FILES, DOME_FILE):
             if name not in names:

@@ -277,7 +277,10 @@ def other_spheres(
     """The chrome spheres beyond the first (circle, limb points): given, refined from hints,
     or found automatically (nested and overlapping circles dropped)."""
     others = [chrome_sphere(limb, stack, c, None, None, warnings) for c in given]
-    for hint in hints:
+    for number, hint in enumerate(hints, start=2):
+        # An extra sphere of the rig must be where the rig says: a search would find the first.
+        if _confirm_hint(limb, stack, hint, []) is None:
+            raise missing_rig_sphere(number, hint)
         others.append(chrome_sphere(limb, stack, None, hint, None, warnings))
     found = [(c, pts) for c, _, _, pts in others]
     if source == "auto" and not given and not hints:
@@ -289,11 +292,31 @@ def other_spheres(
         ]
     for c, _ in found:
         if np.hypot(c.x - first.x, c.y - first.y) < first.radius + c.radius:
+            who = "--sphere: " if given or source == "given" else ""
             raise CalibrationError(
-                f"chrome spheres at ({first.x:.1f}, {first.y:.1f}) and ({c.x:.1f}, {c.y:.1f}) "
-                "overlap: give each sphere once"
+                f"{who}chrome spheres at ({first.x:.1f}, {first.y:.1f}) and ({c.x:.1f}, "
+                f"{c.y:.1f}) overlap: give each sphere once"
             )
     return found
+
+
+def missing_rig_sphere(number: int, hint: Sequence[float]) -> CalibrationError:
+    """The error for the rig's chrome sphere ``number`` (1-based) not found where the rig says."""
+    x, y, r = (float(v) for v in hint)
+    return CalibrationError(
+        f"the rig's chrome sphere {number} (calibration.chrome_spheres in manifest.json) at "
+        f"({x:.1f}, {y:.1f}) r={r:.1f} is not in the images (no outline with highlights "
+        "there); give the chrome spheres in view with --sphere CX,CY,R, once each"
+    )
+
+
+def given_sphere_without_highlights(circle: Circle) -> CalibrationError:
+    """The error for a ``--sphere`` circle in which most frames show no chrome highlight."""
+    return CalibrationError(
+        f"--sphere {circle.x:g},{circle.y:g},{circle.radius:g}: no chrome sphere there (most "
+        "frames show no highlight inside the circle); check the circle (x = column, y = row, "
+        "pixels) or leave --sphere out to search"
+    )
 
 
 def _confirm_hint(

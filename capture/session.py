@@ -46,6 +46,7 @@ from ps_lab.capture.plan import CapturePlan, PlannedFrame, make_plan
 from ps_lab.capture.rig import Rig, comparable_snapshot, snapshot_differences
 from ps_lab.errors import CameraError, DatasetError, PsLabError, RigError
 from ps_lab.io.files import PARTIAL_PREFIX, json_safe, publish_file, sha256, write_bytes_atomic
+from ps_lab.io.images import imread
 from ps_lab.io.raw import is_raw_file, load_raw
 from ps_lab.io.run import (
     FRAMES_DIR,
@@ -146,7 +147,11 @@ def _verify_frame(path: Path, file_type: str) -> None:
         except PsLabError as exc:
             raise CameraError(f"the frame does not read back: {exc}") from None
     else:
-        if cv2.imread(str(path), cv2.IMREAD_UNCHANGED) is None:
+        try:
+            decoded = imread(path)
+        except OSError:
+            decoded = None
+        if decoded is None:
             raise CameraError(f"the frame {path.name} does not read back as an image")
 
 

@@ -102,7 +102,9 @@ def lab_command(func: F) -> F:
         except PsLabError as exc:
             raise fail(str(exc)) from None
         except KeyboardInterrupt as exc:
-            raise fail(f"{interrupted_line(exc)}; no output written", EXIT_INTERRUPTED) from None
+            # A command that kept something says what (``exc.outcome``, e.g. ps-lab batch).
+            outcome = getattr(exc, "outcome", None) or "no output written"
+            raise fail(f"{interrupted_line(exc)}; {outcome}", EXIT_INTERRUPTED) from None
         except (Exit, Abort, _click_exc.ClickException):
             raise
         except MemoryError:
@@ -411,9 +413,13 @@ def bug_line(exc: BaseException) -> str:
         try:
             folder.mkdir(parents=True, exist_ok=True)
             where = folder / f"ps-lab-bug-{stamp}-{os.getpid()}.log"
-            where.write_text(f"ps-lab {' '.join(sys.argv[1:])}\n{text}", encoding="utf-8")
+            where.write_text(
+                f"ps-lab {' '.join(sys.argv[1:])}\n{text}",
+                encoding="utf-8",
+                errors="backslashreplace",  # a path that is not UTF-8
+            )
             break
-        except OSError:
+        except (OSError, ValueError):
             where = None
     if logging.getLogger().isEnabledFor(logging.DEBUG):
         sys.stderr.write(text)

@@ -16,6 +16,7 @@ import cv2
 import numpy as np
 
 from ps_lab.errors import DatasetError, OutputError
+from ps_lab.io.files import allocate_npy, write_npy_rows
 from ps_lab.io.lights import write_light_table
 from ps_lab.reconstruct._bands import reduce_solution
 from ps_lab.reconstruct.metrics import angular_errors_deg
@@ -168,11 +169,9 @@ class _OutputWriter:
         height, width = mask.shape
         self.offsets = {}
         for name, shape in (("normals", (height, width, 3)), ("albedo", (height, width))):
-            array = np.lib.format.open_memmap(
-                folder / f"{name}.npy", mode="w+", dtype=np.float32, shape=shape
-            )
-            self.offsets[name] = (array.offset, shape[1:])
-            del array
+            # Reserved on disk first: a full disk is an error line here, not SIGBUS later.
+            offset = allocate_npy(folder / f"{name}.npy", shape, np.float32)
+            self.offsets[name] = (offset, shape[1:])
         self.normal_png = np.zeros((height, width, 3), np.uint8)
         self.corruption_png = np.zeros((height, width), np.uint8)
         self.albedo_values = np.zeros(int(mask.sum()), np.float32)
@@ -184,18 +183,8 @@ class _OutputWriter:
         self.observation_count = 0
 
     def _write_rows(self, name: str, start: int, block: np.ndarray) -> None:
-        offset, row_shape = self.offsets[name]
-        row_bytes = int(np.prod(row_shape)) * 4
-        rows = np.memmap(
-            self.folder / f"{name}.npy",
-            dtype=np.float32,
-            mode="r+",
-            offset=offset + start * row_bytes,
-            shape=block.shape,
-        )
-        rows[...] = block
-        rows.flush()
-        del rows  # unmapped at once: written pages do not stay in the resident set
+        offset, _ = self.offsets[name]
+        write_npy_rows(self.folder / f"{name}.npy", offset, start, block.astype(np.float32))
 
     def add(self, band, result, valid: np.ndarray | None = None) -> None:
         """Write a band's rows from its :class:`ps_lab.reconstruct._bands.BandResult`.

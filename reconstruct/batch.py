@@ -201,7 +201,9 @@ def reconstruct_batch(
                 done = "kept (other options)" if differences else "already done"
                 progress(1, description=f"{Path(dataset).name}: {done}")
             continue
-        key = f"ps-lab-dataset-{index}-{out.name}"
+        # Dask's messages are UTF-8: a name that is not is escaped in the key (a label only).
+        label = out.name.encode("utf-8", "backslashreplace").decode("ascii", "backslashreplace")
+        key = f"ps-lab-dataset-{index}-{label}"
         future = client.submit(reconstruct_one, Path(dataset), out, task_options, key=key)
         futures[future.key] = (index, future)
     keys = {future.key: index for index, future in futures.values()}
@@ -271,7 +273,8 @@ def run_batch(
         Two datasets with the same folder name.
 
     """
-    result_folders(datasets, out_root)  # name clashes fail before any cluster starts
+    outs = result_folders(datasets, out_root)  # name clashes fail before any cluster starts
+    check_out_root(out_root)
     distributed.require_dask()
     if scheduler is not None:
         cluster = distributed.connect(scheduler)
@@ -282,10 +285,49 @@ def run_batch(
         if progress_bars is not None
         else nullcontext(lambda n=1, description=None: None)
     )
-    with cluster as client, bar as advance:
-        return reconstruct_batch(
-            datasets, out_root, options, client, progress=advance, overwrite=overwrite
+    before = [finished_metrics(out) is not None for out in outs]
+    try:
+        with cluster as client, bar as advance:
+            return reconstruct_batch(
+                datasets, out_root, options, client, progress=advance, overwrite=overwrite
+            )
+    except KeyboardInterrupt as exc:
+        # Counted once the cluster is closed: a dataset a worker finished meanwhile counts.
+        done = sum(
+            not was and finished_metrics(out) is not None
+            for was, out in zip(before, outs, strict=True)
         )
+        kept = sum(before)
+        exc.outcome = (  # type: ignore[attr-defined] - read by ps_lab._cli_util.lab_command
+            f"{done} of {len(outs)} datasets finished in this run"
+            + (f" ({kept} were already done)" if kept else "")
+            + "; their results are complete, the others were not written: run the batch again "
+            "to do the rest"
+        )
+        raise
+
+
+def check_out_root(out_root: Path) -> None:
+    """Refuse an ``--out-root`` that exists and is not a folder (before any cluster starts)."""
+    out_root = Path(out_root)
+    if (out_root.exists() or out_root.is_symlink()) and not out_root.is_dir():
+        raise DatasetError(
+            f"--out-root {out_root}: exists and is not a folder (results go to "
+            "OUT_ROOT/<dataset folder name>)"
+        )
+
+
+def failure_line(rows: Sequence[BatchRow]) -> str | None:
+    """The one error line of a batch with failed datasets (naming the first), or None."""
+    failed = [row for row in rows if row.status == "failed"]
+    if not failed:
+        return None
+    first = failed[0]
+    more = f" (and {len(failed) - 1} more, see the summary)" if len(failed) > 1 else ""
+    message = first.message or "failed"
+    if str(first.dataset) not in message:
+        message = f"{first.dataset}: {message}"
+    return f"{len(failed)} of {len(rows)} datasets failed: {message}{more}"
 
 
 def summary_table(rows: Sequence[BatchRow]) -> str:

@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import json
 import logging
+import os
 import time
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
@@ -25,12 +26,12 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
 
-import cv2
 import numpy as np
 import tifffile
 
 from ps_lab.errors import OutputError
-from ps_lab.io.files import json_safe, staged_files, write_json_atomic
+from ps_lab.io.files import json_safe, staged_files
+from ps_lab.io.images import imwrite, read_npy_header
 from ps_lab.io.mesh import depth_mesh, write_ply
 from ps_lab.io.normal_maps import write_normal16, write_normals_exr
 from ps_lab.reconstruct.integrate import (
@@ -78,12 +79,15 @@ class DepthOptions:
     def __post_init__(self) -> None:
         if self.method not in INTEGRATION_METHODS:
             raise IntegrationInputError(
-                f"unknown depth method {self.method!r}; choose {' or '.join(INTEGRATION_METHODS)}"
+                f"--depth: unknown depth method {self.method!r}; choose "
+                f"{' or '.join(INTEGRATION_METHODS)}"
             )
         if self.pixel_size is not None and not self.pixel_size > 0:
-            raise IntegrationInputError(f"pixel size must be positive, got {self.pixel_size}")
+            raise IntegrationInputError(f"--pixel-size must be positive, got {self.pixel_size}")
         if self.focal_length is not None and not self.focal_length > 0:
-            raise IntegrationInputError(f"focal length must be positive, got {self.focal_length}")
+            raise IntegrationInputError(
+                f"--focal-length must be positive, got {self.focal_length}"
+            )
 
 
 @contextmanager
@@ -139,6 +143,31 @@ def depth_picture(depth: np.ndarray) -> np.ndarray:
     picture = np.rint(shade * 255.0).astype(np.uint8)
     picture[~valid] = 0
     return picture
+
+
+#: Largest coordinate (depth, mesh x and y) written: float32 files, with room for the mesh's
+#: differences and products (float32 holds 3.4e38).
+MAX_COORDINATE = 1e30
+
+
+def _check_range(depth: np.ndarray, shape: tuple[int, int], scale: float, options) -> None:
+    """Refuse a pixel size or focal length that puts the depth or mesh beyond float32's range."""
+    with np.errstate(over="ignore", invalid="ignore"):
+        integrated = depth[~np.isnan(depth)].astype(np.float64)
+        deepest = float(np.max(np.abs(integrated), initial=0.0))
+        extent = max(deepest, float(max(shape))) * float(scale)
+        if options.focal_length is not None:
+            extent = max(extent, deepest * max(shape) / options.focal_length * float(scale))
+    if not extent <= MAX_COORDINATE:
+        given = []
+        if options.pixel_size is not None:
+            given.append(f"--pixel-size {options.pixel_size:g}")
+        if options.focal_length is not None:
+            given.append(f"--focal-length {options.focal_length:g}")
+        raise IntegrationInputError(
+            f"{' with '.join(given) or 'the normals'}: the depth and mesh would reach "
+            f"{extent:.3g}, beyond what their float32 files hold (at most {MAX_COORDINATE:.0e})"
+        )
 
 
 def write_normal_maps(
@@ -203,10 +232,11 @@ def write_depth(
     seconds = time.perf_counter() - started
     _warn_unconverged(result)
     scale = options.pixel_size if options.pixel_size is not None else 1.0
-    depth = (result.depth * np.float32(scale)).astype(np.float32)
+    _check_range(result.depth, normals.shape[:2], scale, options)
+    depth = (result.depth * np.float64(scale)).astype(np.float32)
     np.save(folder / "depth.npy", depth)
     tifffile.imwrite(folder / "depth.tiff", depth)
-    if not cv2.imwrite(str(folder / "depth.png"), depth_picture(result.depth)):
+    if not imwrite(folder / "depth.png", depth_picture(result.depth)):
         raise OutputError(f"{folder / 'depth.png'}: OpenCV could not write the PNG")
     colours = None
     if albedo is not None:
@@ -272,6 +302,87 @@ def mesh_comments(options: DepthOptions, method: str) -> tuple[str, ...]:
     )
 
 
+
+#: ``metrics.json`` formats of the folders ``ps-lab integrate --out`` may write into: a
+#: reconstruction (``ps_lab.reconstruct.pipeline.RESULT_FORMAT``) or an earlier integration.
+DEPTH_FORMAT = "ps-lab-depth"
+RESULT_FORMATS = ("ps-lab-reconstruction", DEPTH_FORMAT)
+#: The files an integration writes (besides ``metrics.json``).
+DEPTH_FILES = ("depth.npy", "depth.tiff", "depth.png", "mesh.ply")
+_STAGING_PREFIX = ".integrate-"
+
+
+def _folder_record(out: Path) -> dict[str, Any] | None:
+    """The ``metrics.json`` of ``out`` to extend, None for a new or empty folder.
+
+    Raises :class:`OutputError` unless ``out`` is absent, empty, or a ps-lab result (a
+    reconstruction or an earlier integration) whose ``metrics.json`` is sound: the user's own
+    files are never overwritten.
+    """
+    out = Path(out)
+    if out.exists() and not out.is_dir():
+        raise OutputError(f"{out}: exists and is not a folder; choose another --out")
+    if not out.is_dir() or not any(
+        not entry.name.startswith(_STAGING_PREFIX) for entry in out.iterdir()
+    ):
+        return None
+    metrics_file = out / "metrics.json"
+    if not metrics_file.is_file():
+        raise OutputError(
+            f"{out}: exists and is not a ps-lab result folder (no metrics.json); "
+            "choose another --out or remove it"
+        )
+    try:
+        record = json.loads(metrics_file.read_text("utf-8"))
+    except (OSError, UnicodeDecodeError, ValueError) as exc:
+        reason = getattr(exc, "strerror", None) or "not JSON"
+        raise OutputError(
+            f"{metrics_file}: cannot read ({reason}), so {out} is not a ps-lab result folder "
+            "to add depth to; choose another --out"
+        ) from None
+    if not isinstance(record, dict) or record.get("format") not in RESULT_FORMATS:
+        raise OutputError(
+            f"{metrics_file}: not the metrics of a ps-lab result, so {out} is not a ps-lab "
+            "result folder; choose another --out or remove it"
+        )
+    return record
+
+
+def _load_array(path: Path, what: str) -> np.ndarray:
+    """A real-valued array from ``path`` (no pickles, no complex or text), or one error line.
+
+    The size the header claims is checked against the file first: a forged or cut header is
+    refused before anything is allocated.
+    """
+    try:
+        with open(path, "rb") as stream:
+            shape, _, dtype, offset = read_npy_header(stream)
+            size = os.fstat(stream.fileno()).st_size
+    except (OSError, ValueError, EOFError, SyntaxError, TypeError):
+        shape, dtype, offset, size = (), None, 0, 0  # np.load below says what is wrong
+    if dtype is not None and not dtype.hasobject:
+        claimed = int(np.prod(shape, dtype=np.float64)) * dtype.itemsize
+        if claimed > size - offset:
+            raise IntegrationInputError(
+                f"{path}: its header claims {' x '.join(map(str, shape))} {dtype} values "
+                f"({claimed} bytes), the file holds {size - offset} (truncated or forged)"
+            )
+    try:
+        array = np.load(path, allow_pickle=False)
+    except (OSError, ValueError, EOFError) as exc:
+        detail = "a pickled object array" if "allow_pickle" in str(exc) else str(exc)
+        raise IntegrationInputError(f"{path}: cannot read {what} ({detail})") from None
+    if not isinstance(array, np.ndarray):
+        raise IntegrationInputError(f"{path}: holds several arrays (an .npz?), not {what}")
+    if array.dtype == bool or not (
+        np.issubdtype(array.dtype, np.floating) or np.issubdtype(array.dtype, np.integer)
+    ):
+        raise IntegrationInputError(
+            f"{path}: {what} must be real numbers, got dtype {array.dtype}"
+        )
+    return array
+
+
 def integrate_result(
     result: Path,
     out: Path | None,
@@ -286,8 +397,10 @@ def integrate_result(
     result : Path
         A ``ps-lab reconstruct`` output folder (``normals.npy``, optional ``albedo.npy``).
     out : Path or None
-        Where to write (default: ``result`` itself). The files appear together when complete; a
-        ``metrics.json`` there gains (or replaces) its ``"depth"`` entry.
+        Where to write (default: ``result`` itself): absent, empty or a ps-lab result folder
+        (another folder is refused: its files are the user's). The files, ``metrics.json``
+        with its new ``"depth"`` entry among them, appear together when complete; a folder this
+        created is removed again on failure.
     options : DepthOptions
         Method and units.
     progress_bars : callable or None
@@ -297,29 +410,52 @@ def integrate_result(
     -------
     dict
         The depth metrics (see :func:`write_depth`).
+
+    Raises
+    ------
+    IntegrationInputError
+        Unreadable or unusable normals or albedo (the line names the file).
+    OutputError
+        ``out`` is not a folder that may be written, or the disk is full.
     """
     result = Path(result)
     normals_file = result / "normals.npy"
     if not normals_file.is_file():
         raise IntegrationInputError(f"{result}: no normals.npy (not a ps-lab reconstruct result)")
-    try:
-        normals = np.load(normals_file)
-        albedo_file = result / "albedo.npy"
-        albedo = np.load(albedo_file) if albedo_file.is_file() else None
-    except (OSError, ValueError) as exc:
-        raise IntegrationInputError(f"{normals_file}: cannot read ({exc})") from None
+    normals = _load_array(normals_file, "normals")
     if normals.ndim != 3 or normals.shape[2] != 3:
         raise IntegrationInputError(f"{normals_file}: expected H x W x 3, got {normals.shape}")
+    albedo_file = result / "albedo.npy"
+    albedo = _load_array(albedo_file, "albedo") if albedo_file.is_file() else None
+    if albedo is not None and (
+        albedo.shape[:2] != normals.shape[:2]
+        or albedo.ndim not in (2, 3)
+        or (albedo.ndim == 3 and albedo.shape[2] not in (1, 3))
+    ):
+        raise IntegrationInputError(
+            f"{albedo_file}: expected {normals.shape[0]} x {normals.shape[1]} (or x 3) like "
+            f"{normals_file.name}, got {albedo.shape}"
+        )
+    if albedo is not None and albedo.ndim == 3 and albedo.shape[2] == 1:
+        albedo = albedo[..., 0]
     out = result if out is None else Path(out)
-    try:
-        with staged_files(out, prefix=".integrate-") as staging:
+    record = _folder_record(out)  # before anything is written
+    with staged_files(
+        out, prefix=_STAGING_PREFIX, check=_folder_record, error=OutputError
+    ) as stage:
+        try:
             metrics = json_safe(
-                write_depth(staging, normals, albedo, options, progress_bars=progress_bars)
+                write_depth(stage, normals, albedo, options, progress_bars=progress_bars)
             )
-        metrics_file = out / "metrics.json"
-        record = json.loads(metrics_file.read_text("utf-8")) if metrics_file.is_file() else {}
-        record["depth"] = metrics
-        write_json_atomic(metrics_file, record)
-    except OSError as exc:
-        raise OutputError(f"{out}: cannot write depth outputs ({exc.strerror or exc})") from None
+            record = _folder_record(out) or {"format": DEPTH_FORMAT, "source": str(result)}
+            record["depth"] = metrics
+            (stage / "metrics.json").write_text(json.dumps(record, indent=1) + "\n", "utf-8")
+        except IntegrationInputError as exc:
+            if str(normals_file) in str(exc) or "--" in str(exc):
+                raise
+            raise IntegrationInputError(f"{normals_file}: {exc}") from None
+        except OSError as exc:
+            raise OutputError(
+                f"{out}: cannot write depth outputs ({exc.strerror or exc})"
+            ) from exc
     return metrics

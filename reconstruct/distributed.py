@@ -22,6 +22,9 @@ from __future__ import annotations
 
 import logging
 import os
+import socket
+import struct
+import tempfile
 from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
 from pathlib import Path
@@ -37,6 +40,7 @@ from ps_lab.reconstruct._bands import BandResult, band_truth, solve_band
 
 try:  # the optional dependency: the error below names the extra to install
     import distributed as _dask
+    from dask import config as dask_config
 except ImportError:  # pragma: no cover - exercised by the missing-Dask test
     _dask = None
 
@@ -70,17 +74,109 @@ def connect(address: str, *, timeout: float | None = None) -> Iterator[Any]:
 
     """
     dask = require_dask()
+    probe_scheduler(address)
     with _quiet_dask():
         try:
             limit = {} if timeout is None else {"timeout": timeout}
             client = dask.Client(address, set_as_default=False, **limit)
-        except (OSError, TimeoutError, ValueError, TypeError) as exc:
-            raise ClusterError(f"cannot reach the Dask scheduler at {address}: {exc}") from None
+        except Exception as exc:  # noqa: BLE001 - whatever answered is not a usable scheduler
+            _abandon_client(exc, dask.Client)
+            detail = f"{type(exc).__name__}: {exc}" if str(exc) else type(exc).__name__
+            raise ClusterError(
+                f"--scheduler {address}: cannot reach a Dask scheduler there ({detail})"
+            ) from None
         log.info("Dask scheduler %s, dashboard %s", address, client.dashboard_link)
         try:
             yield client
         finally:
             client.close()
+
+
+#: Seconds a TCP scheduler address has to accept a connection (and, plain TCP, to send Dask's
+#: handshake) before Dask is asked to connect.
+PROBE_SECONDS = 3.0
+# Largest first message length taken for a Dask handshake (a real one is a few hundred bytes).
+_MAX_HANDSHAKE = 1 << 24
+
+
+def probe_scheduler(address: str, timeout: float = PROBE_SECONDS) -> None:
+    """Refuse, in one line and within ``timeout`` seconds, an address no scheduler can be at.
+
+    The address is parsed first (``tcp://HOST:PORT``; a port that is not a number is refused
+    before Dask, whose client would otherwise hang in its destructor); a TCP address must then
+    accept a connection within ``timeout`` (Dask itself retries for 30 s). Other transports
+    are left to Dask.
+
+    Raises
+    ------
+    ClusterError
+        Naming ``--scheduler`` and the address.
+    """
+    dask = require_dask()
+    addressing = dask.comm.addressing
+    try:
+        scheme, location = addressing.parse_address(address, strict=False)
+        known = scheme in dask.comm.registry.backends
+        host, port = addressing.parse_host_port(location) if scheme in ("tcp", "tls") else ("", 0)
+    except (ValueError, TypeError) as exc:
+        raise ClusterError(
+            f"--scheduler {address}: not a Dask scheduler address ({exc}); expected "
+            "tcp://HOST:PORT"
+        ) from None
+    if not known:
+        raise ClusterError(
+            f"--scheduler {address}: unknown transport {scheme!r}; expected tcp://HOST:PORT"
+        )
+    if scheme not in ("tcp", "tls"):
+        return
+    if not 0 < port < 65536:
+        raise ClusterError(f"--scheduler {address}: port {port} is not a TCP port (1-65535)")
+    try:
+        connection = socket.create_connection((host, port), timeout=timeout)
+    except OSError as exc:
+        reason = "timed out" if isinstance(exc, TimeoutError) else (exc.strerror or str(exc))
+        raise ClusterError(
+            f"--scheduler {address}: no Dask scheduler answers there ({reason}); start one with "
+            "`dask scheduler`, or leave --scheduler out for a local cluster"
+        ) from None
+    if scheme == "tcp":
+        # A scheduler sends its handshake as soon as it accepts; its first 8 bytes are a message
+        # length. Another service is silent (Dask's client would then wait forever) or says
+        # something else (Dask would read a length of exabytes).
+        with connection:
+            try:
+                first = connection.recv(8, socket.MSG_WAITALL)
+            except OSError:
+                first = None
+        if not first or len(first) < 8 or struct.unpack("<Q", first)[0] > _MAX_HANDSHAKE:
+            said = "nothing" if not first else f"{first[:8]!r}"
+            raise ClusterError(
+                f"--scheduler {address}: something answers there but it is not a Dask scheduler "
+                f"(it sent {said} within {timeout:g} s instead of Dask's handshake)"
+            )
+    else:
+        connection.close()
+
+
+def _abandon_client(exc: BaseException, client_type: type) -> None:
+    """Mark the half-made client of a failed ``Client(...)`` closed, and stop its event loop.
+
+    Its destructor would otherwise wait 60 s on a connection that never came and then print a
+    traceback ("Exception ignored in Client.__del__") after the error line.
+    """
+    tb = exc.__traceback__
+    while tb is not None:
+        candidate = tb.tb_frame.f_locals.get("self")
+        if isinstance(candidate, client_type):
+            candidate.status = "closed"
+            runner = getattr(candidate, "_loop_runner", None)
+            try:
+                if runner is not None:
+                    runner.stop()
+            except Exception:  # noqa: BLE001 - best effort, the error line matters
+                pass
+            return
+        tb = tb.tb_next
 
 
 @contextmanager
@@ -94,14 +190,15 @@ def _quiet_dask() -> Iterator[None]:
         yield
         return
     silent = logging.NullHandler()
-    propagate = logger.propagate
-    logger.addHandler(silent)
+    propagate, handlers = logger.propagate, logger.handlers[:]
+    # Dask's own stderr handler too (its CRITICAL records would print over the one line).
+    logger.handlers = [silent]
     logger.propagate = False
     try:
         yield
     finally:
         logger.propagate = propagate
-        logger.removeHandler(silent)
+        logger.handlers = handlers
 
 
 @contextmanager
@@ -112,15 +209,20 @@ def local_cluster(workers: int) -> Iterator[Any]:
     free port (logged at ``-v``); worker logs are silenced (errors come back through the futures).
     """
     dask = require_dask()
-    with _quiet_dask(), dask.LocalCluster(
-        n_workers=workers,
-        threads_per_worker=1,
-        processes=True,
-        dashboard_address=":0",
-        silence_logs=logging.CRITICAL,
-    ) as cluster, dask.Client(cluster, set_as_default=False) as client:
-        log.info("local Dask cluster of %d workers, dashboard %s", workers, client.dashboard_link)
-        yield client
+    # The workers' scratch space is this run's own (Dask's default stays behind in TMPDIR).
+    with tempfile.TemporaryDirectory(prefix="ps-lab-dask-", ignore_cleanup_errors=True) as scratch:
+        with dask_config.set({"temporary-directory": scratch}), _quiet_dask(), dask.LocalCluster(
+            n_workers=workers,
+            threads_per_worker=1,
+            processes=True,
+            dashboard_address=":0",
+            silence_logs=logging.CRITICAL,
+            local_directory=scratch,
+        ) as cluster, dask.Client(cluster, set_as_default=False) as client:
+            log.info(
+                "local Dask cluster of %d workers, dashboard %s", workers, client.dashboard_link
+            )
+            yield client
 
 
 def completed(

@@ -268,9 +268,15 @@ def integrate(
             "need sharpness > 0, max_iterations >= 1, tolerance > 0 and solver_tolerance > 0"
         )
 
+    if normals.dtype == bool or not (
+        np.issubdtype(normals.dtype, np.floating) or np.issubdtype(normals.dtype, np.integer)
+    ):
+        raise IntegrationInputError(f"normals must be real numbers, got dtype {normals.dtype}")
     valid = valid_normals(normals, mask)
     if not valid.any():
-        raise IntegrationInputError("no pixel of the mask carries a normal facing the camera")
+        raise IntegrationInputError(
+            "no pixel carries a normal facing the camera (all zero, NaN or turned away)"
+        )
     n = normals[valid].astype(np.float64)
     n /= np.linalg.norm(n, axis=1, keepdims=True)
     if focal_length is not None:
@@ -280,9 +286,15 @@ def integrate(
         u = cols - cx
         v = rows - cy
         del rows, cols
+        focal_length = float(focal_length)
         m = focal_length * n[:, 2] - u * n[:, 0] + v * n[:, 1]
-        facing = m > _MIN_COSINE * np.sqrt(focal_length**2 + u * u + v * v)
+        facing = m > _MIN_COSINE * np.hypot(focal_length, np.hypot(u, v))
         del u, v
+        if not facing.any():
+            raise IntegrationInputError(
+                f"no normal faces the camera at a focal length of {focal_length:g} px "
+                "(--focal-length: in pixels, about the image width for a normal lens)"
+            )
         if not facing.all():
             valid[valid] = facing
             n, m = n[facing], m[facing]
@@ -292,6 +304,11 @@ def integrate(
     gradient_row = -n[:, 1] / m
     del n
     graph = _Graph(valid)
+    if graph.tail.size == 0:
+        raise IntegrationInputError(
+            f"no two neighbouring pixels carry a normal ({graph.size} isolated pixel(s)): "
+            "depth needs 4-connected pixels to integrate"
+        )
     if method == "poisson":
         del m
         t = graph.trapezoid_targets(gradient_col, gradient_row)
@@ -312,7 +329,8 @@ def integrate(
             max_iterations, tolerance, solver_tolerance, progress,
         )
     depth = np.full(shape, np.nan, dtype=np.float32)
-    depth[valid] = _fix_gauge(g, graph, focal_length)
+    with np.errstate(over="ignore"):  # beyond float32: infinite, refused by the caller
+        depth[valid] = _fix_gauge(g, graph, focal_length)
     return Integration(
         depth=depth,
         method=method,
@@ -417,7 +435,7 @@ class _Graph:
         data = np.empty(self.indices.size)
         data[self.at_head] = -weights
         data[self.at_tail] = -weights
-        diagonal = np.bincount(self.tail, weights, self.size)
+        diagonal = np.bincount(self.tail, weights, self.size).astype(np.float64)
         diagonal += np.bincount(self.head, weights, self.size)
         anchor = float(np.mean(diagonal)) if self.size else 1.0
         self.anchor = np.full(self.pinned.size, anchor if anchor > 0 else 1.0)

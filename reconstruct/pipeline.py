@@ -62,6 +62,7 @@ from ps_lab.reconstruct._passes import (
 )
 from ps_lab.reconstruct._solve import estimate_noise
 from ps_lab.reconstruct.depth import DepthOptions, write_depth, write_normal_maps
+from ps_lab.reconstruct.integrate import IntegrationInputError
 from ps_lab.reconstruct.near import NearLights
 from ps_lab.reconstruct.options import (
     BYTES_PER_OBSERVATION,
@@ -388,9 +389,13 @@ def _write_surface(
         metrics["normal_maps"] = {"convention": options.normal_map}
         if options.depth is not None:
             albedo = np.load(stage / "albedo.npy")
-            depth = write_depth(
-                stage, normals, albedo, DepthOptions(method=options.depth), progress_bars=bars
-            )
+            try:
+                depth = write_depth(
+                    stage, normals, albedo, DepthOptions(method=options.depth),
+                    progress_bars=bars,
+                )
+            except IntegrationInputError as exc:  # the normals just solved cannot be integrated
+                raise DatasetError(f"--depth {options.depth}: {exc}") from None
             metrics["depth"] = json_safe(depth)
     except OSError as exc:
         raise OutputError(f"{stage}: cannot write results ({exc.strerror or exc})") from None

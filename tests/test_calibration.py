@@ -322,7 +322,7 @@ def test_write_calibration_leaves_nothing_on_failure(tmp_path, monkeypatch):
     out.mkdir()
     (out / "light_directions.txt").write_text("old\n")
 
-    monkeypatch.setattr(report.cv2, "imwrite", lambda *a, **k: False)
+    monkeypatch.setattr(report, "imwrite", lambda *a, **k: False)
     with pytest.raises(CalibrationError, match="cannot write"):
         write_calibration(cal, out)
     assert sorted(p.name for p in out.iterdir()) == ["light_directions.txt"]

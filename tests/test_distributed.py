@@ -259,7 +259,7 @@ def test_no_scheduler_at_the_address_is_one_error_line(capture, tmp_path):
         )
     assert result.exit_code == 2
     lines = result.output.strip().splitlines()
-    assert len(lines) == 1 and "cannot reach the Dask scheduler at tcp://127.0.0.1:9" in lines[0]
+    assert len(lines) == 1 and "--scheduler tcp://127.0.0.1:9: no Dask scheduler" in lines[0]
     assert list(tmp_path.iterdir()) == []
 
 
@@ -335,7 +335,7 @@ def test_a_failing_dataset_does_not_stop_the_batch(three, tmp_path):
     assert lines[0].split() == ["dataset", "pixels", "seconds", "error", "(deg)", "status"]
     assert lines[1].endswith("done") and lines[3].endswith("done")
     assert "failed:" in lines[2] and "003.png" in lines[2]
-    assert lines[-1] == "error: 1 of 3 datasets failed (see the summary)"
+    assert lines[-1].startswith("error: 1 of 3 datasets failed: ") and "003.png" in lines[-1]
     assert sorted(p.name for p in (tmp_path / "out").iterdir()) == ["sphere0", "sphere1"]
 
 

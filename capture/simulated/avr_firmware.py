@@ -43,6 +43,7 @@ __all__ = [
     "PinState",
     "build_harness",
     "build_sketch",
+    "check_avr_elf",
     "firmware_build_dir",
     "missing_packages",
     "parse_pins",
@@ -315,14 +316,22 @@ class EmulatedFirmware:
         """Build what is missing, start the harness and wait for its device path; return self."""
         if self._process is not None:
             raise RigError("the emulated firmware is already running")
-        if self.elf is not None and not self.elf.is_file():
-            raise RigError(f"firmware ELF {self.elf} does not exist")
+        if self.elf is not None:
+            check_avr_elf(self.elf)
         require_toolchain(sketch=self.elf is None)
         if self.elf is None:
             self.elf = build_sketch(self.sketch_dir, self.build_dir)
         if self.pins is None:
             self.pins = sketch_pins(self.sketch_dir)
         harness = build_harness(self.build_dir)
+        try:
+            return self._start_harness(harness)
+        except BaseException:
+            self.stop()  # the private state folder too: nothing is left behind
+            raise
+
+    def _start_harness(self, harness: Path) -> EmulatedFirmware:
+        assert self.elf is not None and self.pins is not None
         if self.state_file is None:
             self._own_state_dir = tempfile.mkdtemp(prefix="ps-lab-firmware-")
             self.state_file = Path(self._own_state_dir) / "pins.json"
@@ -350,7 +359,8 @@ class EmulatedFirmware:
             self._process = None
             reason = (errors or first).strip().splitlines()
             raise RigError(
-                f"the simavr harness did not start: {reason[-1] if reason else 'no device path'}"
+                f"{self.elf}: the simavr harness did not start with this firmware: "
+                f"{reason[-1] if reason else 'no device path'}"
             )
         self.path = first
         self._reader = threading.Thread(target=self._drain, name="ps-lab-avr-pins", daemon=True)
@@ -424,6 +434,53 @@ class EmulatedFirmware:
 
     def __exit__(self, *exc_info: object) -> None:
         self.stop()
+
+
+#: ``e_machine`` of an Atmel AVR ELF file (the Uno's ATmega328P).
+EM_AVR = 83
+
+
+def check_avr_elf(path: Path) -> None:
+    """Refuse, naming the file, what is not a complete 32-bit little-endian AVR ELF file.
+
+    Checked before simavr is started: simavr's own messages on an empty, cut or foreign file
+    name nothing, and a foreign architecture would only show as "no device path".
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise RigError(f"firmware ELF {path} does not exist (or is not a file)")
+    try:
+        data = path.read_bytes()
+    except OSError as exc:
+        raise RigError(f"{path}: cannot read the firmware ELF ({exc.strerror})") from None
+    if not data:
+        raise RigError(f"{path}: empty file, not a firmware ELF for the Uno (avr-gcc's .elf)")
+    if data[:4] != b"\x7fELF":
+        raise RigError(f"{path}: not an ELF file (avr-gcc's .elf for the Uno is needed)")
+    if len(data) < 52:
+        raise RigError(f"{path}: truncated ELF ({len(data)} bytes, its header needs 52)")
+    if data[4] != 1 or data[5] != 1:
+        raise RigError(f"{path}: a 64-bit or big-endian ELF, not firmware for the Uno's AVR")
+
+    def word(at: int, size: int) -> int:
+        return int.from_bytes(data[at : at + size], "little")
+
+    machine = word(18, 2)
+    if machine != EM_AVR:
+        raise RigError(
+            f"{path}: an ELF for another processor (e_machine {machine}), not for the Uno's "
+            f"AVR ({EM_AVR}): build the sketch for an Uno"
+        )
+    table, entry_size, entries = word(28, 4), word(42, 2), word(44, 2)
+    needed = table + entry_size * entries
+    for k in range(entries if needed <= len(data) else 0):
+        at = table + k * entry_size
+        needed = max(needed, word(at + 4, 4) + word(at + 16, 4))  # p_offset + p_filesz
+    if entries == 0 or entry_size < 32 or needed > len(data):
+        raise RigError(
+            f"{path}: truncated ELF ({len(data)} bytes, its program needs {needed}); rebuild "
+            "or copy it again"
+        )
 
 
 def parse_pins(text: str) -> tuple[int, ...]:

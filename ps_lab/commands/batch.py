@@ -26,7 +26,7 @@ from ps_lab.commands.reconstruct import (
     TolOption,
     _terminal_bars,
 )
-from ps_lab.reconstruct.batch import run_batch, summary_table
+from ps_lab.reconstruct.batch import failure_line, run_batch, summary_table
 from ps_lab.reconstruct.pipeline import ReconstructOptions, parse_memory_size
 
 
@@ -108,9 +108,9 @@ def batch(
         overwrite=overwrite,
     )
     typer.echo(summary_table(rows))
-    failed = sum(row.status == "failed" for row in rows)
+    failed = failure_line(rows)
     if failed:
-        raise fail(f"{failed} of {len(rows)} datasets failed (see the summary)")
+        raise fail(failed)
 
 
 def register(app: typer.Typer) -> None:

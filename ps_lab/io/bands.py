@@ -24,6 +24,7 @@ from ps_lab.io.dataset import (
     iter_frames,
     observe,
 )
+from ps_lab.io.files import preallocate
 
 log = logging.getLogger(__name__)
 
@@ -152,7 +153,13 @@ class ObservationStore:
                 prefix="ps-lab-observations-", suffix=".bin", dir=folder
             )
             self.path = Path(name)
-            os.ftruncate(handle, self.nbytes)  # full size: other processes may fill any band
+            # Full size, reserved (a full disk fails here): other processes may fill any band.
+            try:
+                preallocate(handle, 0, self.nbytes)
+            except BaseException:
+                os.close(handle)
+                self.path.unlink(missing_ok=True)
+                raise
             self._stream = os.fdopen(handle, "w+b")
         # The noise sample: the same pixels the solvers would pick among all mask pixels.
         p = self.pixels

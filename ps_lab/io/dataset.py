@@ -27,7 +27,6 @@ from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
-import cv2
 import numpy as np
 
 from ps_lab.errors import DatasetError
@@ -42,6 +41,7 @@ from ps_lab.io.images import (
     RAW_SUFFIXES,
     Image,
     check_is_file,
+    decode_image,
     read_image,
     read_image_size,
     read_png_bytes,
@@ -659,7 +659,7 @@ def read_mask(path: Path, shape: tuple[int, int] | None = None) -> np.ndarray:
             raw = path.read_bytes()
         except OSError as exc:
             raise DatasetError(f"{path}: cannot read file ({exc.strerror})") from None
-    array = cv2.imdecode(np.frombuffer(raw, np.uint8), cv2.IMREAD_UNCHANGED)
+    array, _ = decode_image(raw)
     if array is None:
         raise DatasetError(f"{path}: corrupt or unreadable mask image")
     mask = array != 0 if array.ndim == 2 else np.any(array[:, :, :3] != 0, axis=2)

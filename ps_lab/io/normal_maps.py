@@ -9,13 +9,15 @@ is no normal).
 
 from __future__ import annotations
 
+import io
 from pathlib import Path
 
-import cv2
 import numpy as np
 import OpenEXR
 
 from ps_lab.errors import OutputError
+from ps_lab.io.files import utf8_path
+from ps_lab.io.images import imwrite
 
 __all__ = [
     "CONVENTIONS",
@@ -68,7 +70,7 @@ def write_normal16(
 ) -> None:
     """Write ``normal16.png`` (see :func:`normal16_picture`)."""
     picture = normal16_picture(normals, mask, convention)
-    if not cv2.imwrite(str(path), np.ascontiguousarray(picture[..., ::-1])):
+    if not imwrite(path, np.ascontiguousarray(picture[..., ::-1])):
         raise OutputError(f"{path}: OpenCV could not write the PNG")
 
 
@@ -82,7 +84,12 @@ def write_normals_exr(path: Path, normals: np.ndarray, convention: str = "opengl
     header = {"type": OpenEXR.scanlineimage, "compression": OpenEXR.ZIP_COMPRESSION}
     try:
         with OpenEXR.File(header, {"RGB": pixels}) as exr:
-            exr.write(str(path))
+            if utf8_path(path):
+                exr.write(str(path))
+            else:  # the library takes UTF-8 names only: encode in memory, write from Python
+                buffer = io.BytesIO()
+                exr.write(buffer)
+                Path(path).write_bytes(buffer.getvalue())
     except (OSError, RuntimeError) as exc:
         raise OutputError(f"{path}: cannot write the OpenEXR file ({exc})") from None
 

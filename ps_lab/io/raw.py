@@ -41,6 +41,7 @@ import rawpy
 import tifffile
 
 from ps_lab.errors import DatasetError
+from ps_lab.io.files import utf8_path
 
 __all__ = ["DEMOSAIC_MODES", "RAW_SUFFIXES", "RawImage", "is_raw_file", "load_raw", "read_exposure"]
 
@@ -156,18 +157,26 @@ def read_exposure(path: str | PathLike[str]) -> float | None:
     if exposure is not None:
         return exposure
     try:
-        with rawpy.imread(str(path)) as handle:
+        with _open_raw(path) as handle:
             shutter = float(handle.other.shutter_speed)
     except (rawpy.LibRawError, AttributeError, OSError):
         return None
     return float(f"{shutter:.7g}") if math.isfinite(shutter) and shutter > 0 else None
 
 
+def _open_raw(path: Path):
+    """``rawpy.imread`` for any path (LibRaw takes names as UTF-8 text only; else a stream)."""
+    if utf8_path(path):
+        return rawpy.imread(str(path))
+    with open(path, "rb") as stream:
+        return rawpy.imread(stream)
+
+
 def _read_with_rawpy(
     path: Path,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, int, float | None]:
     try:
-        with rawpy.imread(str(path)) as handle:
+        with _open_raw(path) as handle:
             raw = np.array(handle.raw_image_visible, copy=True)
             colors = np.array(handle.raw_colors_visible, copy=True)
             blacks = np.asarray(handle.black_level_per_channel, dtype=np.float64)

@@ -7,12 +7,12 @@ from collections.abc import Callable
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
-import cv2
 import numpy as np
 import tifffile
 
 from ps_lab.errors import DatasetError
 from ps_lab.io.files import staged_folder
+from ps_lab.io.images import imwrite
 from ps_lab.render.lights import random_light_directions
 from ps_lab.render.shading import render
 from ps_lab.render.surfaces import relief_surface, sphere_surface
@@ -135,7 +135,7 @@ def write_simulated_dataset(
             path = staging / name
             if settings.image_format == "png16":
                 pixels = np.clip(np.rint(image * scale), 0, 65535).astype(np.uint16)
-                if not cv2.imwrite(str(path), pixels):
+                if not imwrite(path, pixels):
                     raise DatasetError(f"{path}: OpenCV could not write the image")
             elif settings.image_format == "tiff32":
                 tifffile.imwrite(path, image.astype(np.float32))
@@ -146,7 +146,7 @@ def write_simulated_dataset(
         (staging / "filenames.txt").write_text("".join(f"{n}\n" for n in names))
         np.savetxt(staging / "light_directions.txt", light_directions, fmt="%.9f")
         np.savetxt(staging / "light_intensities.txt", np.ones((settings.lights, 3)), fmt="%.6f")
-        cv2.imwrite(str(staging / "mask.png"), surface.mask.astype(np.uint8) * 255)
+        imwrite(staging / "mask.png", surface.mask.astype(np.uint8) * 255)
         np.save(staging / "normal_gt.npy", surface.normals.astype(np.float32))
         # Depth along the viewing axis, away from the camera, in pixels (docs/datasets.md).
         depth = np.where(surface.mask, -surface.height, np.nan).astype(np.float32)
