@@ -34,6 +34,7 @@ from ps_lab.io.files import json_safe, staged_files
 from ps_lab.io.images import imwrite, read_npy_header
 from ps_lab.io.mesh import depth_mesh, write_ply
 from ps_lab.io.normal_maps import write_normal16, write_normals_exr
+from ps_lab.io.result import RESULT_FORMAT
 from ps_lab.reconstruct.integrate import (
     BILATERAL_MAX_ITERATIONS,
     INTEGRATION_METHODS,
@@ -304,9 +305,9 @@ def mesh_comments(options: DepthOptions, method: str) -> tuple[str, ...]:
 
 
 #: ``metrics.json`` formats of the folders ``ps-lab integrate --out`` may write into: a
-#: reconstruction (``ps_lab.reconstruct.pipeline.RESULT_FORMAT``) or an earlier integration.
+#: reconstruction (``ps_lab.io.result.RESULT_FORMAT``) or an earlier integration.
 DEPTH_FORMAT = "ps-lab-depth"
-RESULT_FORMATS = ("ps-lab-reconstruction", DEPTH_FORMAT)
+RESULT_FORMATS = (RESULT_FORMAT, DEPTH_FORMAT)
 #: The files an integration writes (besides ``metrics.json``).
 DEPTH_FILES = ("depth.npy", "depth.tiff", "depth.png", "mesh.ply")
 _STAGING_PREFIX = ".integrate-"
