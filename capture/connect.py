@@ -439,6 +439,7 @@ def serve_camera(
         f_number=cfg.aperture or 8.0,
         slow_s=slow_s,
         keep_dir=keep_dir,
+        events_on_default_port=True,
     )
     serve_until_interrupted(server, on_ready, "PTP/IP camera")
 

@@ -534,6 +534,15 @@ def test_serve_camera_port_in_use_and_rig_without_scene(tmp_path):
 # -- from outside: Debian's gphoto2 command-line tool ------------------------------------------
 
 
+def _port_free(port: int) -> bool:
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as probe:
+        try:
+            probe.bind(("127.0.0.1", port))
+        except OSError:
+            return False
+    return True
+
+
 def test_gphoto2_command_line_tool(tmp_path, gphoto2_home):
     """`gphoto2 --summary` and `--capture-image-and-download` against serve-camera."""
     tool = shutil.which("gphoto2")
@@ -541,6 +550,7 @@ def test_gphoto2_command_line_tool(tmp_path, gphoto2_home):
         pytest.skip("Debian's gphoto2 command-line tool is not installed (apt-get install gphoto2)")
     import rawpy
 
+    default_port_free = _port_free(15740)  # the short ptpip:HOST:N form needs it
     keep = tmp_path / "served"
     server = ServeCamera(_rig(tmp_path), "--lit", "2,5", "--keep", str(keep))
     env = {**os.environ, "HOME": str(gphoto2_home), "LANG": "C"}
@@ -555,6 +565,19 @@ def test_gphoto2_command_line_tool(tmp_path, gphoto2_home):
         assert summary.returncode == 0, summary.stdout + summary.stderr
         assert "Model: ps-lab simulated camera" in summary.stdout
         assert "500d" in summary.stdout.lower()  # ExposureTime in the property summary
+        # The short form ptpip:HOST:N opens its event connection on 15740: serve-camera listens
+        # there too while that port is free.
+        if default_port_free:
+            host, port = server.address.split(":")[1:3]
+            assert not _port_free(15740), "serve-camera did not take 15740 for event connections"
+            short = subprocess.run(
+                [tool, "--port", f"ptpip:{host}:{port}", "--summary"],
+                capture_output=True,
+                text=True,
+                timeout=60,
+                env=env,  # fmt: skip
+            )
+            assert short.returncode == 0, short.stdout + short.stderr
         shot = subprocess.run(
             [
                 tool,

@@ -160,8 +160,12 @@ class PtpIpCamera:
         slow_s: float = 2.0,
         keep_dir: Path | str | None = None,
         model: str = "ps-lab simulated camera",
+        events_on_default_port: bool = False,
     ) -> None:
         self.shoot = shoot
+        # libgphoto2 opens the event connection on 15740 for ``ptpip:HOST:N`` (only
+        # ``ptpip:HOST:N:N`` names it): listening there too lets the short form work.
+        self.events_on_default_port = bool(events_on_default_port)
         self.host = host
         self.port = int(port)
         self.faults: dict[int, str] = {}
@@ -191,6 +195,7 @@ class PtpIpCamera:
         self._lock = threading.RLock()
         self._event_lock = threading.Lock()
         self._listener: socket.socket | None = None
+        self._extra_listener: socket.socket | None = None
         self._thread: threading.Thread | None = None
         self._stop = threading.Event()
         self._command: socket.socket | None = None
@@ -229,6 +234,8 @@ class PtpIpCamera:
         listener.listen(4)
         self._listener = listener
         self.port = listener.getsockname()[1]
+        if self.events_on_default_port and self.port != DEFAULT_PORT:
+            self._extra_listener = self._listen_on_default_port()
         if self.keep_dir is not None:
             self.keep_dir.mkdir(parents=True, exist_ok=True)
         self._stop.clear()
@@ -237,13 +244,29 @@ class PtpIpCamera:
         log.info("PTP/IP camera %r on %s", self.model, self.address)
         return self
 
+    def _listen_on_default_port(self) -> socket.socket | None:
+        """A second listener on 15740 for event connections, or None when it is taken."""
+        extra = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
+        extra.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        try:
+            extra.bind((self.host, DEFAULT_PORT))
+        except OSError as exc:
+            extra.close()
+            log.info("PTP/IP camera: port %d taken (%s): use %s", DEFAULT_PORT, exc.strerror,
+                     self.address)
+            return None
+        extra.listen(4)
+        return extra
+
     def stop(self) -> None:
         """Stop serving and close every connection (idempotent)."""
         self._stop.set()
         self._drop()
-        if self._listener is not None:
-            self._listener.close()
-            self._listener = None
+        for attribute in ("_listener", "_extra_listener"):
+            listener = getattr(self, attribute)
+            if listener is not None:
+                listener.close()
+                setattr(self, attribute, None)
         if self._thread is not None:
             self._thread.join(timeout=5.0)
             self._thread = None
@@ -268,14 +291,14 @@ class PtpIpCamera:
     # -- connections ------------------------------------------------------------------------
     def _accept(self) -> None:
         while not self._stop.is_set():
-            listener = self._listener
-            if listener is None:
+            listeners = [x for x in (self._listener, self._extra_listener) if x is not None]
+            if self._listener is None:
                 return
             try:
-                readable, _, _ = select.select([listener], [], [], 0.1)
+                readable, _, _ = select.select(listeners, [], [], 0.1)
                 if not readable:
                     continue
-                conn, _ = listener.accept()
+                conn, _ = readable[0].accept()
             except (OSError, ValueError):
                 return
             conn.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
