@@ -266,9 +266,10 @@ def _whole_image_parameters(
     of it (``light_noise=``: the images were divided by the file's light intensities).
     """
     method = options.method
-    if method == "ls" or store.sample_index.size == 0:
+    if method in ("ls", "plls") or store.sample_index.size == 0:
         return {}
-    light_noise = light_noise_factors(intensities, options.channel) if method == "sbl" else None
+    sbl_like = method in ("sbl", "plsbl", "auto")
+    light_noise = light_noise_factors(intensities, options.channel) if sbl_like else None
     sigma, floor = estimate_noise_model(
         store.sample_observations,
         vectors,
@@ -276,7 +277,7 @@ def _whole_image_parameters(
         max_pixels=store.sample_index.size,
         light_noise=light_noise,
     )
-    if method != "sbl":
+    if not sbl_like:
         return {"noise_sigma": sigma}
     return {"noise_sigma": sigma, "noise_floor": floor, "light_noise": light_noise}
 

@@ -10,7 +10,7 @@ from contextlib import nullcontext
 
 import numpy as np
 
-from . import _kernels
+from . import _kernels, _pl_kernels
 from ._linalg import SOLVABLE_REL_DET, inverse6, outer6, pixel_scale
 from ._rpca import solve_rpca
 from ._solution import METHODS, Solution, SolverInputError
@@ -23,9 +23,17 @@ DEFAULTS: dict[str, dict] = {
     "sbl": {"lam": None, "sigma_x2": 1e6, "max_iter": 100, "tol": None, "gamma_floor": 1e-10,
             "gamma_start": 1e3, "outlier_threshold": None, "noise_sigma": None,
             "noise_floor": None, "light_noise": None},
+    "plls": {"segments": 3},
+    "plsbl": {"lam": None, "sigma_x2": 1e6, "max_iter": 20, "tol": None, "gamma_floor": 1e-10,
+              "gamma_start": 1e3, "segments": 3, "outlier_threshold": None, "noise_sigma": None,
+              "noise_floor": None, "light_noise": None},
     "rpca": {"lam_sparse": None, "max_iter": 500, "tol": 1e-7, "rho": 1.5,
              "outlier_threshold": None, "noise_sigma": None},
 }
+# The default method chooses, per pixel, SBL or PL-SBL by their evidence; it takes PL-SBL's options.
+DEFAULTS["auto"] = {**DEFAULTS["plsbl"], "sbl_max_iter": 100}
+# Methods with SBL's noise variance (lambda) and its per-observation default.
+SBL_LIKE = ("sbl", "plsbl", "auto")
 DEFAULT_TILE_SIZE = 4096
 # Smaller tiles when there would be fewer than this many per thread (so that no thread idles
 # while another finishes a large last tile), but never below MIN_TILE_SIZE pixels.
@@ -150,6 +158,13 @@ def _method_params(method: str, given: dict) -> dict:
                                f"it takes {', '.join(sorted(allowed))}")
     params = dict(DEFAULTS[method])
     params.update(given)
+    if "segments" in params:
+        k = params["segments"]
+        if isinstance(k, bool) or not isinstance(k, (int, np.integer)) or not (
+                1 <= k <= _pl_kernels.MAX_SEGMENTS):
+            raise SolverInputError(f"segments must be a whole number from 1 to "
+                                   f"{_pl_kernels.MAX_SEGMENTS}, got {k!r}")
+        params["segments"] = int(k)
     return params
 
 
@@ -340,7 +355,7 @@ def solve(
     observations: np.ndarray,
     light_directions: np.ndarray,
     *,
-    method: str = "sbl",
+    method: str = "auto",
     valid: np.ndarray | None = None,
     threads: int | None = None,
     tile_size: int | None = None,
@@ -410,7 +425,7 @@ def solve(
         raise SolverInputError(f"tile_size must be positive, got {tile_size}")
     tile = _tile_pixels(p, workers, bound)
     starts = range(0, p, tile)
-    parallel = workers > 1 and (len(starts) > 1 or method in ("l1", "sbl", "rpca"))
+    parallel = workers > 1 and (len(starts) > 1 or method not in ("ls", "plls"))
     with ThreadPoolExecutor(max_workers=workers) if parallel else nullcontext() as pool:
         mapper = pool.map if pool is not None else map
 
@@ -431,9 +446,9 @@ def _solve_params(n, method, params, residuals) -> dict:
     ``n`` lights; ``residuals()`` returns the noise fit's residuals (:func:`_noise_residuals`).
     """
     used: dict = {"method": method}
-    if method != "ls":
+    if method not in ("ls", "plls"):
         noise = params.pop("noise_sigma")
-        if method == "sbl":
+        if method in SBL_LIKE:
             noise_floor = params.pop("noise_floor")
             light_noise = params.pop("light_noise")
             if light_noise is not None:
@@ -464,11 +479,30 @@ def _solve_params(n, method, params, residuals) -> dict:
             params["outlier_threshold"] = max(3.0 * noise, MIN_OUTLIER_THRESHOLD)
         if noise is not None:
             used["noise_sigma"] = float(noise)
-        if method == "sbl" and params["tol"] is None:
+        if method in SBL_LIKE and params["tol"] is None:
             params["tol"] = max(SBL_TOL_MIN, SBL_TOL_NOISE_SHARE * noise)
     used.update({k: v for k, v in params.items()
                  if k not in ("lam", "noise_floor", "light_noise")})
     return used
+
+
+def _pl_sbl_tile(y, w, lights, **params):
+    return _pl_kernels.pl_tile(y, w, lights, **params)
+
+
+def _auto_tile(y, w, lights, **params):
+    return _pl_kernels.pl_tile(y, w, lights, choose=True, **params)
+
+
+def _pl_ls_tile(y, w, lights, *, segments):
+    return _pl_kernels.pl_tile(y, w, lights, segments=segments, lam=LAMBDA_FLOOR, sigma_x2=1e12,
+                               sbl=False, learn_tau=False)
+
+
+def tile_kernel(method: str):
+    """The tile kernel of ``method`` (directional lights (n, 3); the PL kernels also (m, n, 3))."""
+    return {"ls": _kernels.ls_tile, "l1": _kernels.l1_tile, "sbl": _kernels.sbl_tile,
+            "plls": _pl_ls_tile, "plsbl": _pl_sbl_tile, "auto": _auto_tile}[method]
 
 
 def _solve_tiles(obs, lights, usable, method, params, used, starts, tile, mapper, progress):
@@ -478,11 +512,12 @@ def _solve_tiles(obs, lights, usable, method, params, used, starts, tile, mapper
     albedo = np.zeros(p)
     outliers = np.zeros((n, p), bool)
     iterations = np.zeros(p, np.int64)
-    kernel = {"ls": _kernels.ls_tile, "l1": _kernels.l1_tile, "sbl": _kernels.sbl_tile}[method]
+    segments = np.zeros(p, np.int64) if method in ("plls", "plsbl", "auto") else None
+    kernel = tile_kernel(method)
     kernel_params = {k: v for k, v in params.items() if k not in ("noise_floor", "light_noise")}
     if method == "ls":
         kernel_params = {"outlier_threshold": np.inf}
-    per_pixel_lam = method == "sbl" and params["lam"] is None
+    per_pixel_lam = method in SBL_LIKE and params["lam"] is None
 
     def run_tile(a: int) -> int:
         b = min(a + tile, p)
@@ -500,9 +535,15 @@ def _solve_tiles(obs, lights, usable, method, params, used, starts, tile, mapper
         albedo[a:b] = np.where(good, length, 0.0)
         outliers[:, a:b] = (res.outliers & good[:, None]).T
         iterations[a:b] = np.where(ok, res.iterations, 0)
+        if segments is not None:
+            segments[a:b] = np.where(ok, res.segments, 0)
         return b - a
 
     for done in mapper(run_tile, starts):
         if progress is not None:
             progress(done)
+    if segments is not None:
+        solved = segments > 0
+        used["pixels_per_segments"] = {int(k): int(c) for k, c in
+                                       zip(*np.unique(segments[solved], return_counts=True))}
     return Solution(normals, albedo, outliers, iterations, used)

@@ -70,7 +70,10 @@ def test_vectorised_equals_per_pixel_oracle(corrupted, method):
     sol = solve(y, lights, method=method, valid=valid)
     normals, albedo, outliers, iterations = solve_oracle(y, lights, method, valid, **oracle_params(sol))
     assert np.abs(sol.normals - normals).max() < 1e-6
-    assert np.allclose(sol.albedo, albedo, rtol=1e-6, atol=1e-9)
+    # PL-LS weighs the data by 1/lambda = 9e6 against a unit prior on the slopes: its 5x5
+    # normal equations have condition numbers near 1e9, which leaves ~1e-6 relative in the albedo
+    rtol = 1e-5 if method == "plls" else 1e-6
+    assert np.allclose(sol.albedo, albedo, rtol=rtol, atol=1e-9)
     assert np.mean(sol.iterations == iterations) > 0.99
     assert np.mean(sol.outliers != outliers) < 1e-3
     assert not sol.outliers[~valid].any()

@@ -20,9 +20,12 @@ from ps_lab.reconstruct.pipeline import (
 class Method(str, Enum):  # noqa: UP042 - typer needs str-valued choices
     """Solver choices (see ``ps_lab.reconstruct.METHODS``)."""
 
+    auto = "auto"
     ls = "ls"
     l1 = "l1"
     sbl = "sbl"
+    plls = "plls"
+    plsbl = "plsbl"
     rpca = "rpca"
 
 
@@ -45,7 +48,15 @@ class Channel(str, Enum):  # noqa: UP042
 
 # Options that `ps-lab batch` shares with `ps-lab reconstruct` (one declaration each).
 MethodOption = Annotated[
-    Method, typer.Option(help="Solver: ls (Woodham), l1 (IRLS), sbl (robust, default), rpca.")
+    Method,
+    typer.Option(
+        help="Solver: auto (per pixel sbl or plsbl by evidence, default), ls (Woodham), l1 "
+        "(IRLS), sbl (robust), plls / plsbl (piecewise-linear diffuse), rpca."
+    ),
+]
+SegmentsOption = Annotated[
+    int | None,
+    typer.Option(help="Segments of plls / plsbl / auto (1-8; default 3).", show_default=False),
 ]
 ShadowThresholdOption = Annotated[
     float | None,
@@ -116,7 +127,7 @@ def reconstruct(
         Path,
         typer.Argument(help="Image folder (DiLiGenT layout) or capture run.", show_default=False),
     ],
-    method: MethodOption = Method.sbl,
+    method: MethodOption = Method.auto,
     out: Annotated[
         Path | None,
         typer.Option(help="Output folder [default: DATASET/recon/<method>].", show_default=False),
@@ -149,6 +160,7 @@ def reconstruct(
     sigma_x2: SigmaX2Option = None,
     max_iter: MaxIterOption = None,
     tol: TolOption = None,
+    segments: SegmentsOption = None,
     depth: DepthOption = None,
 ) -> None:
     """Estimate surface normals and albedo; write normals.npy, normal.png, albedo, metrics.json."""
@@ -167,6 +179,7 @@ def reconstruct(
         sigma_x2=sigma_x2,
         max_iter=max_iter,
         tol=tol,
+        segments=segments,
         depth=depth,
     )
     metrics = reconstruct_to_folder(dataset, out, options, progress_bars=_terminal_bars).metrics
