@@ -40,7 +40,8 @@ from dataclasses import dataclass
 import numpy as np
 from numba import njit
 
-from ._kernels import INLINE, VECTOR, TileResult
+from . import _kernels
+from ._kernels import INLINE, VECTOR, TileResult, _sbl_pixel, _weighted_sums
 
 # Rows of the per-pixel state: usable (1/0), observation noise in y units, in f units, gamma,
 # d = w / (gamma + lambda), corruption estimate of the last iteration, residual, a^T M^-1 a,
@@ -54,6 +55,44 @@ TAU_FLOOR = 1e-10
 
 
 @njit(**INLINE)
+def _select(a, lo, hi, kth):
+    """The value of rank ``kth`` of ``a[lo:hi]`` (Hoare's selection, in place, O(n) expected).
+
+    Afterwards ``a[lo:kth] <= a[kth] <= a[kth + 1:hi]``, so a larger rank can be selected in
+    ``a[kth:hi]``. The pivot is the median of three (deterministic); the value equals a sort's.
+    """
+    left = lo
+    right = hi - 1
+    while right > left:
+        mid = (left + right) // 2
+        p0, p1, p2 = a[left], a[mid], a[right]
+        if p0 > p1:
+            p0, p1 = p1, p0
+        if p1 > p2:
+            p1 = p2
+            if p0 > p1:
+                p1 = p0
+        i = left
+        j = right
+        while i <= j:
+            while a[i] < p1:
+                i += 1
+            while a[j] > p1:
+                j -= 1
+            if i <= j:
+                a[i], a[j] = a[j], a[i]
+                i += 1
+                j -= 1
+        if kth <= j:
+            right = j
+        elif kth >= i:
+            left = i
+        else:
+            break
+    return a[kth]
+
+
+@njit(**INLINE)
 def _design(y, w, lights, p, k, st, tab, breaks, vals):
     """Break points, design rows and products of pixel p for ``k`` segments; usable count."""
     n = y.shape[1]
@@ -62,11 +101,17 @@ def _design(y, w, lights, p, k, st, tab, breaks, vals):
         if w[p, i] > 0.0:
             vals[cnt] = y[p, i]
             cnt += 1
-    srt = np.sort(vals[:cnt])
     breaks[0] = 0.0
+    top = vals[0]
+    for i in range(1, cnt):
+        top = vals[i] if vals[i] > top else top
+    breaks[k] = top
+    # the order statistics (j cnt) // K, increasing, each selected in the part right of the last
+    lo = 0
     for j in range(1, k):
-        breaks[j] = srt[(j * cnt) // k]
-    breaks[k] = srt[cnt - 1]
+        kth = (j * cnt) // k
+        breaks[j] = _select(vals, lo, cnt, kth)
+        lo = kth
     u = k + 2
     ns = k - 1
     for i in range(n):
@@ -94,6 +139,8 @@ def _design(y, w, lights, p, k, st, tab, breaks, vals):
         st[_T, i] = -last * wi
         st[_SEG, i] = seg
         st[_W, i] = wi
+    if k == 3:
+        return cnt  # the three-segment iteration forms its products in its loops
     # products a_a^T (upper triangle, row-major) on rows u .. u + u(u+1)/2
     e = u
     for r in range(u):
@@ -185,6 +232,137 @@ def _slopes(x, k, slopes):
 
 
 @njit(**INLINE)
+def _iterate3(st, tab, n, ridge, learn_tau, max_iter, ftol, floor, sbl, mat, inv, low, x,
+              slopes, tau2):
+    """The iteration of :func:`_pl_pixel` for three segments (the default), written out.
+
+    The five unknowns' normal equations (15 products, 5 right-hand sides) are summed in one
+    loop and the residual, ``a^T M^-1 a``, the gamma, lambda and d updates in a second one, so
+    each loop runs over the lights once, vectorised (the generic path makes ~40 passes).
+    Same algebra as the generic path (rounding-level differences). Returns (iterations,
+    log det M, tau2); log det is NaN when ``M`` is not positive definite.
+    """
+    iters = max_iter if sbl else 1
+    it = 0
+    done = not sbl
+    fl = SLOPE_FLOOR / 3.0
+    logdet = math.nan
+    while True:
+        m00 = m01 = m02 = m03 = m04 = m11 = m12 = m13 = m14 = 0.0
+        m22 = m23 = m24 = m33 = m34 = m44 = 0.0
+        r0 = r1 = r2 = r3 = r4 = 0.0
+        for i in range(n):
+            d = st[_D, i]
+            a0 = tab[0, i]
+            a1 = tab[1, i]
+            a2 = tab[2, i]
+            a3 = tab[3, i]
+            a4 = tab[4, i]
+            dt = d * st[_T, i]
+            r0 += dt * a0
+            r1 += dt * a1
+            r2 += dt * a2
+            r3 += dt * a3
+            r4 += dt * a4
+            da0 = d * a0
+            da1 = d * a1
+            da2 = d * a2
+            da3 = d * a3
+            m00 += da0 * a0
+            m01 += da0 * a1
+            m02 += da0 * a2
+            m03 += da0 * a3
+            m04 += da0 * a4
+            m11 += da1 * a1
+            m12 += da1 * a2
+            m13 += da1 * a3
+            m14 += da1 * a4
+            m22 += da2 * a2
+            m23 += da2 * a3
+            m24 += da2 * a4
+            m33 += da3 * a3
+            m34 += da3 * a4
+            m44 += d * a4 * a4
+        it2 = 1.0 / tau2
+        mat[0, 0] = m00 + 2.0 * it2
+        mat[0, 1] = mat[1, 0] = m01 + it2
+        mat[1, 1] = m11 + 2.0 * it2
+        mat[0, 2] = mat[2, 0] = m02
+        mat[0, 3] = mat[3, 0] = m03
+        mat[0, 4] = mat[4, 0] = m04
+        mat[1, 2] = mat[2, 1] = m12
+        mat[1, 3] = mat[3, 1] = m13
+        mat[1, 4] = mat[4, 1] = m14
+        mat[2, 2] = m22 + ridge
+        mat[2, 3] = mat[3, 2] = m23
+        mat[2, 4] = mat[4, 2] = m24
+        mat[3, 3] = m33 + ridge
+        mat[3, 4] = mat[4, 3] = m34
+        mat[4, 4] = m44 + ridge
+        logdet = _cholesky_inverse(mat, inv, low, 5)
+        if not logdet == logdet:
+            return iters, logdet, tau2
+        r0 += it2
+        r1 += it2
+        x0 = inv[0, 0] * r0 + inv[0, 1] * r1 + inv[0, 2] * r2 + inv[0, 3] * r3 + inv[0, 4] * r4
+        x1 = inv[1, 0] * r0 + inv[1, 1] * r1 + inv[1, 2] * r2 + inv[1, 3] * r3 + inv[1, 4] * r4
+        x2 = inv[2, 0] * r0 + inv[2, 1] * r1 + inv[2, 2] * r2 + inv[2, 3] * r3 + inv[2, 4] * r4
+        x3 = inv[3, 0] * r0 + inv[3, 1] * r1 + inv[3, 2] * r2 + inv[3, 3] * r3 + inv[3, 4] * r4
+        x4 = inv[4, 0] * r0 + inv[4, 1] * r1 + inv[4, 2] * r2 + inv[4, 3] * r3 + inv[4, 4] * r4
+        x[0], x[1], x[2], x[3], x[4] = x0, x1, x2, x3, x4
+        slopes[0], slopes[1], slopes[2] = x0, x1, 1.0 - x0 - x1
+        if done or it == max_iter:
+            for i in range(n):
+                st[_R, i] = st[_T, i] - (x0 * tab[0, i] + x1 * tab[1, i] + x2 * tab[2, i]
+                                         + x3 * tab[3, i] + x4 * tab[4, i])
+            return iters, logdet, tau2
+        i00, i11, i22, i33, i44 = inv[0, 0], inv[1, 1], inv[2, 2], inv[3, 3], inv[4, 4]
+        j01, j02, j03, j04 = 2.0 * inv[0, 1], 2.0 * inv[0, 2], 2.0 * inv[0, 3], 2.0 * inv[0, 4]
+        j12, j13, j14 = 2.0 * inv[1, 2], 2.0 * inv[1, 3], 2.0 * inv[1, 4]
+        j23, j24, j34 = 2.0 * inv[2, 3], 2.0 * inv[2, 4], 2.0 * inv[3, 4]
+        sl0 = x0 if x0 > fl else fl
+        sl1 = x1 if x1 > fl else fl
+        sl2 = 1.0 - x0 - x1
+        sl2 = sl2 if sl2 > fl else fl
+        moved = 0
+        for i in range(n):
+            a0 = tab[0, i]
+            a1 = tab[1, i]
+            a2 = tab[2, i]
+            a3 = tab[3, i]
+            a4 = tab[4, i]
+            r = st[_T, i] - (x0 * a0 + x1 * a1 + x2 * a2 + x3 * a3 + x4 * a4)
+            q = (a0 * (i00 * a0 + j01 * a1 + j02 * a2 + j03 * a3 + j04 * a4)
+                 + a1 * (i11 * a1 + j12 * a2 + j13 * a3 + j14 * a4)
+                 + a2 * (i22 * a2 + j23 * a3 + j24 * a4)
+                 + a3 * (i33 * a3 + j34 * a4) + a4 * i44 * a4)
+            gi = st[_G, i]
+            di = st[_D, i]
+            gd = gi * di
+            z = gd * r
+            gn = z * z + (gi - gi * gd * (1.0 - di * q))
+            gn = gn if gn > floor else floor
+            st[_G, i] = gn
+            moved += abs(z - st[_Z, i]) >= ftol
+            st[_Z, i] = z
+            seg = st[_SEG, i]
+            sl = sl2 if seg > 1.5 else (sl1 if seg > 0.5 else sl0)
+            lam = st[_LAM0, i] * sl * sl
+            st[_LAM, i] = lam
+            st[_D, i] = st[_W, i] / (gn + lam)
+        if learn_tau:
+            dv0 = x0 - 1.0 / 3.0
+            dv1 = x1 - 1.0 / 3.0
+            tr = 2.0 * (inv[0, 0] + inv[1, 1] + inv[0, 1])
+            tau2 = (dv0 * dv0 + dv1 * dv1 + (dv0 + dv1) ** 2 + tr) / 2.0
+            tau2 = tau2 if tau2 > TAU_FLOOR else TAU_FLOOR
+        it += 1
+        if moved == 0:
+            iters = it
+            done = True
+
+
+@njit(**INLINE)
 def _pl_pixel(y, w, lights, p, k_max, lam_row, ridge, learn_tau, max_iter, tol, floor, start,
               sbl, st, tab, mat, inv, low, x, rhs, prior, prior_rhs, breaks, vals, slopes):
     """One pixel with up to ``k_max`` segments (fewer when it has few observations).
@@ -216,7 +394,15 @@ def _pl_pixel(y, w, lights, p, k_max, lam_row, ridge, learn_tau, max_iter, tol, 
     logdet = math.nan
     it = 0
     done = not sbl
-    while True:
+    if k == 3:
+        iters, logdet, tau2 = _iterate3(st, tab, n, ridge, learn_tau, max_iter, ftol, floor, sbl,
+                                        mat, inv, low, x, slopes, tau2)
+        if not logdet == logdet:
+            for r in range(u):
+                x[r] = 0.0
+            return k, iters, -math.inf
+        done = True  # skip the generic loop
+    while not (k == 3):
         _prior(k, tau2, ridge, prior, prior_rhs)
         _normal_equations(st, tab, n, u, mat, rhs, prior, prior_rhs)
         logdet = _cholesky_inverse(mat, inv, low, u)
@@ -288,14 +474,19 @@ def _pl_pixel(y, w, lights, p, k_max, lam_row, ridge, learn_tau, max_iter, tol, 
         return k, 1, 0.0
     # log evidence of y: -1/2 [sum log c + log|M| - log|P| + sum d r^2 + dx^T P dx] + log Jacobian
     quad = 0.0
-    logc = 0.0
-    jac = 0.0
+    for i in range(n):
+        quad += st[_D, i] * st[_R, i] * st[_R, i]
+    logc = _sum_log(st, _W, _G, _LAM, n)
+    # log Jacobian: sum over observations of log(slope of their segment), one log per segment
+    for j in range(k):
+        vals[j] = 0.0
     for i in range(n):
         if st[_W, i] > 0.0:
-            quad += st[_D, i] * st[_R, i] * st[_R, i]
-            logc += math.log(st[_G, i] + st[_LAM, i])
-            sl = slopes[int(st[_SEG, i])]
-            jac += math.log(sl) if sl > 0.0 else -math.inf
+            vals[int(st[_SEG, i])] += 1.0
+    jac = 0.0
+    for j in range(k):
+        if vals[j] > 0.0:
+            jac += vals[j] * math.log(slopes[j]) if slopes[j] > 0.0 else -math.inf
     ns = k - 1
     logdet_p = 3.0 * math.log(ridge)
     if ns > 0:
@@ -333,6 +524,58 @@ def _finish(p, k, x, slopes, breaks, st, n, threshold, x_out, outliers, segments
         outliers[p, i] = st[_W, i] > 0.0 and abs(e) > threshold
 
 
+@njit(**INLINE)
+def _sum_log(st, w_row, a_row, b_row, n):
+    """``sum_i log(st[a_row, i] + st[b_row, i])`` over the usable observations.
+
+    As the log of running products, renormalised before they leave [1e-150, 1e150]: a log per
+    observation would cost more than an SBL iteration.
+    """
+    acc = 0.0
+    prod = 1.0
+    for i in range(n):
+        if st[w_row, i] > 0.0:
+            prod *= st[a_row, i] + st[b_row, i]
+            if prod > 1e150 or prod < 1e-150:
+                acc += math.log(prod)
+                prod = 1.0
+    return acc + math.log(prod)
+
+
+@njit(**INLINE)
+def _sbl_evidence(st, tab, n, ridge, x0, x1, x2):
+    """Log evidence of SBL's final state (``_kernels`` layout): the PL model with one segment."""
+    xx, yy, zz, xy, xz, yz, _, _, _ = _weighted_sums(st, tab, n)
+    xx += ridge
+    yy += ridge
+    zz += ridge
+    det = (xx * (yy * zz - yz * yz) + xy * (xz * yz - xy * zz) + xz * (xy * yz - xz * yy))
+    if not det > 0.0:
+        return -math.inf
+    quad = ridge * (x0 * x0 + x1 * x1 + x2 * x2)
+    for i in range(n):
+        r = st[_kernels._Y, i] - (x0 * tab[6, i] + x1 * tab[7, i] + x2 * tab[8, i])
+        quad += st[_kernels._V, i] * r * r
+    logc = _sum_log(st, _kernels._W, _kernels._G, _kernels._LAM, n)
+    return -0.5 * (logc + math.log(det) - 3.0 * math.log(ridge) + quad)
+
+
+@njit(**INLINE)
+def _light_table(lights, tab):
+    """``tab`` (9, n): ``a_i a_i^T`` (rows 0-5, as ``outer6``) and ``a_i`` (6-8) of (n, 3)."""
+    for i in range(lights.shape[0]):
+        a0, a1, a2 = lights[i, 0], lights[i, 1], lights[i, 2]
+        tab[0, i] = a0 * a0
+        tab[1, i] = a1 * a1
+        tab[2, i] = a2 * a2
+        tab[3, i] = a0 * a1
+        tab[4, i] = a0 * a2
+        tab[5, i] = a1 * a2
+        tab[6, i] = a0
+        tab[7, i] = a1
+        tab[8, i] = a2
+
+
 @njit(nogil=True, cache=True, **VECTOR)
 def _pl_kernel(y, w, lights, per_pixel, lam, k_max, choose, sbl, ridge, learn_tau, max_iter,
                sbl_max_iter, tol, floor, start, threshold, x_out, outliers, iters, segments_out,
@@ -346,24 +589,32 @@ def _pl_kernel(y, w, lights, per_pixel, lam, k_max, choose, sbl, ridge, learn_ta
     low = np.zeros((umax, umax))
     prior = np.zeros((umax, umax))
     x = np.zeros(umax)
-    x1 = np.zeros(umax)
     rhs = np.zeros(umax)
     prior_rhs = np.zeros(umax)
     breaks = np.zeros(k_max + 1)
     vals = np.zeros(n)
     slopes = np.zeros(k_max)
-    ones = np.ones(1)
+    sbl_st = np.zeros((_kernels.STATE_ROWS, n))
+    sbl_tab = np.zeros((9, n))
+    if choose and not per_pixel:
+        _light_table(lights[0], sbl_tab)
     for p in range(m):
         lp = lights[p] if per_pixel else lights[0]
         lam_row = lam[p]
         if choose:
-            # the Lambertian model (K = 1, SBL) first; kept unless K segments have more evidence
-            k1, it1, ev1 = _pl_pixel(y, w, lp, p, 1, lam_row, ridge, learn_tau, sbl_max_iter, tol,
-                                     floor, start, True, st, tab, mat, inv, low, x1, rhs, prior,
-                                     prior_rhs, breaks, vals, slopes)
-            _finish(p, 1, x1, ones, breaks, st, n, threshold, x_out, outliers, segments_out)
-            iters[p] = it1
-            evidence_out[p] = ev1
+            # the Lambertian model (K = 1: SBL, its own kernel) first; kept unless K segments
+            # have more evidence
+            if per_pixel:
+                _light_table(lp, sbl_tab)
+            for i in range(n):
+                sbl_st[_kernels._Y, i] = y[p, i]
+                sbl_st[_kernels._W, i] = w[p, i]
+                sbl_st[_kernels._LAM, i] = lam_row[i]
+            _sbl_pixel(sbl_st, sbl_tab, n, ridge, sbl_max_iter, tol, floor, start, threshold,
+                       x_out, outliers, iters, p)
+            segments_out[p] = 1
+            evidence_out[p] = _sbl_evidence(sbl_st, sbl_tab, n, ridge, x_out[p, 0], x_out[p, 1],
+                                            x_out[p, 2])
             if k_max == 1:
                 continue
         k, it, ev = _pl_pixel(y, w, lp, p, k_max, lam_row, ridge, learn_tau, max_iter, tol,
