@@ -31,7 +31,11 @@ DEFAULTS: dict[str, dict] = {
              "outlier_threshold": None, "noise_sigma": None},
 }
 # The default method chooses, per pixel, SBL or PL-SBL by their evidence; it takes PL-SBL's options.
-DEFAULTS["auto"] = {**DEFAULTS["plsbl"], "sbl_max_iter": 100}
+# Both models run the same number of EM steps (tol 0: no early stop), so that their evidences are
+# compared at the same point: a pixel stopped early by ``tol`` (a small change of z) can still be
+# far from its evidence's optimum (inliers' gamma still shrinking), and which one stopped first
+# would decide (docs/solvers.md).
+DEFAULTS["auto"] = {**DEFAULTS["plsbl"], "tol": 0.0}
 # Methods with SBL's noise variance (lambda) and its per-observation default.
 SBL_LIKE = ("sbl", "plsbl", "auto")
 DEFAULT_TILE_SIZE = 4096
@@ -491,7 +495,8 @@ def _pl_sbl_tile(y, w, lights, **params):
 
 
 def _auto_tile(y, w, lights, **params):
-    return _pl_kernels.pl_tile(y, w, lights, choose=True, **params)
+    return _pl_kernels.pl_tile(y, w, lights, choose=True, sbl_max_iter=params["max_iter"],
+                               **params)
 
 
 def _pl_ls_tile(y, w, lights, *, segments):

@@ -171,12 +171,12 @@ def plls_pixel(y, a, *, segments=3):
     return normal, np.zeros(y.size, bool), 1
 
 
-def auto_pixel(y, a, *, lam, segments=3, sigma_x2=1e6, max_iter=20, sbl_max_iter=100, tol=1e-4,
+def auto_pixel(y, a, *, lam, segments=3, sigma_x2=1e6, max_iter=20, tol=0.0,
                gamma_floor=1e-10, gamma_start=1e3, outlier_threshold=0.05):
     """SBL (the PL model with one segment) or PL-SBL, whichever has the larger evidence."""
     common = {"lam": lam, "sigma_x2": sigma_x2, "tol": tol, "gamma_floor": gamma_floor,
               "gamma_start": gamma_start}
-    lin = pl_model(y, a, segments=1, max_iter=sbl_max_iter, **common)
+    lin = pl_model(y, a, segments=1, max_iter=max_iter, **common)
     pl = pl_model(y, a, segments=segments, max_iter=max_iter, **common) if segments > 1 else lin
     iters = lin[6] + (pl[6] if segments > 1 else 0)
     best = pl if (segments > 1 and pl[7] > lin[7]) else lin
