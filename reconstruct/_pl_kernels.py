@@ -49,6 +49,7 @@ from ._kernels import INLINE, VECTOR, TileResult, _sbl_pixel, _weighted_sums
 _W, _LAM0, _LAM, _G, _D, _Z, _R, _Q, _SEG, _T = range(10)
 STATE_ROWS = 10
 MAX_SEGMENTS = 8
+MIN_PER_SEGMENT = 4
 # Smallest slope (times 1/K) used for an observation's noise and the Jacobian.
 SLOPE_FLOOR = 1e-3
 TAU_FLOOR = 1e-10
@@ -375,7 +376,9 @@ def _pl_pixel(y, w, lights, p, k_max, lam_row, ridge, learn_tau, max_iter, tol, 
     cnt = 0
     for i in range(n):
         cnt += w[p, i] > 0.0
-    k = k_max if k_max < cnt - 3 else cnt - 3
+    # at least MIN_PER_SEGMENT observations per segment (a segment's slope is fitted on its own
+    # observations: with fewer, it can bend to fit a corrupted one)
+    k = k_max if k_max < cnt // MIN_PER_SEGMENT else cnt // MIN_PER_SEGMENT
     k = k if k > 1 else 1
     u = k + 2
     _design(y, w, lights, p, k, st, tab, breaks, vals)
@@ -652,7 +655,7 @@ def pl_tile(y, w, lights, *, segments: int, lam, sigma_x2: float = 1e6, max_iter
         Light vectors: the same for every pixel, or each pixel's own (near lights).
     segments : int
         ``K`` (1 to ``MAX_SEGMENTS``); a pixel with ``u`` usable observations uses at most
-        ``u - 3`` (at least 1).
+        ``u // MIN_PER_SEGMENT`` (at least 1).
     lam : float or ndarray of shape (m, 1) or (m, n)
         Each observation's noise variance in the pixel's relative units.
     sbl : bool

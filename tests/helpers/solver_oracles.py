@@ -77,7 +77,7 @@ def pl_model(y, a, *, segments, lam, sigma_x2=1e6, max_iter=20, tol=1e-4, gamma_
     iterations, log evidence, K used).
     """
     n = y.size
-    k = max(1, min(segments, n - 3))
+    k = max(1, min(segments, n // 4))  # at least 4 observations per segment
     srt = np.sort(y)
     breaks = np.array([0.0] + [srt[(j * n) // k] for j in range(1, k)] + [srt[-1]])
     phi = np.clip(y[:, None] - breaks[None, :k], 0.0, breaks[1:] - breaks[:k])
