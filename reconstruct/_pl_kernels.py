@@ -115,31 +115,32 @@ def _design(y, w, lights, p, k, st, tab, breaks, vals):
         lo = kth
     u = k + 2
     ns = k - 1
+    # phi_j(y) = clip(y - b_j, 0, b_{j+1} - b_j), one vectorised loop per segment; the last
+    # segment's phi is the target (in row _T, negated), the others are differences to it
+    lo = breaks[ns]
+    width = breaks[k] - lo
     for i in range(n):
-        yi = y[p, i]
-        wi = w[p, i]
-        last = 0.0
-        seg = 0
-        for j in range(k):
-            lo = breaks[j]
-            width = breaks[j + 1] - lo
-            ph = yi - lo
+        ph = y[p, i] - lo
+        ph = ph if ph > 0.0 else 0.0
+        ph = ph if ph < width else width
+        st[_T, i] = -ph * w[p, i]
+        st[_W, i] = w[p, i]
+        st[_SEG, i] = 0.0
+    for j in range(ns):
+        lo = breaks[j]
+        width = breaks[j + 1] - lo
+        cut = breaks[j + 1]
+        for i in range(n):
+            ph = y[p, i] - lo
             ph = ph if ph > 0.0 else 0.0
             ph = ph if ph < width else width
-            if j < ns:
-                tab[j, i] = ph
-            else:
-                last = ph
-            if j > 0 and yi > breaks[j]:
-                seg = j
-        for j in range(ns):
-            tab[j, i] = (tab[j, i] - last) * wi
+            tab[j, i] = ph * w[p, i] + st[_T, i]
+            st[_SEG, i] += 1.0 if y[p, i] > cut else 0.0
+    for i in range(n):
+        wi = w[p, i]
         tab[ns, i] = -lights[i, 0] * wi
         tab[ns + 1, i] = -lights[i, 1] * wi
         tab[ns + 2, i] = -lights[i, 2] * wi
-        st[_T, i] = -last * wi
-        st[_SEG, i] = seg
-        st[_W, i] = wi
     if k == 3:
         return cnt  # the three-segment iteration forms its products in its loops
     # products a_a^T (upper triangle, row-major) on rows u .. u + u(u+1)/2
