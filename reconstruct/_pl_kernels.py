@@ -624,14 +624,11 @@ def _pl_kernel(y, w, lights, per_pixel, lam, k_max, choose, sbl, ridge, learn_ta
         k, it, ev = _pl_pixel(y, w, lp, p, k_max, lam_row, ridge, learn_tau, max_iter, tol,
                               floor, start, sbl, st, tab, mat, inv, low, x, rhs, prior,
                               prior_rhs, breaks, vals, slopes)
-        if choose:
-            iters[p] += it
-            if not ev > evidence_out[p]:
-                continue
+        if choose and not ev > evidence_out[p]:
+            continue
         evidence_out[p] = ev
         _finish(p, k, x, slopes, breaks, st, n, threshold, x_out, outliers, segments_out)
-        if not choose:
-            iters[p] = it
+        iters[p] = it  # the iterations of the model kept
 
 
 @dataclass

@@ -178,8 +178,8 @@ def auto_pixel(y, a, *, lam, segments=3, sigma_x2=1e6, max_iter=20, tol=0.0,
               "gamma_start": gamma_start}
     lin = pl_model(y, a, segments=1, max_iter=max_iter, **common)
     pl = pl_model(y, a, segments=segments, max_iter=max_iter, **common) if segments > 1 else lin
-    iters = lin[6] + (pl[6] if segments > 1 else 0)
     best = pl if (segments > 1 and pl[7] > lin[7]) else lin
+    iters = best[6]  # the iterations of the model kept
     normal = _pl_result(best, y, outlier_threshold)[0]
     return normal, _pl_outliers(best, y, a, outlier_threshold), iters
 
