@@ -26,7 +26,7 @@ from ps_lab.reconstruct._bands import BandResult
 from ps_lab.reconstruct._outputs import _OutputWriter
 from ps_lab.reconstruct._refine import fit_lights
 from ps_lab.reconstruct._shadows import black_threshold
-from ps_lab.reconstruct._solve import estimate_noise_model, light_noise_factors
+from ps_lab.reconstruct._solve import estimate_noise_model, light_noise_factors, pl_noise_level
 from ps_lab.reconstruct.near import (
     NearLights,
     NearRounds,
@@ -279,7 +279,12 @@ def _whole_image_parameters(
     )
     if not sbl_like:
         return {"noise_sigma": sigma}
-    return {"noise_sigma": sigma, "noise_floor": floor, "light_noise": light_noise}
+    whole = {"noise_sigma": sigma, "noise_floor": floor, "light_noise": light_noise}
+    if method in ("plsbl", "auto"):  # the PL model's own noise level, on the same sample
+        whole["noise_sigma_pl"] = pl_noise_level(
+            store.sample_observations, vectors, store.sample_valid,
+            segments=options.segments or 3, max_pixels=store.sample_index.size)
+    return whole
 
 
 def _solve_pass(

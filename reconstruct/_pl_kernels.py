@@ -581,9 +581,10 @@ def _light_table(lights, tab):
 
 
 @njit(nogil=True, cache=True, **VECTOR)
-def _pl_kernel(y, w, lights, per_pixel, lam, k_max, choose, sbl, ridge, learn_tau, max_iter,
+def _pl_kernel(y, w, lights, per_pixel, lam, lam_pl, k_max, choose, sbl, ridge, learn_tau,
+               max_iter,
                sbl_max_iter, tol, floor, start, threshold, x_out, outliers, iters, segments_out,
-               evidence_out):
+               evidence_out, want_residuals, resid_out):
     m, n = y.shape
     umax = k_max + 2
     st = np.zeros((STATE_ROWS, n))
@@ -621,7 +622,7 @@ def _pl_kernel(y, w, lights, per_pixel, lam, k_max, choose, sbl, ridge, learn_ta
                                             x_out[p, 2])
             if k_max == 1:
                 continue
-        k, it, ev = _pl_pixel(y, w, lp, p, k_max, lam_row, ridge, learn_tau, max_iter, tol,
+        k, it, ev = _pl_pixel(y, w, lp, p, k_max, lam_pl[p], ridge, learn_tau, max_iter, tol,
                               floor, start, sbl, st, tab, mat, inv, low, x, rhs, prior,
                               prior_rhs, breaks, vals, slopes)
         if choose and not ev > evidence_out[p]:
@@ -629,6 +630,11 @@ def _pl_kernel(y, w, lights, per_pixel, lam, k_max, choose, sbl, ridge, learn_ta
         evidence_out[p] = ev
         _finish(p, k, x, slopes, breaks, st, n, threshold, x_out, outliers, segments_out)
         iters[p] = it  # the iterations of the model kept
+        if want_residuals:
+            for i in range(n):
+                sl = slopes[int(st[_SEG, i])]
+                sl = sl if sl > SLOPE_FLOOR / k else SLOPE_FLOOR / k
+                resid_out[p, i] = -st[_R, i] / sl * st[_W, i]
 
 
 @dataclass
@@ -637,12 +643,14 @@ class PLTileResult(TileResult):
 
     segments: np.ndarray | None = None  # (m,) int: 1 = the Lambertian model
     evidence: np.ndarray | None = None  # (m,) float
+    residuals: np.ndarray | None = None  # (m, n): (f(y) - n.l) / slope, with ``residuals``
 
 
 def pl_tile(y, w, lights, *, segments: int, lam, sigma_x2: float = 1e6, max_iter: int = 100,
             tol: float = 1e-4, gamma_floor: float = 1e-10, gamma_start: float = 1e3,
             outlier_threshold: float = np.inf, learn_tau: bool = True, sbl: bool = True,
-            choose: bool = False, sbl_max_iter: int = 100) -> PLTileResult:
+            choose: bool = False, sbl_max_iter: int = 100, lam_pl=None,
+            residuals: bool = False) -> PLTileResult:
     """Piecewise-linear model of ``segments`` segments on one tile (module docstring).
 
     Parameters
@@ -656,8 +664,14 @@ def pl_tile(y, w, lights, *, segments: int, lam, sigma_x2: float = 1e6, max_iter
         ``u // MIN_PER_SEGMENT`` (at least 1).
     lam : float or ndarray of shape (m, 1) or (m, n)
         Each observation's noise variance in the pixel's relative units.
+    residuals : bool
+        Also return each observation's residual in the pixel's units, ``(f(y_i) - n.l_i) /
+        s_k(i)`` (0 for dropped ones; the noise estimate of the PL models).
     sbl : bool
         False: PL-LS (one least-squares solve of the same design, no sparse errors).
+    lam_pl : float or ndarray, optional
+        The noise variance of the ``segments`` model when it differs from ``lam`` (``choose``:
+        ``lam`` is then the one-segment model's).
     choose : bool
         Solve each pixel with ``K = 1`` (SBL, at most ``sbl_max_iter`` iterations) too and keep
         the model with the larger evidence.
@@ -672,15 +686,18 @@ def pl_tile(y, w, lights, *, segments: int, lam, sigma_x2: float = 1e6, max_iter
     per_pixel = lights.ndim == 3
     lights = np.ascontiguousarray(lights if per_pixel else lights[None])
     lam_obs = np.ascontiguousarray(np.broadcast_to(np.asarray(lam, dtype=np.float64), (m, n)))
+    lam_pl = lam_obs if lam_pl is None else np.ascontiguousarray(
+        np.broadcast_to(np.asarray(lam_pl, dtype=np.float64), (m, n)))
     x = np.zeros((m, 3))
     outliers = np.zeros((m, n), np.bool_)
     iters = np.zeros(m, np.int64)
     segs = np.zeros(m, np.int64)
     evidence = np.full(m, -np.inf)
+    resid = np.zeros((m, n) if residuals else (1, 1))
     if m:
-        _pl_kernel(y, w, lights, per_pixel, lam_obs, int(segments), bool(choose), bool(sbl),
+        _pl_kernel(y, w, lights, per_pixel, lam_obs, lam_pl, int(segments), bool(choose), bool(sbl),
                    1.0 / float(sigma_x2), bool(learn_tau), int(max_iter), int(sbl_max_iter),
                    float(tol),
                    float(gamma_floor), float(gamma_start), float(outlier_threshold), x, outliers,
-                   iters, segs, evidence)
-    return PLTileResult(x, outliers, iters, segs, evidence)
+                   iters, segs, evidence, bool(residuals), resid)
+    return PLTileResult(x, outliers, iters, segs, evidence, resid if residuals else None)

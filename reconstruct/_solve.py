@@ -26,7 +26,7 @@ DEFAULTS: dict[str, dict] = {
     "plls": {"segments": 3},
     "plsbl": {"lam": None, "sigma_x2": 1e6, "max_iter": 20, "tol": None, "gamma_floor": 1e-10,
               "gamma_start": 1e3, "segments": 3, "outlier_threshold": None, "noise_sigma": None,
-              "noise_floor": None, "light_noise": None},
+              "noise_floor": None, "light_noise": None, "noise_sigma_pl": None},
     "rpca": {"lam_sparse": None, "max_iter": 500, "tol": 1e-7, "rho": 1.5,
              "outlier_threshold": None, "noise_sigma": None},
 }
@@ -262,6 +262,29 @@ def _noise_residuals(obs, lights, usable, max_pixels=NOISE_SAMPLE_PIXELS, mapper
     return tuple(np.concatenate([part[k] for part in parts]) for k in range(3))
 
 
+def pl_noise_level(observations, light_directions, valid=None, *, segments: int = 3,
+                   max_pixels: int = NOISE_SAMPLE_PIXELS) -> float:
+    """Noise level left by the piecewise-linear model (PL-LS) on a pixel sample, relative.
+
+    :func:`estimate_noise`'s estimate for the PL models: SBL's (from a Lambertian L1 fit) holds
+    the dense misfit of the Lambertian model (non-Lambertian shading), which the PL model
+    explains. Each sampled pixel is fitted by PL-LS with ``segments`` segments; a residual in the
+    pixel's relative units is ``(f(y_i) - n.l_i) / s_k(i)`` (the equation's error over its
+    segment's slope); the kept residuals and the quantile are :func:`estimate_noise`'s.
+    """
+    obs, lights, usable = _check_inputs(observations, light_directions, valid)
+    n, p = obs.shape
+    if p == 0:
+        return 0.0
+    take = np.unique(np.linspace(0, p - 1, min(p, max_pixels)).round().astype(np.int64))
+    y, w, scale, ok = _prepare_tile(obs[:, take], usable[:, take], lights, 0, take.size)
+    y, w = y[ok], w[ok]
+    res = _pl_kernels.pl_tile(y, w, lights, segments=segments, lam=LAMBDA_FLOOR, sigma_x2=1e12,
+                              sbl=False, learn_tau=False, residuals=True)
+    r, keep = _kept_residuals(y, w, y - res.residuals)
+    return _noise_level(r[keep])
+
+
 def _kept_residuals(y, w, model):
     """``|y - model|`` (m, n) and the mask of residuals that are noise samples.
 
@@ -436,7 +459,10 @@ def solve(
         def residuals():
             return _noise_residuals(obs, lights, usable, mapper=mapper, workers=workers)
 
-        used = _solve_params(n, method, params, residuals)
+        def pl_noise(segments):
+            return pl_noise_level(obs, lights, usable, segments=segments)
+
+        used = _solve_params(n, method, params, residuals, pl_noise)
         if method == "rpca":
             return solve_rpca(obs, lights, usable, params, used, progress)
         used.update({"tile_size": bound, "threads": workers})
@@ -444,12 +470,19 @@ def solve(
                             progress)
 
 
-def _solve_params(n, method, params, residuals) -> dict:
+def _solve_params(n, method, params, residuals, pl_noise=None) -> dict:
     """Fill in the data-driven defaults of ``params`` (in place); the parameters as used.
 
-    ``n`` lights; ``residuals()`` returns the noise fit's residuals (:func:`_noise_residuals`).
+    ``n`` lights; ``residuals()`` returns the noise fit's residuals (:func:`_noise_residuals`),
+    ``pl_noise(segments)`` the PL models' noise level (:func:`pl_noise_level`).
     """
     used: dict = {"method": method}
+    if method in ("plsbl", "auto"):
+        sigma_pl = params.pop("noise_sigma_pl")
+        if params["lam"] is None:
+            if sigma_pl is None:
+                sigma_pl = pl_noise(params["segments"])
+            used["noise_sigma_pl"] = params["noise_sigma_pl"] = float(sigma_pl)
     if method not in ("ls", "plls"):
         noise = params.pop("noise_sigma")
         if method in SBL_LIKE:
@@ -486,7 +519,7 @@ def _solve_params(n, method, params, residuals) -> dict:
         if method in SBL_LIKE and params["tol"] is None:
             params["tol"] = max(SBL_TOL_MIN, SBL_TOL_NOISE_SHARE * noise)
     used.update({k: v for k, v in params.items()
-                 if k not in ("lam", "noise_floor", "light_noise")})
+                 if k not in ("lam", "noise_floor", "light_noise", "noise_sigma_pl")})
     return used
 
 
@@ -519,7 +552,8 @@ def _solve_tiles(obs, lights, usable, method, params, used, starts, tile, mapper
     iterations = np.zeros(p, np.int64)
     segments = np.zeros(p, np.int64) if method in ("plls", "plsbl", "auto") else None
     kernel = tile_kernel(method)
-    kernel_params = {k: v for k, v in params.items() if k not in ("noise_floor", "light_noise")}
+    kernel_params = {k: v for k, v in params.items()
+                     if k not in ("noise_floor", "light_noise", "noise_sigma_pl")}
     if method == "ls":
         kernel_params = {"outlier_threshold": np.inf}
     per_pixel_lam = method in SBL_LIKE and params["lam"] is None
@@ -529,9 +563,13 @@ def _solve_tiles(obs, lights, usable, method, params, used, starts, tile, mapper
         y, w, scale, ok = _prepare_tile(obs, usable, lights, a, b)
         tile_params = kernel_params
         if per_pixel_lam:
+            floor, factors = params["noise_floor"], params["light_noise"]
             tile_params = {**kernel_params,
-                           "lam": sbl_lambda(scale, used["noise_sigma"], params["noise_floor"],
-                                             params["light_noise"])}
+                           "lam": sbl_lambda(scale, used["noise_sigma"], floor, factors)}
+            if method in ("plsbl", "auto"):
+                # the PL model's noise: the same floor, its own relative noise (pl_noise_level)
+                lam_pl = sbl_lambda(scale, params["noise_sigma_pl"], floor, factors)
+                tile_params["lam_pl" if method == "auto" else "lam"] = lam_pl
         res = kernel(y, w, lights, **tile_params)
         x = res.x.astype(np.float64) * scale[:, None]
         length = np.linalg.norm(x, axis=1)

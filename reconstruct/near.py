@@ -202,6 +202,7 @@ def solve_near(
             # carried over to near lights (issue 12 left it out).
             params.pop("noise_floor")
             params.pop("light_noise")
+            params.pop("noise_sigma_pl", None)  # PL models: the same one lam here
             if params["lam"] is None:
                 params["lam"] = max(noise * noise, LAMBDA_FLOOR)
             used["lambda"] = float(params["lam"])

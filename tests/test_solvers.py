@@ -49,6 +49,8 @@ def oracle_params(sol):
             p["noise_sigma"] = sol.params["noise_sigma"]
             p["noise_floor"] = sol.params["noise_floor"]
             p["light_noise"] = sol.params["light_noise"]
+            if "noise_sigma_pl" in sol.params:
+                p["noise_sigma_pl"] = sol.params["noise_sigma_pl"]
     return p
 
 
@@ -70,9 +72,12 @@ def test_vectorised_equals_per_pixel_oracle(corrupted, method):
     sol = solve(y, lights, method=method, valid=valid)
     normals, albedo, outliers, iterations = solve_oracle(y, lights, method, valid, **oracle_params(sol))
     assert np.abs(sol.normals - normals).max() < 1e-6
-    # PL-LS weighs the data by 1/lambda = 9e6 against a unit prior on the slopes: its 5x5
-    # normal equations have condition numbers near 1e9, which leaves ~1e-6 relative in the albedo
-    rtol = 1e-5 if method == "plls" else 1e-6
+    # The PL models' albedo is |n| over the secant slope f(b_K) / b_K, and the slopes are less
+    # well determined than the normal's direction: their 5x5 normal equations (PL-LS weighs the
+    # data by 9e6 against a unit prior) have condition numbers up to ~1e9, and the oracle's
+    # np.linalg.inv and the kernel's Cholesky differ by ~1e-6 relative in the albedo (measured
+    # at most 1.1e-6, one pixel), while the normals agree to 1e-7.
+    rtol = 1e-5 if method in ("plls", "plsbl", "auto") else 1e-6
     assert np.allclose(sol.albedo, albedo, rtol=rtol, atol=1e-9)
     assert np.mean(sol.iterations == iterations) > 0.99
     assert np.mean(sol.outliers != outliers) < 1e-3

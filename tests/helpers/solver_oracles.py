@@ -171,13 +171,14 @@ def plls_pixel(y, a, *, segments=3):
     return normal, np.zeros(y.size, bool), 1
 
 
-def auto_pixel(y, a, *, lam, segments=3, sigma_x2=1e6, max_iter=20, tol=0.0,
+def auto_pixel(y, a, *, lam, lam_pl=None, segments=3, sigma_x2=1e6, max_iter=20, tol=0.0,
                gamma_floor=1e-10, gamma_start=1e3, outlier_threshold=0.05):
     """SBL (the PL model with one segment) or PL-SBL, whichever has the larger evidence."""
-    common = {"lam": lam, "sigma_x2": sigma_x2, "tol": tol, "gamma_floor": gamma_floor,
-              "gamma_start": gamma_start}
-    lin = pl_model(y, a, segments=1, max_iter=max_iter, **common)
-    pl = pl_model(y, a, segments=segments, max_iter=max_iter, **common) if segments > 1 else lin
+    common = {"sigma_x2": sigma_x2, "tol": tol, "gamma_floor": gamma_floor,
+              "gamma_start": gamma_start, "max_iter": max_iter}
+    lin = pl_model(y, a, segments=1, lam=lam, **common)
+    lam_pl = lam if lam_pl is None else lam_pl
+    pl = pl_model(y, a, segments=segments, lam=lam_pl, **common) if segments > 1 else lin
     best = pl if (segments > 1 and pl[7] > lin[7]) else lin
     iters = best[6]  # the iterations of the model kept
     normal = _pl_result(best, y, outlier_threshold)[0]
@@ -212,9 +213,16 @@ def solve_oracle(observations, lights, method, valid=None, **params):
             factor = params.get("light_noise")
             factor = np.ones(n) if factor is None else np.asarray(factor)
             rest = {k: v for k, v in params.items()
-                    if k not in ("noise_sigma", "noise_floor", "light_noise")}
-            lam = np.maximum(sigma**2 + (floor * factor[v] / scale) ** 2, 1e-6)
-            pixel_params = {**rest, "lam": lam}
+                    if k not in ("noise_sigma", "noise_floor", "light_noise", "noise_sigma_pl")}
+
+            def lam_of(sig):
+                return np.maximum(sig**2 + (floor * factor[v] / scale) ** 2, 1e-6)
+
+            pixel_params = {**rest, "lam": lam_of(sigma)}
+            if method == "plsbl":  # the PL model's own relative noise
+                pixel_params["lam"] = lam_of(params["noise_sigma_pl"])
+            elif method == "auto":
+                pixel_params["lam_pl"] = lam_of(params["noise_sigma_pl"])
         x, out, it = PIXEL_ORACLES[method](y / scale, a, **pixel_params)
         x = x * scale
         albedo[j] = np.linalg.norm(x)
