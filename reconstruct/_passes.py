@@ -283,7 +283,8 @@ def _whole_image_parameters(
     if method in ("plsbl", "auto"):  # the PL model's own noise level, on the same sample
         whole["noise_sigma_pl"] = pl_noise_level(
             store.sample_observations, vectors, store.sample_valid,
-            segments=options.segments or 3, max_pixels=store.sample_index.size)
+            segments=options.segments or 3, noise_sigma=sigma,
+            max_pixels=store.sample_index.size)
     return whole
 
 

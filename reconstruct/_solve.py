@@ -263,14 +263,16 @@ def _noise_residuals(obs, lights, usable, max_pixels=NOISE_SAMPLE_PIXELS, mapper
 
 
 def pl_noise_level(observations, light_directions, valid=None, *, segments: int = 3,
-                   max_pixels: int = NOISE_SAMPLE_PIXELS) -> float:
-    """Noise level left by the piecewise-linear model (PL-LS) on a pixel sample, relative.
+                   noise_sigma: float, max_pixels: int = NOISE_SAMPLE_PIXELS) -> float:
+    """Noise level left by the piecewise-linear model on a pixel sample, relative.
 
-    :func:`estimate_noise`'s estimate for the PL models: SBL's (from a Lambertian L1 fit) holds
-    the dense misfit of the Lambertian model (non-Lambertian shading), which the PL model
-    explains. Each sampled pixel is fitted by PL-LS with ``segments`` segments; a residual in the
-    pixel's relative units is ``(f(y_i) - n.l_i) / s_k(i)`` (the equation's error over its
-    segment's slope); the kept residuals and the quantile are :func:`estimate_noise`'s.
+    :func:`estimate_noise`'s estimate for the PL models: SBL's (from a robust Lambertian fit,
+    L1) holds the dense misfit of the Lambertian model (non-Lambertian shading), which the PL
+    model explains. Each sampled pixel is fitted robustly by PL-SBL (``segments`` segments, 20
+    EM steps, noise variance ``noise_sigma^2``: the Lambertian estimate, an upper bound); a
+    residual in the pixel's relative units is ``(f(y_i) - n.l_i) / s_k(i)`` (the equation's
+    error over its segment's slope); the kept residuals and the quantile are
+    :func:`estimate_noise`'s.
     """
     obs, lights, usable = _check_inputs(observations, light_directions, valid)
     n, p = obs.shape
@@ -279,8 +281,9 @@ def pl_noise_level(observations, light_directions, valid=None, *, segments: int 
     take = np.unique(np.linspace(0, p - 1, min(p, max_pixels)).round().astype(np.int64))
     y, w, scale, ok = _prepare_tile(obs[:, take], usable[:, take], lights, 0, take.size)
     y, w = y[ok], w[ok]
-    res = _pl_kernels.pl_tile(y, w, lights, segments=segments, lam=LAMBDA_FLOOR, sigma_x2=1e12,
-                              sbl=False, learn_tau=False, residuals=True)
+    lam = max(noise_sigma * noise_sigma, LAMBDA_FLOOR)
+    res = _pl_kernels.pl_tile(y, w, lights, segments=segments, lam=lam, max_iter=20, tol=0.0,
+                              residuals=True)
     r, keep = _kept_residuals(y, w, y - res.residuals)
     return _noise_level(r[keep])
 
@@ -459,8 +462,9 @@ def solve(
         def residuals():
             return _noise_residuals(obs, lights, usable, mapper=mapper, workers=workers)
 
-        def pl_noise(segments):
-            return pl_noise_level(obs, lights, usable, segments=segments)
+        def pl_noise(segments, noise_sigma):
+            return pl_noise_level(obs, lights, usable, segments=segments,
+                                  noise_sigma=noise_sigma)
 
         used = _solve_params(n, method, params, residuals, pl_noise)
         if method == "rpca":
@@ -474,15 +478,10 @@ def _solve_params(n, method, params, residuals, pl_noise=None) -> dict:
     """Fill in the data-driven defaults of ``params`` (in place); the parameters as used.
 
     ``n`` lights; ``residuals()`` returns the noise fit's residuals (:func:`_noise_residuals`),
-    ``pl_noise(segments)`` the PL models' noise level (:func:`pl_noise_level`).
+    ``pl_noise(segments, noise_sigma)`` the PL models' noise level (:func:`pl_noise_level`).
     """
     used: dict = {"method": method}
-    if method in ("plsbl", "auto"):
-        sigma_pl = params.pop("noise_sigma_pl")
-        if params["lam"] is None:
-            if sigma_pl is None:
-                sigma_pl = pl_noise(params["segments"])
-            used["noise_sigma_pl"] = params["noise_sigma_pl"] = float(sigma_pl)
+    sigma_pl = params.pop("noise_sigma_pl", None)
     if method not in ("ls", "plls"):
         noise = params.pop("noise_sigma")
         if method in SBL_LIKE:
@@ -516,6 +515,10 @@ def _solve_params(n, method, params, residuals, pl_noise=None) -> dict:
             params["outlier_threshold"] = max(3.0 * noise, MIN_OUTLIER_THRESHOLD)
         if noise is not None:
             used["noise_sigma"] = float(noise)
+        if method in ("plsbl", "auto") and params["lam"] is None:
+            if sigma_pl is None:
+                sigma_pl = pl_noise(params["segments"], noise)
+            used["noise_sigma_pl"] = params["noise_sigma_pl"] = float(sigma_pl)
         if method in SBL_LIKE and params["tol"] is None:
             params["tol"] = max(SBL_TOL_MIN, SBL_TOL_NOISE_SHARE * noise)
     used.update({k: v for k, v in params.items()
