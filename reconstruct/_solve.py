@@ -263,7 +263,8 @@ def _noise_residuals(obs, lights, usable, max_pixels=NOISE_SAMPLE_PIXELS, mapper
 
 
 def pl_noise_level(observations, light_directions, valid=None, *, segments: int = 3,
-                   noise_sigma: float, max_pixels: int = NOISE_SAMPLE_PIXELS) -> float:
+                   noise_sigma: float, max_pixels: int = NOISE_SAMPLE_PIXELS, mapper=map,
+                   workers: int = 1) -> float:
     """Noise level left by the piecewise-linear model on a pixel sample, relative.
 
     :func:`estimate_noise`'s estimate for the PL models: SBL's (from a robust Lambertian fit,
@@ -272,20 +273,26 @@ def pl_noise_level(observations, light_directions, valid=None, *, segments: int 
     EM steps, noise variance ``noise_sigma^2``: the Lambertian estimate, an upper bound); a
     residual in the pixel's relative units is ``(f(y_i) - n.l_i) / s_k(i)`` (the equation's
     error over its segment's slope); the kept residuals and the quantile are
-    :func:`estimate_noise`'s.
+    :func:`estimate_noise`'s. The sample is fitted in up to ``workers`` pieces through
+    ``mapper`` (as :func:`_noise_residuals`); the result does not depend on the pieces.
     """
     obs, lights, usable = _check_inputs(observations, light_directions, valid)
     n, p = obs.shape
     if p == 0:
         return 0.0
     take = np.unique(np.linspace(0, p - 1, min(p, max_pixels)).round().astype(np.int64))
-    y, w, scale, ok = _prepare_tile(obs[:, take], usable[:, take], lights, 0, take.size)
-    y, w = y[ok], w[ok]
+    pieces = max(1, min(workers, take.size // NOISE_PIECE_PIXELS))
     lam = max(noise_sigma * noise_sigma, LAMBDA_FLOOR)
-    res = _pl_kernels.pl_tile(y, w, lights, segments=segments, lam=lam, max_iter=20, tol=0.0,
-                              residuals=True)
-    r, keep = _kept_residuals(y, w, y - res.residuals)
-    return _noise_level(r[keep])
+
+    def fit(part):
+        y, w, _, ok = _prepare_tile(obs[:, part], usable[:, part], lights, 0, part.size)
+        y, w = y[ok], w[ok]
+        res = _pl_kernels.pl_tile(y, w, lights, segments=segments, lam=lam, max_iter=20,
+                                  tol=0.0, residuals=True)
+        r, keep = _kept_residuals(y, w, y - res.residuals)
+        return r[keep]
+
+    return _noise_level(np.concatenate(list(mapper(fit, np.array_split(take, pieces)))))
 
 
 def _kept_residuals(y, w, model):
@@ -464,7 +471,7 @@ def solve(
 
         def pl_noise(segments, noise_sigma):
             return pl_noise_level(obs, lights, usable, segments=segments,
-                                  noise_sigma=noise_sigma)
+                                  noise_sigma=noise_sigma, mapper=mapper, workers=workers)
 
         used = _solve_params(n, method, params, residuals, pl_noise)
         if method == "rpca":
