@@ -676,8 +676,14 @@ def pl_tile(y, w, lights, *, segments: int, lam, sigma_x2: float = 1e6, max_iter
         Solve each pixel with ``K = 1`` (SBL, at most ``sbl_max_iter`` iterations) too and keep
         the model with the larger evidence.
 
-    Other parameters are SBL's (:func:`._kernels.sbl_tile`); ``gamma_start`` and ``tol`` are in
-    the units of ``y`` (divided by ``K`` in ``f``'s units).
+    sigma_x2, max_iter, tol, gamma_floor, gamma_start, outlier_threshold : float, int, ...
+        SBL's (:func:`._kernels.sbl_tile`); ``gamma_start`` and ``tol`` are in the units of ``y``
+        (divided by ``K`` in ``f``'s units); ``outlier_threshold`` applies to the corruption in
+        ``y``'s units (the equation's error over its segment's slope).
+    learn_tau : bool
+        Learn the slopes' prior variance per pixel (else the authors' 1).
+    sbl_max_iter : int
+        With ``choose``: the one-segment model's iterations.
     """
     y = np.ascontiguousarray(y, dtype=np.float64)
     w = np.ascontiguousarray(w, dtype=np.float64)

@@ -598,5 +598,6 @@ def _solve_tiles(obs, lights, usable, method, params, used, starts, tile, mapper
     if segments is not None:
         solved = segments > 0
         used["pixels_per_segments"] = {int(k): int(c) for k, c in
-                                       zip(*np.unique(segments[solved], return_counts=True))}
+                                       zip(*np.unique(segments[solved], return_counts=True),
+                                           strict=True)}
     return Solution(normals, albedo, outliers, iterations, used)

@@ -115,7 +115,8 @@ class ReconstructOptions:
     Attributes
     ----------
     method : {"auto", "ls", "l1", "sbl", "plls", "plsbl", "rpca"}
-        Solver (``auto``: per pixel SBL or PL-SBL, by their evidence; docs/solvers.md). Noise level and outlier threshold are estimated once for the whole image; R-PCA's
+        Solver (``auto``: per pixel SBL or PL-SBL, by their evidence; docs/solvers.md).
+        Noise level and outlier threshold are estimated once for the whole image; R-PCA's
         low-rank model is fitted per band.
     channel : {"r", "g", "b", "mean"}
         As for :func:`ps_lab.io.dataset.load_dataset`.

@@ -5,7 +5,8 @@ normals) is loaded as ``ps-lab reconstruct`` loads it (channels divided by the l
 and averaged, saturated observations dropped, observations at the black level dropped as shadows
 (:func:`ps_lab.reconstruct._shadows.black_threshold` on an evenly spaced sample, as the
 reconstruction's store does), every mask pixel) and solved with the default (``auto``), LS, L1,
-SBL, PL-LS, PL-SBL and R-PCA at their defaults, plus SBL at fixed ``lam`` values for comparison. The numbers go to
+SBL, PL-LS, PL-SBL and R-PCA at their defaults, plus SBL at fixed ``lam`` values for comparison.
+The numbers go to
 ``docs/results.md``; ``docs/solvers.md`` explains SBL's default ``lam`` with them.
 """
 

@@ -215,14 +215,11 @@ def solve_oracle(observations, lights, method, valid=None, **params):
             rest = {k: v for k, v in params.items()
                     if k not in ("noise_sigma", "noise_floor", "light_noise", "noise_sigma_pl")}
 
-            def lam_of(sig):
-                return np.maximum(sig**2 + (floor * factor[v] / scale) ** 2, 1e-6)
-
-            pixel_params = {**rest, "lam": lam_of(sigma)}
-            if method == "plsbl":  # the PL model's own relative noise
-                pixel_params["lam"] = lam_of(params["noise_sigma_pl"])
-            elif method == "auto":
-                pixel_params["lam_pl"] = lam_of(params["noise_sigma_pl"])
+            floor_term = (floor * factor[v] / scale) ** 2
+            pixel_params = {**rest, "lam": np.maximum(sigma**2 + floor_term, 1e-6)}
+            if method in ("plsbl", "auto"):  # the PL model's own relative noise
+                lam_pl = np.maximum(params["noise_sigma_pl"] ** 2 + floor_term, 1e-6)
+                pixel_params["lam" if method == "plsbl" else "lam_pl"] = lam_pl
         x, out, it = PIXEL_ORACLES[method](y / scale, a, **pixel_params)
         x = x * scale
         albedo[j] = np.linalg.norm(x)
