@@ -108,3 +108,18 @@ def test_segments_is_not_a_parameter_of_sbl():
     obs, lights, _, _ = _lambertian(shape=(8, 8))
     with pytest.raises(SolverInputError, match="segments"):
         solve(obs, lights, method="sbl", segments=3)
+
+
+def test_near_light_kernels_equal_the_directional_ones():
+    # per-pixel light vectors (m, n, 3) that are all the same: the directional result
+    from ps_lab.reconstruct.near import solve_near
+
+    obs, lights, _, rng = _lambertian(shape=(24, 24), n_lights=20, seed=1)
+    obs = obs + rng.normal(0.0, 0.002, obs.shape)
+    vectors = np.ascontiguousarray(np.broadcast_to(lights, (obs.shape[1], 20, 3)))
+    valid = obs > 0.005
+    for method, kw in (("plls", {}), ("plsbl", {"lam": 1e-4}), ("auto", {"lam": 1e-4})):
+        a = solve(obs, lights, method=method, valid=valid, **kw)
+        b = solve_near(obs, vectors, method=method, valid=valid, **kw)
+        np.testing.assert_allclose(b.normals, a.normals, atol=1e-9)
+        assert np.array_equal(b.outliers, a.outliers)
