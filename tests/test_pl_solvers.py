@@ -123,3 +123,21 @@ def test_near_light_kernels_equal_the_directional_ones():
         b = solve_near(obs, vectors, method=method, valid=valid, **kw)
         np.testing.assert_allclose(b.normals, a.normals, atol=1e-9)
         assert np.array_equal(b.outliers, a.outliers)
+
+
+@pytest.mark.parametrize(("changes", "message"), [
+    ({"method": "plsbl", "segments": 0}, "--segments must be finite and positive"),
+    ({"method": "plsbl", "segments": 9}, "--segments must be at most 8"),
+    ({"method": "plls", "segments": 2.5}, "--segments must be a whole number"),
+    ({"method": "sbl", "segments": 3}, "--segments does not apply to method sbl"),
+    ({"method": "plls", "lam": 1e-3}, "--lambda does not apply to method plls"),
+])
+def test_reconstruct_options_validate_segments(changes, message):
+    from ps_lab.reconstruct.options import ReconstructOptions
+
+    with pytest.raises(SolverInputError, match=message):
+        ReconstructOptions(**changes)
+    # the default takes them; the chosen values reach the solver
+    options = ReconstructOptions(segments=2, lam=1e-4)
+    assert options.method == "auto"
+    assert options.solver_parameters() == {"segments": 2, "lam": 1e-4}
