@@ -42,6 +42,7 @@ from numba import njit
 
 from . import _kernels
 from ._kernels import INLINE, VECTOR, TileResult, _sbl_pixel, _weighted_sums
+from ._pl_algebra import _cholesky_inverse, _select, _sum_log
 
 # Rows of the per-pixel state: usable (1/0), observation noise in y units, in f units, gamma,
 # d = w / (gamma + lambda), corruption estimate of the last iteration, residual, a^T M^-1 a,
@@ -53,44 +54,6 @@ MIN_PER_SEGMENT = 4
 # Smallest slope (times 1/K) used for an observation's noise and the Jacobian.
 SLOPE_FLOOR = 1e-3
 TAU_FLOOR = 1e-10
-
-
-@njit(**INLINE)
-def _select(a, lo, hi, kth):
-    """The value of rank ``kth`` of ``a[lo:hi]`` (Hoare's selection, in place, O(n) expected).
-
-    Afterwards ``a[lo:kth] <= a[kth] <= a[kth + 1:hi]``, so a larger rank can be selected in
-    ``a[kth:hi]``. The pivot is the median of three (deterministic); the value equals a sort's.
-    """
-    left = lo
-    right = hi - 1
-    while right > left:
-        mid = (left + right) // 2
-        p0, p1, p2 = a[left], a[mid], a[right]
-        if p0 > p1:
-            p0, p1 = p1, p0
-        if p1 > p2:
-            p1 = p2
-            if p0 > p1:
-                p1 = p0
-        i = left
-        j = right
-        while i <= j:
-            while a[i] < p1:
-                i += 1
-            while a[j] > p1:
-                j -= 1
-            if i <= j:
-                a[i], a[j] = a[j], a[i]
-                i += 1
-                j -= 1
-        if kth <= j:
-            right = j
-        elif kth >= i:
-            left = i
-        else:
-            break
-    return a[kth]
 
 
 @njit(**INLINE)
@@ -168,44 +131,6 @@ def _normal_equations(st, tab, n, u, mat, rhs, prior, prior_rhs):
             mat[r, c] = prior[r, c] + acc
             mat[c, r] = mat[r, c]
             e += 1
-
-
-@njit(**INLINE)
-def _cholesky_inverse(mat, inv, low, u):
-    """``inv = mat^-1`` (u x u, symmetric positive definite) and ``log det mat``; NaN if not."""
-    for j in range(u):
-        s = mat[j, j]
-        for q in range(j):
-            s -= low[j, q] * low[j, q]
-        if not s > 0.0:
-            return math.nan
-        low[j, j] = math.sqrt(s)
-        for r in range(j + 1, u):
-            s = mat[r, j]
-            for q in range(j):
-                s -= low[r, q] * low[j, q]
-            low[r, j] = s / low[j, j]
-    logdet = 0.0
-    for j in range(u):
-        logdet += 2.0 * math.log(low[j, j])
-    # inverse of the lower factor (in place of its upper part: use inv as scratch), then L^-T L^-1
-    for c in range(u):
-        for r in range(u):
-            s = 1.0 if r == c else 0.0
-            for q in range(r):
-                s -= low[r, q] * inv[q, c]
-            inv[r, c] = s / low[r, r] if r >= c else 0.0
-    for r in range(u):
-        for c in range(r, u):
-            s = 0.0
-            for q in range(c, u):
-                s += inv[q, r] * inv[q, c]
-            low[r, c] = s
-    for r in range(u):
-        for c in range(r, u):
-            inv[r, c] = low[r, c]
-            inv[c, r] = low[r, c]
-    return logdet
 
 
 @njit(**INLINE)
@@ -526,24 +451,6 @@ def _finish(p, k, x, slopes, breaks, st, n, threshold, x_out, outliers, segments
         # the corruption in the pixel's units: e = Gamma S t = gamma d r, over the slope
         e = st[_G, i] * st[_D, i] * st[_R, i] / sl
         outliers[p, i] = st[_W, i] > 0.0 and abs(e) > threshold
-
-
-@njit(**INLINE)
-def _sum_log(st, w_row, a_row, b_row, n):
-    """``sum_i log(st[a_row, i] + st[b_row, i])`` over the usable observations.
-
-    As the log of running products, renormalised before they leave [1e-150, 1e150]: a log per
-    observation would cost more than an SBL iteration.
-    """
-    acc = 0.0
-    prod = 1.0
-    for i in range(n):
-        if st[w_row, i] > 0.0:
-            prod *= st[a_row, i] + st[b_row, i]
-            if prod > 1e150 or prod < 1e-150:
-                acc += math.log(prod)
-                prod = 1.0
-    return acc + math.log(prod)
 
 
 @njit(**INLINE)
