@@ -19,7 +19,6 @@ in parallel. See docs/solvers.md for the measurements.
 
 from __future__ import annotations
 
-import threading
 from dataclasses import dataclass
 
 import numpy as np
@@ -278,29 +277,3 @@ def sbl_tile(y, w, lights, *, lam, sigma_x2: float, max_iter: int, tol: float,
                 int(max_iter), float(tol), float(gamma_floor), float(gamma_start),
                 float(outlier_threshold), x, outliers, iters)
     return TileResult(x, outliers, iters)
-
-
-def warm_up(method: str) -> None:
-    """Load ``method``'s compiled kernels (and L1's, used by the noise estimate) into the process.
-
-    The first call of any numba kernel in a process initialises the compiler and loads the cached
-    machine code (0.25 s on a quiet machine, over 1 s under load), although nothing is compiled.
-    Running it on a one-pixel input while the images are read takes that cost off the solve.
-    """
-    if method not in ("l1", "sbl"):
-        return
-    lights = np.eye(3)
-    y = np.ones((1, 3))
-    w = np.ones((1, 3))
-    l1_tile(y, w, lights, max_iter=1, tol=1.0, delta=1e-6, outlier_threshold=np.inf)
-    if method == "sbl":
-        sbl_tile(y, w, lights, lam=1e-6, sigma_x2=1e6, max_iter=1, tol=1.0, gamma_floor=1e-10,
-                 gamma_start=1.0, outlier_threshold=np.inf)
-
-
-def start_warm_up(method: str) -> threading.Thread:
-    """Run :func:`warm_up` on a daemon thread (join it before solving); see there for why."""
-    thread = threading.Thread(target=warm_up, args=(method,), name="ps-lab-kernel-warm-up",
-                              daemon=True)
-    thread.start()
-    return thread

@@ -27,7 +27,7 @@ from ps_lab.reconstruct._outputs import _OutputWriter
 from ps_lab.reconstruct._refine import fit_lights
 from ps_lab.reconstruct._shadows import black_threshold
 from ps_lab.reconstruct._solution import SolverInputError
-from ps_lab.reconstruct._solve import estimate_noise_model, light_noise_factors
+from ps_lab.reconstruct._solve import estimate_noise_model, light_noise_factors, pl_noise_level
 from ps_lab.reconstruct.near import (
     NearLights,
     NearRounds,
@@ -320,9 +320,10 @@ def _whole_image_parameters(
     of it (``light_noise=``: the images were divided by the file's light intensities).
     """
     method = options.method
-    if method == "ls" or store.sample_index.size == 0:
+    if method in ("ls", "plls") or store.sample_index.size == 0:
         return {}
-    light_noise = light_noise_factors(intensities, options.channel) if method == "sbl" else None
+    sbl_like = method in ("sbl", "plsbl", "auto")
+    light_noise = light_noise_factors(intensities, options.channel) if sbl_like else None
     sigma, floor = estimate_noise_model(
         store.sample_observations,
         vectors,
@@ -330,9 +331,15 @@ def _whole_image_parameters(
         max_pixels=store.sample_index.size,
         light_noise=light_noise,
     )
-    if method != "sbl":
+    if not sbl_like:
         return {"noise_sigma": sigma}
-    return {"noise_sigma": sigma, "noise_floor": floor, "light_noise": light_noise}
+    whole = {"noise_sigma": sigma, "noise_floor": floor, "light_noise": light_noise}
+    if method in ("plsbl", "auto"):  # the PL model's own noise level, on the same sample
+        whole["noise_sigma_pl"] = pl_noise_level(
+            store.sample_observations, vectors, store.sample_valid,
+            segments=options.segments or 3, noise_sigma=sigma,
+            max_pixels=store.sample_index.size)
+    return whole
 
 
 def _solve_pass(

@@ -12,16 +12,22 @@ Real signals are never negative, so the negative observations measure the noise 
 zero-mean noise of standard deviation ``sigma`` at zero signal, ``E[x^2 | x < 0] = sigma^2``. Each
 light's observations were divided by its intensity, so the raw noise is scaled per light by
 :func:`ps_lab.reconstruct.light_noise_factors`. An observation at most ``k sigma_i`` (``k`` = 3)
-is dropped as a shadow, as a saturated one is dropped. Data without a dark-frame subtraction (8-
-and 16-bit benchmark PNGs: no negative values) has no measurable noise at black and keeps every
-observation, exactly as before.
+is dropped as a shadow, as a saturated one is dropped.
+
+Data without a dark-frame subtraction (8- and 16-bit benchmark PNGs, float renders) has no
+negative values, but black is still visible in it: the sensor (or the renderer) clips at its
+black level, so the darkest value of a light's images is an *atom*, many observations exactly
+equal to it (0 in DiLiGenT's 8-bit crops, where everything under one grey level is 0; exact 0
+in a render's shadows). Observations at that level are indistinguishable from black and are
+dropped (the authors of SBL and PL-SBL drop observations <= 0). A light whose darkest value is
+not repeated has no visible black level and keeps every observation.
 """
 
 from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["BLACK_SIGMAS", "black_threshold"]
+__all__ = ["BLACK_SIGMAS", "black_level", "black_threshold"]
 
 # Observations within this many standard deviations of the noise at black are shadows: at 3,
 # 0.13 % of a shadow's noise is kept, and a lit observation loses at most 3 sigma of signal.
@@ -54,8 +60,9 @@ def black_threshold(
     Returns
     -------
     ndarray of shape (n,), float32, or None
-        ``sigmas * sigma_black * light_noise``; None when too few observations are negative to
-        measure the noise at black (data with no dark-frame subtraction).
+        ``sigmas * sigma_black * light_noise``; with no negative observation at all, the black
+        level of :func:`black_level`; None when too few observations are negative to measure
+        the noise at black, or when nothing is at a black level.
     """
     obs = np.asarray(observations, dtype=np.float64)
     usable = np.asarray(valid, dtype=bool) & np.isfinite(obs)
@@ -64,9 +71,38 @@ def black_threshold(
     negative = usable & (obs < 0)
     count = int(negative.sum())
     if count < max(_MIN_NEGATIVE, _MIN_NEGATIVE_SHARE * int(usable.sum())):
-        return None
+        return black_level(obs, usable) if count == 0 else None
     scaled = obs / factors[:, None]
     sigma = float(np.sqrt(np.mean(scaled[negative] ** 2)))
     if not np.isfinite(sigma) or sigma <= 0:
         return None
     return (sigmas * sigma * factors).astype(np.float32)
+
+
+def black_level(observations: np.ndarray, usable: np.ndarray) -> np.ndarray | None:
+    """Per-light clipping level of data without negative values, or None.
+
+    Parameters
+    ----------
+    observations : ndarray of shape (n, m)
+        A sample of pixels' observations (none negative).
+    usable : ndarray of shape (n, m), bool
+        Their validity (and finiteness).
+
+    Returns
+    -------
+    ndarray of shape (n,), float32, or None
+        Light i's darkest usable value where at least 2 observations equal it (an atom: the
+        level the sensor or renderer clipped black to), 0 for a light without one (it keeps
+        every positive observation); None when the atoms hold fewer than ``_MIN_NEGATIVE`` and
+        ``_MIN_NEGATIVE_SHARE`` of the usable observations.
+    """
+    obs = np.where(usable, observations, np.inf)
+    low = obs.min(axis=1)
+    at_low = (obs == low[:, None]) & usable
+    counts = at_low.sum(axis=1)
+    atom = np.isfinite(low) & (counts >= 2)
+    total = int(counts[atom].sum())
+    if total < max(_MIN_NEGATIVE, _MIN_NEGATIVE_SHARE * int(usable.sum())):
+        return None
+    return np.where(atom, low, 0.0).astype(np.float32)

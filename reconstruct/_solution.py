@@ -8,7 +8,7 @@ import numpy as np
 
 from ps_lab.errors import DatasetError
 
-METHODS = ("ls", "l1", "sbl", "rpca")
+METHODS = ("auto", "ls", "l1", "sbl", "plls", "plsbl", "rpca")
 
 
 class SolverInputError(DatasetError, ValueError):

@@ -10,7 +10,7 @@ from contextlib import nullcontext
 
 import numpy as np
 
-from . import _kernels
+from . import _kernels, _pl_kernels
 from ._linalg import SOLVABLE_REL_DET, inverse6, outer6, pixel_scale
 from ._rpca import solve_rpca
 from ._solution import METHODS, Solution, SolverInputError
@@ -23,9 +23,21 @@ DEFAULTS: dict[str, dict] = {
     "sbl": {"lam": None, "sigma_x2": 1e6, "max_iter": 100, "tol": None, "gamma_floor": 1e-10,
             "gamma_start": 1e3, "outlier_threshold": None, "noise_sigma": None,
             "noise_floor": None, "light_noise": None},
+    "plls": {"segments": 3},
+    "plsbl": {"lam": None, "sigma_x2": 1e6, "max_iter": 20, "tol": None, "gamma_floor": 1e-10,
+              "gamma_start": 1e3, "segments": 3, "outlier_threshold": None, "noise_sigma": None,
+              "noise_floor": None, "light_noise": None, "noise_sigma_pl": None},
     "rpca": {"lam_sparse": None, "max_iter": 500, "tol": 1e-7, "rho": 1.5,
              "outlier_threshold": None, "noise_sigma": None},
 }
+# The default method chooses, per pixel, SBL or PL-SBL by their evidence; it takes PL-SBL's options.
+# Both models run the same number of EM steps (tol 0: no early stop), so that their evidences are
+# compared at the same point: a pixel stopped early by ``tol`` (a small change of z) can still be
+# far from its evidence's optimum (inliers' gamma still shrinking), and which one stopped first
+# would decide (docs/solvers.md).
+DEFAULTS["auto"] = {**DEFAULTS["plsbl"], "tol": 0.0}
+# Methods with SBL's noise variance (lambda) and its per-observation default.
+SBL_LIKE = ("sbl", "plsbl", "auto")
 DEFAULT_TILE_SIZE = 4096
 # Smaller tiles when there would be fewer than this many per thread (so that no thread idles
 # while another finishes a large last tile), but never below MIN_TILE_SIZE pixels.
@@ -150,6 +162,13 @@ def _method_params(method: str, given: dict) -> dict:
                                f"it takes {', '.join(sorted(allowed))}")
     params = dict(DEFAULTS[method])
     params.update(given)
+    if "segments" in params:
+        k = params["segments"]
+        if isinstance(k, bool) or not isinstance(k, (int, np.integer)) or not (
+                1 <= k <= _pl_kernels.MAX_SEGMENTS):
+            raise SolverInputError(f"segments must be a whole number from 1 to "
+                                   f"{_pl_kernels.MAX_SEGMENTS}, got {k!r}")
+        params["segments"] = int(k)
     return params
 
 
@@ -241,6 +260,39 @@ def _noise_residuals(obs, lights, usable, max_pixels=NOISE_SAMPLE_PIXELS, mapper
 
     parts = list(mapper(fit, np.array_split(take, pieces)))
     return tuple(np.concatenate([part[k] for part in parts]) for k in range(3))
+
+
+def pl_noise_level(observations, light_directions, valid=None, *, segments: int = 3,
+                   noise_sigma: float, max_pixels: int = NOISE_SAMPLE_PIXELS, mapper=map,
+                   workers: int = 1) -> float:
+    """Noise level left by the piecewise-linear model on a pixel sample, relative.
+
+    :func:`estimate_noise`'s estimate for the PL models: SBL's (from a robust Lambertian fit,
+    L1) holds the dense misfit of the Lambertian model (non-Lambertian shading), which the PL
+    model explains. Each sampled pixel is fitted robustly by PL-SBL (``segments`` segments, 20
+    EM steps, noise variance ``noise_sigma^2``: the Lambertian estimate, an upper bound); a
+    residual in the pixel's relative units is ``(f(y_i) - n.l_i) / s_k(i)`` (the equation's
+    error over its segment's slope); the kept residuals and the quantile are
+    :func:`estimate_noise`'s. The sample is fitted in up to ``workers`` pieces through
+    ``mapper`` (as :func:`_noise_residuals`); the result does not depend on the pieces.
+    """
+    obs, lights, usable = _check_inputs(observations, light_directions, valid)
+    n, p = obs.shape
+    if p == 0:
+        return 0.0
+    take = np.unique(np.linspace(0, p - 1, min(p, max_pixels)).round().astype(np.int64))
+    pieces = max(1, min(workers, take.size // NOISE_PIECE_PIXELS))
+    lam = max(noise_sigma * noise_sigma, LAMBDA_FLOOR)
+
+    def fit(part):
+        y, w, _, ok = _prepare_tile(obs[:, part], usable[:, part], lights, 0, part.size)
+        y, w = y[ok], w[ok]
+        res = _pl_kernels.pl_tile(y, w, lights, segments=segments, lam=lam, max_iter=20,
+                                  tol=0.0, residuals=True)
+        r, keep = _kept_residuals(y, w, y - res.residuals)
+        return r[keep]
+
+    return _noise_level(np.concatenate(list(mapper(fit, np.array_split(take, pieces)))))
 
 
 def _kept_residuals(y, w, model):
@@ -340,7 +392,7 @@ def solve(
     observations: np.ndarray,
     light_directions: np.ndarray,
     *,
-    method: str = "sbl",
+    method: str = "auto",
     valid: np.ndarray | None = None,
     threads: int | None = None,
     tile_size: int | None = None,
@@ -410,14 +462,18 @@ def solve(
         raise SolverInputError(f"tile_size must be positive, got {tile_size}")
     tile = _tile_pixels(p, workers, bound)
     starts = range(0, p, tile)
-    parallel = workers > 1 and (len(starts) > 1 or method in ("l1", "sbl", "rpca"))
+    parallel = workers > 1 and (len(starts) > 1 or method not in ("ls", "plls"))
     with ThreadPoolExecutor(max_workers=workers) if parallel else nullcontext() as pool:
         mapper = pool.map if pool is not None else map
 
         def residuals():
             return _noise_residuals(obs, lights, usable, mapper=mapper, workers=workers)
 
-        used = _solve_params(n, method, params, residuals)
+        def pl_noise(segments, noise_sigma):
+            return pl_noise_level(obs, lights, usable, segments=segments,
+                                  noise_sigma=noise_sigma, mapper=mapper, workers=workers)
+
+        used = _solve_params(n, method, params, residuals, pl_noise)
         if method == "rpca":
             return solve_rpca(obs, lights, usable, params, used, progress)
         used.update({"tile_size": bound, "threads": workers})
@@ -425,15 +481,17 @@ def solve(
                             progress)
 
 
-def _solve_params(n, method, params, residuals) -> dict:
+def _solve_params(n, method, params, residuals, pl_noise=None) -> dict:
     """Fill in the data-driven defaults of ``params`` (in place); the parameters as used.
 
-    ``n`` lights; ``residuals()`` returns the noise fit's residuals (:func:`_noise_residuals`).
+    ``n`` lights; ``residuals()`` returns the noise fit's residuals (:func:`_noise_residuals`),
+    ``pl_noise(segments, noise_sigma)`` the PL models' noise level (:func:`pl_noise_level`).
     """
     used: dict = {"method": method}
-    if method != "ls":
+    sigma_pl = params.pop("noise_sigma_pl", None)
+    if method not in ("ls", "plls"):
         noise = params.pop("noise_sigma")
-        if method == "sbl":
+        if method in SBL_LIKE:
             noise_floor = params.pop("noise_floor")
             light_noise = params.pop("light_noise")
             if light_noise is not None:
@@ -464,11 +522,35 @@ def _solve_params(n, method, params, residuals) -> dict:
             params["outlier_threshold"] = max(3.0 * noise, MIN_OUTLIER_THRESHOLD)
         if noise is not None:
             used["noise_sigma"] = float(noise)
-        if method == "sbl" and params["tol"] is None:
+        if method in ("plsbl", "auto") and params["lam"] is None:
+            if sigma_pl is None:
+                sigma_pl = pl_noise(params["segments"], noise)
+            used["noise_sigma_pl"] = params["noise_sigma_pl"] = float(sigma_pl)
+        if method in SBL_LIKE and params["tol"] is None:
             params["tol"] = max(SBL_TOL_MIN, SBL_TOL_NOISE_SHARE * noise)
     used.update({k: v for k, v in params.items()
-                 if k not in ("lam", "noise_floor", "light_noise")})
+                 if k not in ("lam", "noise_floor", "light_noise", "noise_sigma_pl")})
     return used
+
+
+def _pl_sbl_tile(y, w, lights, **params):
+    return _pl_kernels.pl_tile(y, w, lights, **params)
+
+
+def _auto_tile(y, w, lights, **params):
+    return _pl_kernels.pl_tile(y, w, lights, choose=True, sbl_max_iter=params["max_iter"],
+                               **params)
+
+
+def _pl_ls_tile(y, w, lights, *, segments):
+    return _pl_kernels.pl_tile(y, w, lights, segments=segments, lam=LAMBDA_FLOOR, sigma_x2=1e12,
+                               sbl=False, learn_tau=False)
+
+
+def tile_kernel(method: str):
+    """The tile kernel of ``method`` (directional lights (n, 3); the PL kernels also (m, n, 3))."""
+    return {"ls": _kernels.ls_tile, "l1": _kernels.l1_tile, "sbl": _kernels.sbl_tile,
+            "plls": _pl_ls_tile, "plsbl": _pl_sbl_tile, "auto": _auto_tile}[method]
 
 
 def _solve_tiles(obs, lights, usable, method, params, used, starts, tile, mapper, progress):
@@ -478,20 +560,26 @@ def _solve_tiles(obs, lights, usable, method, params, used, starts, tile, mapper
     albedo = np.zeros(p)
     outliers = np.zeros((n, p), bool)
     iterations = np.zeros(p, np.int64)
-    kernel = {"ls": _kernels.ls_tile, "l1": _kernels.l1_tile, "sbl": _kernels.sbl_tile}[method]
-    kernel_params = {k: v for k, v in params.items() if k not in ("noise_floor", "light_noise")}
+    segments = np.zeros(p, np.int64) if method in ("plls", "plsbl", "auto") else None
+    kernel = tile_kernel(method)
+    kernel_params = {k: v for k, v in params.items()
+                     if k not in ("noise_floor", "light_noise", "noise_sigma_pl")}
     if method == "ls":
         kernel_params = {"outlier_threshold": np.inf}
-    per_pixel_lam = method == "sbl" and params["lam"] is None
+    per_pixel_lam = method in SBL_LIKE and params["lam"] is None
 
     def run_tile(a: int) -> int:
         b = min(a + tile, p)
         y, w, scale, ok = _prepare_tile(obs, usable, lights, a, b)
         tile_params = kernel_params
         if per_pixel_lam:
+            floor, factors = params["noise_floor"], params["light_noise"]
             tile_params = {**kernel_params,
-                           "lam": sbl_lambda(scale, used["noise_sigma"], params["noise_floor"],
-                                             params["light_noise"])}
+                           "lam": sbl_lambda(scale, used["noise_sigma"], floor, factors)}
+            if method in ("plsbl", "auto"):
+                # the PL model's noise: the same floor, its own relative noise (pl_noise_level)
+                lam_pl = sbl_lambda(scale, params["noise_sigma_pl"], floor, factors)
+                tile_params["lam_pl" if method == "auto" else "lam"] = lam_pl
         res = kernel(y, w, lights, **tile_params)
         x = res.x.astype(np.float64) * scale[:, None]
         length = np.linalg.norm(x, axis=1)
@@ -500,9 +588,16 @@ def _solve_tiles(obs, lights, usable, method, params, used, starts, tile, mapper
         albedo[a:b] = np.where(good, length, 0.0)
         outliers[:, a:b] = (res.outliers & good[:, None]).T
         iterations[a:b] = np.where(ok, res.iterations, 0)
+        if segments is not None:
+            segments[a:b] = np.where(ok, res.segments, 0)
         return b - a
 
     for done in mapper(run_tile, starts):
         if progress is not None:
             progress(done)
+    if segments is not None:
+        solved = segments > 0
+        used["pixels_per_segments"] = {int(k): int(c) for k, c in
+                                       zip(*np.unique(segments[solved], return_counts=True),
+                                           strict=True)}
     return Solution(normals, albedo, outliers, iterations, used)

@@ -42,6 +42,7 @@ from ._solve import (
     _method_params,
     pixel_scale,
     residual_noise,
+    tile_kernel,
 )
 from .integrate import integrate
 from .integrate import integrate as integrate_depth
@@ -66,6 +67,10 @@ _KERNELS = {
     "ls": _near_kernels.ls_tile_pp,
     "l1": _near_kernels.l1_tile_pp,
     "sbl": _near_kernels.sbl_tile_pp,
+    # the piecewise-linear kernels take per-pixel lights (m, n, 3) as they are
+    "plls": tile_kernel("plls"),
+    "plsbl": tile_kernel("plsbl"),
+    "auto": tile_kernel("auto"),
 }
 # At most this many parabola steps of a depth search; the outline search stops at this step
 # (pixels): below it the criterion's change is within its noise (docs/solvers.md).
@@ -209,24 +214,25 @@ def solve_near(
     params = _method_params(method, method_params)
     n, p = obs.shape
     used: dict = {"method": method, "light_model": "near"}
-    if method != "ls":
+    if method not in ("ls", "plls"):
         noise = params.pop("noise_sigma")
         if noise is None:
             noise = estimate_noise_near(obs, vectors, usable)
-        if method == "sbl":
+        if method in ("sbl", "plsbl", "auto"):
             # One relative lam here: the directional solver's per-light noise floor is not
             # carried over to near lights (issue 12 left it out).
             params.pop("noise_floor")
             params.pop("light_noise")
+            params.pop("noise_sigma_pl", None)  # PL models: the same one lam here
             if params["lam"] is None:
                 params["lam"] = max(noise * noise, LAMBDA_FLOOR)
             used["lambda"] = float(params["lam"])
         if params["outlier_threshold"] is None:
             params["outlier_threshold"] = max(3.0 * noise, MIN_OUTLIER_THRESHOLD)
         used["noise_sigma"] = float(noise)
-        if method == "sbl" and params["tol"] is None:
+        if method in ("sbl", "plsbl", "auto") and params["tol"] is None:
             params["tol"] = max(SBL_TOL_MIN, SBL_TOL_NOISE_SHARE * noise)
-    else:
+    elif method == "ls":
         params = {"outlier_threshold": np.inf}
     used.update({k: v for k, v in params.items() if k != "lam"})
     tile = int(tile_size) if tile_size else DEFAULT_TILE_SIZE

@@ -71,11 +71,14 @@ def parse_memory_size(text: str) -> int:
 
 # Solver fields of ReconstructOptions -> (command-line flag, methods they apply to).
 SOLVER_OPTIONS = {
-    "lam": ("--lambda", ("sbl", "rpca")),
-    "sigma_x2": ("--sigma-x2", ("sbl",)),
-    "max_iter": ("--max-iter", ("l1", "sbl", "rpca")),
-    "tol": ("--tol", ("l1", "sbl", "rpca")),
+    "lam": ("--lambda", ("auto", "sbl", "plsbl", "rpca")),
+    "sigma_x2": ("--sigma-x2", ("auto", "sbl", "plsbl")),
+    "max_iter": ("--max-iter", ("auto", "l1", "sbl", "plsbl", "rpca")),
+    "tol": ("--tol", ("auto", "l1", "sbl", "plsbl", "rpca")),
+    "segments": ("--segments", ("auto", "plls", "plsbl")),
 }
+# Most segments of the piecewise-linear models (reconstruct/_pl_kernels.py).
+MAX_SEGMENTS = 8
 
 
 def _check_solver_options(options: ReconstructOptions) -> None:
@@ -91,8 +94,10 @@ def _check_solver_options(options: ReconstructOptions) -> None:
             raise SolverInputError(f"{flag} must be a number, got {value!r}")
         if not math.isfinite(value) or value <= 0:
             raise SolverInputError(f"{flag} must be finite and positive, got {value!r}")
-        if name == "max_iter" and int(value) != value:
+        if name in ("max_iter", "segments") and int(value) != value:
             raise SolverInputError(f"{flag} must be a whole number, got {value!r}")
+        if name == "segments" and value > MAX_SEGMENTS:
+            raise SolverInputError(f"{flag} must be at most {MAX_SEGMENTS}, got {value!r}")
         if options.method not in methods:
             raise SolverInputError(
                 f"{flag} does not apply to method {options.method} (only {', '.join(methods)})"
@@ -111,8 +116,9 @@ class ReconstructOptions:
 
     Attributes
     ----------
-    method : {"ls", "l1", "sbl", "rpca"}
-        Solver. Noise level and outlier threshold are estimated once for the whole image; R-PCA's
+    method : {"auto", "ls", "l1", "sbl", "plls", "plsbl", "rpca"}
+        Solver (``auto``: per pixel SBL or PL-SBL, by their evidence; docs/solvers.md).
+        Noise level and outlier threshold are estimated once for the whole image; R-PCA's
         low-rank model is fitted per band.
     channel : {"r", "g", "b", "mean"}
         As for :func:`ps_lab.io.dataset.load_dataset`.
@@ -144,6 +150,10 @@ class ReconstructOptions:
         scale); None keeps the method's default. ``lam``: SBL's noise variance, or R-PCA's
         sparse weight; ``sigma_x2``: SBL's prior variance of ``x``; ``max_iter`` and ``tol``:
         SBL, L1 and R-PCA. Each must be finite and positive, and apply to ``method``.
+        (``auto`` and ``plsbl`` take SBL's.)
+    segments : int or None
+        Segments of the piecewise-linear models (``auto``, ``plls``, ``plsbl``; 1 to 8, default
+        3).
     depth : {"poisson", "bilateral"} or None
         Also integrate the normals into depth maps and a mesh (:mod:`ps_lab.reconstruct.depth`).
     encoding : {"auto", "linear", "srgb"}
@@ -158,7 +168,7 @@ class ReconstructOptions:
         (:func:`ps_lab.reconstruct.near.near_light_rounds`).
     """
 
-    method: str = "sbl"
+    method: str = "auto"
     channel: str = "mean"
     shadow_threshold: float | None = None
     threads: int | None = None
@@ -172,6 +182,7 @@ class ReconstructOptions:
     sigma_x2: float | None = None
     max_iter: int | None = None
     tol: float | None = None
+    segments: int | None = None
 
     depth: str | None = None
     encoding: str = "auto"

@@ -41,7 +41,7 @@ from ps_lab.io.files import json_safe, staged_folder
 from ps_lab.io.result import METRICS, RESULT_FORMAT, is_result_folder
 from ps_lab.io.truth import open_normal_gt
 from ps_lab.reconstruct._bands import LocalBands
-from ps_lab.reconstruct._kernels import start_warm_up
+from ps_lab.reconstruct._warm_up import start_warm_up
 from ps_lab.reconstruct._outputs import (
     ERROR_BIN_DEG,
     _Histogram,
@@ -199,7 +199,7 @@ def reconstruct_to_folder(
     check_output_folder(out)
     started = time.perf_counter()
     timings: dict[str, float] = {}
-    # The solver kernels load while the images are read (see _kernels.warm_up).
+    # The solver kernels load while the images are read (see _warm_up.warm_up).
     warm_up = start_warm_up(options.method)
     source = _read(dataset, options)
     with _band_executor(options) as executor, staged_folder(

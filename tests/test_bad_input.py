@@ -603,7 +603,7 @@ def _(w):
     "g5-unknown-method",
     ("--method",),
     check=lambda w, r, line: _equals(
-        line, "error: --method: 'foo' is not one of ls, l1, sbl, rpca"
+        line, "error: --method: 'foo' is not one of auto, ls, l1, sbl, plls, plsbl, rpca"
     ),
 )
 def _(w):

@@ -398,7 +398,7 @@ def test_solver_flags_reach_the_solver_and_metrics(tmp_path):
     assert result.exit_code == 0, result.output
     metrics = json.loads((out / "metrics.json").read_text())
     assert metrics["solver_options"] == {"lambda": 1e-4, "sigma-x2": 1e4, "max-iter": 7,
-                                         "tol": 1e-3}
+                                         "tol": 1e-3, "segments": None}
     params = metrics["parameters"]
     assert (params["lambda"], params["sigma_x2"], params["max_iter"], params["tol"]) == (
         1e-4, 1e4, 7, 1e-3)

@@ -75,11 +75,11 @@ def test_band_sums_reproduce_refine_lights(perturbed):
     expected = refine_lights(y, wrong, iterations=1, valid=valid)
     # refine_lights solves with the directions it normalised (1 ulp off `wrong` here and there)
     unit = wrong / np.linalg.norm(wrong, axis=1)[:, None]
-    sol = solve(y, unit, valid=valid)
+    sol = solve(y, unit, valid=valid, method="sbl")  # refine_lights' method
     half = y.shape[1] // 2
     sums = [np.zeros((len(lights), 6)), np.zeros((len(lights), 3))]
     for band in (slice(0, half), slice(half, None)):
-        band_sol = solve(y[:, band], unit, valid=valid[:, band],
+        band_sol = solve(y[:, band], unit, valid=valid[:, band], method="sbl",
                          noise_sigma=sol.params["noise_sigma"],
                          noise_floor=sol.params["noise_floor"])
         m6, t3, _ = light_fit_sums(y[:, band], valid[:, band], band_sol)

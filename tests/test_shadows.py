@@ -1,4 +1,4 @@
-"""The automatic shadow threshold: the noise at black measured on negative observations."""
+"""The automatic shadow threshold: the noise at black (negative observations) or the black level."""
 
 from __future__ import annotations
 
@@ -36,10 +36,22 @@ def test_black_threshold_measures_the_noise_per_light(seed: int) -> None:
     assert below[~shadows].mean() == 0.0
 
 
-def test_no_negative_observations_measure_nothing() -> None:
+def test_without_negatives_the_clipped_black_level_is_the_threshold() -> None:
     rng = np.random.default_rng(3)
-    obs = np.clip(_observations(rng, 1e-3, np.ones(8), shadow=0.2), 0.0, None)
-    assert black_threshold(obs, np.ones(obs.shape, bool)) is None
+    clipped = np.clip(_observations(rng, 1e-3, np.ones(8), shadow=0.2), 0.0, None)
+    valid = np.ones(clipped.shape, bool)
+    # clipped at 0 (10 % of the observations, the shadows' negative half): the level is 0
+    np.testing.assert_array_equal(black_threshold(clipped, valid), np.zeros(8))
+    # the same with a black level of 0.002 in light 3 only, and light 5 never at black
+    level = clipped.copy()
+    level[3] = np.maximum(level[3], 0.002)
+    level[5] = rng.uniform(0.01, 1.0, level.shape[1])
+    expected = np.zeros(8, np.float32)
+    expected[3] = 0.002
+    np.testing.assert_array_equal(black_threshold(level, valid), expected)
+    # nothing repeated at the bottom (no clipping, no dark-frame subtraction): nothing measured
+    smooth = rng.uniform(1e-3, 1.0, clipped.shape)
+    assert black_threshold(smooth, valid) is None
     # a handful of negatives (below the minimum count) are not a measurement either
-    obs[0, :50] = -1e-3
-    assert black_threshold(obs, np.ones(obs.shape, bool)) is None
+    clipped[0, :50] = -1e-3
+    assert black_threshold(clipped, valid) is None

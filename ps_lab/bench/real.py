@@ -2,8 +2,11 @@
 
 Every object folder under a root (a folder holding ``light_directions.txt`` and ground-truth
 normals) is loaded as ``ps-lab reconstruct`` loads it (channels divided by the light intensities
-and averaged, saturated observations dropped, every mask pixel) and solved with LS, L1, SBL and
-R-PCA at their defaults, plus SBL at fixed ``lam`` values for comparison. The numbers go to
+and averaged, saturated observations dropped, observations at the black level dropped as shadows
+(:func:`ps_lab.reconstruct._shadows.black_threshold` on an evenly spaced sample, as the
+reconstruction's store does), every mask pixel) and solved with the default (``auto``), LS, L1,
+SBL, PL-LS, PL-SBL and R-PCA at their defaults, plus SBL at fixed ``lam`` values for comparison.
+The numbers go to
 ``docs/results.md``; ``docs/solvers.md`` explains SBL's default ``lam`` with them.
 """
 
@@ -18,10 +21,14 @@ import numpy as np
 
 from ps_lab.io.dataset import load_dataset
 from ps_lab.reconstruct import angular_errors_deg, error_summary, light_noise_factors, solve
+from ps_lab.reconstruct._shadows import black_threshold
+from ps_lab.reconstruct._solve import NOISE_SAMPLE_PIXELS
 
 # The repository's sibling data folder (``../shared/data/diligent-8bit`` from the repo root).
 DEFAULT_FOLDER = Path(__file__).resolve().parents[2].parent / "shared" / "data" / "diligent-8bit"
-METHODS = ("ls", "l1", "sbl", "rpca")
+METHODS = ("auto", "ls", "l1", "sbl", "plls", "plsbl", "rpca")
+# Methods that take each light's share of the noise floor (SBL's default lambda).
+_LIGHT_NOISE = ("auto", "sbl", "plsbl")
 FIXED_LAMBDAS = (1e-6, 1e-4, 1e-2, 1e-1)
 
 
@@ -64,17 +71,28 @@ def find_objects(folder: Path) -> list[Path]:
     )
 
 
-def load_object(path: Path, every: int = 1) -> RealObject:
-    """Load one object folder; ``every`` > 1 keeps every ``every``-th mask pixel (quick runs)."""
+def load_object(path: Path, every: int = 1, lights: np.ndarray | None = None) -> RealObject:
+    """Load one object folder; ``every`` > 1 keeps every ``every``-th mask pixel (quick runs).
+
+    ``lights``: indices of the lights to keep (a subset, e.g. 12 of 96), default all.
+    """
     data = load_dataset(Path(path))
     if data.normal_gt is None:
         raise ValueError(f"{path}: no ground-truth normals")
     mask = data.mask
-    obs = data.images[:, mask][:, ::every]
-    valid = data.valid[:, mask][:, ::every]
+    pick = np.arange(data.images.shape[0]) if lights is None else np.asarray(lights)
+    obs = data.images[pick][:, mask]
+    valid = data.valid[pick][:, mask]
+    factors = light_noise_factors(data.light_intensities[pick])
+    # the reconstruction's default shadow rule, on the same kind of evenly spaced sample
+    sample = np.unique(np.linspace(0, obs.shape[1] - 1, min(obs.shape[1], NOISE_SAMPLE_PIXELS))
+                       .round().astype(np.int64))
+    black = black_threshold(obs[:, sample], valid[:, sample], factors)
+    if black is not None:
+        valid = valid & (obs > black[:, None])
     gt = np.asarray(data.normal_gt, dtype=np.float64)[mask][::every]
-    return RealObject(Path(path).name, obs, valid, data.light_directions, gt,
-                      light_noise_factors(data.light_intensities))
+    return RealObject(Path(path).name, obs[:, ::every], valid[:, ::every],
+                      data.light_directions[pick], gt, factors)
 
 
 def columns(methods=METHODS, lambdas=FIXED_LAMBDAS) -> list[str]:
@@ -87,7 +105,7 @@ def solve_column(obj: RealObject, column: str, threads: int | None = None) -> di
     kwargs: dict = {"method": column.split()[0]}
     if column.startswith("sbl lam="):
         kwargs["lam"] = float(column.split("=")[1])
-    elif column == "sbl":
+    elif column in _LIGHT_NOISE:
         kwargs["light_noise"] = obj.light_noise
     started = time.perf_counter()
     sol = solve(obj.observations, obj.light_directions, valid=obj.valid, threads=threads, **kwargs)

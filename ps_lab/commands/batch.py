@@ -58,7 +58,7 @@ def batch(
             show_default=False,
         ),
     ] = None,
-    method: MethodOption = Method.sbl,
+    method: MethodOption = Method.auto,
     shadow_threshold: ShadowThresholdOption = None,
     channel: ChannelOption = Channel.mean,
     refine_lights: RefineLightsOption = 0,

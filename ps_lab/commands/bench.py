@@ -100,7 +100,7 @@ def real(
         typer.Option(min=1, help="Solver threads (default: all cores).", show_default=False),
     ] = None,
 ) -> None:
-    """LS, L1, SBL, R-PCA (defaults) and SBL at fixed lambda on every real object of a folder."""
+    """The default, LS, L1, SBL, PL-LS, PL-SBL, R-PCA and SBL at fixed lambda on real objects."""
     folder = folder if folder is not None else bench_real.DEFAULT_FOLDER
     objects = bench_real.find_objects(folder)
     if not objects:

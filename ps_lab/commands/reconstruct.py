@@ -22,9 +22,12 @@ from ps_lab.reconstruct.pipeline import (
 class Method(str, Enum):  # noqa: UP042 - typer needs str-valued choices
     """Solver choices (see ``ps_lab.reconstruct.METHODS``)."""
 
+    auto = "auto"
     ls = "ls"
     l1 = "l1"
     sbl = "sbl"
+    plls = "plls"
+    plsbl = "plsbl"
     rpca = "rpca"
 
 
@@ -59,8 +62,14 @@ class DepthMethod(str, Enum):  # noqa: UP042
 MethodOption = Annotated[
     Method,
     typer.Option(
-        case_sensitive=False, help="Solver: ls (Woodham), l1 (IRLS), sbl (robust, default), rpca."
+        case_sensitive=False,
+        help="Solver: auto (per pixel sbl or plsbl by evidence, default), ls (Woodham), l1 "
+        "(IRLS), sbl (robust), plls / plsbl (piecewise-linear diffuse), rpca."
     ),
+]
+SegmentsOption = Annotated[
+    int | None,
+    typer.Option(help="Segments of plls / plsbl / auto (1-8; default 3).", show_default=False),
 ]
 ShadowThresholdOption = Annotated[
     float | None,
@@ -171,7 +180,7 @@ def reconstruct(
         Path,
         typer.Argument(help="Image folder (DiLiGenT layout) or capture run.", show_default=False),
     ],
-    method: MethodOption = Method.sbl,
+    method: MethodOption = Method.auto,
     out: Annotated[
         Path | None,
         typer.Option(help="Output folder (default: DATASET/recon/<method>).", show_default=False),
@@ -200,6 +209,7 @@ def reconstruct(
     sigma_x2: SigmaX2Option = None,
     max_iter: MaxIterOption = None,
     tol: TolOption = None,
+    segments: SegmentsOption = None,
     depth: DepthOption = None,
     encoding: EncodingOption = Encoding.auto,
     normal_map: Annotated[
@@ -229,6 +239,7 @@ def reconstruct(
         depth=None if depth is None else depth.value,
         encoding=encoding.value,
         normal_map=normal_map.value,
+        segments=segments,
     )
     try:
         result = reconstruct_to_folder(dataset, out, options, progress_bars=_terminal_bars)

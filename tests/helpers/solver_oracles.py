@@ -7,7 +7,7 @@ the vectorised solvers document, so results agree as far as ``tolerances.py`` de
 
 Each pixel oracle returns ``(x, statistic, iterations)``: ``statistic`` is what the method compares
 with ``outlier_threshold`` to flag an observation (``|residual|`` for L1, the corruption estimate
-``|e|`` for SBL, 0 for least squares).
+``|e|`` for SBL and the PL models (in intensity units), 0 for least squares).
 """
 
 from __future__ import annotations
@@ -73,7 +73,125 @@ def sbl_pixel(y, a, *, lam, sigma_x2=1e6, max_iter=100, tol=1e-4, gamma_floor=1e
     return x, np.abs(e), it
 
 
-PIXEL_ORACLES = {"ls": ls_pixel, "l1": l1_pixel, "sbl": sbl_pixel}
+def pl_model(y, a, *, segments, lam, sigma_x2=1e6, max_iter=20, tol=1e-4, gamma_floor=1e-10,
+             gamma_start=1e3, sbl=True, learn_tau=True, slope_floor=1e-3):
+    """Piecewise-linear model of one pixel, with the design and the constraint written out.
+
+    Returns (x (K+2), slopes (K), breaks (K+1), segment of each observation, gamma, lambda,
+    iterations, log evidence, K used).
+    """
+    n = y.size
+    k = max(1, min(segments, n // 4))  # at least 4 observations per segment
+    srt = np.sort(y)
+    breaks = np.array([0.0] + [srt[(j * n) // k] for j in range(1, k)] + [srt[-1]])
+    phi = np.clip(y[:, None] - breaks[None, :k], 0.0, breaks[1:] - breaks[:k])
+    seg = (y[:, None] > breaks[None, 1:k]).sum(axis=1)
+    # f(y) = sum_k s_k phi_k = -a.l ; s_{K-1} = 1 - sum_{k<K-1} s_k eliminated
+    design = np.concatenate([phi[:, :k - 1] - phi[:, k - 1:k], -a], axis=1)
+    target = -phi[:, k - 1]
+    u = k + 2
+    lam0 = np.broadcast_to(np.asarray(lam, dtype=float), (n,)).copy()
+    lam_f = lam0 / k**2
+    gamma = np.full(n, gamma_start / k**2)
+    tau2 = 1.0
+    z_old = np.zeros(n)
+    iters = max_iter if sbl else 1
+    done = not sbl
+    it = 0
+    q_free = np.eye(k - 1) + 1.0
+    while True:
+        prior = np.zeros((u, u))
+        prior[:k - 1, :k - 1] = q_free / tau2
+        prior[k - 1:, k - 1:] = np.eye(3) / sigma_x2
+        prior_rhs = np.concatenate([np.ones(k - 1) / tau2, np.zeros(3)])
+        d = 1.0 / ((gamma if sbl else 0.0) + lam_f)
+        m = prior + design.T @ np.diag(d) @ design
+        minv = np.linalg.inv(m)
+        x = minv @ (prior_rhs + design.T @ (d * target))
+        slopes = np.append(x[:k - 1], 1.0 - x[:k - 1].sum())
+        if done or it == max_iter:
+            break
+        # SBL (Ikehata et al. 2012) with Sigma_t = Gamma + Lambda + design P^-1 design^T, whose
+        # inverse (Woodbury) is D - D design M^-1 design^T D; the prior mean is P^-1 prior_rhs
+        big_d = np.diag(d)
+        s_inv = big_d - big_d @ design @ minv @ design.T @ big_d
+        r0 = target - design @ np.linalg.solve(prior, prior_rhs)
+        z = gamma * (s_inv @ r0)
+        uu = gamma - gamma**2 * np.diag(s_inv)
+        gamma = np.maximum(z**2 + uu, gamma_floor)
+        moved = np.abs(z - z_old) >= tol / k
+        z_old = z
+        if k > 1:
+            if learn_tau:
+                dev = x[:k - 1] - 1.0 / k
+                e2 = dev @ q_free @ dev + np.trace(q_free @ minv[:k - 1, :k - 1])
+                tau2 = max(e2 / (k - 1), 1e-10)
+            lam_f = lam0 * np.maximum(slopes[seg], slope_floor / k) ** 2
+        it += 1
+        if not moved.any():
+            iters = it
+            done = True
+    if not sbl:
+        return x, slopes, breaks, seg, gamma, lam_f, 1, 0.0, k
+    # log N(t; design P^-1 prior_rhs, Sigma_t): determinant lemma and Woodbury
+    c = gamma + lam_f
+    big_d = np.diag(1.0 / c)
+    s_inv = big_d - big_d @ design @ minv @ design.T @ big_d
+    r = target - design @ np.linalg.solve(prior, prior_rhs)
+    logdet = (np.sum(np.log(c)) + np.linalg.slogdet(m)[1] - np.linalg.slogdet(prior)[1])
+    loglik = -0.5 * (logdet + r @ s_inv @ r)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        jac = np.sum(np.log(slopes[seg])) if np.all(slopes[seg] > 0) else -np.inf
+    return x, slopes, breaks, seg, gamma, lam_f, iters, loglik + jac, k
+
+
+def _pl_result(model, y, outlier_threshold, slope_floor=1e-3):
+    x, slopes, breaks, seg, gamma, lam_f, iters, evidence, k = model
+    fb = np.sum(slopes * np.diff(breaks))
+    normal = x[k - 1:] * (breaks[-1] / fb if fb > 0 else 0.0)
+    return normal, slopes, seg, gamma, lam_f, iters, evidence, k
+
+
+def _pl_statistic(model, y, a, slope_floor=1e-3):
+    """|e|: each observation's corruption estimate, in intensity units (its segment's slope)."""
+    x, slopes, breaks, seg, gamma, lam_f, _, _, k = model
+    phi = np.clip(y[:, None] - breaks[None, :k], 0.0, breaks[1:] - breaks[:k])
+    resid = phi @ slopes - a @ x[k - 1:]  # f(y) - l.n = -(t - design x)
+    e = gamma / (gamma + lam_f) * resid / np.maximum(slopes[seg], slope_floor / k)
+    return np.abs(e)
+
+
+def plsbl_pixel(y, a, *, lam, segments=3, sigma_x2=1e6, max_iter=20, tol=1e-4,
+                gamma_floor=1e-10, gamma_start=1e3):
+    model = pl_model(y, a, segments=segments, lam=lam, sigma_x2=sigma_x2, max_iter=max_iter,
+                     tol=tol, gamma_floor=gamma_floor, gamma_start=gamma_start)
+    normal, *_, iters, _, _ = _pl_result(model, y, np.inf)
+    return normal, _pl_statistic(model, y, a), iters
+
+
+def plls_pixel(y, a, *, segments=3):
+    model = pl_model(y, a, segments=segments, lam=1e-6, sigma_x2=1e12, sbl=False,
+                     learn_tau=False)
+    normal = _pl_result(model, y, np.inf)[0]
+    return normal, np.zeros(y.size), 1
+
+
+def auto_pixel(y, a, *, lam, lam_pl=None, segments=3, sigma_x2=1e6, max_iter=20, tol=0.0,
+               gamma_floor=1e-10, gamma_start=1e3):
+    """SBL (the PL model with one segment) or PL-SBL, whichever has the larger evidence."""
+    common = {"sigma_x2": sigma_x2, "tol": tol, "gamma_floor": gamma_floor,
+              "gamma_start": gamma_start, "max_iter": max_iter}
+    lin = pl_model(y, a, segments=1, lam=lam, **common)
+    lam_pl = lam if lam_pl is None else lam_pl
+    pl = pl_model(y, a, segments=segments, lam=lam_pl, **common) if segments > 1 else lin
+    best = pl if (segments > 1 and pl[7] > lin[7]) else lin
+    iters = best[6]  # the iterations of the model kept
+    normal = _pl_result(best, y, np.inf)[0]
+    return normal, _pl_statistic(best, y, a), iters
+
+
+PIXEL_ORACLES = {"ls": ls_pixel, "l1": l1_pixel, "sbl": sbl_pixel, "plls": plls_pixel,
+                 "plsbl": plsbl_pixel, "auto": auto_pixel}
 
 
 def solve_oracle(observations, lights, method, valid=None, *, statistic=False, **params):
@@ -101,16 +219,20 @@ def solve_oracle(observations, lights, method, valid=None, *, statistic=False, *
         if not solvable(a, scale):
             continue
         pixel_params = params
-        if method == "sbl" and params.get("lam") is None:
+        if method in ("sbl", "plsbl", "auto") and params.get("lam") is None:
             # SBL's default: sigma^2 relative plus the noise floor (observation units, times each
             # light's factor) / scale, per observation
             sigma, floor = params["noise_sigma"], params["noise_floor"]
             factor = params.get("light_noise")
             factor = np.ones(n) if factor is None else np.asarray(factor)
             rest = {k: v for k, v in params.items()
-                    if k not in ("noise_sigma", "noise_floor", "light_noise")}
-            lam = np.maximum(sigma**2 + (floor * factor[v] / scale) ** 2, 1e-6)
-            pixel_params = {**rest, "lam": lam}
+                    if k not in ("noise_sigma", "noise_floor", "light_noise", "noise_sigma_pl")}
+
+            floor_term = (floor * factor[v] / scale) ** 2
+            pixel_params = {**rest, "lam": np.maximum(sigma**2 + floor_term, 1e-6)}
+            if method in ("plsbl", "auto"):  # the PL model's own relative noise
+                lam_pl = np.maximum(params["noise_sigma_pl"] ** 2 + floor_term, 1e-6)
+                pixel_params["lam" if method == "plsbl" else "lam_pl"] = lam_pl
         x, stat, it = PIXEL_ORACLES[method](y / scale, a, **pixel_params)
         x = x * scale
         albedo[j] = np.linalg.norm(x)

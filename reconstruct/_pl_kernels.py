@@ -1,0 +1,616 @@
+"""Tile kernels of the piecewise-linear models: PL-LS, PL-SBL and the per-pixel choice (numba).
+
+Ikehata, Wipf, Matsushita & Aizawa (TPAMI 2014): the diffuse intensity is an unknown monotonic
+function of ``n.l``; turned around, ``n.l = f(y)`` with ``f`` piecewise linear in the observed
+intensity ``y``, ``K`` segments with break points from the pixel's own usable observations
+(``b_0 = 0``, ``b_k`` = the ``floor(k u / K)``-th smallest of the ``u`` usable ones, ``b_K`` the
+largest). With ``phi_k(y) = clip(y - b_k, 0, b_{k+1} - b_k)`` and slopes ``s``,
+``f(y) = sum_k s_k phi_k(y)``. The slopes sum to 1 (the scale); the constraint is eliminated,
+``s_{K-1} = 1 - sum_{k<K-1} s_k``, so the unknowns are ``x = (s_0 .. s_{K-2}, n)`` (``U = K + 2``)
+and observation i reads ``t_i = a_i . x + e_i`` with ``a_i = (phi_k - phi_{K-1} (k < K-1), -l_i)``
+and ``t_i = -phi_{K-1}(y_i)``. ``K = 1`` is exactly the Lambertian model of SBL (``t = -y``,
+``a = -l``).
+
+The sparse errors ``e`` are learned with the SBL of Ikehata et al. 2012 (see :mod:`._kernels`):
+one variance ``gamma_i`` per observation, ``gamma <- z^2 + u``. Here the normal equations are
+``U x U`` (``M = P + sum_i d_i a_i a_i^T``, ``P`` the prior precision) and are inverted by
+Cholesky. Beyond the paper (docs/solvers.md has the measurements):
+
+- the slopes' Gaussian prior is centred on equal slopes (under the sum constraint the authors'
+  zero-mean prior of variance 1 is the same thing) and its variance ``tau^2`` (start 1, the
+  authors') is learned per pixel by the same EM (``tau^2 <- E|s - 1/K|^2 / (K - 1)``), so a
+  pixel whose data are linear shrinks to the Lambertian model;
+- the noise of an observation in ``f``'s units is its noise in ``y`` times its segment's slope:
+  ``lambda_i = lam_i s_{k(i)}^2`` (``lam_i`` the SBL noise variance of the observation in the
+  pixel's relative units), updated with the slopes;
+- each pixel's log evidence in the space of ``y`` (the Gaussian marginal of ``t`` at the learned
+  ``gamma``, ``tau^2``, plus the log Jacobian ``sum_i log s_{k(i)}`` of ``y -> f(y)``), so that
+  models with different ``K`` compare: the ``auto`` kernel solves every pixel with ``K = 1``
+  (SBL) and with ``K`` segments and keeps the one with the larger evidence.
+
+Inputs are those of :mod:`._kernels` (``y`` (m, n) scaled, ``w`` (m, n) 1/0, lights (n, 3) or,
+for near lights, (m, n, 3)).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from numba import njit
+
+from . import _kernels
+from ._kernels import INLINE, VECTOR, TileResult, _sbl_pixel, _weighted_sums
+from ._pl_algebra import _cholesky_inverse, _select, _sum_log
+
+# Rows of the per-pixel state: usable (1/0), observation noise in y units, in f units, gamma,
+# d = w / (gamma + lambda), corruption estimate of the last iteration, residual, a^T M^-1 a,
+# segment of the observation, target t.
+_W, _LAM0, _LAM, _G, _D, _Z, _R, _Q, _SEG, _T = range(10)
+STATE_ROWS = 10
+MAX_SEGMENTS = 8
+MIN_PER_SEGMENT = 4
+# Smallest slope (times 1/K) used for an observation's noise and the Jacobian.
+SLOPE_FLOOR = 1e-3
+TAU_FLOOR = 1e-10
+
+
+@njit(**INLINE)
+def _design(y, w, lights, p, k, st, tab, breaks, vals):
+    """Break points, design rows and products of pixel p for ``k`` segments; usable count."""
+    n = y.shape[1]
+    cnt = 0
+    for i in range(n):
+        if w[p, i] > 0.0:
+            vals[cnt] = y[p, i]
+            cnt += 1
+    breaks[0] = 0.0
+    top = vals[0]
+    for i in range(1, cnt):
+        top = vals[i] if vals[i] > top else top
+    breaks[k] = top
+    # the order statistics (j cnt) // K, increasing, each selected in the part right of the last
+    lo = 0
+    for j in range(1, k):
+        kth = (j * cnt) // k
+        breaks[j] = _select(vals, lo, cnt, kth)
+        lo = kth
+    u = k + 2
+    ns = k - 1
+    # phi_j(y) = clip(y - b_j, 0, b_{j+1} - b_j), one vectorised loop per segment; the last
+    # segment's phi is the target (in row _T, negated), the others are differences to it
+    lo = breaks[ns]
+    width = breaks[k] - lo
+    for i in range(n):
+        ph = y[p, i] - lo
+        ph = ph if ph > 0.0 else 0.0
+        ph = ph if ph < width else width
+        st[_T, i] = -ph * w[p, i]
+        st[_W, i] = w[p, i]
+        st[_SEG, i] = 0.0
+    for j in range(ns):
+        lo = breaks[j]
+        width = breaks[j + 1] - lo
+        cut = breaks[j + 1]
+        for i in range(n):
+            ph = y[p, i] - lo
+            ph = ph if ph > 0.0 else 0.0
+            ph = ph if ph < width else width
+            tab[j, i] = ph * w[p, i] + st[_T, i]
+            st[_SEG, i] += 1.0 if y[p, i] > cut else 0.0
+    for i in range(n):
+        wi = w[p, i]
+        tab[ns, i] = -lights[i, 0] * wi
+        tab[ns + 1, i] = -lights[i, 1] * wi
+        tab[ns + 2, i] = -lights[i, 2] * wi
+    if k == 3:
+        return cnt  # the three-segment iteration forms its products in its loops
+    # products a_a^T (upper triangle, row-major) on rows u .. u + u(u+1)/2
+    e = u
+    for r in range(u):
+        for c in range(r, u):
+            for i in range(n):
+                tab[e, i] = tab[r, i] * tab[c, i]
+            e += 1
+    return cnt
+
+
+@njit(**INLINE)
+def _normal_equations(st, tab, n, u, mat, rhs, prior, prior_rhs):
+    e = u
+    for r in range(u):
+        acc = 0.0
+        for i in range(n):
+            acc += st[_D, i] * st[_T, i] * tab[r, i]
+        rhs[r] = prior_rhs[r] + acc
+        for c in range(r, u):
+            acc = 0.0
+            for i in range(n):
+                acc += st[_D, i] * tab[e, i]
+            mat[r, c] = prior[r, c] + acc
+            mat[c, r] = mat[r, c]
+            e += 1
+
+
+@njit(**INLINE)
+def _prior(k, tau2, ridge, prior, prior_rhs):
+    """Prior precision of x: ``(I + 11^T) / tau2`` on the free slopes, ``ridge`` on the normal."""
+    u = k + 2
+    ns = k - 1
+    for r in range(u):
+        prior_rhs[r] = 1.0 / tau2 if r < ns else 0.0
+        for c in range(u):
+            if r < ns and c < ns:
+                prior[r, c] = (2.0 if r == c else 1.0) / tau2
+            elif r == c:
+                prior[r, c] = ridge
+            else:
+                prior[r, c] = 0.0
+
+
+@njit(**INLINE)
+def _slopes(x, k, slopes):
+    last = 1.0
+    for j in range(k - 1):
+        slopes[j] = x[j]
+        last -= x[j]
+    slopes[k - 1] = last
+
+
+@njit(**INLINE)
+def _iterate3(st, tab, n, ridge, learn_tau, max_iter, ftol, floor, sbl, mat, inv, low, x,
+              slopes, tau2):
+    """The iteration of :func:`_pl_pixel` for three segments (the default), written out.
+
+    The five unknowns' normal equations (15 products, 5 right-hand sides) are summed in one
+    loop and the residual, ``a^T M^-1 a``, the gamma, lambda and d updates in a second one, so
+    each loop runs over the lights once, vectorised (the generic path makes ~40 passes).
+    Same algebra as the generic path (rounding-level differences). Returns (iterations,
+    log det M, tau2); log det is NaN when ``M`` is not positive definite.
+    """
+    iters = max_iter if sbl else 1
+    it = 0
+    done = not sbl
+    fl = SLOPE_FLOOR / 3.0
+    logdet = math.nan
+    while True:
+        m00 = m01 = m02 = m03 = m04 = m11 = m12 = m13 = m14 = 0.0
+        m22 = m23 = m24 = m33 = m34 = m44 = 0.0
+        r0 = r1 = r2 = r3 = r4 = 0.0
+        for i in range(n):
+            d = st[_D, i]
+            a0 = tab[0, i]
+            a1 = tab[1, i]
+            a2 = tab[2, i]
+            a3 = tab[3, i]
+            a4 = tab[4, i]
+            dt = d * st[_T, i]
+            r0 += dt * a0
+            r1 += dt * a1
+            r2 += dt * a2
+            r3 += dt * a3
+            r4 += dt * a4
+            da0 = d * a0
+            da1 = d * a1
+            da2 = d * a2
+            da3 = d * a3
+            m00 += da0 * a0
+            m01 += da0 * a1
+            m02 += da0 * a2
+            m03 += da0 * a3
+            m04 += da0 * a4
+            m11 += da1 * a1
+            m12 += da1 * a2
+            m13 += da1 * a3
+            m14 += da1 * a4
+            m22 += da2 * a2
+            m23 += da2 * a3
+            m24 += da2 * a4
+            m33 += da3 * a3
+            m34 += da3 * a4
+            m44 += d * a4 * a4
+        it2 = 1.0 / tau2
+        mat[0, 0] = m00 + 2.0 * it2
+        mat[0, 1] = mat[1, 0] = m01 + it2
+        mat[1, 1] = m11 + 2.0 * it2
+        mat[0, 2] = mat[2, 0] = m02
+        mat[0, 3] = mat[3, 0] = m03
+        mat[0, 4] = mat[4, 0] = m04
+        mat[1, 2] = mat[2, 1] = m12
+        mat[1, 3] = mat[3, 1] = m13
+        mat[1, 4] = mat[4, 1] = m14
+        mat[2, 2] = m22 + ridge
+        mat[2, 3] = mat[3, 2] = m23
+        mat[2, 4] = mat[4, 2] = m24
+        mat[3, 3] = m33 + ridge
+        mat[3, 4] = mat[4, 3] = m34
+        mat[4, 4] = m44 + ridge
+        logdet = _cholesky_inverse(mat, inv, low, 5)
+        if not logdet == logdet:
+            return iters, logdet, tau2
+        r0 += it2
+        r1 += it2
+        x0 = inv[0, 0] * r0 + inv[0, 1] * r1 + inv[0, 2] * r2 + inv[0, 3] * r3 + inv[0, 4] * r4
+        x1 = inv[1, 0] * r0 + inv[1, 1] * r1 + inv[1, 2] * r2 + inv[1, 3] * r3 + inv[1, 4] * r4
+        x2 = inv[2, 0] * r0 + inv[2, 1] * r1 + inv[2, 2] * r2 + inv[2, 3] * r3 + inv[2, 4] * r4
+        x3 = inv[3, 0] * r0 + inv[3, 1] * r1 + inv[3, 2] * r2 + inv[3, 3] * r3 + inv[3, 4] * r4
+        x4 = inv[4, 0] * r0 + inv[4, 1] * r1 + inv[4, 2] * r2 + inv[4, 3] * r3 + inv[4, 4] * r4
+        x[0], x[1], x[2], x[3], x[4] = x0, x1, x2, x3, x4
+        slopes[0], slopes[1], slopes[2] = x0, x1, 1.0 - x0 - x1
+        if done or it == max_iter:
+            for i in range(n):
+                st[_R, i] = st[_T, i] - (x0 * tab[0, i] + x1 * tab[1, i] + x2 * tab[2, i]
+                                         + x3 * tab[3, i] + x4 * tab[4, i])
+            return iters, logdet, tau2
+        i00, i11, i22, i33, i44 = inv[0, 0], inv[1, 1], inv[2, 2], inv[3, 3], inv[4, 4]
+        j01, j02, j03, j04 = 2.0 * inv[0, 1], 2.0 * inv[0, 2], 2.0 * inv[0, 3], 2.0 * inv[0, 4]
+        j12, j13, j14 = 2.0 * inv[1, 2], 2.0 * inv[1, 3], 2.0 * inv[1, 4]
+        j23, j24, j34 = 2.0 * inv[2, 3], 2.0 * inv[2, 4], 2.0 * inv[3, 4]
+        sl0 = x0 if x0 > fl else fl
+        sl1 = x1 if x1 > fl else fl
+        sl2 = 1.0 - x0 - x1
+        sl2 = sl2 if sl2 > fl else fl
+        moved = 0
+        for i in range(n):
+            a0 = tab[0, i]
+            a1 = tab[1, i]
+            a2 = tab[2, i]
+            a3 = tab[3, i]
+            a4 = tab[4, i]
+            r = st[_T, i] - (x0 * a0 + x1 * a1 + x2 * a2 + x3 * a3 + x4 * a4)
+            q = (a0 * (i00 * a0 + j01 * a1 + j02 * a2 + j03 * a3 + j04 * a4)
+                 + a1 * (i11 * a1 + j12 * a2 + j13 * a3 + j14 * a4)
+                 + a2 * (i22 * a2 + j23 * a3 + j24 * a4)
+                 + a3 * (i33 * a3 + j34 * a4) + a4 * i44 * a4)
+            gi = st[_G, i]
+            di = st[_D, i]
+            gd = gi * di
+            z = gd * r
+            gn = z * z + (gi - gi * gd * (1.0 - di * q))
+            gn = gn if gn > floor else floor
+            st[_G, i] = gn
+            moved += abs(z - st[_Z, i]) >= ftol
+            st[_Z, i] = z
+            seg = st[_SEG, i]
+            sl = sl2 if seg > 1.5 else (sl1 if seg > 0.5 else sl0)
+            lam = st[_LAM0, i] * sl * sl
+            st[_LAM, i] = lam
+            st[_D, i] = st[_W, i] / (gn + lam)
+        if learn_tau:
+            dv0 = x0 - 1.0 / 3.0
+            dv1 = x1 - 1.0 / 3.0
+            tr = 2.0 * (inv[0, 0] + inv[1, 1] + inv[0, 1])
+            tau2 = (dv0 * dv0 + dv1 * dv1 + (dv0 + dv1) ** 2 + tr) / 2.0
+            tau2 = tau2 if tau2 > TAU_FLOOR else TAU_FLOOR
+        it += 1
+        if moved == 0:
+            iters = it
+            done = True
+
+
+@njit(**INLINE)
+def _pl_pixel(y, w, lights, p, k_max, lam_row, ridge, learn_tau, max_iter, tol, floor, start,
+              sbl, st, tab, mat, inv, low, x, rhs, prior, prior_rhs, breaks, vals, slopes):
+    """One pixel with up to ``k_max`` segments (fewer when it has few observations).
+
+    Leaves ``x`` (U), ``slopes`` (K) and the state rows of the final iteration; returns
+    (segments used, iterations, log evidence). ``sbl`` False: one weighted least-squares solve
+    (PL-LS: every observation weight 1, no noise model).
+    """
+    n = y.shape[1]
+    cnt = 0
+    for i in range(n):
+        cnt += w[p, i] > 0.0
+    # at least MIN_PER_SEGMENT observations per segment (a segment's slope is fitted on its own
+    # observations: with fewer, it can bend to fit a corrupted one)
+    k = k_max if k_max < cnt // MIN_PER_SEGMENT else cnt // MIN_PER_SEGMENT
+    k = k if k > 1 else 1
+    u = k + 2
+    _design(y, w, lights, p, k, st, tab, breaks, vals)
+    tau2 = 1.0
+    scale2 = 1.0 / (k * k)
+    for i in range(n):
+        st[_LAM0, i] = lam_row[i]
+        st[_LAM, i] = lam_row[i] * scale2
+        st[_G, i] = start * scale2
+        st[_D, i] = st[_W, i] / ((st[_G, i] if sbl else 0.0) + st[_LAM, i])
+        st[_Z, i] = 0.0
+    for j in range(k):
+        slopes[j] = 1.0 / k
+    ftol = tol / k
+    iters = max_iter if sbl else 1
+    logdet = math.nan
+    it = 0
+    done = not sbl
+    if k == 3:
+        iters, logdet, tau2 = _iterate3(st, tab, n, ridge, learn_tau, max_iter, ftol, floor, sbl,
+                                        mat, inv, low, x, slopes, tau2)
+        if not logdet == logdet:
+            for r in range(u):
+                x[r] = 0.0
+            return k, iters, -math.inf
+        done = True  # skip the generic loop
+    while not (k == 3):
+        _prior(k, tau2, ridge, prior, prior_rhs)
+        _normal_equations(st, tab, n, u, mat, rhs, prior, prior_rhs)
+        logdet = _cholesky_inverse(mat, inv, low, u)
+        if not logdet == logdet:
+            for r in range(u):
+                x[r] = 0.0
+            return k, iters, -math.inf
+        for r in range(u):
+            acc = 0.0
+            for c in range(u):
+                acc += inv[r, c] * rhs[c]
+            x[r] = acc
+        _slopes(x, k, slopes)
+        # residuals t - a.x and q = a^T M^-1 a (vectorised over the lights)
+        for i in range(n):
+            st[_R, i] = st[_T, i]
+            st[_Q, i] = 0.0
+        for r in range(u):
+            xr = x[r]
+            for i in range(n):
+                st[_R, i] -= xr * tab[r, i]
+        e = u
+        for r in range(u):
+            for c in range(r, u):
+                coef = inv[r, c] if r == c else 2.0 * inv[r, c]
+                for i in range(n):
+                    st[_Q, i] += coef * tab[e, i]
+                e += 1
+        if done or it == max_iter:
+            break
+        moved = 0
+        for i in range(n):
+            gi = st[_G, i]
+            di = st[_D, i]
+            gd = gi * di
+            z = gd * st[_R, i]
+            gn = z * z + (gi - gi * gd * (1.0 - di * st[_Q, i]))
+            gn = gn if gn > floor else floor
+            st[_G, i] = gn
+            moved += abs(z - st[_Z, i]) >= ftol
+            st[_Z, i] = z
+        if k > 1:
+            if learn_tau:
+                # E|s - 1/K|^2 over the K slopes = dev^T (I + 11^T) dev + tr((I + 11^T) Cov)
+                ns = k - 1
+                dsum = 0.0
+                dsq = 0.0
+                tr = 0.0
+                for j in range(ns):
+                    dv = x[j] - 1.0 / k
+                    dsum += dv
+                    dsq += dv * dv
+                    for c in range(ns):
+                        tr += inv[j, c]
+                    tr += inv[j, j]
+                tau2 = (dsq + dsum * dsum + tr) / ns
+                tau2 = tau2 if tau2 > TAU_FLOOR else TAU_FLOOR
+            for i in range(n):
+                sl = slopes[int(st[_SEG, i])]
+                sl = sl if sl > SLOPE_FLOOR / k else SLOPE_FLOOR / k
+                st[_LAM, i] = st[_LAM0, i] * sl * sl
+        for i in range(n):
+            st[_D, i] = st[_W, i] / (st[_G, i] + st[_LAM, i])
+        it += 1
+        if moved == 0:
+            iters = it
+            done = True
+    if not sbl:
+        return k, 1, 0.0
+    # log evidence of y: -1/2 [sum log c + log|M| - log|P| + sum d r^2 + dx^T P dx] + log Jacobian
+    quad = 0.0
+    for i in range(n):
+        quad += st[_D, i] * st[_R, i] * st[_R, i]
+    logc = _sum_log(st, _W, _G, _LAM, n)
+    # log Jacobian: sum over observations of log(slope of their segment), one log per segment
+    for j in range(k):
+        vals[j] = 0.0
+    for i in range(n):
+        if st[_W, i] > 0.0:
+            vals[int(st[_SEG, i])] += 1.0
+    jac = 0.0
+    for j in range(k):
+        if vals[j] > 0.0:
+            jac += vals[j] * math.log(slopes[j]) if slopes[j] > 0.0 else -math.inf
+    ns = k - 1
+    logdet_p = 3.0 * math.log(ridge)
+    if ns > 0:
+        logdet_p += math.log(k) - ns * math.log(tau2)
+        dsum = 0.0
+        dsq = 0.0
+        for j in range(ns):
+            dv = x[j] - 1.0 / k
+            dsum += dv
+            dsq += dv * dv
+        quad += (dsq + dsum * dsum) / tau2
+    for r in range(ns, u):
+        quad += ridge * x[r] * x[r]
+    evidence = -0.5 * (logc + logdet - logdet_p + quad) + jac
+    return k, iters, evidence
+
+
+@njit(**INLINE)
+def _finish(p, k, x, slopes, breaks, st, n, threshold, x_out, outliers, segments_out):
+    """Albedo-normal of pixel p (the normal times the secant slope ``b_K / f(b_K)``), flags."""
+    ns = k - 1
+    fb = 0.0
+    for j in range(k):
+        fb += slopes[j] * (breaks[j + 1] - breaks[j])
+    gain = breaks[k] / fb if fb > 0.0 else 0.0
+    x_out[p, 0] = x[ns] * gain
+    x_out[p, 1] = x[ns + 1] * gain
+    x_out[p, 2] = x[ns + 2] * gain
+    segments_out[p] = k
+    for i in range(n):
+        sl = slopes[int(st[_SEG, i])]
+        sl = sl if sl > SLOPE_FLOOR / k else SLOPE_FLOOR / k
+        # the corruption in the pixel's units: e = Gamma S t = gamma d r, over the slope
+        e = st[_G, i] * st[_D, i] * st[_R, i] / sl
+        outliers[p, i] = st[_W, i] > 0.0 and abs(e) > threshold
+
+
+@njit(**INLINE)
+def _sbl_evidence(st, tab, n, ridge, x0, x1, x2):
+    """Log evidence of SBL's final state (``_kernels`` layout): the PL model with one segment."""
+    xx, yy, zz, xy, xz, yz, _, _, _ = _weighted_sums(st, tab, n)
+    xx += ridge
+    yy += ridge
+    zz += ridge
+    det = (xx * (yy * zz - yz * yz) + xy * (xz * yz - xy * zz) + xz * (xy * yz - xz * yy))
+    if not det > 0.0:
+        return -math.inf
+    quad = ridge * (x0 * x0 + x1 * x1 + x2 * x2)
+    for i in range(n):
+        r = st[_kernels._Y, i] - (x0 * tab[6, i] + x1 * tab[7, i] + x2 * tab[8, i])
+        quad += st[_kernels._V, i] * r * r
+    logc = _sum_log(st, _kernels._W, _kernels._G, _kernels._LAM, n)
+    return -0.5 * (logc + math.log(det) - 3.0 * math.log(ridge) + quad)
+
+
+@njit(**INLINE)
+def _light_table(lights, tab):
+    """``tab`` (9, n): ``a_i a_i^T`` (rows 0-5, as ``outer6``) and ``a_i`` (6-8) of (n, 3)."""
+    for i in range(lights.shape[0]):
+        a0, a1, a2 = lights[i, 0], lights[i, 1], lights[i, 2]
+        tab[0, i] = a0 * a0
+        tab[1, i] = a1 * a1
+        tab[2, i] = a2 * a2
+        tab[3, i] = a0 * a1
+        tab[4, i] = a0 * a2
+        tab[5, i] = a1 * a2
+        tab[6, i] = a0
+        tab[7, i] = a1
+        tab[8, i] = a2
+
+
+@njit(nogil=True, cache=True, **VECTOR)
+def _pl_kernel(y, w, lights, per_pixel, lam, lam_pl, k_max, choose, sbl, ridge, learn_tau,
+               max_iter,
+               sbl_max_iter, tol, floor, start, threshold, x_out, outliers, iters, segments_out,
+               evidence_out, want_residuals, resid_out):
+    m, n = y.shape
+    umax = k_max + 2
+    st = np.zeros((STATE_ROWS, n))
+    tab = np.zeros((umax + umax * (umax + 1) // 2, n))
+    mat = np.zeros((umax, umax))
+    inv = np.zeros((umax, umax))
+    low = np.zeros((umax, umax))
+    prior = np.zeros((umax, umax))
+    x = np.zeros(umax)
+    rhs = np.zeros(umax)
+    prior_rhs = np.zeros(umax)
+    breaks = np.zeros(k_max + 1)
+    vals = np.zeros(n)
+    slopes = np.zeros(k_max)
+    sbl_st = np.zeros((_kernels.STATE_ROWS, n))
+    sbl_tab = np.zeros((9, n))
+    if choose and not per_pixel:
+        _light_table(lights[0], sbl_tab)
+    for p in range(m):
+        lp = lights[p] if per_pixel else lights[0]
+        lam_row = lam[p]
+        if choose:
+            # the Lambertian model (K = 1: SBL, its own kernel) first; kept unless K segments
+            # have more evidence
+            if per_pixel:
+                _light_table(lp, sbl_tab)
+            for i in range(n):
+                sbl_st[_kernels._Y, i] = y[p, i]
+                sbl_st[_kernels._W, i] = w[p, i]
+                sbl_st[_kernels._LAM, i] = lam_row[i]
+            _sbl_pixel(sbl_st, sbl_tab, n, ridge, sbl_max_iter, tol, floor, start, threshold,
+                       x_out, outliers, iters, p)
+            segments_out[p] = 1
+            evidence_out[p] = _sbl_evidence(sbl_st, sbl_tab, n, ridge, x_out[p, 0], x_out[p, 1],
+                                            x_out[p, 2])
+            if k_max == 1:
+                continue
+        k, it, ev = _pl_pixel(y, w, lp, p, k_max, lam_pl[p], ridge, learn_tau, max_iter, tol,
+                              floor, start, sbl, st, tab, mat, inv, low, x, rhs, prior,
+                              prior_rhs, breaks, vals, slopes)
+        if choose and not ev > evidence_out[p]:
+            continue
+        evidence_out[p] = ev
+        _finish(p, k, x, slopes, breaks, st, n, threshold, x_out, outliers, segments_out)
+        iters[p] = it  # the iterations of the model kept
+        if want_residuals:
+            for i in range(n):
+                sl = slopes[int(st[_SEG, i])]
+                sl = sl if sl > SLOPE_FLOOR / k else SLOPE_FLOOR / k
+                resid_out[p, i] = -st[_R, i] / sl * st[_W, i]
+
+
+@dataclass
+class PLTileResult(TileResult):
+    """:class:`._kernels.TileResult` plus the segments each pixel used and its log evidence."""
+
+    segments: np.ndarray | None = None  # (m,) int: 1 = the Lambertian model
+    evidence: np.ndarray | None = None  # (m,) float
+    residuals: np.ndarray | None = None  # (m, n): (f(y) - n.l) / slope, with ``residuals``
+
+
+def pl_tile(y, w, lights, *, segments: int, lam, sigma_x2: float = 1e6, max_iter: int = 100,
+            tol: float = 1e-4, gamma_floor: float = 1e-10, gamma_start: float = 1e3,
+            outlier_threshold: float = np.inf, learn_tau: bool = True, sbl: bool = True,
+            choose: bool = False, sbl_max_iter: int = 100, lam_pl=None,
+            residuals: bool = False) -> PLTileResult:
+    """Piecewise-linear model of ``segments`` segments on one tile (module docstring).
+
+    Parameters
+    ----------
+    y, w : ndarray of shape (m, n)
+        Scaled observations and their usable mask (1/0).
+    lights : ndarray of shape (n, 3) or (m, n, 3)
+        Light vectors: the same for every pixel, or each pixel's own (near lights).
+    segments : int
+        ``K`` (1 to ``MAX_SEGMENTS``); a pixel with ``u`` usable observations uses at most
+        ``u // MIN_PER_SEGMENT`` (at least 1).
+    lam : float or ndarray of shape (m, 1) or (m, n)
+        Each observation's noise variance in the pixel's relative units.
+    residuals : bool
+        Also return each observation's residual in the pixel's units, ``(f(y_i) - n.l_i) /
+        s_k(i)`` (0 for dropped ones; the noise estimate of the PL models).
+    sbl : bool
+        False: PL-LS (one least-squares solve of the same design, no sparse errors).
+    lam_pl : float or ndarray, optional
+        The noise variance of the ``segments`` model when it differs from ``lam`` (``choose``:
+        ``lam`` is then the one-segment model's).
+    choose : bool
+        Solve each pixel with ``K = 1`` (SBL, at most ``sbl_max_iter`` iterations) too and keep
+        the model with the larger evidence.
+
+    sigma_x2, max_iter, tol, gamma_floor, gamma_start, outlier_threshold : float, int, ...
+        SBL's (:func:`._kernels.sbl_tile`); ``gamma_start`` and ``tol`` are in the units of ``y``
+        (divided by ``K`` in ``f``'s units); ``outlier_threshold`` applies to the corruption in
+        ``y``'s units (the equation's error over its segment's slope).
+    learn_tau : bool
+        Learn the slopes' prior variance per pixel (else the authors' 1).
+    sbl_max_iter : int
+        With ``choose``: the one-segment model's iterations.
+    """
+    y = np.ascontiguousarray(y, dtype=np.float64)
+    w = np.ascontiguousarray(w, dtype=np.float64)
+    m, n = y.shape
+    lights = np.asarray(lights, dtype=np.float64)
+    per_pixel = lights.ndim == 3
+    lights = np.ascontiguousarray(lights if per_pixel else lights[None])
+    lam_obs = np.ascontiguousarray(np.broadcast_to(np.asarray(lam, dtype=np.float64), (m, n)))
+    lam_pl = lam_obs if lam_pl is None else np.ascontiguousarray(
+        np.broadcast_to(np.asarray(lam_pl, dtype=np.float64), (m, n)))
+    x = np.zeros((m, 3))
+    outliers = np.zeros((m, n), np.bool_)
+    iters = np.zeros(m, np.int64)
+    segs = np.zeros(m, np.int64)
+    evidence = np.full(m, -np.inf)
+    resid = np.zeros((m, n) if residuals else (1, 1))
+    if m:
+        _pl_kernel(y, w, lights, per_pixel, lam_obs, lam_pl, int(segments), bool(choose), bool(sbl),
+                   1.0 / float(sigma_x2), bool(learn_tau), int(max_iter), int(sbl_max_iter),
+                   float(tol),
+                   float(gamma_floor), float(gamma_start), float(outlier_threshold), x, outliers,
+                   iters, segs, evidence, bool(residuals), resid)
+    return PLTileResult(x, outliers, iters, segs, evidence, resid if residuals else None)
