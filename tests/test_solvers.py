@@ -10,6 +10,7 @@ from helpers.tolerances import (
     assert_within,
     least_squares,
     light_conditioning,
+    PL_ALBEDO,
     solver_bounds,
 )
 
@@ -82,9 +83,9 @@ def assert_equals_oracle(sol, y, lights, valid, method):
     # where the iteration counts differ: helpers/tolerances.py, solver_bounds
     bound, margin = solver_bounds(method, sol.params, y, lights, valid, albedo, same)
     assert_within(sol.normals, normals, bound)
-    # |d|x|| <= |dx|; the PL models' albedo also divides by the secant slope, solved alike
-    share = 1.0 if method in ("plls", "plsbl", "auto") else 0.5
-    assert_within(sol.albedo, albedo, share * bound * albedo, "albedo")
+    pl = method in ("plls", "plsbl", "auto")
+    # |d|x|| <= |dx|; the PL models' albedo also divides by the secant slope (PL_ALBEDO)
+    assert_within(sol.albedo, albedo, (PL_ALBEDO if pl else 0.5 * bound) * albedo, "albedo")
     # The same stopping rule: counts differ only where a pixel's deciding step falls within
     # the paths' rounding of tol (those pixels have the stopping bound above).
     assert np.mean(same) > 0.99
