@@ -365,7 +365,7 @@ def test_batch_takes_the_solver_options_of_reconstruct(three, cluster, tmp_path)
 
 
 def test_a_result_made_with_other_options_is_kept_and_named(three, cluster, tmp_path):
-    # Issue 21: `--method ls` into a root of SBL results used to report `skipped`, silently.
+    # Issue 21: `--method ls` into a root of default results used to report `skipped`, silently.
     root = tmp_path / "results"
     address = ["--scheduler", cluster.scheduler_address]
     first = CliRunner().invoke(app, ["batch", str(three[0]), "--out-root", str(root), *address])
@@ -376,10 +376,10 @@ def test_a_result_made_with_other_options_is_kept_and_named(three, cluster, tmp_
     )
     assert again.exit_code == 0, again.output
     lines = again.output.strip().splitlines()
-    assert lines[1].endswith("kept: made with --method sbl (asked ls)"), again.output
+    assert lines[1].endswith("kept: made with --method auto (asked ls)"), again.output
     assert lines[-1] == (
         f"warning: {three[0]}: kept the result in {root / 'sphere0'}, made with other options: "
-        "--method sbl (asked ls); --overwrite replaces it (or choose another --out-root)"
+        "--method auto (asked ls); --overwrite replaces it (or choose another --out-root)"
     )
     assert (root / "sphere0" / "metrics.json").read_text() == sbl
     same = CliRunner().invoke(app, ["batch", str(three[0]), "--out-root", str(root), *address])
@@ -403,7 +403,9 @@ def test_option_differences_compare_what_metrics_json_records():
         "solver_options": {"lambda": None, "sigma-x2": None, "max-iter": 7, "tol": None},
         "refinement": {"iterations": 2}, "depth": {"method": "poisson"},
     }  # fmt: skip
-    same = ReconstructOptions(max_iter=7, refine_lights=2, threads=3, memory_budget="2GB")
+    same = ReconstructOptions(
+        method="sbl", max_iter=7, refine_lights=2, threads=3, memory_budget="2GB"
+    )
     assert option_differences(stored, same) == []
     assert option_differences(stored, same.replace(depth="poisson", lights="near")) == []
     other = ReconstructOptions(
@@ -422,6 +424,6 @@ def test_option_differences_compare_what_metrics_json_records():
     ]
     assert option_differences({"method": "sbl"}, ReconstructOptions(method="sbl")) == []
     refined = {"method": "sbl", "fixed_intensities": True, "refinement": {"iterations": 2}}
-    assert option_differences(refined, ReconstructOptions(refine_lights=2)) == [
+    assert option_differences(refined, ReconstructOptions(method="sbl", refine_lights=2)) == [
         "--fixed-intensities on (asked off)"
     ]
