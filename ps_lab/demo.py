@@ -143,7 +143,7 @@ def _near_variant(rig: Path, run: Path) -> None:
         f"max {np.nanmax(error):.2f} % of the dome radius ({len(positions)} lights)"
     )
     print(
-        f"near-light SBL normal error:          mean {near_error['mean']:.3f} deg, "
+        f"near-light normal error ({metrics['method']}):   mean {near_error['mean']:.3f} deg, "
         f"median {near_error['median']:.3f} deg ({metrics['near']['rounds']} rounds); "
         f"directional model on the same frames: mean {directional_error['mean']:.2f} deg"
     )
