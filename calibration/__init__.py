@@ -22,8 +22,8 @@ from ps_lab.calibration._geometry import (
 )
 from ps_lab.calibration._highlight import Highlight, locate_highlight
 from ps_lab.calibration._intensity import fit_light_intensities, led_intensities_at_origin
-from ps_lab.calibration._probes import combine_probes
 from ps_lab.calibration._positions import Triangulation, reflected_rays, triangulate_lights
+from ps_lab.calibration._probes import combine_probes
 from ps_lab.calibration._report import (
     OUTPUT_FILES,
     calibration_picture,

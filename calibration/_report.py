@@ -15,8 +15,8 @@ import numpy as np
 
 from ps_lab.calibration._calibrate import Calibration
 from ps_lab.errors import CalibrationError
+from ps_lab.io.codecs import imwrite
 from ps_lab.io.files import staged_files
-from ps_lab.io.images import imwrite
 from ps_lab.io.lights import write_dome, write_lp
 
 CALIBRATION_FORMAT = "ps-lab-calibration"

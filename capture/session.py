@@ -45,8 +45,8 @@ from ps_lab.capture.connect import OpenRig, build_simulation, nominal_directions
 from ps_lab.capture.plan import CapturePlan, PlannedFrame, make_plan
 from ps_lab.capture.rig import Rig, comparable_snapshot, snapshot_differences
 from ps_lab.errors import CameraError, DatasetError, PsLabError, RigError
+from ps_lab.io.codecs import imread
 from ps_lab.io.files import PARTIAL_PREFIX, json_safe, publish_file, sha256, write_bytes_atomic
-from ps_lab.io.images import imread
 from ps_lab.io.raw import is_raw_file, load_raw
 from ps_lab.io.run import (
     FRAMES_DIR,

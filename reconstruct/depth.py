@@ -30,8 +30,9 @@ import numpy as np
 import tifffile
 
 from ps_lab.errors import OutputError
+from ps_lab.io.codecs import imwrite
 from ps_lab.io.files import json_safe, staged_files
-from ps_lab.io.images import imwrite, read_npy_header
+from ps_lab.io.images import read_npy_header
 from ps_lab.io.mesh import depth_mesh, write_ply
 from ps_lab.io.normal_maps import write_normal16, write_normals_exr
 from ps_lab.io.result import RESULT_FORMAT

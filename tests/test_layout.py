@@ -92,3 +92,16 @@ def test_sub_packages_live_in_the_top_level_folders() -> None:
         # files are the top-level folder's
         assert Path(package.__file__).resolve().parent == (ROOT / folder).resolve()
         assert set(package.__all__) <= set(dir(package))
+
+
+def test_no_module_is_over_700_lines() -> None:
+    """The house bound: a module a reader can hold (split along a responsibility, not in half)."""
+    folders = ("ps_lab", "capture", "calibration", "reconstruct")
+    modules = {p.resolve() for folder in folders for p in (ROOT / folder).rglob("*.py")}
+    assert len(modules) > 50
+    long = {
+        str(p.relative_to(ROOT)): n
+        for p in sorted(modules)
+        if (n := len(p.read_text(encoding="utf-8").splitlines())) > 700
+    }
+    assert long == {}

@@ -26,12 +26,7 @@ from __future__ import annotations
 import os
 import re
 import struct
-import sys
-import tempfile
-import threading
 import zlib
-from collections.abc import Iterator
-from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -41,6 +36,7 @@ import OpenEXR
 import tifffile
 
 from ps_lab.errors import DatasetError, PsLabError
+from ps_lab.io.codecs import decode_image, decoder_said, imread
 from ps_lab.io.encoding import ENCODINGS, JPEG_SUFFIXES, image_encoding
 from ps_lab.io.raw import load_raw
 
@@ -429,7 +425,7 @@ def _read_png(path: Path) -> np.ndarray:
         raise DatasetError(f"{path}: {exc}") from None
     array, messages = decode_image(raw)
     if array is None:
-        raise DatasetError(f"{path}: corrupt or truncated PNG file{_decoder_said(messages)}")
+        raise DatasetError(f"{path}: corrupt or truncated PNG file{decoder_said(messages)}")
     return _bgr_to_rgb(array)
 
 
@@ -476,80 +472,6 @@ def _jpeg_size(path: Path) -> tuple[int, int] | None:
     with path.open("rb") as stream:
         head = stream.read(1 << 18)  # metadata (EXIF thumbnails, ICC) precedes the frame header
     return _jpeg_size_of(head)
-
-
-# --- OpenCV without its C libraries' stderr, and without its own path handling -----------------
-
-_NATIVE_STDERR = threading.Lock()
-
-
-@contextmanager
-def native_stderr_captured() -> Iterator[list[str]]:
-    """Capture what C libraries print on the process's stderr (fd 2) in the block.
-
-    libpng prints its own ``libpng error: ...`` line on a damaged stream before OpenCV returns
-    None; the lines are yielded (filled in at the end of the block) for the caller's one error
-    line instead. One block at a time per process (a lock).
-    """
-    lines: list[str] = []
-    with _NATIVE_STDERR:
-        try:
-            sys.stderr.flush()
-        except (OSError, ValueError, AttributeError):
-            pass
-        try:
-            saved = os.dup(2)
-        except OSError:  # no fd 2 at all
-            yield lines
-            return
-        with tempfile.TemporaryFile() as sink:
-            os.dup2(sink.fileno(), 2)
-            try:
-                yield lines
-            finally:
-                os.dup2(saved, 2)
-                os.close(saved)
-                sink.seek(0)
-                text = sink.read(4096).decode("utf-8", "replace")
-                lines.extend(line.strip() for line in text.splitlines() if line.strip())
-
-
-def _decoder_said(messages: list[str]) -> str:
-    said = [re.sub(r"^lib(\w+) error: ", r"lib\1: ", m) for m in messages]
-    return f" ({'; '.join(said)})" if said else ""
-
-
-def decode_image(
-    raw: bytes | np.ndarray, flags: int = cv2.IMREAD_UNCHANGED
-) -> tuple[np.ndarray | None, list[str]]:
-    """``cv2.imdecode`` with the decoder's own stderr lines captured: ``(array or None, lines)``."""
-    with native_stderr_captured() as messages:
-        array = cv2.imdecode(np.frombuffer(raw, np.uint8), flags)
-    return array, messages
-
-
-def imread(path: Path, flags: int = cv2.IMREAD_UNCHANGED) -> np.ndarray | None:
-    """``cv2.imread`` for any path: read by Python, decoded from memory (None when not an image).
-
-    OpenCV's own file functions take the path as UTF-8 text; a name with a byte that is not
-    UTF-8 crashes them (SIGSEGV). Raises ``OSError`` when the file cannot be read.
-    """
-    return decode_image(Path(path).read_bytes(), flags)[0]
-
-
-def imwrite(path: Path, picture: np.ndarray) -> bool:
-    """``cv2.imwrite`` for any path: encoded in memory (format from the suffix), written by Python.
-
-    Returns False when OpenCV cannot encode ``picture`` in that format; raises ``OSError`` when
-    the file cannot be written (a full disk among them).
-    """
-    path = Path(path)
-    ok, encoded = cv2.imencode(path.suffix or ".png", np.asarray(picture))
-    if not ok:
-        return False
-    with open(path, "wb") as handle:
-        handle.write(encoded.tobytes())
-    return True
 
 
 def _read_tiff(path: Path) -> np.ndarray:

@@ -16,8 +16,8 @@ import numpy as np
 import OpenEXR
 
 from ps_lab.errors import OutputError
+from ps_lab.io.codecs import imwrite
 from ps_lab.io.files import utf8_path
-from ps_lab.io.images import imwrite
 
 __all__ = [
     "CONVENTIONS",

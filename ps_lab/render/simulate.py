@@ -11,8 +11,8 @@ import numpy as np
 import tifffile
 
 from ps_lab.errors import DatasetError
+from ps_lab.io.codecs import imwrite
 from ps_lab.io.files import staged_folder
-from ps_lab.io.images import imwrite
 from ps_lab.render.lights import random_light_directions
 from ps_lab.render.shading import render
 from ps_lab.render.surfaces import relief_surface, sphere_surface
