@@ -320,20 +320,10 @@ def _open_camera(
             light_state = state_file_reader(Path(cfg.light_state_file))
         simulation = build_simulation(rig)
         opened.simulation = simulation
-        camera: Any = SimulatedCamera(
-            simulation.scene,
-            simulation.light_directions,
-            simulation.light_intensities,
+        camera: Any = _simulated_camera(
+            rig,
+            simulation,
             light_state,
-            exposure_s=cfg.exposure_s,
-            black_level=cfg.black_level,
-            white_level=cfg.white_level,
-            gain=cfg.gain,
-            read_noise_dn=cfg.read_noise_dn,
-            shot_noise=cfg.shot_noise,
-            dn_per_electron=cfg.dn_per_electron,
-            seed=cfg.seed,
-            point_lights=simulation.point_lights,
             timeout_s=cfg.timeout_s,
             faults=[{"kind": f.kind, "at": f.at} for f in rig.faults.camera],
         )
@@ -383,6 +373,27 @@ def _camera_state_file(rig: Rig, opened: OpenRig) -> Path | None:
     return opened._state_file  # type: ignore[attr-defined]
 
 
+def _simulated_camera(rig: Rig, simulation: Any, light_state: Any, **extra: Any) -> Any:
+    """The rig's scene seen by its [camera] sensor (black and white level, gain, noise, seed)."""
+    cfg = rig.camera
+    return SimulatedCamera(
+        simulation.scene,
+        simulation.light_directions,
+        simulation.light_intensities,
+        light_state,
+        exposure_s=cfg.exposure_s,
+        black_level=cfg.black_level,
+        white_level=cfg.white_level,
+        gain=cfg.gain,
+        read_noise_dn=cfg.read_noise_dn,
+        shot_noise=cfg.shot_noise,
+        dn_per_electron=cfg.dn_per_electron,
+        seed=cfg.seed,
+        point_lights=simulation.point_lights,
+        **extra,
+    )
+
+
 def serve_camera(
     rig: Rig,
     *,
@@ -414,22 +425,7 @@ def serve_camera(
             return fixed
 
     cfg = rig.camera
-    simulation = build_simulation(rig)
-    camera = SimulatedCamera(
-        simulation.scene,
-        simulation.light_directions,
-        simulation.light_intensities,
-        light_state,
-        exposure_s=cfg.exposure_s,
-        black_level=cfg.black_level,
-        white_level=cfg.white_level,
-        gain=cfg.gain,
-        read_noise_dn=cfg.read_noise_dn,
-        shot_noise=cfg.shot_noise,
-        dn_per_electron=cfg.dn_per_electron,
-        seed=cfg.seed,
-        point_lights=simulation.point_lights,
-    )
+    camera = _simulated_camera(rig, build_simulation(rig), light_state)
     server = PtpIpCamera(
         dng_shooter(camera),
         port=port,

@@ -37,6 +37,7 @@ sys.path.insert(0, str(Path(__file__).parent))
 from test_bad_input import (  # noqa: E402 - the runner of the first sweep
     IS_ROOT,
     PS_LAB,
+    SMALL_RIG,
     Result,
     assert_one_error_line,
     finish,
@@ -99,41 +100,6 @@ def made(tmp_path_factory) -> dict[str, Path]:
     assert captured.code == 0, captured.stderr
     return {"png": ds, "result": result, "run": root / "run", "near": root / "near"}
 
-
-SMALL_RIG = """
-name = "small"
-[controller]
-driver = "simulated"
-lights = 6
-watchdog_ms = 5000
-timeout_s = 0.3
-[camera]
-driver = "simulated"
-exposure_s = 0.05
-timeout_s = 2.0
-retries = 1
-seed = 2012
-[calibration.chrome_sphere]
-center = [40.0, 40.0]
-radius = 32.0
-[scene]
-width = 160
-height = 120
-[scene.lights]
-seed = 7
-max_zenith_deg = 50.0
-[[scene.objects]]
-kind = "chrome"
-center = [40.0, 40.0]
-radius = 32.0
-albedo = [0.9, 0.9, 0.9]
-[[scene.objects]]
-kind = "relief"
-center = [108.0, 62.0]
-radius = 50.0
-albedo = [0.75, 0.65, 0.55]
-seed = 3
-"""
 
 # A near rig whose file lists two chrome spheres, the second of which is not on the table.
 NEAR_RIG_ONE_SPHERE_MISSING = """
