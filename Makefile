@@ -34,8 +34,8 @@ lint-imports: $(STAMP)
 # (NUMBA_CPU_NAME=generic: no SIMD beyond SSE2, other vector widths than the host's), since
 # fastmath splits sums by vector width. Numba's cache keys its entries by CPU name and
 # features, so the second run compiles its own and leaves the host's alone.
-NUMERICAL_TESTS := tests/test_solvers.py tests/test_near.py tests/test_refine.py \
-	tests/test_streaming.py tests/test_distributed.py
+NUMERICAL_TESTS := tests/test_solvers.py tests/test_pl_solvers.py tests/test_near.py \
+	tests/test_refine.py tests/test_streaming.py tests/test_distributed.py
 
 # Import contracts first, then the tests, then the numerical ones for the second CPU target.
 test: lint-imports
