@@ -85,6 +85,22 @@ def light_table(lights: np.ndarray) -> np.ndarray:
 
 
 @njit(**INLINE)
+def _light_table(lights, tab):
+    """``tab`` (9, n): ``a_i a_i^T`` (rows 0-5, as ``outer6``) and ``a_i`` (6-8) of (n, 3)."""
+    for i in range(lights.shape[0]):
+        a0, a1, a2 = lights[i, 0], lights[i, 1], lights[i, 2]
+        tab[0, i] = a0 * a0
+        tab[1, i] = a1 * a1
+        tab[2, i] = a2 * a2
+        tab[3, i] = a0 * a1
+        tab[4, i] = a0 * a2
+        tab[5, i] = a1 * a2
+        tab[6, i] = a0
+        tab[7, i] = a1
+        tab[8, i] = a2
+
+
+@njit(**INLINE)
 def _weighted_sums(st, tab, n):
     """Normal equations ``sum_i v_i a_i a_i^T`` (6) and ``sum_i v_i y_i a_i`` (3), v = st[_V]."""
     xx = yy = zz = xy = xz = yz = 0.0

@@ -27,7 +27,11 @@ from ._kernels import (
 
 @njit(**INLINE)
 def _pixel_table(lights, p, tab):
-    """``tab`` (9, n): pixel p's ``a_i a_i^T`` (rows 0-5, as ``outer6``) and ``a_i`` (6-8)."""
+    """``tab`` (9, n): pixel p's ``a_i a_i^T`` (rows 0-5, as ``outer6``) and ``a_i`` (6-8).
+
+    :func:`._kernels._light_table` on ``lights[p]``, written out: taking the view per pixel
+    measured ~20 % slower near-light SBL (40 lights, 10^5 px, one thread).
+    """
     for i in range(lights.shape[1]):
         a0, a1, a2 = lights[p, i, 0], lights[p, i, 1], lights[p, i, 2]
         tab[0, i] = a0 * a0

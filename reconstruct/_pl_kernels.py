@@ -41,7 +41,7 @@ import numpy as np
 from numba import njit
 
 from . import _kernels
-from ._kernels import INLINE, VECTOR, TileResult, _sbl_pixel, _weighted_sums
+from ._kernels import INLINE, VECTOR, TileResult, _light_table, _sbl_pixel, _weighted_sums
 from ._pl_algebra import _cholesky_inverse, _select, _sum_log
 
 # Rows of the per-pixel state: usable (1/0), observation noise in y units, in f units, gamma,
@@ -469,22 +469,6 @@ def _sbl_evidence(st, tab, n, ridge, x0, x1, x2):
         quad += st[_kernels._V, i] * r * r
     logc = _sum_log(st, _kernels._W, _kernels._G, _kernels._LAM, n)
     return -0.5 * (logc + math.log(det) - 3.0 * math.log(ridge) + quad)
-
-
-@njit(**INLINE)
-def _light_table(lights, tab):
-    """``tab`` (9, n): ``a_i a_i^T`` (rows 0-5, as ``outer6``) and ``a_i`` (6-8) of (n, 3)."""
-    for i in range(lights.shape[0]):
-        a0, a1, a2 = lights[i, 0], lights[i, 1], lights[i, 2]
-        tab[0, i] = a0 * a0
-        tab[1, i] = a1 * a1
-        tab[2, i] = a2 * a2
-        tab[3, i] = a0 * a1
-        tab[4, i] = a0 * a2
-        tab[5, i] = a1 * a2
-        tab[6, i] = a0
-        tab[7, i] = a1
-        tab[8, i] = a2
 
 
 @njit(nogil=True, cache=True, **VECTOR)
