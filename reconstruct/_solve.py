@@ -203,7 +203,7 @@ def estimate_noise(observations, light_directions, valid=None, *,
         A standard deviation relative to a pixel's typical observation: the residuals ``r``
         of the per-pixel L1 fit on observations divided by the pixel's robust scale, kept
         where the observation and the fit both exceed ``SHADOW_FRACTION`` (shadows are not
-        noise) and ``r`` is not an exact interpolation; then ``quantile(|r|, 0.25) / 0.31864``
+        noise) and ``r`` is not one of the pixel's 3 smallest (the fit's interpolations); then ``quantile(|r|, 0.25) / 0.31864``
         (the Gaussian ratio), which ignores up to 75 % corrupted residuals.
     """
     obs, lights, usable = _check_inputs(observations, light_directions, valid)
