@@ -36,7 +36,9 @@ def test_refinement_reduces_the_normal_error(perturbed):
     err = [h["normal_error_deg"] for h in res.history]
     assert [h["iteration"] for h in res.history] == [0, 1, 2, 3]
     assert err[1] < 0.7 * err[0]
-    assert err[3] <= 0.6 * err[0]
+    # 1.89 -> 1.24 deg: the wrong lights' start is itself better since the noise estimate drops
+    # the L1 fit's interpolations (2.46 -> 1.27 before; the refined errors agree within 0.03)
+    assert err[3] <= 0.7 * err[0]
     assert err[3] <= err[2] + 0.05
     assert res.history[3]["light_error_deg"] < 0.5 * res.history[0]["light_error_deg"]
     assert res.history[1]["mean_direction_change_deg"] > res.history[3]["mean_direction_change_deg"]
