@@ -208,12 +208,7 @@ class Gphoto2Camera(Camera):
         self._camera: Any = None
         self._stale: tuple[str, str] | None = None
         self.model: str | None = None
-        self._open()
-        try:
-            self._configure()
-        except BaseException:
-            self._do_close()
-            raise
+        self._connect()
 
     # -- connection -----------------------------------------------------------------------
     def _gp_error(self, exc: Exception, doing: str) -> CameraError:
@@ -359,15 +354,19 @@ class Gphoto2Camera(Camera):
         except getattr(self._gp, "GPhoto2Error", Exception) as exc:
             log.debug("gphoto2: could not delete %s/%s: %s", folder, name, exc)
 
-    def _reconnect(self) -> None:
-        """Open the camera again after a capture lost it (e.g. a dropped PTP/IP connection)."""
-        log.info("gphoto2: connecting to %s again", self.port)
+    def _connect(self) -> None:
+        """Open the camera and apply the settings; closed again if either fails."""
         self._open()
         try:
             self._configure()
         except BaseException:
             self._do_close()
             raise
+
+    def _reconnect(self) -> None:
+        """Open the camera again after a capture lost it (e.g. a dropped PTP/IP connection)."""
+        log.info("gphoto2: connecting to %s again", self.port)
+        self._connect()
         if self._stale is not None:  # the file whose download was cut off
             self._delete(*self._stale)
             self._stale = None
