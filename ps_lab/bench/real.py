@@ -87,7 +87,8 @@ def load_object(path: Path, every: int = 1, lights: np.ndarray | None = None) ->
     # the reconstruction's default shadow rule, on the same kind of evenly spaced sample
     sample = np.unique(np.linspace(0, obs.shape[1] - 1, min(obs.shape[1], NOISE_SAMPLE_PIXELS))
                        .round().astype(np.int64))
-    black = black_threshold(obs[:, sample], valid[:, sample], factors)
+    black = black_threshold(obs[:, sample], valid[:, sample], factors,
+                            light_directions=data.light_directions[pick])
     if black is not None:
         valid = valid & (obs > black[:, None])
     gt = np.asarray(data.normal_gt, dtype=np.float64)[mask][::every]

@@ -76,7 +76,8 @@ ShadowThresholdOption = Annotated[
     typer.Option(
         help="Drop observations at or below this value (after intensity division). "
         "Default: 3 sigma of the noise at black, measured on the negative observations "
-        "of dark-subtracted frames (none without them); a negative value keeps all.",
+        "of dark-subtracted frames; without negatives, each light's clipped black level plus "
+        "3 noise floors (0 for a noise-free render); a negative value keeps all.",
         show_default=False,
     ),
 ]
