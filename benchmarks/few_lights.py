@@ -28,11 +28,14 @@ from pathlib import Path
 import numpy as np
 from scipy import ndimage
 
-from ps_lab import render as R
-from ps_lab.bench.real import DEFAULT_FOLDER, find_objects, load_object
-from ps_lab.io.dataset import load_dataset
-from ps_lab.reconstruct import angular_errors_deg, solve
-from ps_lab.reconstruct._shadows import black_threshold
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+from solvers import clipped_capture  # noqa: E402
+
+from ps_lab.bench.real import DEFAULT_FOLDER, find_objects, load_object  # noqa: E402
+from ps_lab.io.dataset import load_dataset  # noqa: E402
+from ps_lab.reconstruct import angular_errors_deg, solve  # noqa: E402
+from ps_lab.reconstruct._shadows import black_threshold  # noqa: E402
 
 OFF_DEG = 20.0
 LIGHTS = 12
@@ -86,22 +89,6 @@ def real_rows(folder: Path, methods, subsets: int):
                   + f" | {diff} |", flush=True)
 
 
-def capture(kind: str, seed: int, *, specular: float, bits: int, read_noise: float,
-            shape=(160, 160), full_well=20000.0, peak=0.8):
-    """A clipped capture without a dark frame: observations (n, P), valid, lights, truth, mask."""
-    rng = np.random.default_rng(seed)
-    lights = R.random_light_directions(LIGHTS, rng)
-    surf = R.sphere_surface(shape) if kind == "sphere" else R.relief_surface(shape, seed=seed)
-    img = R.render(surf, lights, specular=specular, roughness=0.3, rng=rng)
-    img = img / np.percentile(img[:, surf.mask], 99.5) * peak
-    electrons = rng.poisson(np.clip(img, 0, None) * full_well).astype(float)
-    electrons += rng.normal(0.0, read_noise, img.shape)
-    top = 2**bits - 1
-    dn = np.clip(np.round(electrons / full_well * top), 0, top)
-    obs = (dn / top)[:, surf.mask]
-    return obs, (dn < top)[:, surf.mask], lights, surf.normals[surf.mask], surf.mask
-
-
 def stand_in_rows(methods):
     print(f"\nStand-ins, {LIGHTS} lights, clipped at 0 without a dark frame "
           "(wild share / mean error; shadow rule: atom | floor)\n")
@@ -110,8 +97,9 @@ def stand_in_rows(methods):
     for bits, read_noise in ((16, 3.0), (8, 30.0)):
         for kind, specular in (("sphere", 0.0), ("sphere", 0.3), ("relief", 0.0),
                                ("relief", 0.3)):
-            obs, valid, lights, truth, mask = capture(kind, 3, specular=specular, bits=bits,
-                                                      read_noise=read_noise)
+            obs, lights, valid, truth, mask = clipped_capture(
+                kind, LIGHTS, 3, shape=(160, 160), specular=specular, bits=bits,
+                read_noise=read_noise)
             usable = {}
             for rule in ("atom", "floor"):
                 black = black_threshold(obs, valid,

@@ -138,10 +138,11 @@ def cmd_speed(args):
                       f"{oracle_txt:>11} {speed_txt:>9}", flush=True)
 
 
-def real_like(kind, n, seed, *, shape=(96, 96), specular=0.3, full_well=20000.0, read_noise=3.0,
-              peak=0.8):
-    """A 16-bit capture: render, expose so the 99.5th percentile sits at `peak` of full scale,
-    shot noise (Poisson in electrons) + Gaussian read noise, quantise to 16 bits, clip."""
+def clipped_capture(kind, n, seed, *, shape=(96, 96), specular=0.3, full_well=20000.0,
+                    read_noise=3.0, peak=0.8, bits=16):
+    """A capture without a dark frame: render, expose so the 99.5th percentile sits at `peak` of
+    full scale, shot noise (Poisson in electrons) + Gaussian read noise, quantise to `bits`,
+    clip at 0 and full scale. Observations (n, P), lights, unsaturated (n, P), truth, mask."""
     rng = np.random.default_rng(seed)
     lights = R.random_light_directions(n, rng)
     surf = R.sphere_surface(shape) if kind == "sphere" else R.relief_surface(shape, seed=seed)
@@ -149,9 +150,15 @@ def real_like(kind, n, seed, *, shape=(96, 96), specular=0.3, full_well=20000.0,
     img = img / np.percentile(img[:, surf.mask], 99.5) * peak
     electrons = rng.poisson(np.clip(img, 0, None) * full_well).astype(float)
     electrons += rng.normal(0.0, read_noise, electrons.shape)
-    dn = np.clip(np.round(electrons / full_well * 65535), 0, 65535)
-    obs = (dn / 65535.0)[:, surf.mask]
-    return obs, lights, dn[:, surf.mask] < 65535, surf.normals[surf.mask]
+    top = 2**bits - 1
+    dn = np.clip(np.round(electrons / full_well * top), 0, top)
+    obs = (dn / top)[:, surf.mask]
+    return obs, lights, dn[:, surf.mask] < top, surf.normals[surf.mask], surf.mask
+
+
+def real_like(kind, n, seed, **kwargs):
+    """A 16-bit :func:`clipped_capture`: observations, lights, unsaturated, truth."""
+    return clipped_capture(kind, n, seed, **kwargs)[:4]
 
 
 def _lambda_row(names, obs, lights, valid, normals):

@@ -1424,23 +1424,36 @@ def test_signal_during_capture(sig, workspace) -> None:
     ids=lambda s: s.name,
 )
 def test_signal_during_calibrate(sig, workspace) -> None:
-    run_dir = workspace.copy("run")
-    before = snapshot(workspace.root)
-    proc, out, err = start(["calibrate", str(run_dir)], workspace.root, workspace.home)
+    # The small run's frames can all be read between two 5 ms polls; a calibration that ends
+    # (successfully) before the signal is sent is run again on a fresh copy, up to 5 times.
+    for attempt in range(5):
+        run_dir = workspace.copy("run", f"run{attempt}")
+        before = snapshot(workspace.root)
+        proc, out, err = start(["calibrate", str(run_dir)], workspace.root, workspace.home)
 
-    def reading_frames() -> bool:
-        try:
-            return any(
-                str(run_dir) in os.readlink(fd) for fd in Path(f"/proc/{proc.pid}/fd").iterdir()
-            )
-        except OSError:
-            return False
+        def reading_frames(proc=proc, run_dir=run_dir) -> bool:
+            try:
+                return any(
+                    str(run_dir) in os.readlink(fd)
+                    for fd in Path(f"/proc/{proc.pid}/fd").iterdir()
+                )
+            except OSError:
+                return False
 
-    wait_until(reading_frames, proc)
-    proc.send_signal(sig)
-    result = finish(proc, out, err, timeout=60)
-    assert_one_error_line(result, ("interrupted",), code=130)
-    assert snapshot(workspace.root) == before
+        deadline = time.monotonic() + 90
+        while not reading_frames() and _alive(proc.pid):
+            assert time.monotonic() < deadline, "timed out waiting for the command to get going"
+            time.sleep(0.005)
+        if not _alive(proc.pid):
+            done = finish(proc, out, err, timeout=60)
+            assert done.code == 0, done.stderr  # ended before the signal: only by finishing
+            continue
+        proc.send_signal(sig)
+        result = finish(proc, out, err, timeout=60)
+        assert_one_error_line(result, ("interrupted",), code=130)
+        assert snapshot(workspace.root) == before
+        return
+    pytest.fail("calibrate finished before the signal could be sent, 5 times")
 
 
 @contextmanager
