@@ -79,12 +79,8 @@ def black_level(
     if options.shadow_threshold is not None or store.sample_index.size == 0:
         return None
     factors = light_noise_factors(header.light_intensities, options.channel)
-    directions = None if header.light_directions is None else np.asarray(
-        header.light_directions, dtype=np.float64)
-    if directions is not None:
-        directions = directions / np.linalg.norm(directions, axis=1, keepdims=True)
     black = black_threshold(store.sample_observations, store.sample_valid, factors,
-                            light_directions=directions)
+                            light_directions=header.light_directions)
     if black is not None:
         store.sample_valid &= store.sample_observations > black[:, None]
         log.info("shadows: observations within %.3g (mean) of black are dropped", black.mean())

@@ -11,6 +11,7 @@ import json
 from pathlib import Path
 
 import numpy as np
+from helpers.rigs import SMALL_SCENE
 from typer.testing import CliRunner
 
 from ps_lab.cli import app
@@ -30,34 +31,7 @@ driver = "simulated"
 exposure_s = 0.05
 seed = 11
 
-[calibration.chrome_sphere]
-center = [44.0, 44.0]
-radius = 38.0
-
-[scene]
-width = 192
-height = 120
-
-[scene.lights]
-seed = 5
-max_zenith_deg = 50.0
-nominal_error_deg = 2.0
-
-[[scene.objects]]
-kind = "chrome"
-center = [44.0, 44.0]
-radius = 38.0
-albedo = [0.9, 0.9, 0.9]
-
-[[scene.objects]]
-kind = "relief"
-center = [136.0, 60.0]
-radius = 52.0
-albedo = [0.75, 0.65, 0.55]
-specular = 0.25
-roughness = 0.12
-seed = 3
-"""
+""" + SMALL_SCENE
 
 
 def _invoke(args: list[str]) -> None:

@@ -24,6 +24,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from helpers.rigs import SMALL_SCENE
 from typer.testing import CliRunner
 
 from ps_lab.capture import session as capture_session
@@ -52,34 +53,7 @@ timeout_s = {timeout}
 retries = {retries}
 seed = 11
 
-[calibration.chrome_sphere]
-center = [44.0, 44.0]
-radius = 38.0
-
-[scene]
-width = 192
-height = 120
-
-[scene.lights]
-seed = 5
-max_zenith_deg = 50.0
-nominal_error_deg = 2.0
-
-[[scene.objects]]
-kind = "chrome"
-center = [44.0, 44.0]
-radius = 38.0
-albedo = [0.9, 0.9, 0.9]
-
-[[scene.objects]]
-kind = "relief"
-center = [136.0, 60.0]
-radius = 52.0
-albedo = [0.75, 0.65, 0.55]
-specular = 0.25
-roughness = 0.12
-seed = 3
-"""
+""" + SMALL_SCENE
 
 
 def _rig(
