@@ -70,8 +70,9 @@ def calibrate(
     focal_length: Annotated[
         float | None,
         typer.Option(
-            help="Lens focal length in mm, for the perspective correction (default: the "
-            "intrinsics of a camera.json in DATA, whose frames are then read undistorted)."
+            help="Lens focal length in mm, for the perspective correction (default: with two "
+            "or more chrome spheres, the intrinsics of a camera.json in DATA; its frames are "
+            "read undistorted in any case)."
         ),
     ] = None,
     pixel_pitch: Annotated[
@@ -234,8 +235,10 @@ def _calibrate_folder(
     hints = [] if sphere_c is not None or roi_v is not None else rig_chrome
     n, height, width = frames.images.shape[:3]
     principal_point = None
-    if focal_px is None and frames.camera is not None:
-        # camera.json: the frames are undistorted, and its intrinsics set the perspective
+    if focal_px is None and frames.camera is not None and max(len(spheres), len(hints)) > 1:
+        # camera.json with two or more chrome spheres (near lights): the LEDs are triangulated
+        # through the calibrated perspective camera. One sphere (directional lights) keeps the
+        # directional model's distant camera unless --focal-length asks for the correction.
         focal_px = frames.camera.focal_length
         principal_point = (frames.camera.cx, frames.camera.cy)
     circles = [("--sphere", c) for c in spheres] + [("--matte", matte_c)]
