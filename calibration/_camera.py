@@ -11,7 +11,8 @@ Frames are refused, each with its reason, when the board is not found, too few c
 or (after a first calibration) their reprojection RMS is an outlier: above both
 :data:`OUTLIER_FACTOR` times the median frame's and :data:`OUTLIER_FLOOR_PX` (a blurred or moved
 frame, a wrong detection). The worst such frame is dropped and the calibration repeated until
-none is left. The overall RMS is then OpenCV's own on the kept corners.
+none is left. The overall RMS is then OpenCV's own on the kept corners; k3 is held at 0 unless
+fitting it lowers that RMS by more than :data:`K3_GAIN` (:func:`_calibrate`).
 
 :func:`calibrate_camera_files` is the one owner of the flow (read, detect, calibrate, write
 ``camera.json`` and ``camera.png``); the rest are pure functions on arrays.
@@ -244,6 +245,10 @@ class CameraCalibration:
         Detected minus reprojected corner, per frame (empty for refused-before frames).
     rms_all_frames : float or None
         OpenCV's RMS with every detected frame (before outliers were refused).
+    rms_opencv : float or None
+        OpenCV's own RMS (all 5 coefficients free) on the kept frames' corners.
+    k3_fitted : bool
+        Whether k3 was fitted (else held at 0: :func:`_calibrate`).
     """
 
     camera: CameraModel
@@ -251,19 +256,34 @@ class CameraCalibration:
     refused: dict[int, str]
     residuals: list[np.ndarray] = field(default_factory=list)
     rms_all_frames: float | None = None
+    rms_opencv: float | None = None
+    k3_fitted: bool = True
+
+
+#: Free k3 only where it lowers the reprojection RMS by more than this share (module docstring).
+K3_GAIN = 0.02
 
 
 def _calibrate(objects, images, size):
-    flags = 0
-    rms, k, d, rvecs, tvecs = cv2.calibrateCamera(
-        objects, images, size, None, None, flags=flags,
-        criteria=(cv2.TERM_CRITERIA_COUNT + cv2.TERM_CRITERIA_EPS, 200, 1e-12),
-    )
+    """OpenCV's calibration with k3 held at 0 unless freeing it pays.
+
+    The sixth-order term k3 is weakly determined by boards that do not reach the frame's
+    corners and then extrapolates wildly there (ROS's camera_calibration holds it at 0 by
+    default for the same reason). It is fitted both ways; the free fit is kept only when its
+    RMS is more than :data:`K3_GAIN` below the held one, so the RMS stays within that share of
+    OpenCV's own 5-coefficient fit on the same corners (returned as ``rms_free``).
+    """
+    criteria = (cv2.TERM_CRITERIA_COUNT + cv2.TERM_CRITERIA_EPS, 200, 1e-12)
+    free = cv2.calibrateCamera(objects, images, size, None, None, flags=0, criteria=criteria)
+    held = cv2.calibrateCamera(objects, images, size, None, None, flags=cv2.CALIB_FIX_K3,
+                               criteria=criteria)
+    use_free = held[0] > (1.0 + K3_GAIN) * free[0]
+    rms, k, d, rvecs, tvecs = free if use_free else held
     residuals = []
     for obj, img, r, t in zip(objects, images, rvecs, tvecs, strict=True):
         projected, _ = cv2.projectPoints(obj, r, t, k, d)
         residuals.append(img.reshape(-1, 2).astype(np.float64) - projected.reshape(-1, 2))
-    return float(rms), k, d, residuals
+    return float(rms), k, d, residuals, float(free[0]), use_free
 
 
 def calibrate_from_corners(
@@ -302,7 +322,7 @@ def calibrate_from_corners(
                 f"{len(kept)} usable board frame(s) of {n}, at least {MIN_FRAMES} needed"
                 + (f" ({why})" if why else "")
             )
-        rms, k_matrix, dist, res = _calibrate(
+        rms, k_matrix, dist, res, rms_free, k3_free = _calibrate(
             [detections[k].object_points for k in kept],
             [detections[k].image_points for k in kept], image_size,
         )
@@ -321,7 +341,7 @@ def calibrate_from_corners(
             f"{median:.3f} px, limit {limit:.3f} px)"
         )
     camera = camera_from_arrays(k_matrix, dist, image_size, rms)
-    return CameraCalibration(camera, frame_rms, refused, residuals, rms_all)
+    return CameraCalibration(camera, frame_rms, refused, residuals, rms_all, rms_free, k3_free)
 
 
 def _read_frame(path: Path) -> tuple[np.ndarray, np.ndarray]:
@@ -408,6 +428,9 @@ def calibrate_camera_files(
             for k, (path, d) in enumerate(zip(paths, detections, strict=True))
         ],
         "rms_all_detected_frames_px": result.rms_all_frames,
+        "rms_opencv_5_coefficients_px": result.rms_opencv,
+        "k3": "fitted" if result.k3_fitted else "held at 0 (freeing it lowered the RMS by "
+        f"less than {100 * K3_GAIN:g} %)",
         "rms_method": "cv2.calibrateCamera on the kept frames' sub-pixel corners",
     }
     picture = camera_picture(greys, detections, result)

@@ -125,9 +125,16 @@ def write_rig_board_frames(rig: Any, out: Path, views: int = 12, seed: int = 0) 
     camera = simulated_lens(rig.lens, width, height) or CameraModel(
         float(width), float(width), (width - 1) / 2.0, (height - 1) / 2.0, image_size=(width, height)
     )
-    return write_board_frames(Path(out), board_target(), camera, views, seed=seed)
+    return write_board_frames(Path(out), board_target(width), camera, views, seed=seed)
 
 
-def board_target() -> CharucoTarget:
-    """The simulated rigs' board: 9 x 6 squares of 20 mm, 15 mm markers, DICT_5X5_100."""
-    return CharucoTarget(9, 6, 20.0, 15.0, "DICT_5X5_100")
+def board_target(width: int) -> CharucoTarget:
+    """The simulated rigs' board for frames ``width`` pixels wide.
+
+    9 x 6 squares of 20 mm with 15 mm DICT_5X5_100 markers from 320 px up; on smaller frames
+    6 x 4 squares with 16 mm DICT_4X4_50 markers, so that a marker's bit still spans ~3 pixels
+    (the ArUco decoder's limit is about 2).
+    """
+    if width >= 320:
+        return CharucoTarget(9, 6, 20.0, 15.0, "DICT_5X5_100")
+    return CharucoTarget(6, 4, 20.0, 16.0, "DICT_4X4_50")

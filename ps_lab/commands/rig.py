@@ -228,8 +228,9 @@ def board_frames(
 
     The frames a real rig's camera would take of a printed board, for `ps-lab calibrate-camera`.
     """
-    written = write_rig_board_frames(load_rig(rig), out, views, seed)
-    target = board_target()
+    config = load_rig(rig)
+    written = write_rig_board_frames(config, out, views, seed)
+    target = board_target(config.scene.width if config.scene is not None else 0)
     typer.echo(f"wrote {len(written)} board frames to {out}")
     typer.echo(
         f"next: ps-lab calibrate-camera {out}/board_*.png --board charuco:{target.cols}x"
