@@ -24,6 +24,7 @@ def calibrate_camera(
     board: Annotated[
         str,
         typer.Option(
+            metavar="<spec>",
             help="charuco:COLSxROWS:SQUARE:MARKER[:DICT] (squares across x down, square and "
             "marker side in mm, ArUco dictionary, default DICT_5X5_100) or "
             "chessboard:COLSxROWS:SQUARE (squares, not inner corners).",

@@ -74,6 +74,7 @@ def simulate(
     lens: Annotated[
         str | None,
         typer.Option(
+            metavar="<k1,k2,p1,p2,k3>",
             help="Lens distortion K1[,K2,P1,P2,K3] (OpenCV's radial-tangential model) applied "
             "to the frames; ground truth stays undistorted (camera_truth.json).",
             show_default=False,
