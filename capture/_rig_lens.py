@@ -93,7 +93,8 @@ def simulated_lens(lens: LensConfig | None, width: int, height: int) -> CameraMo
     f = float(lens.focal_length if lens.focal_length is not None else width)
     cx, cy = lens.principal_point or ((width - 1) / 2.0, (height - 1) / 2.0)
     coefficients = tuple(lens.distortion) + (0.0,) * (5 - len(lens.distortion))
-    return CameraModel(f, f, float(cx), float(cy), coefficients, (width, height))  # type: ignore[arg-type]
+    size = (width, height)
+    return CameraModel(f, f, float(cx), float(cy), coefficients, size)  # type: ignore[arg-type]
 
 
 def with_lens_camera(rig: Any, camera_file: Path) -> Any:
@@ -123,7 +124,8 @@ def write_rig_board_frames(rig: Any, out: Path, views: int = 12, seed: int = 0) 
                        "camera only (photograph a printed board with a real one)")
     width, height = rig.scene.width, rig.scene.height
     camera = simulated_lens(rig.lens, width, height) or CameraModel(
-        float(width), float(width), (width - 1) / 2.0, (height - 1) / 2.0, image_size=(width, height)
+        float(width), float(width), (width - 1) / 2.0, (height - 1) / 2.0,
+        image_size=(width, height),
     )
     return write_board_frames(Path(out), board_target(width), camera, views, seed=seed)
 

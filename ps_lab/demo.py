@@ -186,7 +186,8 @@ def _lens_variant(rig: Path, folder: Path) -> None:
     normal_error = json.loads((recon / "metrics.json").read_text())["angular_error_deg"]
     print("\n== lens summary")
     print(
-        f"camera vs the simulated lens:         focal {100 * ((fx * fy) ** 0.5 / lens['f'] - 1):+.2f} %, "
+        f"camera vs the simulated lens:         focal "
+        f"{100 * ((fx * fy) ** 0.5 / lens['f'] - 1):+.2f} %, "
         f"principal point off by ({cx - lens['cx']:+.2f}, {cy - lens['cy']:+.2f}) px, "
         f"reprojection RMS {camera['rms_px']:.3f} px"
     )

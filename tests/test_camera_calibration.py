@@ -213,7 +213,8 @@ def test_cli_calibrate_camera(tmp_path):
     data = json.loads((out / "camera.json").read_text())
     assert abs(data["camera_matrix"][0][0] / camera.fx - 1) < 0.005
     refused = [f for f in data["frames"] if not f["used"]]
-    assert [f["file"] for f in refused] == [str(blank)] and "board not found" in refused[0]["refused"]
+    assert [f["file"] for f in refused] == [str(blank)]
+    assert "board not found" in refused[0]["refused"]
     assert (out / "camera.png").is_file()
     # bad input: one error line naming the file or option, exit 2, nothing written
     for args, named in (

@@ -1,4 +1,4 @@
-"""The camera file (``camera.json``): intrinsics and lens distortion, and frames undistorted by them.
+"""The camera file (``camera.json``): intrinsics, lens distortion, frames undistorted by them.
 
 ``ps-lab calibrate-camera`` writes it; a rig file names it (``[lens] camera``) and ``ps-lab
 capture`` copies it next to every run's manifest; ``ps-lab calibrate``, ``reconstruct`` and

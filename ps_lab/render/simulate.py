@@ -55,7 +55,8 @@ class SimulationSettings:
         f = float(self.focal_length if self.focal_length is not None else self.size)
         c = (self.size - 1) / 2.0
         coefficients = tuple(float(v) for v in self.lens) + (0.0,) * (5 - len(self.lens))
-        return CameraModel(f, f, c, c, coefficients, (self.size, self.size))  # type: ignore[arg-type]
+        size = (self.size, self.size)
+        return CameraModel(f, f, c, c, coefficients, size)  # type: ignore[arg-type]
 
     def validate(self) -> None:
         """Raise :class:`DatasetError` on settings that cannot be rendered."""
