@@ -302,3 +302,20 @@ def test_rig_lens_table_errors(tmp_path, lens, message):
                                       "--dry-run"])
     lines = result.output.strip().splitlines()
     assert result.exit_code == 2 and len(lines) == 1 and message in lines[0], result.output
+
+
+def test_chessboard_fallback_finds_every_inner_corner():
+    board = parse_board("chessboard:8x6:25")
+    square = 40  # px in the flat picture
+    cells = (np.indices((6, 8)).sum(axis=0) % 2).astype(np.float32)
+    flat = np.kron(cells, np.ones((square, square), np.float32))
+    flat = np.pad(flat * 0.8 + 0.1, square, constant_values=0.9)  # a white margin
+    h = np.array([[0.9, 0.12, 40.0], [-0.08, 0.85, 30.0], [1e-4, 2e-4, 1.0]])
+    image = cv2.warpPerspective(flat, h, (480, 400), flags=cv2.INTER_AREA, borderValue=0.5)
+    detection = detect_corners(grey_u8(image, 8), board)
+    assert detection.refused is None and len(detection.image_points) == 7 * 5
+    # OpenCV may start from either end of the grid: compare as sets
+    inner = (np.mgrid[1:8, 1:6].T.reshape(-1, 2) * square + square - 0.5).astype(np.float64)
+    truth = cv2.perspectiveTransform(inner[None], h)[0]
+    distance = np.linalg.norm(detection.image_points[:, None] - truth[None], axis=2).min(axis=1)
+    assert distance.max() < 0.25
