@@ -319,3 +319,28 @@ def test_chessboard_fallback_finds_every_inner_corner():
     truth = cv2.perspectiveTransform(inner[None], h)[0]
     distance = np.linalg.norm(detection.image_points[:, None] - truth[None], axis=2).min(axis=1)
     assert distance.max() < 0.25
+
+
+def test_integrate_uses_the_recorded_camera(tmp_path):
+    """A result whose dataset had a camera.json integrates in perspective with its intrinsics;
+    with --pixel-size the depth is in mm (the median point at f x pixel size from the camera)."""
+    surface = sphere_surface((64, 80), radius=28.0)
+    result = tmp_path / "result"
+    result.mkdir()
+    np.save(result / "normals.npy", np.where(surface.mask[..., None], surface.normals, 0.0))
+    camera = CameraModel(900.0, 904.0, 41.0, 30.5, (-0.1, 0, 0, 0, 0), (80, 64))
+    (result / "metrics.json").write_text(json.dumps({"camera": camera.record()}))
+    runner = CliRunner()
+    for args, source in (([], camera.source or "camera.json"),
+                         (["--camera", str(write_camera(tmp_path / "c.json", camera))],
+                          str(tmp_path / "c.json"))):
+        out = tmp_path / f"out{len(args)}"
+        done = runner.invoke(app, ["integrate", str(result), "--pixel-size", "0.05",
+                                   "--out", str(out), *args])
+        assert done.exit_code == 0, done.output
+        depth = json.loads((out / "metrics.json").read_text())["depth"]
+        assert depth["camera"] == "perspective" and depth["unit"] == "mm"
+        assert depth["options"]["principal_point"] == [41.0, 30.5]
+        assert depth["options"]["camera"] == source
+        z = np.load(out / "depth.npy")
+        assert np.nanmedian(z) == pytest.approx(np.sqrt(900.0 * 904.0) * 0.05, rel=1e-3)
