@@ -344,3 +344,21 @@ def test_integrate_uses_the_recorded_camera(tmp_path):
         assert depth["options"]["camera"] == source
         z = np.load(out / "depth.npy")
         assert np.nanmedian(z) == pytest.approx(np.sqrt(900.0 * 904.0) * 0.05, rel=1e-3)
+
+
+def test_simulate_with_a_lens(tmp_path):
+    runner = CliRunner()
+    common = ["--scene", "sphere", "--lights", "3", "--size", "96", "--format", "npy"]
+    plain = runner.invoke(app, ["simulate", str(tmp_path / "plain"), *common])
+    assert plain.exit_code == 0, plain.output
+    lens = runner.invoke(app, ["simulate", str(tmp_path / "lens"), *common, "--lens", "-0.2,0.01",
+                               "--focal-length", "120", "--board-frames", "3"])
+    assert lens.exit_code == 0, lens.output
+    truth = read_camera_file(tmp_path / "lens" / "camera_truth.json")
+    assert truth.distortion[:2] == (-0.2, 0.01) and truth.fx == 120.0
+    assert len(list((tmp_path / "lens" / "board").glob("board_*.png"))) == 3
+    ideal = np.load(tmp_path / "plain" / "001.npy")
+    recorded = np.load(tmp_path / "lens" / "001.npy")
+    np.testing.assert_allclose(recorded, distort_image(ideal, truth), atol=1e-6)
+    bad = runner.invoke(app, ["simulate", str(tmp_path / "bad"), *common, "--lens", "x"])
+    assert bad.exit_code == 2 and "--lens" in bad.output
