@@ -21,6 +21,7 @@ from ps_lab.calibration import (
 )
 from ps_lab.commands.reconstruct import Encoding, EncodingOption
 from ps_lab.errors import CalibrationError
+from ps_lab.io.camera import camera_record, undistort_frame
 from ps_lab.io.dataset import Frames, load_frames
 from ps_lab.io.encoding import frames_encoding
 from ps_lab.io.images import read_image
@@ -67,7 +68,12 @@ def calibrate(
         typer.Option(help="Output folder (default: DATA, so reconstruct picks the lights up)."),
     ] = None,
     focal_length: Annotated[
-        float | None, typer.Option(help="Lens focal length in mm, for the perspective correction.")
+        float | None,
+        typer.Option(
+            help="Lens focal length in mm, for the perspective correction (default: with two "
+            "or more chrome spheres, the intrinsics of a camera.json in DATA; its frames are "
+            "read undistorted in any case)."
+        ),
     ] = None,
     pixel_pitch: Annotated[
         float | None,
@@ -158,6 +164,8 @@ def calibrate(
             *_near_models(frames, object_outline, led_intensities),
         )
         result.metadata["encoding"] = frames_encoding(frames.root / frames.names[0], encoding.value)
+        if frames.camera is not None:
+            result.metadata["camera"] = camera_record(frames.camera, Path(frames.camera.source))
         results.append(result)
         roots.append(frames.root)
     result = combine_probes(results, [str(r) for r in roots])
@@ -226,6 +234,13 @@ def _calibrate_folder(
     rig_chrome = rig_chrome_spheres(frames.manifest)
     hints = [] if sphere_c is not None or roi_v is not None else rig_chrome
     n, height, width = frames.images.shape[:3]
+    principal_point = None
+    if focal_px is None and frames.camera is not None and max(len(spheres), len(hints)) > 1:
+        # camera.json with two or more chrome spheres (near lights): the LEDs are triangulated
+        # through the calibrated perspective camera. One sphere (directional lights) keeps the
+        # directional model's distant camera unless --focal-length asks for the correction.
+        focal_px = frames.camera.focal_length
+        principal_point = (frames.camera.cx, frames.camera.cy)
     circles = [("--sphere", c) for c in spheres] + [("--matte", matte_c)]
     for option, circle in circles:
         if circle is not None and not circle_in_image(circle, width, height):
@@ -251,6 +266,7 @@ def _calibrate_folder(
             saturated=frames.saturated,
             safe_radius=safe_radius,
             focal_length_px=focal_px,
+            principal_point=principal_point,
             names=frames.names,
             progress=advance,
             outline=outline,
@@ -268,6 +284,8 @@ def _side_frame(path: Path, frames: Frames, encoding: str, what: str) -> np.ndar
             f"{path}: {what} is {image.shape[1]}x{image.shape[0]}, the frames of {frames.root} "
             f"are {w}x{h}"
         )
+    if frames.camera is not None:  # the light frames were undistorted: this one too
+        return undistort_frame(frames.camera, image.data)[0]
     return image.data
 
 
@@ -276,7 +294,8 @@ def _subtract_ambient(frames: Frames, path: Path, encoding: str) -> Frames:
     if ambient.shape[-1] != frames.images.shape[-1]:
         ambient = ambient.mean(axis=-1, keepdims=True)
     images = frames.images - ambient[None]
-    return Frames(images, frames.saturated, frames.names, frames.root, frames.manifest)
+    return Frames(images, frames.saturated, frames.names, frames.root, frames.manifest,
+                  frames.camera)
 
 
 def register(app: typer.Typer) -> None:

@@ -24,6 +24,7 @@ from pathlib import Path
 import numpy as np
 
 from ps_lab.errors import DatasetError
+from ps_lab.io.camera import CAMERA_FILE, CameraModel, read_camera_file
 from ps_lab.io.files import sha256
 from ps_lab.io.images import ENCODINGS, SUPPORTED_SUFFIXES, check_is_file, is_supported
 from ps_lab.io.lights import find_lp, lp_image_files, read_lp
@@ -47,6 +48,7 @@ _NOT_FRAMES = {
     "albedo.npy",
     "corruption.png",
     "calibration.png",
+    "camera.png",
     "depth.npy",
     "depth.tiff",
     "depth.png",
@@ -80,6 +82,8 @@ class FramePlan:
     manifest : dict or None
     encoding : str
         How the frames' integer values map to light (``ps_lab.io.encoding``).
+    camera : CameraModel or None
+        The dataset's ``camera.json`` (:mod:`ps_lab.io.camera`): its frames are read undistorted.
 
     """
 
@@ -90,6 +94,7 @@ class FramePlan:
     root: Path
     manifest: dict | None
     encoding: str = "auto"
+    camera: CameraModel | None = None
 
     @property
     def names(self) -> list[str]:
@@ -214,7 +219,9 @@ def plan_frames(path: Path, encoding: str = "auto") -> FramePlan:
         )
     check_dataset_folder(root)
     plan = _plan_run(root) if is_capture_run(root) else _plan_image_folder(root)
-    return replace(plan, encoding=encoding)
+    camera_file = root / CAMERA_FILE
+    camera = read_camera_file(camera_file) if camera_file.is_file() else None
+    return replace(plan, encoding=encoding, camera=camera)
 
 
 def is_mask_name(name: str) -> bool:
