@@ -106,7 +106,7 @@ def _layout(reader: _Reader) -> ExrLayout:
         raise _Broken("not an OpenEXR file (no magic number)")
     version = struct.unpack("<I", reader.read(4, "version field"))[0]
     if version & 0xFF != 2:
-        raise _Broken(f"OpenEXR version {version & 0xFF} (ps-lab reads version 2)")
+        raise _Broken(f"corrupt or unreadable OpenEXR file (version {version & 0xFF}, not 2)")
     limit = 255 if version & _LONG_NAMES else 31
     multipart = bool(version & _MULTIPART)
     headers = []
