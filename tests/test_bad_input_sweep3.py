@@ -599,3 +599,24 @@ def test_sweep3(c: Case, table: dict[str, Outcome]) -> None:
     assert_one_error_line(result, c.names(outcome.w), c.code)
     assert result.stdout == "", result.stdout
     assert snapshot(outcome.w.root) == outcome.before, "files created or changed"
+
+
+# --- the outline frame, in one process -----------------------------------------------------------
+
+
+def test_outline_frame_is_used_when_sound_and_named_when_not(rng):
+    from ps_lab.calibration import calibrate, summary_image
+    from ps_lab.errors import CalibrationError
+    from ps_lab.render import random_light_directions, render_chrome_sphere
+
+    shape, centre, radius = (120, 160), (60.3, 58.1), 40.0
+    lights = random_light_directions(8, rng, max_zenith_deg=40.0)
+    frames = render_chrome_sphere(shape, centre, radius, lights, ambient=1.0)
+    sound = calibrate(frames, outline=summary_image(frames), outline_name="ref.png")
+    assert sound.outline_source == "outline frame"
+    assert np.hypot(sound.circle.x - centre[0], sound.circle.y - centre[1]) < 0.5
+    for frame, reason in ((np.zeros(shape), " is black"), (np.full(shape, 0.3), " is blank"),
+                          (rng.uniform(0, 0.01, shape), ": ")):  # fmt: skip
+        with pytest.raises(CalibrationError) as refused:
+            calibrate(frames, outline=frame, outline_name="ref.png")
+        assert str(refused.value).startswith(f"ref.png{reason}"), str(refused.value)

@@ -275,7 +275,9 @@ def _exif_colour_space(tiff: bytes) -> int | None:
             raise MetadataDamaged(f"EXIF IFD at offset {offset}, outside the {len(tiff)}-byte block")
         count = struct.unpack(order + "H", tiff[offset : offset + 2])[0]
         if offset + 2 + 12 * count > len(tiff):
-            raise MetadataDamaged(f"EXIF IFD at offset {offset} truncated ({count} entries listed)")
+            raise MetadataDamaged(
+                f"EXIF IFD at offset {offset} truncated ({count} entr{'y' if count == 1 else 'ies'})"
+            )
         for k in range(count):
             e = offset + 2 + 12 * k
             tag, kind, _ = struct.unpack(order + "HHI", tiff[e : e + 8])

@@ -120,6 +120,14 @@ def _layout(reader: _Reader) -> ExrLayout:
         if not multipart:
             break
     parts = [_part(h, version, multipart) for h in headers]
+    table_end = reader.stream.tell() + 8 * sum(p.chunks for p in parts)
+    if table_end > reader.size:
+        first = parts[0]
+        raise _Broken(
+            f"OpenEXR header claims {first.width}x{first.height} pixels in "
+            f"{sum(p.chunks for p in parts)} chunks, but the file ends at byte {reader.size}, "
+            "inside their offset table (forged data window, or truncated)"
+        )
     tables = [struct.unpack(f"<{p.chunks}Q", reader.read(8 * p.chunks, "offset table"))
               for p in parts]  # fmt: skip
     packed = 0
