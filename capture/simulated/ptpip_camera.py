@@ -223,6 +223,7 @@ class PtpIpCamera:
         self._reading: dict[socket.socket, float] = {}  # connection -> since when, mid-packet
         self._session = 0
         self._capturing = False
+        self._operating = False
         self._workers: list[threading.Thread] = []
 
     # -- lifecycle --------------------------------------------------------------------------
@@ -327,9 +328,7 @@ class PtpIpCamera:
             except OSError:  # reset before we looked at it
                 conn.close()
                 continue
-            if not self._handshakes.acquire(blocking=False):
-                log.info("PTP/IP camera: %d connections not yet introduced; closing one more",
-                         _MAX_HANDSHAKES)
+            if not self._handshakes.acquire(blocking=False):  # too many not yet introduced
                 conn.close()
                 continue
             threading.Thread(
@@ -387,7 +386,7 @@ class PtpIpCamera:
                 return "the initiator never opened its event connection"
         elif ptp.is_dead(self._event):
             return "the initiator's event connection was closed"
-        elif now - self._heard > YIELD_S and not self._capturing:
+        elif now - self._heard > YIELD_S and not (self._capturing or self._operating):
             return f"the initiator was silent for {now - self._heard:.0f} s"
         return None
 
@@ -406,10 +405,9 @@ class PtpIpCamera:
             number = self._connection
 
         def check() -> str | None:
-            with self._lock:
-                waited = time.monotonic() - self._held_since
-                if self._command is conn and self._event is None and waited > EVENT_WAIT_S:
-                    return f"no event connection {EVENT_WAIT_S:g} s after the Init Command Ack"
+            waited = time.monotonic() - self._held_since
+            if self._command is conn and self._event is None and waited > EVENT_WAIT_S:
+                return f"no event connection {EVENT_WAIT_S:g} s after the Init Command Ack"
             return None
 
         try:
@@ -421,7 +419,12 @@ class PtpIpCamera:
             for kind, payload in self._packets(conn, check):
                 self._heard = time.monotonic()
                 if kind == ptp.OPERATION_REQUEST:
-                    self._operation(conn, ptp.Request.parse(payload))
+                    self._operating = True  # a long download is not silence
+                    try:
+                        self._operation(conn, ptp.Request.parse(payload))
+                    finally:
+                        self._operating = False
+                        self._heard = time.monotonic()
                 elif kind == ptp.PROBE_REQUEST:
                     conn.sendall(ptp.packet(ptp.PROBE_RESPONSE))
                 else:
@@ -476,7 +479,7 @@ class PtpIpCamera:
             try:
                 sock.sendall(ptp.event(code, 0xFFFFFFFF, params))
             except OSError as exc:
-                log.info("PTP/IP camera: event 0x%04x lost: %s", code, exc)
+                log.info("PTP/IP camera: event 0x%04x lost: %s", code, exc)  # the reader drops it
 
     # -- operations -------------------------------------------------------------------------
     def _operation(self, conn: socket.socket, req: ptp.Request) -> None:
