@@ -620,3 +620,21 @@ def test_outline_frame_is_used_when_sound_and_named_when_not(rng):
         with pytest.raises(CalibrationError) as refused:
             calibrate(frames, outline=frame, outline_name="ref.png")
         assert str(refused.value).startswith(f"ref.png{reason}"), str(refused.value)
+
+
+@pytest.mark.parametrize(
+    ("profile", "label", "warned"),
+    [(GAMMA_18, "icc (ICC profile)", False), (GAMMA_18[:140], "linear (no metadata)", True),
+     (icc_profile(para(3, 2.4, 0.0, 0.05, 0.04, 0.04)), "linear (no metadata)", True)],
+    ids=["sound", "truncated", "zero-slope"],
+)
+def test_tiff_profile_damage_keeps_the_tiff_rule_and_warns(profile, label, warned, tmp_path,
+                                                           warnings_logged):  # fmt: skip
+    import tifffile
+
+    path = tmp_path / "frame.tif"
+    tifffile.imwrite(path, np.full((4, 4), 128, np.uint8),
+                     extratags=[(34675, 7, len(profile), profile, True)])  # fmt: skip
+    assert image_encoding(path).label == label
+    messages = [r.getMessage() for r in warnings_logged.records]
+    assert len(messages) == int(warned) and all(m.startswith(f"{path}: ") for m in messages)
