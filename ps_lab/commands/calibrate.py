@@ -162,6 +162,7 @@ def calibrate(
         result = _calibrate_folder(
             frames, spheres, sphere_c, matte_c, roi_v, safe_radius, focal_px, pixel_size, outline,
             *_near_models(frames, object_outline, led_intensities),
+            outline_name=str(outline_frame[k]) if outline_frame else "outline frame",
         )
         result.metadata["encoding"] = frames_encoding(frames.root / frames.names[0], encoding.value)
         if frames.camera is not None:
@@ -227,7 +228,7 @@ def _near_models(
 
 def _calibrate_folder(
     frames: Frames, spheres, sphere_c, matte_c, roi_v, safe_radius, focal_px, pixel_size, outline,
-    object_outline, led_intensities,
+    object_outline, led_intensities, outline_name,
 ):
     """One folder's calibration (the rig snapshot's spheres unless circles are given)."""
     _, rig_matte = rig_circles(frames.manifest)
@@ -250,7 +251,7 @@ def _calibrate_folder(
             )
     with (
         progress_bar(n * max(len(spheres), len(hints), 1), "highlights") as advance,
-        naming_folder(frames.root),
+        naming_folder(frames.root, unless=outline_name if outline is not None else None),
     ):
         return run_calibration(
             frames.images,
@@ -272,6 +273,7 @@ def _calibrate_folder(
             outline=outline,
             led_intensities=led_intensities,
             object_outline=object_outline,
+            outline_name=outline_name,
         )
 
 

@@ -27,7 +27,7 @@ from ps_lab.errors import DatasetError
 from ps_lab.io.camera import CAMERA_FILE, CameraModel, read_camera_file
 from ps_lab.io.files import sha256
 from ps_lab.io.images import ENCODINGS, SUPPORTED_SUFFIXES, check_is_file, is_supported
-from ps_lab.io.lights import find_lp, lp_image_files, read_lp
+from ps_lab.io.lights import find_lp, lp_image_files, read_lp_rows
 from ps_lab.io.result import is_result_folder, read_result_metrics
 from ps_lab.io.run import MANIFEST_NAME, is_run, read_manifest
 
@@ -312,7 +312,8 @@ def _plan_image_folder(root: Path) -> FramePlan:
             files.append(file)
     elif not (root / _LIGHT_DIRECTIONS).exists() and (lp := find_lp(root)) is not None:
         # The images of an .lp file, in its order, wherever it says they are (RelightLab).
-        files = lp_image_files(lp, read_lp(lp)[0], is_supported)
+        names, _, lines = read_lp_rows(lp)
+        files = lp_image_files(lp, names, is_supported, lines)
         for file in files:
             check_is_file(file, "image file")
             if not is_supported(file):
