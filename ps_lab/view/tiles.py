@@ -16,19 +16,59 @@ Paths, relative to the page: ``data/manifest.json``, ``data/r{i}/{level}/{col}_{
 from __future__ import annotations
 
 import json
+import re
 from collections.abc import Iterator
 
 import numpy as np
 
+from ps_lab.io.files import json_safe
 from ps_lab.view.result import CHANNELS, ViewResult
 
-__all__ = ["TILE", "Pyramid", "manifest", "mesh_bytes", "pyramid"]
+__all__ = [
+    "TILE",
+    "Pyramid",
+    "manifest",
+    "mesh_address",
+    "mesh_bytes",
+    "pyramid",
+    "tile_address",
+]
 
 #: Tile side in pixels.
 TILE = 512
 
 #: Stored in place of a missing value in the error and relief channels (the shader tests < 0).
 MISSING = -1.0
+
+
+#: A number in a data path: decimal ASCII digits, no sign, no leading zero, at most 6 digits
+#: (a tile index of 5,000 digits is no path of the site, and never reaches ``int()``).
+_NUMBER = r"(0|[1-9][0-9]{0,5})"
+_TILE_PATH = re.compile(rf"data/r{_NUMBER}/{_NUMBER}/{_NUMBER}_{_NUMBER}\.bin", re.ASCII)
+_MESH_PATH = re.compile(rf"data/r{_NUMBER}/mesh\.bin", re.ASCII)
+
+#: No data path is longer (four 6-digit numbers and the words around them).
+_MAX_PATH = 64
+
+
+def tile_address(path: str) -> tuple[int, int, int, int] | None:
+    """``(result, level, col, row)`` of a tile path ``data/r{i}/{level}/{col}_{row}.bin``.
+
+    None for anything else: a longer path, a number with a sign, a leading zero, more than six
+    digits or a digit that is not ASCII (the length and the pattern are checked before any
+    ``int()``, so no request can make it convert a long number).
+    """
+    match = _TILE_PATH.fullmatch(path) if len(path) <= _MAX_PATH else None
+    if match is None:
+        return None
+    index, level, col, row = (int(g) for g in match.groups())
+    return index, level, col, row
+
+
+def mesh_address(path: str) -> int | None:
+    """The result index of a mesh path ``data/r{i}/mesh.bin``, or None (as :func:`tile_address`)."""
+    match = _MESH_PATH.fullmatch(path) if len(path) <= _MAX_PATH else None
+    return None if match is None else int(match.group(1))
 
 
 class Pyramid:
@@ -171,4 +211,6 @@ def manifest(results: list[ViewResult], pyramids: list[Pyramid]) -> bytes:
                 "mesh": mesh,
             }
         )
-    return json.dumps({"format": "ps-lab-view-1", "results": entries}, indent=1).encode()
+    # Metrics come from a file: any value that JSON cannot hold (NaN, an infinity) becomes null.
+    document = json_safe({"format": "ps-lab-view-1", "results": entries})
+    return json.dumps(document, indent=1, allow_nan=False).encode()
