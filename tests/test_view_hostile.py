@@ -258,9 +258,11 @@ def mesh_with(faces=None, vertices=None, **kwargs) -> Callable[[Path], str]:
 
 _V, _F = grid_mesh()
 _NAN_VERTEX = [("nan", 0, 0, 1, 2, 3), *_V[1:]]
-_PLY_POINTS = ply_text(_V, []).split("element face")[0] + "end_header\n" + ply_text(_V, []).split(
-    "end_header\n"
-)[1]
+_PLY_POINTS = (
+    ply_text(_V, []).split("element face")[0]
+    + "end_header\n"
+    + ply_text(_V, []).split("end_header\n")[1]
+)
 _PLY_FORGED = ply_text(_V, _F).replace(f"element vertex {len(_V)}", "element vertex 999999999999")
 
 CASES = [
@@ -287,6 +289,7 @@ CASES = [
     Case("normals-bytes-dtype", save("normals.npy", np.zeros((SIZE, SIZE, 3), "S4"))),
     Case("normals-empty", save("normals.npy", np.zeros((0, SIZE, 3), np.float32))),
     Case("normals-forged-header", write("normals.npy", forged_npy((90_000, 90_000, 3)))),
+    Case("normals-sparse-120-gb", lambda root: _sparse_npy(root / "normals.npy")),
     Case("normals-not-npy", write("normals.npy", b"this is not numpy\n")),
     Case("normals-fifo", fifo("normals.npy")),
     Case("normals-folder", folder("normals.npy")),
@@ -311,6 +314,15 @@ CASES = [
     Case("depth-png-other-size", write("depth.png", png_bytes(np.zeros((SIZE, 9), np.uint8)))),
     Case("corruption-png-not-png", write("corruption.png", b"GIF89a not a png")),
 ]
+
+
+def _sparse_npy(path: Path) -> str:
+    """A normal map of 100,000 x 100,000 pixels that the file holds (sparse: no disk used)."""
+    header = forged_npy((100_000, 100_000, 3))[:-64]
+    with path.open("wb") as stream:
+        stream.write(header)
+        stream.truncate(len(header) + 100_000 * 100_000 * 3 * 4)
+    return path.name
 
 
 def _flip_idat_byte(root: Path) -> bytes:
@@ -642,7 +654,7 @@ HTTP_CASES = [
     ("host-missing-http-1.1", get(MANIFEST, None), 403),
     ("host-missing-http-1.0", get(MANIFEST, None, version="HTTP/1.0"), 403),
     ("host-twice", get(MANIFEST, extra="Host: evil.example\r\n"), 403),
-    ("host-http-0.9", raw(b"GET /data/manifest.json\r\n\r\n"), None),
+    ("host-http-0.9", raw(b"GET /data/manifest.json\r\n\r\n"), 403),
     ("absolute-form-target", get("http://evil.example/data/manifest.json"), 400),
     # Origin and methods.
     ("get-own-origin", get(MANIFEST, extra="Origin: http://127.0.0.1:{port}\r\n"), 200),

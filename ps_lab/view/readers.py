@@ -32,7 +32,7 @@ import numpy as np
 
 from ps_lab.errors import DatasetError
 from ps_lab.io.codecs import decode_image, decoder_said
-from ps_lab.io.images import png_layout_problem, read_npy_header
+from ps_lab.io.images import available_memory, png_layout_problem, read_npy_header
 
 __all__ = ["open_regular", "present", "read_array", "read_bytes", "read_grey_png", "read_json"]
 
@@ -160,12 +160,29 @@ def read_array(path: Path, what: str, ndims: tuple[int, ...]) -> np.ndarray:
                     f"{path}: .npy header claims shape {shape} ({claimed} bytes) but the file "
                     f"holds {size - offset} bytes (truncated or forged)"
                 )
+            _check_memory(path, what, shape, claimed)
             data = stream.read(claimed)
     except OSError as exc:
         raise DatasetError(f"{path}: cannot read {what} ({_reason(exc)})") from None
     if len(data) != claimed:
         raise DatasetError(f"{path}: .npy file is truncated")
     return np.frombuffer(data, dtype).reshape(shape, order="F" if fortran else "C")
+
+
+#: Bytes the viewer holds per pixel of a layer file: its float32 layers (8 channels), their
+#: half-float pyramid and the float64 work copies of one layer while it is read.
+BYTES_PER_PIXEL = 8 * 4 + 8 * 2 * 4 // 3 + 3 * 8
+
+
+def _check_memory(path: Path, what: str, shape: tuple[int, ...], claimed: int) -> None:
+    """Refuse an array whose reading and layers would not fit in the memory available now."""
+    need = claimed + shape[0] * (shape[1] if len(shape) > 1 else 1) * BYTES_PER_PIXEL
+    have = available_memory()
+    if need > have:
+        raise DatasetError(
+            f"{path}: {what} of shape {shape} would need {need / 2**30:.1f} GiB to show, "
+            f"{have / 2**30:.1f} GiB available (too large for this machine)"
+        )
 
 
 def _check_array_header(

@@ -162,12 +162,18 @@ def normal_layer(path: Path) -> np.ndarray:
     normals = read_array(path, "normal map", (3,))
     if normals.shape[2] != 3:
         raise DatasetError(f"{path}: expected an H x W x 3 array, got shape {normals.shape}")
-    normals = _finite(normals, np.float32)
-    norm = np.sqrt(np.einsum("hwc,hwc->hw", normals, normals, dtype=np.float64))
-    rescale = (norm > 0.5) & (np.abs(norm - 1.0) > 1e-3)
+    work = _finite(normals, np.promote_types(normals.dtype, np.float32))
+    # Lengths computed on vectors scaled by their largest component: no square overflows.
+    biggest = np.abs(work).max(axis=2, keepdims=True)
+    scaled = np.divide(work, biggest, out=np.zeros_like(work), where=biggest > 0)
+    with np.errstate(over="ignore"):
+        length = np.sqrt(np.einsum("hwc,hwc->hw", scaled, scaled)) * biggest[..., 0]
+    rescale = (length > 0.5) & (np.abs(length - 1.0) > 1e-3)
+    out = np.where(rescale[..., None], 0, work).astype(np.float32)
     if rescale.any():
-        normals[rescale] = (normals[rescale] / norm[rescale][:, None]).astype(np.float32)
-    return normals
+        chosen = scaled[rescale]
+        out[rescale] = chosen / np.linalg.norm(chosen, axis=1, keepdims=True)
+    return out
 
 
 def albedo_layer(path: Path, mask: np.ndarray) -> tuple[np.ndarray, float]:
@@ -318,6 +324,8 @@ def mesh_elements(path: Path) -> tuple[np.ndarray, np.ndarray]:
             raise
         except Exception as exc:  # noqa: BLE001 - plyfile raises many types for a broken file
             raise DatasetError(f"{path}: corrupt or unreadable PLY mesh ({exc})") from None
+
+
 def _check_ply_counts(path: Path, head: bytes, file_size: int) -> None:
     """Refuse a PLY header whose element counts the file's size cannot hold."""
     end = head.find(b"end_header")

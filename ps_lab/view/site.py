@@ -143,6 +143,9 @@ LISTEN_BACKLOG = 1024
 #: Connections served at once, one thread each; more wait in the backlog.
 MAX_CONNECTIONS = 512
 
+#: Bytes sent under one timeout.
+_PIECE = 1 << 20
+
 #: The server's own host names: a request that names another host (``evil.example``, a DNS
 #: rebinding page's name) is refused, whatever address it reached.
 HOST_NAMES = ("127.0.0.1", "localhost", "[::1]")
@@ -222,6 +225,8 @@ class _Handler(BaseHTTPRequestHandler):
 
     server_version = "ps-lab-view"
     sys_version = ""
+    # A request line without a version (HTTP/0.9, or garbage) is answered with a status line.
+    default_request_version = "HTTP/1.0"
     site: ViewSite
     timeout: float = REQUEST_TIMEOUT
 
@@ -307,7 +312,11 @@ class _Handler(BaseHTTPRequestHandler):
         self.send_header("Cache-Control", "no-store")
         self.end_headers()
         if with_body:
-            self.wfile.write(body)
+            # In pieces: the timeout bounds each piece, so a slow reader of a large mesh is
+            # served while a stalled one is cut off.
+            view = memoryview(body)
+            for start in range(0, len(body), _PIECE):
+                self.wfile.write(view[start : start + _PIECE])
 
     def log_message(self, format: str, *args) -> None:  # noqa: A002 - the hook's signature
         log.debug("%s " + format, self.address_string(), *args)
@@ -361,7 +370,7 @@ class ViewServer(ThreadingHTTPServer):
         """``http://127.0.0.1:PORT/``."""
         return f"http://{HOST}:{self.server_address[1]}/"
 
-    def server_bind(self) -> None:
+    def server_bind(self) -> None:  # noqa: D102
         # HTTPServer's would look the host's name up in DNS (getfqdn), which may wait.
         socketserver.TCPServer.server_bind(self)
         self.server_name, self.server_port = HOST, self.server_address[1]
