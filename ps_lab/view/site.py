@@ -12,6 +12,7 @@ from __future__ import annotations
 import functools
 import io
 import logging
+import resource
 import socket
 import socketserver
 import threading
@@ -140,8 +141,20 @@ REQUEST_TIMEOUT = 10.0
 #: Connections the kernel queues while every handler is busy (the listen backlog).
 LISTEN_BACKLOG = 1024
 
-#: Connections served at once, one thread each; more wait in the backlog.
+#: Connections served at once, one thread each; more wait in the backlog. Fewer when the
+#: process may open few files (half its limit), so that ``accept`` never fails for want of one.
 MAX_CONNECTIONS = 512
+
+
+def _connection_slots() -> int:
+    try:
+        soft, _ = resource.getrlimit(resource.RLIMIT_NOFILE)
+    except (OSError, ValueError):
+        return MAX_CONNECTIONS
+    if soft == resource.RLIM_INFINITY:
+        return MAX_CONNECTIONS
+    return max(8, min(MAX_CONNECTIONS, soft // 2))
+
 
 #: Bytes sent under one timeout.
 _PIECE = 1 << 20
@@ -186,7 +199,10 @@ def refusal(
     HTTP defines, 501 for the rest); a target that is not a path (400).
     """
     if len(hosts) != 1 or hosts[0].strip().lower() not in allowed_hosts(port):
-        return HTTPStatus.FORBIDDEN, "Host not served here (this server answers 127.0.0.1 only)"
+        return HTTPStatus.FORBIDDEN, (
+            f"Host not served here (this server answers 127.0.0.1:{port}, localhost:{port} "
+            f"and [::1]:{port} only; an SSH tunnel must forward to the same port)"
+        )
     if len(origins) > 1 or (origins and origins[0].strip().lower() not in allowed_origins(port)):
         return HTTPStatus.FORBIDDEN, "requests from another site's page are refused"
     if method not in ("GET", "HEAD"):
@@ -362,7 +378,7 @@ class ViewServer(ThreadingHTTPServer):
 
     def __init__(self, site: ViewSite, port: int = 0, timeout: float = REQUEST_TIMEOUT) -> None:
         handler = type("Handler", (_Handler,), {"site": site, "timeout": timeout})
-        self._slots = threading.BoundedSemaphore(MAX_CONNECTIONS)
+        self._slots = threading.BoundedSemaphore(_connection_slots())
         super().__init__((HOST, port), handler)
 
     @property
