@@ -464,8 +464,26 @@ def test_non_finite_metrics_reach_the_page_as_null(good_result, tmp_path):
     manifest = strict_json(ViewSite([view]).get("data/manifest.json")[0])
     entry = manifest["results"][0]
     assert entry["lights"] is None and entry["pixels"] is None
-    assert entry["angular_error_deg"] == {"mean": None, "median": None, "p90": 2.5}
+    assert entry["angular_error_deg"] is None  # no finite mean: the page shows none
     assert entry["depth_unit"] == "px"
+
+
+@pytest.mark.parametrize(
+    ("metrics", "expected"),
+    [
+        ('{"angular_error_deg": {"mean": 1.5, "median": NaN, "p90": 3}}', {"mean": 1.5, "p90": 3}),
+        ('{"angular_error_deg": {"mean": "1.5"}}', None),
+        ('{"angular_error_deg": 2.0}', None),
+        ('{"angular_error_deg": [1, 2]}', None),
+        ('{"angular_error_deg": {"mean": true}}', None),
+    ],
+)
+def test_metrics_reach_the_page_with_the_types_it_reads(good_result, tmp_path, metrics, expected):
+    root = tmp_path / "result"
+    subprocess.run(["cp", "-a", str(good_result), str(root)], check=True)
+    (root / "metrics.json").write_text(metrics)
+    manifest = strict_json(ViewSite([load_result(root)]).get("data/manifest.json")[0])
+    assert manifest["results"][0]["angular_error_deg"] == expected
 
 
 def test_non_finite_and_scaled_values_load_as_finite_layers(good_result, tmp_path):

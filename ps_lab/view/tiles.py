@@ -16,6 +16,7 @@ Paths, relative to the page: ``data/manifest.json``, ``data/r{i}/{level}/{col}_{
 from __future__ import annotations
 
 import json
+import math
 import re
 from collections.abc import Iterator
 
@@ -176,8 +177,38 @@ def mesh_bytes(result: ViewResult) -> bytes | None:
     )
 
 
+def _number(value: object) -> int | float | None:
+    """A finite number (not a bool, an integer within a float's exact range), else None."""
+    if isinstance(value, bool):
+        return None
+    if isinstance(value, int):
+        return value if abs(value) <= 2**53 else None
+    if isinstance(value, float):
+        return value if math.isfinite(value) else None
+    return None
+
+
+def _text(value: object) -> str | None:
+    return value[:200] if isinstance(value, str) else None
+
+
+def _error_summary(value: object) -> dict[str, float] | None:
+    """The error summary's entries that are finite numbers; None without a finite mean.
+
+    A result without errors has NaN there, which the page cannot show.
+    """
+    if not isinstance(value, dict):
+        return None
+    summary = {str(k): v for k, v in value.items() if _number(v) is not None}
+    return summary if "mean" in summary else None
+
+
 def manifest(results: list[ViewResult], pyramids: list[Pyramid]) -> bytes:
-    """``data/manifest.json``: per result its size, levels, layers, metrics and mesh counts."""
+    """``data/manifest.json``: per result its size, levels, layers, metrics and mesh counts.
+
+    The metrics come from a file: each is passed on only with the type the page reads (a
+    string, a finite number, an error summary with a finite mean), else as null.
+    """
     entries = []
     for result, levels in zip(results, pyramids, strict=True):
         h, w = result.shape
@@ -190,8 +221,8 @@ def manifest(results: list[ViewResult], pyramids: list[Pyramid]) -> bytes:
                 "min": [float(x) for x in vertices.min(axis=0)] if len(vertices) else [0, 0, 0],
                 "max": [float(x) for x in vertices.max(axis=0)] if len(vertices) else [0, 0, 0],
             }
-        metrics = result.metrics
-        error = metrics.get("angular_error_deg") if isinstance(metrics, dict) else None
+        metrics = result.metrics if isinstance(result.metrics, dict) else {}
+        depth = metrics.get("depth")
         entries.append(
             {
                 "name": result.name,
@@ -201,13 +232,11 @@ def manifest(results: list[ViewResult], pyramids: list[Pyramid]) -> bytes:
                 "levels": levels.level_sizes(),
                 "albedo_scale": result.albedo_scale,
                 "has": result.has,
-                "method": metrics.get("method"),
-                "lights": metrics.get("lights"),
-                "pixels": metrics.get("pixels"),
-                "angular_error_deg": error,
-                "depth_unit": (metrics.get("depth") or {}).get("unit")
-                if isinstance(metrics.get("depth"), dict)
-                else None,
+                "method": _text(metrics.get("method")),
+                "lights": _number(metrics.get("lights")),
+                "pixels": _number(metrics.get("pixels")),
+                "angular_error_deg": _error_summary(metrics.get("angular_error_deg")),
+                "depth_unit": _text(depth.get("unit")) if isinstance(depth, dict) else None,
                 "mesh": mesh,
             }
         )
