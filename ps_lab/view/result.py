@@ -330,7 +330,9 @@ def _check_ply_counts(path: Path, head: bytes, file_size: int) -> None:
     """Refuse a PLY header whose element counts the file's size cannot hold."""
     end = head.find(b"end_header")
     if not head.startswith(b"ply") or end < 0:
-        raise DatasetError(f"{path}: not a PLY file (no 'ply' ... 'end_header' header)")
+        raise DatasetError(
+            f"{path}: not a PLY file (no header from 'ply' to 'end_header' in its first 64 KiB)"
+        )
     for line in head[:end].decode("latin-1").splitlines():
         words = line.split()
         if len(words) == 3 and words[0] == "element":
