@@ -745,7 +745,7 @@ def test_refusals_name_the_reason(server):
 def _good_client(port: int, path: str, results: list, barrier: threading.Barrier) -> None:
     barrier.wait()
     try:
-        response = exchange(port, _fill(get(path), port), timeout=60)
+        response = exchange(port, _fill(get(path), port), timeout=20)
         head, _, body = response.partition(b"\r\n\r\n")
         length = int(re.search(rb"Content-Length: (\d+)", head).group(1))
         results.append(status_of(response) == 200 and len(body) == length)

@@ -252,6 +252,7 @@ class _Handler(BaseHTTPRequestHandler):
     def setup(self) -> None:
         super().setup()
         self._deadline = time.monotonic() + self.timeout
+        self.rfile.close()  # the plain socket file, replaced by one with a deadline
         self.rfile = io.BufferedReader(_DeadlineReader(self.connection, lambda: self._deadline))
 
     def handle(self) -> None:
