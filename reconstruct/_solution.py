@@ -80,7 +80,7 @@ def lambertian_albedo(normals: np.ndarray, inliers: np.ndarray, observations: np
 
     The least-squares scale ``rho`` of the Lambertian image ``rho max(n.l_i, 0)`` on the pixel's
     inlier observations (usable, not flagged as corrupted) that its normal sees lit:
-    ``rho = sum_i y_i (n.l_i) / sum_i (n.l_i)^2`` over ``i`` with ``n.l_i > 0``. It is the same
+    ``rho = max(sum_i y_i (n.l_i) / sum_i (n.l_i)^2, 0)`` over ``i`` with ``n.l_i > 0``. It is the same
     quantity whatever model gave the normal (on Lambertian data every method's albedo is the
     true one), and it applies to one colour channel's observations as well as to their mean.
 
@@ -106,15 +106,17 @@ def lambertian_albedo(normals: np.ndarray, inliers: np.ndarray, observations: np
         shading = normals @ lights.T
     else:
         shading = np.einsum("pk,pnk->pn", normals, lights)
-    return _albedo_rows(shading, np.asarray(inliers, bool).T,
-                        np.asarray(observations, np.float64).T)
+    rho = _albedo_rows(shading, np.asarray(inliers, bool).T,
+                       np.asarray(observations, np.float64).T)
+    return np.nan_to_num(rho, nan=0.0)
 
 
 def _albedo_rows(shading: np.ndarray, inliers: np.ndarray, y: np.ndarray) -> np.ndarray:
-    """:func:`lambertian_albedo` in pixel-major layout: (m, n) ``n.l``, inliers and ``y``."""
+    """:func:`lambertian_albedo` in pixel-major layout ((m, n) ``n.l``, inliers and ``y``); NaN
+    where no inlier is lit (the caller's fallback)."""
     use = inliers & (shading > 0.0)
     s = np.where(use, shading, 0.0)
     num = np.einsum("pn,pn->p", s, np.where(use, y, 0.0))
     den = np.einsum("pn,pn->p", s, s)
     with np.errstate(divide="ignore", invalid="ignore"):
-        return np.where(den > 0.0, num / np.where(den > 0.0, den, 1.0), 0.0)
+        return np.where(den > 0.0, np.maximum(num / np.where(den > 0.0, den, 1.0), 0.0), np.nan)

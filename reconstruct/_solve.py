@@ -19,7 +19,6 @@ from ._solution import (
     Solution,
     SolverInputError,
     _albedo_rows,
-    lambertian_albedo,
 )
 
 # Defaults of each method's parameters (in units of the pixel's robust scale, see `pixel_scale`).
@@ -539,10 +538,10 @@ def solve(
         used = _solve_params(n, method, params, residuals, pl_noise)
         if method == "rpca":
             sol = solve_rpca(obs, lights, usable, params, used, progress)
-            rho = lambertian_albedo(sol.normals, usable & ~sol.outliers, np.where(usable, obs, 0),
-                                    lights)
+            rho = _albedo_rows(sol.normals @ lights.T, (usable & ~sol.outliers).T,
+                               np.where(usable, obs, 0.0).T)
             sol.params["albedo"] = ALBEDO_DEFINITION
-            return Solution(sol.normals, np.where(rho > 0, rho, sol.albedo), sol.outliers,
+            return Solution(sol.normals, np.where(np.isnan(rho), sol.albedo, rho), sol.outliers,
                             sol.iterations, sol.params)
         used.update({"tile_size": bound, "threads": workers})
         return _solve_tiles(obs, lights, usable, method, params, used, starts, tile, mapper,
@@ -656,7 +655,7 @@ def _solve_tiles(obs, lights, usable, method, params, used, starts, tile, mapper
         normals[a:b] = unit
         # one albedo for every method: the Lambertian-equivalent reflectance on the inliers
         rho = _albedo_rows(unit @ lights.T, (w > 0) & ~res.outliers, y) * scale
-        albedo[a:b] = np.where(good, np.where(rho > 0, rho, length), 0.0)
+        albedo[a:b] = np.where(good, np.where(np.isnan(rho), length, rho), 0.0)
         outliers[:, a:b] = (res.outliers & good[:, None]).T
         iterations[a:b] = np.where(ok, res.iterations, 0)
         if segments is not None:

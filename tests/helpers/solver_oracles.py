@@ -301,7 +301,7 @@ def lambertian_equivalent(normal, y, a, inliers, fallback):
     shading = a @ normal
     use = inliers & (shading > 0)
     den = float(shading[use] @ shading[use])
-    return float(y[use] @ shading[use]) / den if den > 0 else fallback
+    return max(float(y[use] @ shading[use]) / den, 0.0) if den > 0 else fallback
 
 
 def rpca_oracle(obs, lights, valid, *, lam_sparse=None, max_iter=500, tol=1e-7, rho=1.5,
