@@ -60,6 +60,10 @@ TAU_FLOOR = 1e-10
 # The default's choice: PL-SBL replaces SBL where its leave-one-out gain exceeds this many standard
 # errors of the gain (the one-standard-error rule of model selection, docs/solvers.md).
 CHOICE_Z = 1.0
+# ... and only with at least this many scored observations per unknown of the PL model: the mean
+# leverage is then at most 1/4, so that a left-out residual measures prediction (with fewer, it
+# is dominated by the 1 / (1 - h) inflation of interpolated observations; docs/solvers.md).
+CHOICE_PER_UNKNOWN = 4
 
 
 @njit(**INLINE)
@@ -538,8 +542,8 @@ def _choose(y, p, n, k, threshold, lam_row, outliers, st, tab, sbl_st, sbl_tab, 
     ``lambda_i``): :func:`._pl_algebra._loo_lambertian`, :func:`._pl_algebra._loo_pl`. The gain
     is the sum of the paired differences ``d_i`` of the two squared left-out residuals
     (Lambertian minus PL) less ``z`` standard errors of that sum (``z sqrt(N) sd(d)``): positive
-    when PL predicts better by more than chance gives a model with more unknowns; -inf when at
-    most PL's unknowns + 1 observations are scored or a fit fails.
+    when PL predicts better by more than chance gives a model with more unknowns; -inf when
+    fewer than ``CHOICE_PER_UNKNOWN`` observations per PL unknown are scored or a fit fails.
     """
     u = k + 2
     kept = 0
@@ -551,7 +555,7 @@ def _choose(y, p, n, k, threshold, lam_row, outliers, st, tab, sbl_st, sbl_tab, 
         ok = st[_W, i] > 0.0 and not (outliers[p, i] and abs(e) > threshold)
         sw[i] = 1.0 / lam_row[i] if ok else 0.0
         kept += ok
-    if kept <= u + 1:
+    if kept < CHOICE_PER_UNKNOWN * u:
         return -math.inf
     score_sbl = _loo_lambertian(y[p], sbl_st[_kernels._V], sw, sbl_tab, n, ridge, loo[0])
     _prior(k, tau2, ridge, prior, prior_rhs)
