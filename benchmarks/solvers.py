@@ -7,7 +7,7 @@ Usage (from the repository root):
     .venv/bin/python benchmarks/solvers.py lambda        # real-like 16-bit captures: auto vs fixed lambda
     .venv/bin/python benchmarks/solvers.py refine        # 5 degree light errors, refinement iterations
     .venv/bin/python benchmarks/solvers.py bunny   # noise-free speculars: auto vs the authors' SBL
-    .venv/bin/python benchmarks/solvers.py cost    # the default's solve time / SBL's, fresh processes
+    .venv/bin/python benchmarks/solvers.py cost    # the default's solve time / SBL's
 
 `speed` prints, for 40 and 96 lights and 1e4, 1e5, 1e6 pixels, pixels per second per method, mean
 iterations, and the speed-up of SBL and L1 over the straightforward per-pixel numpy oracle (the

@@ -305,8 +305,8 @@ def _pl_pixel(y, w, lights, p, k_max, lam_row, ridge, learn_tau, max_iter, tol, 
     """One pixel with up to ``k_max`` segments (fewer when it has few observations).
 
     Leaves ``x`` (U), ``slopes`` (K) and the state rows of the final iteration; returns
-    (segments used, iterations, log evidence, the slopes' prior variance). ``sbl`` False: one weighted least-squares solve
-    (PL-LS: every observation weight 1, no noise model).
+    (segments used, iterations, log evidence, the slopes' prior variance). ``sbl`` False: one
+    weighted least-squares solve (PL-LS: every observation weight 1, no noise model).
     """
     n = y.shape[1]
     cnt = 0
@@ -537,7 +537,8 @@ def _choose(y, p, n, k, threshold, lam_row, outliers, st, tab, sbl_st, sbl_tab, 
 
     Scored: the usable observations that at least one robust fit accepts as uncorrupted (SBL's
     flags in ``outliers[p]``, the PL fit's from its final state): a model that calls corrupted
-    what the other explains pays for it; what both call corrupted says nothing about either. Each model is scored as fitted (its final weights ``d``; PL with its slopes' prior)
+    what the other explains pays for it; what both call corrupted says nothing about either.
+    Each model is scored as fitted (its final weights ``d``; PL with its slopes' prior)
     by its closed-form leave-one-out residuals in ``y``'s units, under the same noise (SBL's
     ``lambda_i``): :func:`._pl_algebra._loo_lambertian`, :func:`._pl_algebra._loo_pl`. The gain
     is the sum of the paired differences ``d_i`` of the two squared left-out residuals

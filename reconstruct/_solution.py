@@ -80,9 +80,9 @@ def lambertian_albedo(normals: np.ndarray, inliers: np.ndarray, observations: np
 
     The least-squares scale ``rho`` of the Lambertian image ``rho max(n.l_i, 0)`` on the pixel's
     inlier observations (usable, not flagged as corrupted) that its normal sees lit:
-    ``rho = max(sum_i y_i (n.l_i) / sum_i (n.l_i)^2, 0)`` over ``i`` with ``n.l_i > 0``. It is the same
-    quantity whatever model gave the normal (on Lambertian data every method's albedo is the
-    true one), and it applies to one colour channel's observations as well as to their mean.
+    ``rho = max(sum_i y_i (n.l_i) / sum_i (n.l_i)^2, 0)`` over ``i`` with ``n.l_i > 0``. It is
+    the same quantity whatever model gave the normal (on Lambertian data every method's albedo is
+    the true one), and it applies to one colour channel's observations as well as to their mean.
 
     Parameters
     ----------
