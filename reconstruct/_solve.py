@@ -515,6 +515,9 @@ def solve(
     """
     obs, lights, usable = _check_inputs(observations, light_directions, valid)
     params = _method_params(method, method_params)
+    if method == "auto":
+        # the SBL candidate runs SBL's own iterations, unless a cap is given for both models
+        params["sbl_max_iter"] = int(method_params.get("max_iter", DEFAULTS["sbl"]["max_iter"]))
     n, p = obs.shape
     workers = int(threads) if threads else (os.cpu_count() or 1)
     if workers < 1:
@@ -605,8 +608,8 @@ def _pl_sbl_tile(y, w, lights, **params):
 
 
 def _auto_tile(y, w, lights, **params):
-    return _pl_kernels.pl_tile(y, w, lights, choose=True,
-                               sbl_max_iter=DEFAULTS["sbl"]["max_iter"], **params)
+    sbl_max_iter = params.pop("sbl_max_iter", DEFAULTS["sbl"]["max_iter"])
+    return _pl_kernels.pl_tile(y, w, lights, choose=True, sbl_max_iter=sbl_max_iter, **params)
 
 
 def _pl_ls_tile(y, w, lights, *, segments):
