@@ -221,7 +221,7 @@ def auto_pixel(y, a, *, lam, lam_pl=None, segments=3, sigma_x2=1e6, max_iter=20,
     e_pl = _pl_statistic(pl, y, a)
     scored = ~((e_sbl > outlier_threshold) & (e_pl > outlier_threshold))
     count = int(scored.sum())
-    if count <= k + 3:
+    if count < 4 * (k + 2):  # at least 4 scored observations per PL unknown
         return sbl_result
     weight = 1.0 / lam
     d_sbl = 1.0 / (extra["gamma"] + lam)
