@@ -24,9 +24,12 @@ Cholesky. Beyond the paper (docs/solvers.md has the measurements):
   ``lambda_i = lam_i s_{k(i)}^2`` (``lam_i`` the SBL noise variance of the observation in the
   pixel's relative units), updated with the slopes;
 - each pixel's log evidence in the space of ``y`` (the Gaussian marginal of ``t`` at the learned
-  ``gamma``, ``tau^2``, plus the log Jacobian ``sum_i log s_{k(i)}`` of ``y -> f(y)``), so that
-  models with different ``K`` compare: the ``auto`` kernel solves every pixel with ``K = 1``
-  (SBL) and with ``K`` segments and keeps the one with the larger evidence.
+  ``gamma``, ``tau^2``, plus the log Jacobian ``sum_i log s_{k(i)}`` of ``y -> f(y)``; recorded,
+  no longer used for the choice);
+- the ``auto`` kernel solves every pixel with ``K = 1`` (SBL, its own kernel and iterations) and
+  with ``K`` segments, and keeps PL only where it predicts the pixel's observations better:
+  closed-form leave-one-out residuals of both fits on the same observations, under the same
+  noise, by more than one standard error of the gain (:func:`_choose`, docs/solvers.md).
 
 Inputs are those of :mod:`._kernels` (``y`` (m, n) scaled, ``w`` (m, n) 1/0, lights (n, 3) or,
 for near lights, (m, n, 3)).
@@ -41,8 +44,8 @@ import numpy as np
 from numba import njit
 
 from . import _kernels
-from ._kernels import INLINE, VECTOR, TileResult, _light_table, _sbl_pixel, _weighted_sums
-from ._pl_algebra import _cholesky_inverse, _select, _sum_log
+from ._kernels import INLINE, VECTOR, TileResult, _light_table, _sbl_pixel
+from ._pl_algebra import _cholesky_inverse, _loo_lambertian, _loo_pl, _select, _sum_log
 
 # Rows of the per-pixel state: usable (1/0), observation noise in y units, in f units, gamma,
 # d = w / (gamma + lambda), corruption estimate of the last iteration, residual, a^T M^-1 a,
@@ -54,6 +57,13 @@ MIN_PER_SEGMENT = 4
 # Smallest slope (times 1/K) used for an observation's noise and the Jacobian.
 SLOPE_FLOOR = 1e-3
 TAU_FLOOR = 1e-10
+# The default's choice: PL-SBL replaces SBL where its leave-one-out gain exceeds this many standard
+# errors of the gain (the one-standard-error rule of model selection, docs/solvers.md).
+CHOICE_Z = 1.0
+# ... and only with at least this many scored observations per unknown of the PL model: the mean
+# leverage is then at most 1/4, so that a left-out residual measures prediction (with fewer, it
+# is dominated by the 1 / (1 - h) inflation of interpolated observations; docs/solvers.md).
+CHOICE_PER_UNKNOWN = 4
 
 
 @njit(**INLINE)
@@ -295,8 +305,8 @@ def _pl_pixel(y, w, lights, p, k_max, lam_row, ridge, learn_tau, max_iter, tol, 
     """One pixel with up to ``k_max`` segments (fewer when it has few observations).
 
     Leaves ``x`` (U), ``slopes`` (K) and the state rows of the final iteration; returns
-    (segments used, iterations, log evidence). ``sbl`` False: one weighted least-squares solve
-    (PL-LS: every observation weight 1, no noise model).
+    (segments used, iterations, log evidence, the slopes' prior variance). ``sbl`` False: one
+    weighted least-squares solve (PL-LS: every observation weight 1, no noise model).
     """
     n = y.shape[1]
     cnt = 0
@@ -329,7 +339,7 @@ def _pl_pixel(y, w, lights, p, k_max, lam_row, ridge, learn_tau, max_iter, tol, 
         if not logdet == logdet:
             for r in range(u):
                 x[r] = 0.0
-            return k, iters, -math.inf
+            return k, iters, -math.inf, tau2
         done = True  # skip the generic loop
     while not (k == 3):
         _prior(k, tau2, ridge, prior, prior_rhs)
@@ -338,7 +348,7 @@ def _pl_pixel(y, w, lights, p, k_max, lam_row, ridge, learn_tau, max_iter, tol, 
         if not logdet == logdet:
             for r in range(u):
                 x[r] = 0.0
-            return k, iters, -math.inf
+            return k, iters, -math.inf, tau2
         for r in range(u):
             acc = 0.0
             for c in range(u):
@@ -400,7 +410,7 @@ def _pl_pixel(y, w, lights, p, k_max, lam_row, ridge, learn_tau, max_iter, tol, 
             iters = it
             done = True
     if not sbl:
-        return k, 1, 0.0
+        return k, 1, 0.0, tau2
     # log evidence of y: -1/2 [sum log c + log|M| - log|P| + sum d r^2 + dx^T P dx] + log Jacobian
     quad = 0.0
     for i in range(n):
@@ -430,7 +440,7 @@ def _pl_pixel(y, w, lights, p, k_max, lam_row, ridge, learn_tau, max_iter, tol, 
     for r in range(ns, u):
         quad += ridge * x[r] * x[r]
     evidence = -0.5 * (logc + logdet - logdet_p + quad) + jac
-    return k, iters, evidence
+    return k, iters, evidence, tau2
 
 
 @njit(**INLINE)
@@ -453,29 +463,11 @@ def _finish(p, k, x, slopes, breaks, st, n, threshold, x_out, outliers, segments
         outliers[p, i] = st[_W, i] > 0.0 and abs(e) > threshold
 
 
-@njit(**INLINE)
-def _sbl_evidence(st, tab, n, ridge, x0, x1, x2):
-    """Log evidence of SBL's final state (``_kernels`` layout): the PL model with one segment."""
-    xx, yy, zz, xy, xz, yz, _, _, _ = _weighted_sums(st, tab, n)
-    xx += ridge
-    yy += ridge
-    zz += ridge
-    det = (xx * (yy * zz - yz * yz) + xy * (xz * yz - xy * zz) + xz * (xy * yz - xz * yy))
-    if not det > 0.0:
-        return -math.inf
-    quad = ridge * (x0 * x0 + x1 * x1 + x2 * x2)
-    for i in range(n):
-        r = st[_kernels._Y, i] - (x0 * tab[6, i] + x1 * tab[7, i] + x2 * tab[8, i])
-        quad += st[_kernels._V, i] * r * r
-    logc = _sum_log(st, _kernels._W, _kernels._G, _kernels._LAM, n)
-    return -0.5 * (logc + math.log(det) - 3.0 * math.log(ridge) + quad)
-
-
 @njit(nogil=True, cache=True, **VECTOR)
 def _pl_kernel(y, w, lights, per_pixel, lam, lam_pl, k_max, choose, sbl, ridge, learn_tau,
                max_iter,
                sbl_max_iter, tol, floor, start, threshold, x_out, outliers, iters, segments_out,
-               evidence_out, want_residuals, resid_out):
+               evidence_out, want_residuals, resid_out, choice_z):
     m, n = y.shape
     umax = k_max + 2
     st = np.zeros((STATE_ROWS, n))
@@ -492,6 +484,10 @@ def _pl_kernel(y, w, lights, per_pixel, lam, lam_pl, k_max, choose, sbl, ridge, 
     slopes = np.zeros(k_max)
     sbl_st = np.zeros((_kernels.STATE_ROWS, n))
     sbl_tab = np.zeros((9, n))
+    kv = np.zeros(n)
+    slope_of = np.zeros(n)
+    loo = np.zeros((2, n))
+    scratch = np.zeros(umax)
     if choose and not per_pixel:
         _light_table(lights[0], sbl_tab)
     for p in range(m):
@@ -499,7 +495,7 @@ def _pl_kernel(y, w, lights, per_pixel, lam, lam_pl, k_max, choose, sbl, ridge, 
         lam_row = lam[p]
         if choose:
             # the Lambertian model (K = 1: SBL, its own kernel) first; kept unless K segments
-            # have more evidence
+            # predict the pixel's kept observations better (_choose)
             if per_pixel:
                 _light_table(lp, sbl_tab)
             for i in range(n):
@@ -509,16 +505,22 @@ def _pl_kernel(y, w, lights, per_pixel, lam, lam_pl, k_max, choose, sbl, ridge, 
             _sbl_pixel(sbl_st, sbl_tab, n, ridge, sbl_max_iter, tol, floor, start, threshold,
                        x_out, outliers, iters, p)
             segments_out[p] = 1
-            evidence_out[p] = _sbl_evidence(sbl_st, sbl_tab, n, ridge, x_out[p, 0], x_out[p, 1],
-                                            x_out[p, 2])
             if k_max == 1:
                 continue
-        k, it, ev = _pl_pixel(y, w, lp, p, k_max, lam_pl[p], ridge, learn_tau, max_iter, tol,
-                              floor, start, sbl, st, tab, mat, inv, low, x, rhs, prior,
-                              prior_rhs, breaks, vals, slopes)
-        if choose and not ev > evidence_out[p]:
-            continue
-        evidence_out[p] = ev
+        k, it, ev, tau2 = _pl_pixel(y, w, lp, p, k_max, lam_pl[p], ridge, learn_tau, max_iter,
+                                    tol, floor, start, sbl, st, tab, mat, inv, low, x, rhs, prior,
+                                    prior_rhs, breaks, vals, slopes)
+        if choose:
+            if k == 1 or not ev > -math.inf:
+                continue  # one segment is the Lambertian model; a failed PL fit
+            gain = _choose(y, p, n, k, threshold, lam_row, outliers, st, tab, sbl_st, sbl_tab,
+                           slopes, tau2, ridge, kv, slope_of, prior, prior_rhs, mat, inv, low,
+                           scratch, loo, choice_z)
+            evidence_out[p] = gain
+            if not gain > 0.0:
+                continue
+        else:
+            evidence_out[p] = ev
         _finish(p, k, x, slopes, breaks, st, n, threshold, x_out, outliers, segments_out)
         iters[p] = it  # the iterations of the model kept
         if want_residuals:
@@ -526,6 +528,51 @@ def _pl_kernel(y, w, lights, per_pixel, lam, lam_pl, k_max, choose, sbl, ridge, 
                 sl = slopes[int(st[_SEG, i])]
                 sl = sl if sl > SLOPE_FLOOR / k else SLOPE_FLOOR / k
                 resid_out[p, i] = -st[_R, i] / sl * st[_W, i]
+
+
+@njit(**INLINE)
+def _choose(y, p, n, k, threshold, lam_row, outliers, st, tab, sbl_st, sbl_tab, slopes, tau2,
+            ridge, sw, slope_of, prior, prior_rhs, mat, inv, low, scratch, loo, z):
+    """The piecewise-linear model's predictive gain over the Lambertian one at pixel p.
+
+    Scored: the usable observations that at least one robust fit accepts as uncorrupted (SBL's
+    flags in ``outliers[p]``, the PL fit's from its final state): a model that calls corrupted
+    what the other explains pays for it; what both call corrupted says nothing about either.
+    Each model is scored as fitted (its final weights ``d``; PL with its slopes' prior)
+    by its closed-form leave-one-out residuals in ``y``'s units, under the same noise (SBL's
+    ``lambda_i``): :func:`._pl_algebra._loo_lambertian`, :func:`._pl_algebra._loo_pl`. The gain
+    is the sum of the paired differences ``d_i`` of the two squared left-out residuals
+    (Lambertian minus PL) less ``z`` standard errors of that sum (``z sqrt(N) sd(d)``): positive
+    when PL predicts better by more than chance gives a model with more unknowns; -inf when
+    fewer than ``CHOICE_PER_UNKNOWN`` observations per PL unknown are scored or a fit fails.
+    """
+    u = k + 2
+    kept = 0
+    for i in range(n):
+        sl = slopes[int(st[_SEG, i])]
+        sl = sl if sl > SLOPE_FLOOR / k else SLOPE_FLOOR / k
+        slope_of[i] = sl
+        e = st[_G, i] * st[_D, i] * st[_R, i] / sl
+        ok = st[_W, i] > 0.0 and not (outliers[p, i] and abs(e) > threshold)
+        sw[i] = 1.0 / lam_row[i] if ok else 0.0
+        kept += ok
+    if kept < CHOICE_PER_UNKNOWN * u:
+        return -math.inf
+    score_sbl = _loo_lambertian(y[p], sbl_st[_kernels._V], sw, sbl_tab, n, ridge, loo[0])
+    _prior(k, tau2, ridge, prior, prior_rhs)
+    score_pl = _loo_pl(st[_T], st[_D], sw, slope_of, tab, n, u, prior, prior_rhs, mat, inv, low,
+                       scratch, loo[1])
+    if not (score_pl < math.inf and score_sbl == score_sbl):
+        return -math.inf
+    if not score_sbl < math.inf:
+        return math.inf
+    mean = (score_sbl - score_pl) / kept
+    var = 0.0
+    for i in range(n):
+        if sw[i] > 0.0:
+            d = loo[0, i] - loo[1, i] - mean
+            var += d * d
+    return (score_sbl - score_pl) - z * math.sqrt(kept * var / (kept - 1))
 
 
 @dataclass
@@ -541,7 +588,7 @@ def pl_tile(y, w, lights, *, segments: int, lam, sigma_x2: float = 1e6, max_iter
             tol: float = 1e-4, gamma_floor: float = 1e-10, gamma_start: float = 1e3,
             outlier_threshold: float = np.inf, learn_tau: bool = True, sbl: bool = True,
             choose: bool = False, sbl_max_iter: int = 100, lam_pl=None,
-            residuals: bool = False) -> PLTileResult:
+            residuals: bool = False, choice_z: float = CHOICE_Z) -> PLTileResult:
     """Piecewise-linear model of ``segments`` segments on one tile (module docstring).
 
     Parameters
@@ -565,7 +612,11 @@ def pl_tile(y, w, lights, *, segments: int, lam, sigma_x2: float = 1e6, max_iter
         ``lam`` is then the one-segment model's).
     choose : bool
         Solve each pixel with ``K = 1`` (SBL, at most ``sbl_max_iter`` iterations) too and keep
-        the model with the larger evidence.
+        the ``K``-segment model only where it predicts the pixel's observations better, left out
+        in turn, by more than ``choice_z`` standard errors (:func:`_choose`); ``evidence`` is
+        then that margin (> 0 where PL was kept).
+    choice_z : float
+        The margin of the choice, in standard errors of the leave-one-out gain.
 
     sigma_x2, max_iter, tol, gamma_floor, gamma_start, outlier_threshold : float, int, ...
         SBL's (:func:`._kernels.sbl_tile`); ``gamma_start`` and ``tol`` are in the units of ``y``
@@ -596,5 +647,5 @@ def pl_tile(y, w, lights, *, segments: int, lam, sigma_x2: float = 1e6, max_iter
                    1.0 / float(sigma_x2), bool(learn_tau), int(max_iter), int(sbl_max_iter),
                    float(tol),
                    float(gamma_floor), float(gamma_start), float(outlier_threshold), x, outliers,
-                   iters, segs, evidence, bool(residuals), resid)
+                   iters, segs, evidence, bool(residuals), resid, float(choice_z))
     return PLTileResult(x, outliers, iters, segs, evidence, resid if residuals else None)

@@ -9,6 +9,8 @@ import numpy as np
 from ps_lab.errors import DatasetError
 
 METHODS = ("auto", "ls", "l1", "sbl", "plls", "plsbl", "rpca")
+# What every method's ``albedo`` is (``Solution.params["albedo"]``, metrics.json).
+ALBEDO_DEFINITION = "lambertian-equivalent"
 
 
 class SolverInputError(DatasetError, ValueError):
@@ -29,7 +31,8 @@ class Solution:
         Unit normals, camera frame of the lights; zeros where a pixel is unsolvable (fewer than
         three usable observations, or degenerate lights).
     albedo : ndarray of shape (P,)
-        Length of the fitted albedo-normal vector, in the units of the observations.
+        The Lambertian-equivalent reflectance (:func:`lambertian_albedo`), in the units of the
+        observations, for every method.
     outliers : ndarray of shape (n, P), bool
         Observations the method treated as corrupted (invalid observations are never flagged).
     iterations : ndarray of shape (P,), int
@@ -69,3 +72,51 @@ class RefinementResult:
     light_directions: np.ndarray
     light_intensities: np.ndarray
     history: list = field(default_factory=list)
+
+
+def lambertian_albedo(normals: np.ndarray, inliers: np.ndarray, observations: np.ndarray,
+                      lights: np.ndarray) -> np.ndarray:
+    """Lambertian-equivalent reflectance of each pixel, given its normal and inliers.
+
+    The least-squares scale ``rho`` of the Lambertian image ``rho max(n.l_i, 0)`` on the pixel's
+    inlier observations (usable, not flagged as corrupted) that its normal sees lit:
+    ``rho = max(sum_i y_i (n.l_i) / sum_i (n.l_i)^2, 0)`` over ``i`` with ``n.l_i > 0``. It is
+    the same quantity whatever model gave the normal (on Lambertian data every method's albedo is
+    the true one), and it applies to one colour channel's observations as well as to their mean.
+
+    Parameters
+    ----------
+    normals : ndarray of shape (P, 3)
+        Unit normals (zeros for unsolved pixels).
+    inliers : ndarray of shape (n, P), bool
+        The observations to fit.
+    observations : ndarray of shape (n, P)
+        Intensities (divided by the light intensities, as solved).
+    lights : ndarray of shape (n, 3) or (P, n, 3)
+        Light vectors (the same for every pixel, or each pixel's own).
+
+    Returns
+    -------
+    ndarray of shape (P,)
+        ``rho``; 0 where no inlier is lit (or the normal is 0).
+    """
+    normals = np.asarray(normals, dtype=np.float64)
+    lights = np.asarray(lights, dtype=np.float64)
+    if lights.ndim == 2:
+        shading = normals @ lights.T
+    else:
+        shading = np.einsum("pk,pnk->pn", normals, lights)
+    rho = _albedo_rows(shading, np.asarray(inliers, bool).T,
+                       np.asarray(observations, np.float64).T)
+    return np.nan_to_num(rho, nan=0.0)
+
+
+def _albedo_rows(shading: np.ndarray, inliers: np.ndarray, y: np.ndarray) -> np.ndarray:
+    """:func:`lambertian_albedo` in pixel-major layout ((m, n) ``n.l``, inliers and ``y``); NaN
+    where no inlier is lit (the caller's fallback)."""
+    use = inliers & (shading > 0.0)
+    s = np.where(use, shading, 0.0)
+    num = np.einsum("pn,pn->p", s, np.where(use, y, 0.0))
+    den = np.einsum("pn,pn->p", s, s)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return np.where(den > 0.0, np.maximum(num / np.where(den > 0.0, den, 1.0), 0.0), np.nan)

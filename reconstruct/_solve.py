@@ -13,7 +13,13 @@ import numpy as np
 from . import _kernels, _pl_kernels
 from ._linalg import SOLVABLE_REL_DET, inverse6, outer6, pixel_scale
 from ._rpca import solve_rpca
-from ._solution import METHODS, Solution, SolverInputError
+from ._solution import (
+    ALBEDO_DEFINITION,
+    METHODS,
+    Solution,
+    SolverInputError,
+    _albedo_rows,
+)
 
 # Defaults of each method's parameters (in units of the pixel's robust scale, see `pixel_scale`).
 DEFAULTS: dict[str, dict] = {
@@ -30,12 +36,10 @@ DEFAULTS: dict[str, dict] = {
     "rpca": {"lam_sparse": None, "max_iter": 500, "tol": 1e-7, "rho": 1.5,
              "outlier_threshold": None, "noise_sigma": None},
 }
-# The default method chooses, per pixel, SBL or PL-SBL by their evidence; it takes PL-SBL's options.
-# Both models run the same number of EM steps (tol 0: no early stop), so that their evidences are
-# compared at the same point: a pixel stopped early by ``tol`` (a small change of z) can still be
-# far from its evidence's optimum (inliers' gamma still shrinking), and which one stopped first
-# would decide (docs/solvers.md).
-DEFAULTS["auto"] = {**DEFAULTS["plsbl"], "tol": 0.0}
+# The default method chooses, per pixel, SBL or PL-SBL by which predicts the pixel's kept
+# observations better (leave-one-out, docs/solvers.md); it takes PL-SBL's options, and its SBL
+# candidate runs SBL's own iterations (so where it keeps SBL, it is SBL).
+DEFAULTS["auto"] = dict(DEFAULTS["plsbl"])
 # Methods with SBL's noise variance (lambda) and its per-observation default.
 SBL_LIKE = ("sbl", "plsbl", "auto")
 DEFAULT_TILE_SIZE = 4096
@@ -511,6 +515,9 @@ def solve(
     """
     obs, lights, usable = _check_inputs(observations, light_directions, valid)
     params = _method_params(method, method_params)
+    if method == "auto":
+        # the SBL candidate runs SBL's own iterations, unless a cap is given for both models
+        params["sbl_max_iter"] = int(method_params.get("max_iter", DEFAULTS["sbl"]["max_iter"]))
     n, p = obs.shape
     workers = int(threads) if threads else (os.cpu_count() or 1)
     if workers < 1:
@@ -533,7 +540,12 @@ def solve(
 
         used = _solve_params(n, method, params, residuals, pl_noise)
         if method == "rpca":
-            return solve_rpca(obs, lights, usable, params, used, progress)
+            sol = solve_rpca(obs, lights, usable, params, used, progress)
+            rho = _albedo_rows(sol.normals @ lights.T, (usable & ~sol.outliers).T,
+                               np.where(usable, obs, 0.0).T)
+            sol.params["albedo"] = ALBEDO_DEFINITION
+            return Solution(sol.normals, np.where(np.isnan(rho), sol.albedo, rho), sol.outliers,
+                            sol.iterations, sol.params)
         used.update({"tile_size": bound, "threads": workers})
         return _solve_tiles(obs, lights, usable, method, params, used, starts, tile, mapper,
                             progress)
@@ -596,8 +608,8 @@ def _pl_sbl_tile(y, w, lights, **params):
 
 
 def _auto_tile(y, w, lights, **params):
-    return _pl_kernels.pl_tile(y, w, lights, choose=True, sbl_max_iter=params["max_iter"],
-                               **params)
+    sbl_max_iter = params.pop("sbl_max_iter", DEFAULTS["sbl"]["max_iter"])
+    return _pl_kernels.pl_tile(y, w, lights, choose=True, sbl_max_iter=sbl_max_iter, **params)
 
 
 def _pl_ls_tile(y, w, lights, *, segments):
@@ -642,8 +654,11 @@ def _solve_tiles(obs, lights, usable, method, params, used, starts, tile, mapper
         x = res.x.astype(np.float64) * scale[:, None]
         length = np.linalg.norm(x, axis=1)
         good = ok & (length > 0) & np.isfinite(length)
-        normals[a:b] = np.where(good[:, None], x / np.where(good, length, 1.0)[:, None], 0.0)
-        albedo[a:b] = np.where(good, length, 0.0)
+        unit = np.where(good[:, None], x / np.where(good, length, 1.0)[:, None], 0.0)
+        normals[a:b] = unit
+        # one albedo for every method: the Lambertian-equivalent reflectance on the inliers
+        rho = _albedo_rows(unit @ lights.T, (w > 0) & ~res.outliers, y) * scale
+        albedo[a:b] = np.where(good, np.where(np.isnan(rho), length, rho), 0.0)
         outliers[:, a:b] = (res.outliers & good[:, None]).T
         iterations[a:b] = np.where(ok, res.iterations, 0)
         if segments is not None:
@@ -658,4 +673,5 @@ def _solve_tiles(obs, lights, usable, method, params, used, starts, tile, mapper
         used["pixels_per_segments"] = {int(k): int(c) for k, c in
                                        zip(*np.unique(segments[solved], return_counts=True),
                                            strict=True)}
+    used["albedo"] = ALBEDO_DEFINITION
     return Solution(normals, albedo, outliers, iterations, used)

@@ -53,9 +53,15 @@ def test_without_negatives_the_clipped_black_level_is_the_threshold() -> None:
     # nothing repeated at the bottom (no clipping, no dark-frame subtraction): nothing measured
     smooth = rng.uniform(1e-3, 1.0, clipped.shape)
     assert black_threshold(smooth, valid) is None
-    # a handful of negatives (below the minimum count) are not a measurement either
+    # a handful of distinct negatives (too few to measure noise at black) do not hide the atoms
+    # at 0 (issue 31: a render's exact zeros with sparse noise): every light's level stays 0
+    clipped[0, :50] = -rng.uniform(1e-4, 1e-3, 50)
+    np.testing.assert_array_equal(black_threshold(clipped, valid), np.zeros(8))
+    # a value repeated at the bottom of a light's range is that light's black, negative or not
     clipped[0, :50] = -1e-3
-    assert black_threshold(clipped, valid) is None
+    expected = np.zeros(8, np.float32)
+    expected[0] = -1e-3
+    np.testing.assert_array_equal(black_threshold(clipped, valid), expected)
 
 
 @pytest.mark.parametrize("seed", [0, 1, 2])

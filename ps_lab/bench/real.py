@@ -6,6 +6,13 @@ and averaged, saturated observations dropped, observations at the black level dr
 (:func:`ps_lab.reconstruct._shadows.black_threshold` on an evenly spaced sample, as the
 reconstruction's store does), every mask pixel) and solved with the default (``auto``), LS, L1,
 SBL, PL-LS, PL-SBL and R-PCA at their defaults, plus SBL at fixed ``lam`` values for comparison.
+
+Relighting (every method with its defaults): every ``RELIGHT_EVERY``-th light (0, 8, 16, ...) is
+left out, the method solves the others (their own shadow rule), and its normals and albedo
+predict the left-out images as ``albedo * max(n.l, 0)``; the column is the PSNR (dB, peak 1: the
+images' full scale) of that prediction against the left-out observations over the object mask
+(every mask pixel of the kept sample, shadows included, saturated ones excluded). An albedo
+defect (scale, salt-and-pepper) shows here where the normals' error does not.
 The numbers go to
 ``docs/results.md``; ``docs/solvers.md`` explains SBL's default ``lam`` with them.
 """
@@ -30,6 +37,8 @@ METHODS = ("auto", "ls", "l1", "sbl", "plls", "plsbl", "rpca")
 # Methods that take each light's share of the noise floor (SBL's default lambda).
 _LIGHT_NOISE = ("auto", "sbl", "plsbl")
 FIXED_LAMBDAS = (1e-6, 1e-4, 1e-2, 1e-1)
+# Every RELIGHT_EVERY-th light is left out of the relighting fit.
+RELIGHT_EVERY = 8
 
 
 @dataclass(frozen=True)
@@ -46,6 +55,7 @@ class RealObject:
     light_directions: np.ndarray
     normal_gt: np.ndarray
     light_noise: np.ndarray
+    unsaturated: np.ndarray | None = None
 
 
 @dataclass
@@ -82,18 +92,56 @@ def load_object(path: Path, every: int = 1, lights: np.ndarray | None = None) ->
     mask = data.mask
     pick = np.arange(data.images.shape[0]) if lights is None else np.asarray(lights)
     obs = data.images[pick][:, mask]
-    valid = data.valid[pick][:, mask]
+    unsaturated = data.valid[pick][:, mask]
     factors = light_noise_factors(data.light_intensities[pick])
     # the reconstruction's default shadow rule, on the same kind of evenly spaced sample
     sample = np.unique(np.linspace(0, obs.shape[1] - 1, min(obs.shape[1], NOISE_SAMPLE_PIXELS))
                        .round().astype(np.int64))
-    black = black_threshold(obs[:, sample], valid[:, sample], factors,
+    black = black_threshold(obs[:, sample], unsaturated[:, sample], factors,
                             light_directions=data.light_directions[pick])
-    if black is not None:
-        valid = valid & (obs > black[:, None])
+    valid = unsaturated if black is None else unsaturated & (obs > black[:, None])
     gt = np.asarray(data.normal_gt, dtype=np.float64)[mask][::every]
     return RealObject(Path(path).name, obs[:, ::every], valid[:, ::every],
-                      data.light_directions[pick], gt, factors)
+                      data.light_directions[pick], gt, factors, unsaturated[:, ::every])
+
+
+def relight_split(obj: RealObject) -> tuple[RealObject, np.ndarray]:
+    """The object without every ``RELIGHT_EVERY``-th light (shadow rule redone), and those lights.
+
+    Returns the fitting object and the indices (into ``obj``'s lights) of the left-out lights.
+    """
+    n = obj.observations.shape[0]
+    held = np.arange(0, n, RELIGHT_EVERY)
+    fit = np.setdiff1d(np.arange(n), held)
+    obs = obj.observations[fit]
+    unsaturated = obj.unsaturated[fit] if obj.unsaturated is not None else obj.valid[fit]
+    factors = light_noise_factors_subset(obj.light_noise[fit])
+    sample = np.unique(np.linspace(0, obs.shape[1] - 1, min(obs.shape[1], NOISE_SAMPLE_PIXELS))
+                       .round().astype(np.int64))
+    black = black_threshold(obs[:, sample], unsaturated[:, sample], factors,
+                            light_directions=obj.light_directions[fit])
+    valid = unsaturated if black is None else unsaturated & (obs > black[:, None])
+    return RealObject(obj.name, obs, valid, obj.light_directions[fit], obj.normal_gt, factors,
+                      unsaturated), held
+
+
+def light_noise_factors_subset(factors: np.ndarray) -> np.ndarray:
+    """Light noise factors of a subset of lights, rescaled to mean square 1 (as a fresh fit)."""
+    f = np.asarray(factors, dtype=np.float64)
+    return f / np.sqrt(np.mean(f**2))
+
+
+def relight_psnr(normals: np.ndarray, albedo: np.ndarray, observations: np.ndarray,
+                 lights: np.ndarray, usable: np.ndarray | None = None) -> float:
+    """PSNR (dB, peak 1) of ``albedo * max(n.l, 0)`` against observations (n, P) under ``lights``.
+
+    ``normals`` (P, 3), ``albedo`` (P,), ``lights`` (n, 3); ``usable`` (n, P) selects the
+    observations compared (default: the finite ones).
+    """
+    predicted = albedo[None, :] * np.maximum(lights @ np.asarray(normals).T, 0.0)
+    use = np.isfinite(observations) if usable is None else usable & np.isfinite(observations)
+    mse = float(np.mean((predicted[use] - observations[use]) ** 2))
+    return 10.0 * np.log10(1.0 / mse) if mse > 0 else float("inf")
 
 
 def columns(methods=METHODS, lambdas=FIXED_LAMBDAS) -> list[str]:
@@ -101,18 +149,35 @@ def columns(methods=METHODS, lambdas=FIXED_LAMBDAS) -> list[str]:
     return list(methods) + [f"sbl lam={lam:g}" for lam in lambdas]
 
 
-def solve_column(obj: RealObject, column: str, threads: int | None = None) -> dict[str, float]:
-    """Mean/median angular error (deg) and solve seconds of one column on one object."""
+def _column_kwargs(obj: RealObject, column: str) -> dict:
     kwargs: dict = {"method": column.split()[0]}
     if column.startswith("sbl lam="):
         kwargs["lam"] = float(column.split("=")[1])
     elif column in _LIGHT_NOISE:
         kwargs["light_noise"] = obj.light_noise
+    return kwargs
+
+
+def solve_column(obj: RealObject, column: str, threads: int | None = None,
+                 relight: bool = True) -> dict[str, float]:
+    """Mean/median angular error (deg), solve seconds and relighting PSNR of one column.
+
+    ``psnr`` (dB, :func:`relight_psnr`) only for the methods at their defaults, with ``relight``.
+    """
     started = time.perf_counter()
-    sol = solve(obj.observations, obj.light_directions, valid=obj.valid, threads=threads, **kwargs)
+    sol = solve(obj.observations, obj.light_directions, valid=obj.valid, threads=threads,
+                **_column_kwargs(obj, column))
     seconds = time.perf_counter() - started
     summary = error_summary(angular_errors_deg(sol.normals, obj.normal_gt))
-    return {"mean": summary["mean"], "median": summary["median"], "seconds": seconds}
+    cell = {"mean": summary["mean"], "median": summary["median"], "seconds": seconds}
+    if relight and "=" not in column:
+        fit, held = relight_split(obj)
+        part = solve(fit.observations, fit.light_directions, valid=fit.valid, threads=threads,
+                     **_column_kwargs(fit, column))
+        usable = None if obj.unsaturated is None else obj.unsaturated[held]
+        cell["psnr"] = relight_psnr(part.normals, part.albedo, obj.observations[held],
+                                    obj.light_directions[held], usable)
+    return cell
 
 
 def run_real(
@@ -138,7 +203,8 @@ def run_real(
 
 
 def format_table(rows: list[RealRow], *, markdown: bool = False) -> str:
-    """One table: per object and column ``mean/median error in degrees (solve seconds)``."""
+    """One table: per object and column ``mean/median error in degrees (solve seconds)``, and
+    for the methods at their defaults the held-out relighting PSNR (``... dB``)."""
     if not rows:
         return ""
     names = list(rows[0].cells)
@@ -148,7 +214,8 @@ def format_table(rows: list[RealRow], *, markdown: bool = False) -> str:
         cells = [row.name, str(row.pixels)]
         for name in names:
             c = row.cells[name]
-            cells.append(f"{c['mean']:.2f}/{c['median']:.2f} ({c['seconds']:.1f} s)")
+            psnr = f" {c['psnr']:.1f} dB" if "psnr" in c else ""
+            cells.append(f"{c['mean']:.2f}/{c['median']:.2f} ({c['seconds']:.1f} s){psnr}")
         lines.append(cells)
     if markdown:
         out = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]

@@ -48,7 +48,8 @@ def l1_pixel(y, a, *, max_iter=100, tol=1e-6, delta=1e-6):
 
 
 def sbl_pixel(y, a, *, lam, sigma_x2=1e6, max_iter=100, tol=1e-4, gamma_floor=1e-10,
-              gamma_start=1e3):
+              gamma_start=1e3, out=None):
+    """SBL of one pixel: (x, |e|, iterations); ``out`` (a dict) receives the final ``gamma``."""
     n = y.size
     gamma = np.full(n, float(gamma_start))
     z_old = np.zeros(n)
@@ -70,15 +71,18 @@ def sbl_pixel(y, a, *, lam, sigma_x2=1e6, max_iter=100, tol=1e-4, gamma_floor=1e
     m = np.eye(3) / sigma_x2 + a.T @ big_d @ a
     x = np.linalg.solve(m, a.T @ big_d @ y)
     e = gamma * np.diag(big_d) * (y - a @ x)
+    if out is not None:
+        out["gamma"] = gamma
     return x, np.abs(e), it
 
 
 def pl_model(y, a, *, segments, lam, sigma_x2=1e6, max_iter=20, tol=1e-4, gamma_floor=1e-10,
-             gamma_start=1e3, sbl=True, learn_tau=True, slope_floor=1e-3):
+             gamma_start=1e3, sbl=True, learn_tau=True, slope_floor=1e-3, out=None):
     """Piecewise-linear model of one pixel, with the design and the constraint written out.
 
     Returns (x (K+2), slopes (K), breaks (K+1), segment of each observation, gamma, lambda,
-    iterations, log evidence, K used).
+    iterations, log evidence, K used); ``out`` (a dict) receives the final fit's ``design``,
+    ``target``, weights ``d``, ``prior`` and ``prior_rhs``.
     """
     n = y.size
     k = max(1, min(segments, n // 4))  # at least 4 observations per segment
@@ -110,6 +114,8 @@ def pl_model(y, a, *, segments, lam, sigma_x2=1e6, max_iter=20, tol=1e-4, gamma_
         x = minv @ (prior_rhs + design.T @ (d * target))
         slopes = np.append(x[:k - 1], 1.0 - x[:k - 1].sum())
         if done or it == max_iter:
+            if out is not None:
+                out.update(design=design, target=target, d=d, prior=prior, prior_rhs=prior_rhs)
             break
         # SBL (Ikehata et al. 2012) with Sigma_t = Gamma + Lambda + design P^-1 design^T, whose
         # inverse (Woodbury) is D - D design M^-1 design^T D; the prior mean is P^-1 prior_rhs
@@ -176,18 +182,59 @@ def plls_pixel(y, a, *, segments=3):
     return normal, np.zeros(y.size), 1
 
 
-def auto_pixel(y, a, *, lam, lam_pl=None, segments=3, sigma_x2=1e6, max_iter=20, tol=0.0,
-               gamma_floor=1e-10, gamma_start=1e3):
-    """SBL (the PL model with one segment) or PL-SBL, whichever has the larger evidence."""
-    common = {"sigma_x2": sigma_x2, "tol": tol, "gamma_floor": gamma_floor,
-              "gamma_start": gamma_start, "max_iter": max_iter}
-    lin = pl_model(y, a, segments=1, lam=lam, **common)
+def _left_out_terms(design, target, d, prior, prior_rhs, scored, weight, divide):
+    """``weight_i ((t_i - a_i.x_(-i)) / divide_i)^2`` for the scored i, refitting without each."""
+    terms = np.zeros(target.size)
+    for i in np.flatnonzero(scored):
+        keep = np.arange(target.size) != i
+        m = prior + design[keep].T @ (d[keep, None] * design[keep])
+        x = np.linalg.solve(m, prior_rhs + design[keep].T @ (d[keep] * target[keep]))
+        terms[i] = weight[i] * ((target[i] - design[i] @ x) / divide[i]) ** 2
+    return terms
+
+
+def auto_pixel(y, a, *, lam, lam_pl=None, segments=3, sigma_x2=1e6, max_iter=20, tol=1e-4,
+               gamma_floor=1e-10, gamma_start=1e3, outlier_threshold=np.inf, choice_z=1.0,
+               sbl_max_iter=100, slope_floor=1e-3):
+    """SBL, or PL-SBL where it predicts the observations left out in turn better (issue 31).
+
+    Scored: usable observations not flagged by both fits; each fit's weights held at their final
+    values and refitted without each scored observation (no closed form); the paired differences
+    of the squared left-out residuals (in y's units, weights 1 / lam) must sum to more than
+    ``choice_z`` standard errors.
+    """
+    lam = np.broadcast_to(np.asarray(lam, dtype=float), y.shape)
     lam_pl = lam if lam_pl is None else lam_pl
-    pl = pl_model(y, a, segments=segments, lam=lam_pl, **common) if segments > 1 else lin
-    best = pl if (segments > 1 and pl[7] > lin[7]) else lin
-    iters = best[6]  # the iterations of the model kept
-    normal = _pl_result(best, y, np.inf)[0]
-    return normal, _pl_statistic(best, y, a), iters
+    extra = {}
+    x_sbl, e_sbl, it_sbl = sbl_pixel(y, a, lam=lam, sigma_x2=sigma_x2, max_iter=sbl_max_iter,
+                                     tol=tol, gamma_floor=gamma_floor, gamma_start=gamma_start,
+                                     out=extra)
+    sbl_result = x_sbl, e_sbl, it_sbl
+    if segments == 1:
+        return sbl_result
+    fit = {}
+    pl = pl_model(y, a, segments=segments, lam=lam_pl, sigma_x2=sigma_x2, max_iter=max_iter,
+                  tol=tol, gamma_floor=gamma_floor, gamma_start=gamma_start, out=fit)
+    k = pl[8]
+    if k == 1 or not np.isfinite(pl[7]):
+        return sbl_result
+    e_pl = _pl_statistic(pl, y, a)
+    scored = ~((e_sbl > outlier_threshold) & (e_pl > outlier_threshold))
+    count = int(scored.sum())
+    if count < 4 * (k + 2):  # at least 4 scored observations per PL unknown
+        return sbl_result
+    weight = 1.0 / lam
+    d_sbl = 1.0 / (extra["gamma"] + lam)
+    sbl_terms = _left_out_terms(a, y, d_sbl, np.eye(3) / sigma_x2, np.zeros(3), scored, weight,
+                                np.ones(y.size))
+    slope = np.maximum(pl[1][pl[3]], slope_floor / k)
+    pl_terms = _left_out_terms(fit["design"], fit["target"], fit["d"], fit["prior"],
+                               fit["prior_rhs"], scored, weight, slope)
+    diff = (sbl_terms - pl_terms)[scored]
+    gain = diff.sum() - choice_z * np.sqrt(count * np.var(diff, ddof=1))
+    if not gain > 0:
+        return sbl_result
+    return _pl_result(pl, y, np.inf)[0], e_pl, pl[6]
 
 
 PIXEL_ORACLES = {"ls": ls_pixel, "l1": l1_pixel, "sbl": sbl_pixel, "plls": plls_pixel,
@@ -233,6 +280,8 @@ def solve_oracle(observations, lights, method, valid=None, *, statistic=False, *
             if method in ("plsbl", "auto"):  # the PL model's own relative noise
                 lam_pl = np.maximum(params["noise_sigma_pl"] ** 2 + floor_term, 1e-6)
                 pixel_params["lam" if method == "plsbl" else "lam_pl"] = lam_pl
+        if method == "auto":
+            pixel_params = {**pixel_params, "outlier_threshold": threshold}
         x, stat, it = PIXEL_ORACLES[method](y / scale, a, **pixel_params)
         x = x * scale
         albedo[j] = np.linalg.norm(x)
@@ -240,10 +289,19 @@ def solve_oracle(observations, lights, method, valid=None, *, statistic=False, *
             normals[j] = x / albedo[j]
             outliers[np.flatnonzero(v), j] = stat > threshold
             statistics[np.flatnonzero(v), j] = stat
+            albedo[j] = lambertian_equivalent(normals[j], y, a, stat <= threshold, albedo[j])
         iterations[j] = it
     if statistic:
         return normals, albedo, outliers, iterations, statistics
     return normals, albedo, outliers, iterations
+
+
+def lambertian_equivalent(normal, y, a, inliers, fallback):
+    """Least-squares scale of ``max(n.l, 0)`` on the inliers that the normal sees lit."""
+    shading = a @ normal
+    use = inliers & (shading > 0)
+    den = float(shading[use] @ shading[use])
+    return max(float(y[use] @ shading[use]) / den, 0.0) if den > 0 else fallback
 
 
 def rpca_oracle(obs, lights, valid, *, lam_sparse=None, max_iter=500, tol=1e-7, rho=1.5,
@@ -277,6 +335,10 @@ def rpca_oracle(obs, lights, valid, *, lam_sparse=None, max_iter=500, tol=1e-7, 
     albedo[cols] = np.linalg.norm(x, axis=0)
     normals[cols] = (x / albedo[cols]).T
     outliers[:, cols] = omega & (np.abs(e) > outlier_threshold)
+    for c in cols:
+        inl = valid[:, c] & ~outliers[:, c]
+        albedo[c] = lambertian_equivalent(normals[c], np.where(valid[:, c], obs[:, c], 0.0),
+                                          lights, inl, albedo[c])
     statistics = np.full((n, p), np.nan)
     statistics[:, cols] = np.where(omega, np.abs(e), np.nan)
     return normals, albedo, outliers, np.where(ok, it, 0), statistics
