@@ -168,12 +168,18 @@ def fit_ps(
         shade = np.maximum(np.einsum("nqk,qk->nq", dd if dd.ndim == 3 else
                                      np.broadcast_to(dd[:, None], (n, nrm.shape[0], 3)), nrm), 0)
         residual = obs[:, part] - rho[part][None] * shade[..., None]
-        w = good[:, part].astype(np.float64)
-        gram = np.einsum("nqk,nqj,nqc->qckj", basis, basis, w)
+        bt = basis.transpose(1, 2, 0)  # (q, K, n)
+        w = good[:, part]
+        if w.all():
+            gram = np.matmul(bt, basis.transpose(1, 0, 2))[:, None]  # (q, 1, K, K)
+        else:
+            wt = w.astype(np.float64).transpose(1, 2, 0)[..., None, :]  # (q, C, 1, n)
+            gram = np.matmul(bt[:, None] * wt, basis.transpose(1, 0, 2)[:, None])
+            residual = residual * w
+        rhs = np.matmul(bt, residual.transpose(1, 0, 2)).transpose(0, 2, 1)  # (q, C, K)
         scale = np.trace(gram, axis1=2, axis2=3)[..., None, None] / k
-        gram += (ridge * scale + 1e-12) * eye
-        rhs = np.einsum("nqk,nqc->qck", basis, residual * w)
-        x = np.linalg.solve(gram, rhs[..., None])[..., 0]
+        gram = gram + (ridge * scale + 1e-12) * eye
+        x = np.linalg.solve(np.broadcast_to(gram, (gram.shape[0], c, k, k)), rhs[..., None])[..., 0]
         x[~solved[part]] = 0.0
         out[part] = x
     return out

@@ -238,27 +238,35 @@ def ps_term(term: str, directions: np.ndarray, normals: np.ndarray) -> np.ndarra
     ndarray of the broadcast shape without the last axis, float64
 
     """
-    shade = np.einsum("...k,...k->...", *np.broadcast_arrays(directions, normals))
+    d, n = np.broadcast_arrays(np.asarray(directions, np.float64), np.asarray(normals, np.float64))
+    half = _unit(d + _VIEW)
+    shade = np.einsum("...k,...k->...", d, n)
+    nh = np.einsum("...k,...k->...", half, n)
+    return _term(term, d, half, shade, nh)
+
+
+def _term(term: str, d, half, shade, nh) -> np.ndarray:
+    """One term from the light ``d``, half vector ``half`` (broadcastable to ``shade``'s shape
+    plus 3), ``shade = n·l`` and ``nh = n·h``."""
+    lit = shade > 0
     if term == "lambert":
         return np.maximum(shade, 0.0)
     if term == "ambient":
         return np.ones_like(shade)
-    if term.startswith("lobe"):
-        kind, power = term.split(":")
-        power = float(power)
-        half = _unit(np.asarray(directions, np.float64) + _VIEW)
-        nh = np.maximum(np.einsum("...k,...k->...", *np.broadcast_arrays(half, normals)), 0.0)
-        if kind == "lobe":
-            return nh**power * (shade > 0)
-        axis = "xy".index(kind[-1])
-        return nh ** (power - 1) * np.broadcast_to(half, shade.shape + (3,))[..., axis] * (shade > 0)
     if term in ("lx", "ly", "lz"):
-        d = np.broadcast_to(directions, shade.shape + (3,))
-        return d[..., "xyz".index(term[1])] * (shade > 0)
+        return d[..., "xyz".index(term[1])] * lit
+    if term.startswith("lobe"):
+        kind, _, power_text = term.partition(":")
+        power = float(power_text)
+        base = np.maximum(nh, 0.0)
+        if kind == "lobe":
+            return base**power * lit
+        if kind in ("lobex", "lobey"):
+            return base ** (power - 1) * half[..., "xy".index(kind[-1])] * lit
     if term.startswith("hsh:"):
         index = int(term[4:])
-        full = hsh_basis(np.broadcast_to(directions, shade.shape + (3,)), 3)
-        return full[..., index]
+        if 0 <= index < 9:
+            return np.broadcast_to(hsh_basis(d, 3)[..., index], shade.shape).copy()
     raise ValueError(f"unknown ps term {term!r}")
 
 
@@ -282,10 +290,19 @@ def ps_basis(
 
     """
     d = _unit(directions)
+    n = np.asarray(normals, np.float64)
+    half = _unit(d + _VIEW)
     if d.ndim == 2:
-        d = d[:, None, :]
-    n = np.asarray(normals, np.float64)[None]
-    return np.stack([ps_term(t, d, n) for t in terms], axis=-1)
+        shade = d @ n.T  # (m, P)
+        nh = half @ n.T
+        d, half = d[:, None, :], half[:, None, :]
+    else:
+        shade = np.einsum("mpk,pk->mp", d, n)
+        nh = np.einsum("mpk,pk->mp", half, n)
+    out = np.empty((*shade.shape, len(terms)))
+    for k, term in enumerate(terms):
+        out[..., k] = _term(term, d, half, shade, nh)
+    return out
 
 
 def rbf_weights(directions: np.ndarray, lights: np.ndarray, sigma: float) -> np.ndarray:
