@@ -326,3 +326,19 @@ def test_ps_model_beats_rti_on_a_real_object():
     row = bench_relight.evaluate_capture(folder)
     best = max(row.cells[m]["psnr"] for m in ("ptm", "hsh2", "hsh3", "rbf"))
     assert row.cells["ps"]["psnr"] > best
+
+
+def test_relight_near_result_by_led_position(tmp_path):
+    folder = tmp_path / "near"
+    _tiny_result(folder, with_appearance=False)
+    (folder / "metrics.json").write_text(json.dumps({"format": RESULT_FORMAT,
+                                                     "light_model": "near"}))
+    np.save(folder / "depth.npy", np.zeros((3, 4), np.float32))
+    done = runner.invoke(app, ["relight", str(folder), "--light", "0,0,100", "--appearance",
+                               "lambertian", "--out", str(tmp_path / "near.exr")])
+    assert done.exit_code == 0, done.output
+    picture = read_exr(tmp_path / "near.exr")[..., 0]
+    # scene frame: origin at the image centre ((W-1)/2, (H-1)/2) = (1.5, 1); pixel (row 1,
+    # col 1) is the point (-0.5, 0, 0): cos = 100 / r, falloff (100 / r)^2, r^2 = 100^2 + 0.25
+    r = math.sqrt(100**2 + 0.25)
+    assert picture[1, 1] == pytest.approx(0.5 * (100 / r) * (100 / r) ** 2, rel=1e-6)
