@@ -242,22 +242,26 @@ def fit_ps(
         part = slice(start, min(start + chunk, p))
         nrm = normals[part]
         dd = d if d.ndim == 2 else d[:, part]
-        basis = ps_basis(dd, nrm, terms)  # (n, q, K)
+        planes = np.moveaxis(ps_basis(dd, nrm, terms), -1, 0)  # (K, n, q), contiguous
         shade = dd @ nrm.T if dd.ndim == 2 else np.einsum("nqk,qk->nq", dd, nrm)
         shade = np.maximum(shade, 0.0)
         if visibility is not None:
             v = ps_visibility(dd, visibility[part])  # (n, q)
-            shade = shade * v
-            basis[..., direct] *= v[..., None]
+            shade *= v
+            planes[direct] *= v
         residual = obs[:, part] - rho[part][None] * shade[..., None]  # (n, q, C)
-        bt = np.ascontiguousarray(basis.transpose(1, 2, 0))  # (q, K, n)
         w = good[:, part]
         if w.all():
-            gram = np.matmul(bt, bt.transpose(0, 2, 1))  # (q, K, K)
-            rhs = np.matmul(bt, residual.transpose(1, 0, 2))  # (q, K, C)
+            # Normal equations by sums over the lights of term products: (q, K, K), (q, K, C).
+            gram = np.empty((nrm.shape[0], k, k))
+            for i in range(k):
+                for j in range(i, k):
+                    gram[:, i, j] = gram[:, j, i] = np.einsum("nq,nq->q", planes[i], planes[j])
+            rhs = np.einsum("knq,nqc->qkc", planes, residual)
             scale = np.trace(gram, axis1=1, axis2=2)[:, None, None] / k
             x = np.linalg.solve(gram + (ridge * scale + 1e-12) * eye, rhs).transpose(0, 2, 1)
         else:
+            bt = planes.transpose(2, 0, 1)  # (q, K, n)
             wt = w.astype(np.float64).transpose(1, 2, 0)[..., None, :]  # (q, C, 1, n)
             gram = np.matmul(bt[:, None] * wt, bt.transpose(0, 2, 1)[:, None])  # (q, C, K, K)
             rhs = np.matmul(bt, (residual * w).transpose(1, 0, 2)).transpose(0, 2, 1)

@@ -351,10 +351,11 @@ def ps_basis(
     else:
         shade = np.einsum("mpk,pk->mp", d, n)
         nh = np.einsum("mpk,pk->mp", half, n)
-    out = np.empty((*shade.shape, len(terms)))
+    # Terms first in memory (each term one contiguous (m, P) plane), viewed as (m, P, K).
+    out = np.empty((len(terms), *shade.shape))
     for k, term in enumerate(terms):
-        out[..., k] = _term(term, d, half, shade, nh)
-    return out
+        out[k] = _term(term, d, half, shade, nh)
+    return np.moveaxis(out, 0, -1)
 
 
 def rbf_weights(directions: np.ndarray, lights: np.ndarray, sigma: float) -> np.ndarray:
