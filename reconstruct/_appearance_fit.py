@@ -160,35 +160,46 @@ def fit_visibility(
     ndarray of shape (P, 4), float64: ``V(l) = clamp(w·[l, 1], 0, 1)``
 
     """
-    obs, good = _finite(observations)
+    obs = np.asarray(observations, np.float64)
+    obs = obs[..., None] if obs.ndim == 2 else obs
     n, p, _ = obs.shape
-    mean = obs.sum(axis=2) / np.maximum(good.sum(axis=2), 1)
-    seen = good.any(axis=2)
+    good = np.isfinite(obs)
+    # Pixel-major (P, n) layout: the per-pixel sums over lights below are matrix products (and
+    # so is the channel sum: a reduction over a short last axis is slow).
+    ones = np.ones(obs.shape[2])
+    if good.all():
+        count = np.full((n, p), float(obs.shape[2]))
+        total = obs @ ones
+    else:
+        count = good.astype(np.float64) @ ones
+        total = np.where(good, obs, 0.0) @ ones
+    mean = (total / np.maximum(count, 1.0)).T
+    seen = (count > 0).T
     d = np.asarray(directions, np.float64)
     rho = np.asarray(albedo, np.float64)
     rho = rho.mean(axis=1) if rho.ndim == 2 else rho
     if d.ndim == 2:
-        shade = d @ np.asarray(normals, np.float64).T  # (n, P)
+        shade = np.asarray(normals, np.float64) @ d.T  # (P, n)
         features = np.concatenate([d, np.ones((n, 1))], axis=1)  # (n, 4)
         outer = (features[:, :, None] * features[:, None, :]).reshape(n, 16)
     else:
-        shade = np.einsum("npk,pk->np", d, np.asarray(normals, np.float64))
+        shade = np.einsum("npk,pk->pn", d, np.asarray(normals, np.float64))
         features = np.concatenate([d, np.ones((n, p, 1))], axis=2)  # (n, P, 4)
     facing = (shade > VIS_MARGIN) & seen
-    label = (mean >= VIS_LABEL * rho[None] * np.maximum(shade, 0.0)).astype(np.float64)
+    label = (mean >= VIS_LABEL * rho[:, None] * np.maximum(shade, 0.0)).astype(np.float64)
     ridge = np.diag([VIS_RIDGE] * 3 + [1e-6]) * n
     prior = ridge @ np.array([0.0, 0.0, 0.0, 1.0])
     weight = facing.astype(np.float64)
     w = np.tile([0.0, 0.0, 0.0, 1.0], (p, 1))
     for _ in range(VIS_ROUNDS):
         if d.ndim == 2:
-            gram = (weight.T @ outer).reshape(p, 4, 4)
-            rhs = (weight * label).T @ features
+            gram = (weight @ outer).reshape(p, 4, 4)
+            rhs = (weight * label) @ features
         else:
-            gram = np.einsum("np,npi,npj->pij", weight, features, features)
-            rhs = np.einsum("np,npi->pi", weight * label, features)
+            gram = np.einsum("pn,npi,npj->pij", weight, features, features)
+            rhs = np.einsum("pn,npi->pi", weight * label, features)
         w = np.linalg.solve(gram + ridge, (rhs + prior)[..., None])[..., 0]
-        value = features @ w.T if d.ndim == 2 else np.einsum("npi,pi->np", features, w)
+        value = w @ features.T if d.ndim == 2 else np.einsum("npi,pi->pn", features, w)
         settled = ((value >= 1) & (label == 1)) | ((value <= 0) & (label == 0))
         weight = (facing & ~settled).astype(np.float64)
     return w
@@ -252,12 +263,9 @@ def fit_ps(
         residual = obs[:, part] - rho[part][None] * shade[..., None]  # (n, q, C)
         w = good[:, part]
         if w.all():
-            # Normal equations by sums over the lights of term products: (q, K, K), (q, K, C).
-            gram = np.empty((nrm.shape[0], k, k))
-            for i in range(k):
-                for j in range(i, k):
-                    gram[:, i, j] = gram[:, j, i] = np.einsum("nq,nq->q", planes[i], planes[j])
-            rhs = np.einsum("knq,nqc->qkc", planes, residual)
+            bt = np.ascontiguousarray(planes.transpose(2, 0, 1))  # (q, K, n)
+            gram = np.matmul(bt, bt.transpose(0, 2, 1))  # (q, K, K)
+            rhs = np.matmul(bt, residual.transpose(1, 0, 2))  # (q, K, C)
             scale = np.trace(gram, axis1=1, axis2=2)[:, None, None] / k
             x = np.linalg.solve(gram + (ridge * scale + 1e-12) * eye, rhs).transpose(0, 2, 1)
         else:
