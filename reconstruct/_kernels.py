@@ -288,7 +288,8 @@ def sbl_tile(y, w, lights, *, lam, sigma_x2: float, max_iter: int, tol: float,
     x = np.zeros((m, 3))
     outliers = np.zeros(y.shape, np.bool_)
     iters = np.zeros(m, np.int64)
-    lam_obs = np.ascontiguousarray(np.broadcast_to(np.asarray(lam, dtype=np.float64), y.shape))
+    # writable: a read-only view (broadcast_to) would make numba compile a second version
+    lam_obs = np.require(np.broadcast_to(np.asarray(lam, dtype=np.float64), y.shape), None, "CW")
     _sbl_kernel(y, w, light_table(lights), lam_obs, 1.0 / float(sigma_x2),
                 int(max_iter), float(tol), float(gamma_floor), float(gamma_start),
                 float(outlier_threshold), x, outliers, iters)
