@@ -73,7 +73,7 @@ def run(size: int, lights: int, method: str, repeat: int, before: bool) -> dict:
         subprocess.run([sys.executable, "-m", "ps_lab", "simulate", str(data), "--scene",
                         "relief", "--size", str(size), "--lights", str(lights), "--specular",
                         "0.3"], check=True, capture_output=True)
-        scenarios = ["cold"] if before else ["cold", "installed", "kernels"]
+        scenarios = ["cold"] if before else ["kernels", "installed", "cold"]
         for rep in range(repeat):
             for scenario in scenarios:
                 cache = root / f"numba-{scenario}-{rep}"
@@ -81,16 +81,21 @@ def run(size: int, lights: int, method: str, repeat: int, before: bool) -> dict:
                 if scenario == "kernels":
                     timed = _timed([sys.executable, "-c", _KERNELS], env)
                     kernels.append(json.loads(timed["stdout"]))
+                    print(f"kernels {rep}: {kernels[-1]} (load {timed['load']:.1f})",
+                          file=sys.stderr, flush=True)
                     continue
+                out = root / f"out-{scenario}-{rep}"
+                steps = [("first reconstruct", _reconstruct(data, out / "first", method)),
+                         ("second reconstruct", _reconstruct(data, out / "second", method))]
                 if scenario == "installed":
-                    rows.setdefault("installed: warm-up", []).append(
-                        _timed([sys.executable, "-m", "ps_lab.reconstruct._warm_up"], env))
-                for which in ("first", "second"):
-                    out = root / f"out-{scenario}-{rep}-{which}"
-                    rows.setdefault(f"{scenario}: {which} reconstruct", []).append(
-                        _timed(_reconstruct(data, out, method), env))
-                    print(scenario, which, f"{rows[f'{scenario}: {which} reconstruct'][-1]}",
-                          file=sys.stderr)
+                    steps.insert(0, ("warm-up", [sys.executable, "-m",
+                                                 "ps_lab.reconstruct._warm_up"]))
+                for step, args in steps:
+                    timed = _timed(args, env)
+                    rows.setdefault(f"{scenario}: {step}", []).append(timed)
+                    print(f"{scenario} {rep} {step}: wall {timed['wall']:.1f} s, CPU "
+                          f"{timed['cpu']:.1f} s, load {timed['load']:.1f}", file=sys.stderr,
+                          flush=True)
     return {"rows": rows, "kernels": kernels}
 
 
