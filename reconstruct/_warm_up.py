@@ -37,14 +37,14 @@ from ._pl_kernels import pl_tile
 
 log = logging.getLogger(__name__)
 
-#: CPU seconds to compile each kernel on a quiet Xeon (Emerald Rapids, numba 0.68;
+#: CPU seconds to compile each kernel (thread CPU time on a Xeon, Emerald Rapids, numba 0.68;
 #: benchmarks/first_run.py measures them), for the "~N s" of the compile line.
 COMPILE_SECONDS = {
-    "_l1_kernel": 3.0,
-    "_sbl_kernel": 3.0,
-    "_pl_kernel": 35.0,
-    "_l1_kernel_pp": 3.5,
-    "_sbl_kernel_pp": 3.0,
+    "_l1_kernel": 2.0,
+    "_sbl_kernel": 2.0,
+    "_pl_kernel": 34.0,
+    "_l1_kernel_pp": 1.5,
+    "_sbl_kernel_pp": 1.6,
     "_march_point_lights": 1.0,
 }
 
