@@ -154,13 +154,17 @@ class CompileNotice(event.Listener):
         depth = getattr(self._local, "depth", 0)
         self._local.depth = depth + 1
         if depth == 0:
-            name = ev.data["dispatcher"].py_func.__name__
+            func = getattr((ev.data or {}).get("dispatcher"), "py_func", None)
+            name = getattr(func, "__name__", "kernel")
             self._local.started = (name, time.perf_counter(), time.thread_time())
             self.say(f"compiling solver kernels (first run only, ~{_estimate(name)} s): {name}…")
 
     def on_end(self, ev: event.Event) -> None:
-        self._local.depth -= 1
-        if self._local.depth == 0:
+        depth = getattr(self._local, "depth", 0)
+        if depth <= 0:  # began before this listener was installed
+            return
+        self._local.depth = depth - 1
+        if depth == 1:
             name, started, cpu = self._local.started
             seconds = time.perf_counter() - started
             self.compiled.append((name, seconds, time.thread_time() - cpu))
