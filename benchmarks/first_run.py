@@ -116,11 +116,12 @@ def markdown(result: dict, args: argparse.Namespace) -> str:
         lines.append(f"| {name} | {walls} | {cpus} | {loads} |")
     rows = result["rows"]
     for scenario in ("cold", "installed"):
-        first, second = rows.get(f"{scenario}: first reconstruct"), rows.get(
-            f"{scenario}: second reconstruct")
-        if first and second:
-            ratio = statistics.median(f["cpu"] / s["cpu"] for f, s in zip(first, second))
-            wall = statistics.median(f["wall"] / s["wall"] for f, s in zip(first, second))
+        first = rows.get(f"{scenario}: first reconstruct", [])
+        second = rows.get(f"{scenario}: second reconstruct", [])
+        if first and len(first) == len(second):
+            pairs = list(zip(first, second, strict=True))
+            ratio = statistics.median(f["cpu"] / s["cpu"] for f, s in pairs)
+            wall = statistics.median(f["wall"] / s["wall"] for f, s in pairs)
             lines.append(f"| {scenario}: first / second | {wall:.2f} | {ratio:.2f} | |")
     if result["kernels"]:
         lines += ["", "| kernel (compiled alone) | wall s | CPU s |", "|---|---|---|"]

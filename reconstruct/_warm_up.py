@@ -151,6 +151,7 @@ class CompileNotice(event.Listener):
         self._local = threading.local()
 
     def on_start(self, ev: event.Event) -> None:
+        """A compile begins: say so (the outermost one of this thread)."""
         depth = getattr(self._local, "depth", 0)
         self._local.depth = depth + 1
         if depth == 0:
@@ -160,6 +161,7 @@ class CompileNotice(event.Listener):
             self.say(f"compiling solver kernels (first run only, ~{_estimate(name)} s): {name}…")
 
     def on_end(self, ev: event.Event) -> None:
+        """A compile ends: log its time (``-v``)."""
         depth = getattr(self._local, "depth", 0)
         if depth <= 0:  # began before this listener was installed
             return
