@@ -14,7 +14,7 @@ import numpy as np
 
 from ps_lab.calibration._circle import Circle, circle_inside_image, refine_circle, summary_image
 from ps_lab.calibration._geometry import light_directions_from_highlights
-from ps_lab.calibration._highlight import Highlight, locate_highlight
+from ps_lab.calibration._highlight import Highlight, locate_highlight, share_source_radius
 from ps_lab.calibration._intensity import fit_light_intensities, led_intensities_at_origin
 from ps_lab.calibration._positions import (
     MIN_RAY_ANGLE_DEG,
@@ -499,7 +499,8 @@ def _highlights(
             second = hl.second_blob
             if second is not None:
                 second = (second[0] + bx0, second[1] + by0, second[2])
-            found.append(replace(hl, x=hl.x + bx0, y=hl.y + by0, second_blob=second))
+            found.append(replace(hl, x=hl.x + bx0, y=hl.y + by0, second_blob=second,
+                                 centroid=(hl.centroid[0] + bx0, hl.centroid[1] + by0)))
         except CalibrationError as exc:
             found.append(None)
             problems.append((j, str(exc)))
@@ -517,7 +518,8 @@ def _highlights(
         j, msg = problems[0]
         more = f" (and {len(problems) - 1} more frame(s) failed)" if len(problems) > 1 else ""
         raise CalibrationError(f"{_frame_label(j, names)}: {msg}{more}")
-    return found  # type: ignore[return-value]  # no None left: every one is a problem above
+    # no None left: every one is a problem above
+    return share_source_radius(found, circle)  # type: ignore[arg-type]
 
 
 def _dim_highlights(found: list[Highlight | None]) -> list[tuple[int, str]]:
