@@ -7,6 +7,8 @@ preview.
 
 from __future__ import annotations
 
+from typing import Any
+
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field, replace
 
@@ -19,6 +21,7 @@ from ps_lab.calibration._intensity import fit_light_intensities, led_intensities
 from ps_lab.calibration._positions import (
     MIN_RAY_ANGLE_DEG,
     Triangulation,
+    ray_sigmas,
     reflected_rays,
     triangulate_lights,
 )
@@ -121,6 +124,7 @@ class Calibration:
     intensity_source: str = "all ones (no matte target)"
     object_outline: float | None = None
     camera: Camera | None = None
+    led_model: Any = None  # calibration._leds.LedModel (ps-lab calibrate --flat-field)
 
     @property
     def light_positions(self) -> np.ndarray | None:
@@ -439,7 +443,7 @@ def _triangulate(
     disagree within their noise say nothing about the distance.
     """
     shape = stack.shape[1:3]
-    origins, directions = [], []
+    origins, directions, sigmas = [], [], []
     for c, hl in [(circle, highlights), *((c, None) for c in others)]:
         if hl is None:
             try:
@@ -453,9 +457,13 @@ def _triangulate(
         o, d = reflected_rays(hl, c, shape, camera)
         origins.append(o)
         directions.append(d)
+        # equal pixel precision on every sphere (the highlights' own uncertainty measures their
+        # shape's asymmetry more than their noise): the weights follow the geometry
+        sigmas.append(ray_sigmas(hl, c))
     result = triangulate_lights(
         np.array(origins),
         np.array(directions),
+        sigmas=np.array(sigmas),
         min_angle_deg=MIN_RAY_ANGLE_DEG
         if uncertainty is None
         else np.maximum(MIN_RAY_ANGLE_DEG, 3.0 * uncertainty),

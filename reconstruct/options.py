@@ -45,6 +45,7 @@ IN_MEMORY_SHARE = 0.25
 _SIZE_UNITS = {"": 1 << 20, "k": 1 << 10, "m": 1 << 20, "g": 1 << 30, "t": 1 << 40}
 STAGING = ("auto", "memory", "file")
 LIGHT_MODELS = ("auto", "near", "directional")
+LED_MODELS = ("auto", "isotropic", "beam", "flat-field")
 # Per-pixel light vectors (float64 x 3) held beside a band's observations in near-light mode.
 NEAR_BYTES_PER_OBSERVATION = 24
 
@@ -166,6 +167,12 @@ class ReconstructOptions:
         object on the spheres' table, minus their radius). None: the dataset's
         ``object_outline.txt`` (``ps-lab calibrate --object``), else found from the shading
         (:func:`ps_lab.reconstruct.near.near_light_rounds`).
+    led_model : {"auto", "isotropic", "beam", "flat-field"}
+        Near lights: the LEDs' emission. ``isotropic`` (the intensities at the origin and
+        ``light_anisotropy.txt``'s exponents about the direction to the origin), ``beam``
+        (``light_axes.txt`` and ``light_anisotropy.txt``: each LED's fitted axis and exponent),
+        ``flat-field`` (``flat_field.npz``: gains measured on a board); ``auto``: flat-field,
+        else beam, else isotropic, by the files present (``ps-lab calibrate --flat-field``).
     """
 
     method: str = "auto"
@@ -188,6 +195,7 @@ class ReconstructOptions:
     encoding: str = "auto"
     normal_map: str = "opengl"
     object_outline: float | None = None
+    led_model: str = "auto"
 
     def __post_init__(self) -> None:
         if self.encoding not in ENCODINGS:
@@ -207,6 +215,9 @@ class ReconstructOptions:
             raise OutputError(f"object outline height {self.object_outline} is not finite")
         if self.staging not in STAGING:
             raise OutputError(f"staging must be auto, memory or file, got {self.staging!r}")
+        if self.led_model not in LED_MODELS:
+            raise OutputError(f"--led-model must be one of {', '.join(LED_MODELS)}, "
+                              f"got {self.led_model!r}")
         if self.lights not in LIGHT_MODELS:
             raise OutputError(f"lights must be auto, near or directional, got {self.lights!r}")
         budget = self.memory_budget
