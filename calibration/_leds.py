@@ -91,7 +91,7 @@ def fit_led_beams(board: np.ndarray, positions: np.ndarray, height: float,
 
     Least squares on the log brightness (the noise is about proportional to it): unknowns
     ``log k``, ``mu >= 0`` and two tilts of the axis from the LED-to-origin direction. Every
-    ``step``-th pixel in each direction is used (default: about 20 000 pixels).
+    ``step``-th pixel in each direction is used (default: about 3000 pixels, for four unknowns).
 
     Parameters
     ----------
@@ -121,7 +121,7 @@ def fit_led_beams(board: np.ndarray, positions: np.ndarray, height: float,
     if not np.all(np.isfinite(pos)):
         raise CalibrationError("--flat-field: every LED needs a position (two chrome spheres)")
     if step is None:
-        step = max(1, int(np.sqrt(board.shape[1] * board.shape[2] / 20000.0)))
+        step = max(1, int(round(np.sqrt(board.shape[1] * board.shape[2] / 3000.0))))
     pts, rows, cols = _board_points(board.shape[1:], height, camera, step)
     usable = _usable(board, saturated)
     axes, mu, outputs, rms = np.zeros((n, 3)), np.zeros(n), np.zeros(n), np.zeros(n)
@@ -147,8 +147,20 @@ def fit_led_beams(board: np.ndarray, positions: np.ndarray, height: float,
             cos = np.clip(ray @ axis(q[2:]), 1e-6, None)
             return q[0] + q[1] * np.log(cos) + base - value
 
+        def jacobian(q):
+            v = a0 + q[2] * e1 + q[3] * e2
+            norm = np.linalg.norm(v)
+            a = v / norm
+            cos = np.clip(ray @ a, 1e-6, None)
+            jac = np.empty((len(ray), 4))
+            jac[:, 0] = 1.0
+            jac[:, 1] = np.log(cos)
+            for k, e in ((2, e1), (3, e2)):
+                jac[:, k] = q[1] * (ray @ ((e - a * (a @ e)) / norm)) / cos
+            return jac
+
         start = np.array([float(np.median(value - base)), 1.0, 0.0, 0.0])
-        fit = least_squares(residual, start, bounds=([-np.inf, 0.0, -1.0, -1.0],
+        fit = least_squares(residual, start, jac=jacobian, bounds=([-np.inf, 0.0, -1.0, -1.0],
                                                      [np.inf, 50.0, 1.0, 1.0]))
         axes[j], mu[j], outputs[j] = axis(fit.x[2:]), fit.x[1], np.exp(fit.x[0])
         rms[j] = 100.0 * float(np.sqrt(np.mean(fit.fun ** 2)))

@@ -58,6 +58,7 @@ class FlatField:
         out = np.ones((len(pts), len(pos)))
         step_x = self.x[1] - self.x[0] if len(self.x) > 1 else 1.0
         step_y = self.y[1] - self.y[0] if len(self.y) > 1 else -1.0
+        grids = _extended(np.asarray(self.gains, np.float64))
         for j, p in enumerate(pos):
             if not np.all(np.isfinite(p)):
                 q = pts[:, :2]
@@ -65,13 +66,36 @@ class FlatField:
                 dz = pts[:, 2] - p[2]
                 t = (self.height - p[2]) / np.where(np.abs(dz) > 1e-9, dz, 1e-9)
                 q = p[None, :2] + t[:, None] * (pts[:, :2] - p[None, :2])
-            col = (q[:, 0] - self.x[0]) / step_x
-            row = (q[:, 1] - self.y[0]) / step_y
-            out[:, j] = ndimage.map_coordinates(self.gains[j], [row, col], order=1,
-                                                mode="nearest")
+            col = (q[:, 0] - self.x[0]) / step_x + _MARGIN
+            row = (q[:, 1] - self.y[0]) / step_y + _MARGIN
+            out[:, j] = ndimage.map_coordinates(grids[j], [row, col], order=1, mode="nearest")
         return out
 
 
+# Grid nodes added on every side, extrapolated linearly: a point above the board (an object on
+# it) looks its low LEDs' gains up beyond the frame's edge.
+_MARGIN = 8
+
+
+def _extended(gains: np.ndarray) -> np.ndarray:
+    """(n, gh + 2M, gw + 2M): the gains continued linearly past the grid's edges (floored)."""
+    m = _MARGIN
+    steps = np.arange(1, m + 1, dtype=np.float64)
+    out = gains
+    for axis in (1, 2):
+        if out.shape[axis] < 2:
+            out = np.concatenate([np.repeat(out, m, axis=axis), out,
+                                  np.repeat(out, m, axis=axis)], axis=axis)
+            continue
+        first, second = np.take(out, [0], axis=axis), np.take(out, [1], axis=axis)
+        last, before = np.take(out, [-1], axis=axis), np.take(out, [-2], axis=axis)
+        shape = [1, 1, 1]
+        shape[axis] = m
+        k = steps.reshape(shape)
+        low = first + (first - second) * np.flip(k, axis=axis)
+        high = last + (last - before) * k
+        out = np.concatenate([low, out, high], axis=axis)
+    return np.maximum(out, 0.05 * float(np.median(gains)))
 
 
 def write_flat_field(path: Path, flat: FlatField) -> None:

@@ -428,10 +428,14 @@ def render_board(rig: TableRig, height: float = 0.0) -> dict:
     return {"frames": frames, "height": float(height), "leds": leds}
 
 
-def write_board_frames(folder: Path, rig: TableRig, height: float = 0.0) -> dict:
-    """Write :func:`render_board`'s frames as 16-bit PNGs (``001.png`` ...; shot and read noise)."""
+def write_board_frames(folder: Path, rig: TableRig, height: float = 0.0, *,
+                       noise_seed: int | None = None) -> dict:
+    """Write :func:`render_board`'s frames as 16-bit PNGs (``001.png`` ...; shot and read noise).
+
+    ``noise_seed`` (default ``rig.seed + 7``) draws the noise; the LEDs stay the rig's.
+    """
     board = render_board(rig, height)
-    rng = np.random.default_rng(rig.seed + 7)
+    rng = np.random.default_rng(rig.seed + 7 if noise_seed is None else noise_seed)
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)
     for j, frame in enumerate(board["frames"]):
