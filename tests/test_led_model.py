@@ -84,6 +84,30 @@ def test_flat_field_carries_the_beam_to_other_heights() -> None:
     assert np.abs(plain / np.median(plain) - 1.0).max() > 0.05
 
 
+def test_flat_board_normals_after_flat_field() -> None:
+    """A board 8 px above the one the flat-field was measured on: per-pixel normals, truth depth."""
+    leds = _scene_leds(BEAMS)
+    e = beam_intensities_at_origin(fit_led_beams(render_board(BEAMS)["frames"], leds, TABLE),
+                                   leds)
+    flat = fit_flat_field(render_board(BEAMS)["frames"], leds, e, TABLE)
+    frames = render_board(BEAMS, height=8.0)["frames"]
+    h, w = BEAMS.shape
+    rows, cols = np.mgrid[0:h:6, 0:w:6]
+    pts = scene_points((h, w), rows.ravel(), cols.ravel(), np.full(rows.size, TABLE + 8.0))
+    equal = 1.0 / np.sum(leds * leds, axis=1)  # no board: identical isotropic LEDs
+    errors = {}
+    for name, vectors, scale in (("isotropic", near_light_vectors(pts, leds, leds), equal),
+                                 ("flat-field", near_light_vectors(pts, leds, leds)
+                                  * flat.at(pts)[:, :, None], e)):
+        obs = frames[:, rows.ravel(), cols.ravel()] / scale[:, None]
+        x = np.linalg.solve(np.einsum("mnk,mnl->mkl", vectors, vectors),
+                            np.einsum("mnk,nm->mk", vectors, obs)[..., None])[..., 0]
+        errors[name] = np.degrees(np.arccos(x[:, 2] / np.linalg.norm(x, axis=1)))
+    # noise-free: what is left is the 8 px cells' interpolation of a smooth beam (target 0.5 deg)
+    assert errors["flat-field"].max() < 0.15, errors["flat-field"].max()
+    assert errors["isotropic"].mean() > 1.0  # the cos^2 beams and outputs, uncorrected
+
+
 def test_point_like_highlight_is_not_corrected_for_blur() -> None:
     """An isotropic blur is not source size: the centroid of a blurred point stays put."""
     h = w = 101
