@@ -30,7 +30,8 @@ import cv2
 import numpy as np
 from scipy import ndimage
 
-__all__ = ["TableRig", "render_board", "render_table_rig", "write_board_frames", "write_table_rig"]
+__all__ = ["TableRig", "chrome_frames", "render_board", "render_table_rig", "write_board_frames",
+           "write_table_rig"]
 
 
 @dataclass(frozen=True)
@@ -347,6 +348,11 @@ def _chrome_images(rig: TableRig, lights: np.ndarray, far: bool, supersample: in
             block = out[j, r0:r1, c0:c1]
             out[j, r0:r1, c0:c1] = np.maximum(block, value)
     return out
+
+
+def chrome_frames(rig: TableRig) -> np.ndarray:
+    """The chrome spheres alone under every LED (n, H, W), float, before noise and clipping."""
+    return _chrome_images(rig, rig.led_positions(), False)
 
 
 def render_table_rig(rig: TableRig, *, far: bool = False) -> dict:
