@@ -388,6 +388,10 @@ def _write_results(
     metrics["light_model"] = "directional" if source.near is None else "near"
     if solved.near is not None:
         metrics["near"] = solved.near.record()
+        lights = source.near
+        metrics["near"]["led_model"] = ("flat-field" if lights.flat_field is not None else "beam"
+                                        if lights.axes is not None and np.any(lights.anisotropy)
+                                        else "isotropic")
     metrics["streaming"] = {
         "bands": len(store.bands),
         "max_band_pixels": max(band.pixel_count for band in store.bands),

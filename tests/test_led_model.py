@@ -197,7 +197,9 @@ def test_calibrate_flat_field_and_reconstruct_led_models(tmp_path: Path) -> None
         result = runner.invoke(app, ["reconstruct", str(near), "--led-model", model,
                                      "--out", str(out)])
         assert result.exit_code == 0, result.output
-        errors[model] = json.loads((out / "metrics.json").read_text())["angular_error_deg"]["mean"]
+        metrics = json.loads((out / "metrics.json").read_text())
+        assert metrics["near"]["led_model"] == model
+        errors[model] = metrics["angular_error_deg"]["mean"]
     # the reference: the same rig with isotropic LEDs of equal output, calibrated without a board
     plain = tmp_path / "plain"
     write_table_rig(plain, SMALL)
