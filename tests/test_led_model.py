@@ -216,3 +216,23 @@ def test_calibrate_flat_field_and_reconstruct_led_models(tmp_path: Path) -> None
     bad = runner.invoke(app, ["calibrate", str(near), *spheres, "--flat-field", str(board),
                               "--board", "shelf"])
     assert bad.exit_code == 2 and "--board" in bad.output
+
+
+def test_light_vectors_with_led_axes() -> None:
+    """``axes`` aimed at the origin is the default; any axis gives ``(c(X) / c(O))^mu``."""
+    rng = np.random.default_rng(9)
+    pos = rng.normal(0.0, 1.0, (5, 3)) * 100 + [0.0, 0.0, 400.0]
+    pts = rng.normal(0.0, 30.0, (7, 3))
+    mu = np.array([0.0, 1.0, 2.0, 3.0, 1.5])
+    toward = -pos / np.linalg.norm(pos, axis=1, keepdims=True)
+    default = near_light_vectors(pts, pos, pos, anisotropy=mu)
+    np.testing.assert_allclose(near_light_vectors(pts, pos, pos, anisotropy=mu, axes=toward),
+                               default, rtol=1e-12)
+    axes = toward + rng.normal(0.0, 0.1, toward.shape)
+    axes /= np.linalg.norm(axes, axis=1, keepdims=True)
+    got = near_light_vectors(pts, pos, pos, anisotropy=mu, axes=axes)
+    ray = pts[:, None, :] - pos[None]
+    c_x = np.einsum("mnk,nk->mn", ray, axes) / np.linalg.norm(ray, axis=2)
+    c_o = np.einsum("nk,nk->n", -pos, axes) / np.linalg.norm(pos, axis=1)
+    iso = near_light_vectors(pts, pos, pos)
+    np.testing.assert_allclose(got, iso * ((c_x / c_o) ** mu)[:, :, None], rtol=1e-10)
