@@ -46,6 +46,7 @@ IN_MEMORY_SHARE = 0.25
 _SIZE_UNITS = {"": 1 << 20, "k": 1 << 10, "m": 1 << 20, "g": 1 << 30, "t": 1 << 40}
 STAGING = ("auto", "memory", "file")
 LIGHT_MODELS = ("auto", "near", "directional")
+LED_MODELS = ("auto", "isotropic", "beam", "flat-field")
 # Per-pixel light vectors (float64 x 3) held beside a band's observations in near-light mode.
 NEAR_BYTES_PER_OBSERVATION = 24
 
@@ -170,6 +171,12 @@ class ReconstructOptions:
     appearance : {"ps", "ptm", "hsh2", "hsh3", "rbf", "none"}
         The appearance model fitted per pixel after the normals (``appearance.npz``;
         :mod:`ps_lab.reconstruct.appearance`, docs/appearance.md); ``none``: no fit.
+    led_model : {"auto", "isotropic", "beam", "flat-field"}
+        Near lights: the LEDs' emission. ``isotropic`` (the intensities at the origin and
+        ``light_anisotropy.txt``'s exponents about the direction to the origin), ``beam``
+        (``light_axes.txt`` and ``light_anisotropy.txt``: each LED's fitted axis and exponent),
+        ``flat-field`` (``flat_field.npz``: gains measured on a board); ``auto``: flat-field,
+        else beam, else isotropic, by the files present (``ps-lab calibrate --flat-field``).
     """
 
     method: str = "auto"
@@ -193,6 +200,7 @@ class ReconstructOptions:
     normal_map: str = "opengl"
     object_outline: float | None = None
     appearance: str = "ps"
+    led_model: str = "auto"
 
     def __post_init__(self) -> None:
         if self.appearance not in APPEARANCE_MODELS:
@@ -217,6 +225,9 @@ class ReconstructOptions:
             raise OutputError(f"object outline height {self.object_outline} is not finite")
         if self.staging not in STAGING:
             raise OutputError(f"staging must be auto, memory or file, got {self.staging!r}")
+        if self.led_model not in LED_MODELS:
+            raise OutputError(f"--led-model must be one of {', '.join(LED_MODELS)}, "
+                              f"got {self.led_model!r}")
         if self.lights not in LIGHT_MODELS:
             raise OutputError(f"lights must be auto, near or directional, got {self.lights!r}")
         budget = self.memory_budget

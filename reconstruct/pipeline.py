@@ -70,6 +70,7 @@ from ps_lab.reconstruct.depth import (
     write_normal_maps,
 )
 from ps_lab.reconstruct.integrate import IntegrationInputError
+from ps_lab.io.led_model import FLAT_FIELD, LIGHT_AXES, read_flat_field, read_light_axes
 from ps_lab.reconstruct.near import NearLights
 from ps_lab.reconstruct.options import (
     BYTES_PER_OBSERVATION,
@@ -277,7 +278,30 @@ def _near_lights(header: DatasetHeader, options: ReconstructOptions) -> NearLigh
             header.plan.camera.fx, header.plan.camera.fy, header.plan.camera.cx,
             header.plan.camera.cy,
         )
-    return NearLights(positions, header.light_directions, anisotropy, camera=camera)
+    axes, flat = _led_model(header.root, options.led_model, n)
+    if flat is not None or options.led_model == "isotropic":
+        anisotropy = np.zeros(n)  # the board's gains carry the beam; or no beam asked for
+    return NearLights(positions, header.light_directions, anisotropy, camera=camera, axes=axes,
+                      flat_field=flat)
+
+
+def _led_model(root, model: str, n: int):
+    """The LED axes and flat-field ``--led-model`` asks for (files of ``calibrate --flat-field``)."""
+    axes_file, flat_file = root / LIGHT_AXES, root / FLAT_FIELD
+    if model == "auto":
+        model = ("flat-field" if flat_file.is_file() else "beam" if axes_file.is_file()
+                 else "isotropic")
+    if model == "flat-field":
+        if not flat_file.is_file():
+            raise DatasetError(f"{root}: --led-model flat-field needs {FLAT_FIELD} "
+                               "(ps-lab calibrate --flat-field BOARD_FOLDER)")
+        return None, read_flat_field(flat_file, n)
+    if model == "beam":
+        if not axes_file.is_file():
+            raise DatasetError(f"{root}: --led-model beam needs {LIGHT_AXES} "
+                               "(ps-lab calibrate --flat-field BOARD_FOLDER)")
+        return read_light_axes(axes_file, n), None
+    return None, None
 
 
 @contextmanager
@@ -383,6 +407,10 @@ def _write_results(
         metrics["camera"] = camera_record(camera, Path(camera.source))
     if solved.near is not None:
         metrics["near"] = solved.near.record()
+        lights = source.near
+        metrics["near"]["led_model"] = ("flat-field" if lights.flat_field is not None else "beam"
+                                        if lights.axes is not None and np.any(lights.anisotropy)
+                                        else "isotropic")
     metrics["streaming"] = {
         "bands": len(store.bands),
         "max_band_pixels": max(band.pixel_count for band in store.bands),
