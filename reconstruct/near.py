@@ -31,7 +31,7 @@ from ps_lab.io.led_model import FlatField
 from . import _near_kernels
 from ._linalg import inverse6
 from ._near_refine import fit_near_intensities
-from ._solution import Solution, SolverInputError
+from ._solution import ALBEDO_DEFINITION, Solution, SolverInputError, _albedo_rows
 from ._solve import (
     DEFAULT_TILE_SIZE,
     LAMBDA_FLOOR,
@@ -265,8 +265,12 @@ def solve_near(
         x = res.x * scale[:, None]
         length = np.linalg.norm(x, axis=1)
         good = ok & (length > 0) & np.isfinite(length)
-        normals[a:b] = np.where(good[:, None], x / np.where(good, length, 1.0)[:, None], 0.0)
-        albedo[a:b] = np.where(good, length, 0.0)
+        unit = np.where(good[:, None], x / np.where(good, length, 1.0)[:, None], 0.0)
+        normals[a:b] = unit
+        # one albedo for every method: the Lambertian-equivalent reflectance on the inliers
+        rho = _albedo_rows(np.einsum("pk,pnk->pn", unit, lights), (w > 0) & ~res.outliers,
+                           y) * scale
+        albedo[a:b] = np.where(good, np.where(np.isnan(rho), length, rho), 0.0)
         outliers[:, a:b] = (res.outliers & good[:, None]).T
         iterations[a:b] = np.where(ok, res.iterations, 0)
         return b - a
@@ -282,6 +286,7 @@ def solve_near(
             progress(count)
     if workers > 1 and len(starts) > 1:
         pool.shutdown()
+    used["albedo"] = ALBEDO_DEFINITION
     return Solution(normals, albedo, outliers, iterations, used)
 
 
