@@ -13,6 +13,7 @@ import typer
 
 from ps_lab._cli_util import EXIT_INTERRUPTED, fail, interrupted_line, lab_command
 from ps_lab.view import ViewSite, export_site, load_result, serve
+from ps_lab.view.relightlab import export_relightlab
 
 
 @lab_command
@@ -41,8 +42,25 @@ def view(
             show_default=False,
         ),
     ] = None,
+    export_format: Annotated[
+        str,
+        typer.Option(
+            "--format",
+            help="With --export: 'site' (the viewer as a static folder) or 'relight' "
+            "(RelightLab's web layout of one result's PTM / HSH fit: info.json, plane_N.jpg, "
+            "normals.png, albedo.png; opens in OpenLIME's RTI layer).",
+        ),
+    ] = "site",
 ) -> None:
     """Relight results under a virtual light, see their layers and mesh, compare them."""
+    if export_format not in ("site", "relight"):
+        raise fail(f"--format {export_format!r}: choose site or relight")
+    if export_format == "relight":
+        if export is None or len(results) != 1:
+            raise fail("--format relight needs --export DIR and exactly one result")
+        info = export_relightlab(results[0], export)
+        typer.echo(f"RelightLab {info['type']} ({info['nplanes']} planes) written to {export}")
+        return
     site = ViewSite([load_result(result) for result in results])
     if export is not None:
         size = export_site(site, export)
