@@ -21,6 +21,7 @@ import sys
 import time
 from pathlib import Path
 
+import cv2
 import numpy as np
 import pytest
 from typer.testing import CliRunner
@@ -396,3 +397,66 @@ def test_export_opens_from_a_plain_static_server(browser, sim_result, tmp_path):
     finally:
         server.terminate()
         server.wait(timeout=10)
+
+
+# ---- colour (issue 32) -------------------------------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def colour_result(tmp_path_factory) -> Path:
+    """A coloured relief (orange: R > G > B) written as 16-bit PNGs, least squares."""
+    from ps_lab import render
+
+    root = tmp_path_factory.mktemp("view-colour")
+    data, out = root / "orange", root / "orange-ls"
+    data.mkdir()
+    rng = np.random.default_rng(4)
+    shape = (64, 80)
+    surface = render.relief_surface(shape, seed=2, albedo=(0.85, 0.45, 0.2))
+    lights = render.random_light_directions(16, rng)
+    images = render.render(surface, lights)
+    scale = 0.9 / float(images.max())
+    for i, image in enumerate(images):
+        counts = np.rint(np.clip(image * scale, 0, 1) * 65535).astype(np.uint16)
+        cv2.imwrite(str(data / f"{i:03d}.png"), np.ascontiguousarray(counts[..., ::-1]))
+    np.savetxt(data / "light_directions.txt", lights)
+    cv2.imwrite(str(data / "mask.png"), surface.mask.astype(np.uint8) * 255)
+    result = runner.invoke(app, ["reconstruct", str(data), "--method", "ls", "--out", str(out)])
+    assert result.exit_code == 0, result.output
+    return out
+
+
+def test_colour_relight_in_chromium_shows_the_albedo_colour(browser, colour_result):
+    view = load_result(colour_result)
+    colour = np.load(colour_result / "albedo.npy").astype(np.float64) / view.albedo_scale
+    colour = colour.astype(np.float16).astype(np.float64)
+    server = ViewServer(colour_result)
+    try:
+        browser.open(server.url)
+        assert browser.evaluate("psView.ready") is True
+        entry = browser.evaluate("psView.results()[0]")
+        assert entry["colour"] is True and len(entry["captured_lights"]) == 16
+        browser.evaluate("psView.pixelScale(0, 1)")
+        browser.evaluate("psView.setView({cx: 0.5, cy: 0.5})")
+        light = [0.3, 0.2, float(np.sqrt(1 - 0.13))]
+        browser.evaluate(f"psView.setLight({json.dumps(light)})")
+        settle(browser)
+        normals = view.layers[..., :3].astype(np.float16).astype(np.float64)
+        norm = np.linalg.norm(normals, axis=2)
+        mask = norm > 0.5
+        shade = np.maximum((normals / np.where(mask, norm, 1)[..., None]) @ light, 0)
+        linear = np.clip(shade[..., None] * colour, 0, 1)
+        expected = 255 * np.where(linear <= 0.0031308, linear * 12.92,
+                                  1.055 * linear ** (1 / 2.4) - 0.055)
+        rows, cols, picture = shown_pixels(browser, 0, view.shape)
+        shown = picture[rows][:, cols].astype(np.float64)[..., :3]
+        inner = interior(mask)
+        difference = np.abs(shown - expected)[inner]
+        print("colour relight vs numpy (levels, per channel): mean",
+              difference.mean(axis=0).tolist(), "max", difference.max(axis=0).tolist())
+        assert difference.max() <= 2.0
+        # the three channels differ as the object's colour does (orange: R > G > B)
+        means = shown[inner].mean(axis=0)
+        assert means[0] > means[1] + 20 and means[1] > means[2] + 20, means
+    finally:
+        server.stop()

@@ -10,6 +10,7 @@ into a folder that any static web server (or ``python -m http.server``) serves a
 from __future__ import annotations
 
 import functools
+import json
 import logging
 import re
 from collections.abc import Callable, Iterator
@@ -20,7 +21,8 @@ from pathlib import Path
 
 from ps_lab.errors import OutputError
 from ps_lab.io.files import staged_folder
-from ps_lab.view.result import ViewResult
+from ps_lab.view.relightlab import result_lights
+from ps_lab.view.result import ViewResult, colour_layers
 from ps_lab.view.tiles import Pyramid, manifest, mesh_bytes, pyramid
 
 __all__ = ["HOST", "STATIC_FILES", "ViewSite", "export_site", "serve"]
@@ -40,6 +42,7 @@ STATIC_FILES = {
 
 _TILE_PATH = re.compile(r"^data/r(\d+)/(\d+)/(\d+)_(\d+)\.bin$")
 _MESH_PATH = re.compile(r"^data/r(\d+)/mesh\.bin$")
+_COLOUR_PATH = re.compile(r"^data/r(\d+)/c/(\d+)/(\d+)_(\d+)\.bin$")
 
 
 class ViewSite:
@@ -49,6 +52,8 @@ class ViewSite:
         self.results = results
         self.pyramids: list[Pyramid] = [pyramid(result) for result in results]
         self._manifest = manifest(results, self.pyramids)
+        self.colour = _colour_pyramids(results)
+        self._manifest = _manifest_extras(self._manifest, results, self.colour)
 
     def get(self, path: str) -> tuple[bytes, str] | None:
         """``(bytes, content type)`` of a page-relative path, or None when there is none."""
@@ -64,6 +69,9 @@ class ViewSite:
                 return None
             data = self.pyramids[index].tile(level, col, row)
             return None if data is None else (data, "application/octet-stream")
+        found = _colour_tile(self.colour, path)
+        if found is not None:
+            return found, "application/octet-stream"
         match = _MESH_PATH.match(path)
         if match and int(match.group(1)) < len(self.results):
             data = mesh_bytes(self.results[int(match.group(1))])
@@ -79,6 +87,51 @@ class ViewSite:
                 yield f"data/r{index}/{level}/{col}_{row}.bin"
             if result.mesh is not None:
                 yield f"data/r{index}/mesh.bin"
+        for index, levels in enumerate(self.colour):
+            for level, col, row in levels.tiles() if levels is not None else ():
+                yield f"data/r{index}/c/{level}/{col}_{row}.bin"
+
+
+# --- colour and captured lights (issue 32) ------------------------------------------------------
+
+
+def _colour_pyramids(results: list[ViewResult]) -> list[Pyramid | None]:
+    """Per result, the pyramid of its colour layers (:func:`colour_layers`), None when grey."""
+    out: list[Pyramid | None] = []
+    for result in results:
+        layers = colour_layers(result)
+        out.append(None if layers is None else pyramid(_ColourLayers(result, layers)))
+    return out
+
+
+class _ColourLayers:
+    """What :func:`ps_lab.view.tiles.pyramid` reads of a result: its layers."""
+
+    def __init__(self, result: ViewResult, layers) -> None:
+        self.layers = layers
+        self.shape = result.shape
+
+
+def _colour_tile(colour: list[Pyramid | None], path: str) -> bytes | None:
+    match = _COLOUR_PATH.match(path)
+    if not match:
+        return None
+    index, level, col, row = (int(g) for g in match.groups())
+    if index >= len(colour) or colour[index] is None:
+        return None
+    return colour[index].tile(level, col, row)
+
+
+def _manifest_extras(data: bytes, results: list[ViewResult], colour: list) -> bytes:
+    """The manifest with, per result, ``colour`` (colour tiles exist) and ``captured_lights``."""
+    value = json.loads(data)
+    for entry, result, levels in zip(value["results"], results, colour, strict=True):
+        entry["colour"] = levels is not None
+        lights = result_lights(result.root)
+        entry["captured_lights"] = None if lights is None else [
+            [float(x) for x in row] for row in lights
+        ]
+    return json.dumps(value, indent=1).encode()
 
 
 @functools.cache

@@ -29,6 +29,9 @@ const IMAGE_FS = `#version 300 es
 precision highp float;
 uniform sampler2D u_a;
 uniform sampler2D u_b;
+uniform sampler2D u_c0;   // colour tiles (issue 32): normals and albedo R
+uniform sampler2D u_c1;   // albedo G, B
+uniform bool u_colour;
 uniform int u_mode;
 uniform vec3 u_light;
 uniform float u_exposure;
@@ -52,13 +55,14 @@ void main() {
   if (len < 0.5) { o = vec4(u_bg, 1.0); return; }
   vec3 n = a.xyz / len;
   vec3 c;
+  vec3 rgb = u_colour ? vec3(texture(u_c0, v_uv).w, texture(u_c1, v_uv).xy) : vec3(a.w);
   if (u_mode == 0) {
-    float shade = max(dot(n, u_light), 0.0) * (u_albedo ? a.w : 1.0);
-    c = srgb(vec3(shade * u_exposure));
+    float shade = max(dot(n, u_light), 0.0);
+    c = srgb((u_albedo ? rgb : vec3(1.0)) * shade * u_exposure);
   } else if (u_mode == 1) {
     c = (n + 1.0) * 0.5;
   } else if (u_mode == 2) {
-    c = vec3(clamp(a.w, 0.0, 1.0));
+    c = clamp(rgb, 0.0, 1.0);
   } else if (u_mode == 3) {
     c = heat(b.x);
   } else if (u_mode == 4) {

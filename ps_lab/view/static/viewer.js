@@ -73,15 +73,38 @@ function pump() {
     const [r, entry] = queue.shift();
     fetching++;
     stats.pending = fetching + queue.length;
-    fetch(`data/r${r}/${entry.level}/${entry.col}_${entry.row}.bin`)
-      .then((response) => {
-        if (!response.ok) throw new Error(`${response.status} ${response.url}`);
-        return response.arrayBuffer();
+    const get = (url) => fetch(url).then((response) => {
+      if (!response.ok) throw new Error(`${response.status} ${response.url}`);
+      return response.arrayBuffer();
+    });
+    const tail = `${entry.level}/${entry.col}_${entry.row}.bin`;
+    // Colour results: the colour tile (normals, albedo R | G, B) comes with the layer tile.
+    Promise.all([get(`data/r${r}/${tail}`), results[r].colour ? get(`data/r${r}/c/${tail}`) : null])
+      .then(([buffer, colour]) => {
+        if (colour) entry.colourTextures = textures(results[r], entry, colour);
+        uploadTile(results[r], entry, buffer);
       })
-      .then((buffer) => { uploadTile(results[r], entry, buffer); })
       .catch((error) => { status(`tile failed: ${error.message}`); })
       .finally(() => { fetching--; stats.pending = fetching + queue.length; pump(); redraw(); });
   }
+}
+
+function textures(result, entry, buffer) {
+  const size = result.levels[entry.level], t = result.tile;
+  const w = Math.min(t, size.width - entry.col * t), h = Math.min(t, size.height - entry.row * t);
+  const halves = new Uint16Array(buffer);
+  return [0, 1].map((plane) => {
+    const texture = gl.createTexture();
+    gl.bindTexture(gl.TEXTURE_2D, texture);
+    gl.pixelStorei(gl.UNPACK_ALIGNMENT, 1);
+    gl.texImage2D(gl.TEXTURE_2D, 0, gl.RGBA16F, w, h, 0, gl.RGBA, gl.HALF_FLOAT,
+      halves.subarray(plane * w * h * 4, (plane + 1) * w * h * 4));
+    gl.texParameteri(gl.TEXTURE_2D, gl.TEXTURE_MIN_FILTER, gl.LINEAR);
+    gl.texParameteri(gl.TEXTURE_2D, gl.TEXTURE_MAG_FILTER, entry.level === 0 ? gl.NEAREST : gl.LINEAR);
+    gl.texParameteri(gl.TEXTURE_2D, gl.TEXTURE_WRAP_S, gl.CLAMP_TO_EDGE);
+    gl.texParameteri(gl.TEXTURE_2D, gl.TEXTURE_WRAP_T, gl.CLAMP_TO_EDGE);
+    return texture;
+  });
 }
 
 function uploadTile(result, entry, buffer) {
@@ -257,6 +280,9 @@ function drawImage(result, panel) {
   gl.uniform3fv(p.u.u_bg, BACKGROUND);
   gl.uniform1i(p.u.u_a, 0);
   gl.uniform1i(p.u.u_b, 1);
+  gl.uniform1i(p.u.u_c0, 2);
+  gl.uniform1i(p.u.u_c1, 3);
+  gl.uniform1i(p.u.u_colour, result.colour ? 1 : 0);
   // The tiles of that level over the panel; the one-tile top level is drawn under them until
   // they have all arrived.
   const visible = [];
@@ -286,6 +312,11 @@ function drawTile(result, entry) {
   gl.bindTexture(gl.TEXTURE_2D, entry.textures[0]);
   gl.activeTexture(gl.TEXTURE1);
   gl.bindTexture(gl.TEXTURE_2D, entry.textures[1]);
+  const colour = entry.colourTextures || entry.textures;
+  gl.activeTexture(gl.TEXTURE2);
+  gl.bindTexture(gl.TEXTURE_2D, colour[0]);
+  gl.activeTexture(gl.TEXTURE3);
+  gl.bindTexture(gl.TEXTURE_2D, colour[1]);
   gl.drawArrays(gl.TRIANGLE_STRIP, 0, 4);
 }
 
@@ -423,6 +454,13 @@ function drawLightWidget() {
   c.strokeStyle = "#5f6368";
   c.beginPath(); c.arc(w / 2, w / 2, r, 0, 2 * Math.PI); c.stroke();
   c.beginPath(); c.arc(w / 2, w / 2, r * Math.cos((60 * Math.PI) / 180), 0, 2 * Math.PI); c.stroke();
+  // The captured lights (issue 32): a small dot at each direction of the results' light files.
+  c.fillStyle = "#8ab4f8";
+  for (const result of results) {
+    for (const d of result.captured_lights || []) {
+      c.beginPath(); c.arc(w / 2 + d[0] * r, w / 2 - d[1] * r, 2, 0, 2 * Math.PI); c.fill();
+    }
+  }
   const l = lightVector();
   c.fillStyle = "#fdd663";
   c.beginPath(); c.arc(w / 2 + l[0] * r, w / 2 - l[1] * r, 6, 0, 2 * Math.PI); c.fill();
