@@ -207,8 +207,15 @@ def expected_shading(result: Path, light, exposure: float = 1.0, use_albedo: boo
     norm = np.linalg.norm(normals, axis=2)
     mask = norm > 0.5
     unit = normals / np.where(mask, norm, 1.0)[..., None]
-    linear = np.clip(np.maximum(unit @ np.asarray(light), 0) * albedo * exposure, 0, 1)
+    shade = np.maximum(unit @ np.asarray(light), 0)
+    colour = np.load(result / "albedo.npy")
+    if use_albedo and colour.ndim == 3:  # colour results: per channel, then the screenshot's mean
+        colour = (colour / view.albedo_scale).astype(np.float16).astype(np.float64)
+        linear = np.clip(shade[..., None] * colour * exposure, 0, 1)
+    else:
+        linear = np.clip(shade * albedo * exposure, 0, 1)
     srgb = np.where(linear <= 0.0031308, linear * 12.92, 1.055 * linear ** (1 / 2.4) - 0.055)
+    srgb = srgb.mean(axis=-1) if srgb.ndim == 3 else srgb
     return srgb * 255.0, mask
 
 
