@@ -14,6 +14,7 @@ from __future__ import annotations
 import json
 import os
 import re
+import shutil
 import signal
 import socket
 import subprocess
@@ -465,5 +466,125 @@ def test_colour_relight_in_chromium_shows_the_albedo_colour(browser, colour_resu
         # the three channels differ as the object's colour does (orange: R > G > B)
         means = shown[inner].mean(axis=0)
         assert means[0] > means[1] + 20 and means[1] > means[2] + 20, means
+    finally:
+        server.stop()
+
+
+def _with_appearance(result: Path, folder: Path, model: str) -> Path:
+    """A copy of ``result`` with an appearance fit: an HSH 3 fit of its Lambertian renders plus
+    a seeded gloss, or ps terms with seeded coefficients."""
+    from ps_lab.io.appearance import PS_TERMS, Appearance, appearance_basis, write_appearance
+
+    shutil.copytree(result, folder)
+    normals = np.load(result / "normals.npy").astype(np.float64)
+    albedo = np.load(result / "albedo.npy").astype(np.float64)
+    h, w = normals.shape[:2]
+    rng = np.random.default_rng(7)
+    if model == "hsh3":
+        lights = np.loadtxt(json.loads((result / "metrics.json").read_text())["dataset"]
+                            + "/light_directions.txt")
+        shade = np.maximum(normals @ lights.T, 0)  # (H, W, n)
+        gloss = 0.5 * shade ** 8
+        images = albedo[..., None, :] * (shade + gloss)[..., None]  # (H, W, n, 3)
+        basis = appearance_basis("hsh3", lights)  # (n, 9)
+        coefficients = np.einsum("kn,hwnc->hwck", np.linalg.pinv(basis), images)
+        meta = {"basis": "hsh3", "K": 9}
+    else:
+        k = len(PS_TERMS)
+        coefficients = rng.uniform(0, 0.15, size=(h, w, 3, k)) * albedo.mean()
+        meta = {"basis": "ps", "K": k, "terms": list(PS_TERMS)}
+    write_appearance(folder, Appearance(model, coefficients.astype(np.float32), meta))
+    return folder
+
+
+@pytest.mark.parametrize("model", ["hsh3", "ps"])
+def test_appearance_relight_in_chromium_matches_the_model(browser, colour_result, tmp_path, model):
+    from ps_lab.io.appearance import Appearance, evaluate_appearance, read_appearance
+
+    result = _with_appearance(colour_result, tmp_path / model, model)
+    view = load_result(result)
+    scale = view.albedo_scale
+    fit = read_appearance(result)
+    rounded = Appearance(fit.model, (fit.coefficients / scale).astype(np.float16).astype(np.float32),
+                         fit.meta)
+    normals = view.layers[..., :3].astype(np.float16).astype(np.float64)
+    norm = np.linalg.norm(normals, axis=2)
+    mask = norm > 0.5
+    unit = normals / np.where(mask, norm, 1)[..., None]
+    albedo = (np.load(result / "albedo.npy") / scale).astype(np.float16).astype(np.float64)
+    server = ViewServer(result)
+    try:
+        browser.open(server.url)
+        assert browser.evaluate("psView.ready") is True
+        entry = browser.evaluate("psView.results()[0]")
+        assert entry["appearance"]["model"] == model and entry["appearance"]["planes"]
+        browser.evaluate("psView.pixelScale(0, 1)")
+        browser.evaluate("psView.setView({cx: 0.5, cy: 0.5})")
+        light = [-0.35, 0.25, float(np.sqrt(1 - 0.35**2 - 0.25**2))]
+        browser.evaluate(f"psView.setLight({json.dumps(light)})")
+        numbers, pictures = {}, {}
+        for switch in (True, False):
+            browser.evaluate(f"psView.set({{appearance: {json.dumps(switch)}}})")
+            settle(browser)
+            if switch:
+                linear = evaluate_appearance(rounded, np.asarray(light), unit, albedo)
+            else:
+                linear = np.maximum(unit @ light, 0)[..., None] * albedo
+            linear = np.clip(linear.astype(np.float64), 0, 1)
+            expected = 255 * np.where(linear <= 0.0031308, linear * 12.92,
+                                      1.055 * linear ** (1 / 2.4) - 0.055)
+            rows, cols, picture = shown_pixels(browser, 0, view.shape)
+            shown = picture[rows][:, cols].astype(np.float64)[..., :3]
+            inner = interior(mask)
+            difference = np.abs(shown - expected)[inner]
+            numbers[switch] = (float(difference.mean()), float(difference.max()),
+                               float(np.abs(shown - expected)[inner].mean()))
+            assert difference.max() <= 2.0, numbers
+            pictures[switch] = expected[inner]
+        # the model's picture is not the Lambertian one: the switch shows a difference
+        numbers["model_vs_lambertian"] = float(np.abs(pictures[True] - pictures[False]).mean())
+        assert numbers["model_vs_lambertian"] > 3.0, numbers
+        print(f"{model} relight vs numpy (mean, max levels): appearance {numbers[True]}, "
+              f"Lambertian {numbers[False]}, model vs Lambertian {numbers['model_vs_lambertian']}")
+    finally:
+        server.stop()
+
+
+def test_a_relightlab_export_relights_in_chromium(browser, colour_result, tmp_path):
+    """ps-lab view opens RelightLab's web layout (its own export) and relights it as its fit."""
+    from ps_lab.io.appearance import Appearance, evaluate_appearance
+    from ps_lab.io.relightlab import read_relightlab
+    from ps_lab.view.relightlab import load_view_result
+
+    result = _with_appearance(colour_result, tmp_path / "fit", "hsh3")
+    out = tmp_path / "relightlab"
+    done = runner.invoke(app, ["view", str(result), "--export", str(out), "--format", "relight"])
+    assert done.exit_code == 0, done.output
+    view = load_view_result(out)
+    fit, _ = read_relightlab(out)
+    rounded = Appearance("hsh3", (fit.coefficients / view.albedo_scale).astype(np.float16)
+                         .astype(np.float32), fit.meta)
+    mask = np.linalg.norm(view.layers[..., :3], axis=2) > 0.5
+    server = ViewServer(out)
+    try:
+        browser.open(server.url)
+        assert browser.evaluate("psView.ready") is True
+        entry = browser.evaluate("psView.results()[0]")
+        assert entry["appearance"]["model"] == "hsh3" and len(entry["captured_lights"]) == 16
+        browser.evaluate("psView.pixelScale(0, 1)")
+        browser.evaluate("psView.setView({cx: 0.5, cy: 0.5})")
+        light = [0.4, -0.2, float(np.sqrt(1 - 0.2))]
+        browser.evaluate(f"psView.setLight({json.dumps(light)})")
+        settle(browser)
+        linear = np.clip(evaluate_appearance(rounded, np.asarray(light), view.layers[..., :3],
+                                             np.zeros(view.shape)).astype(np.float64), 0, 1)
+        expected = 255 * np.where(linear <= 0.0031308, linear * 12.92,
+                                  1.055 * linear ** (1 / 2.4) - 0.055)
+        rows, cols, picture = shown_pixels(browser, 0, view.shape)
+        shown = picture[rows][:, cols].astype(np.float64)[..., :3]
+        difference = np.abs(shown - expected)[interior(mask)]
+        print("RelightLab folder relight vs numpy (levels): mean", float(difference.mean()),
+              "max", float(difference.max()))
+        assert difference.max() <= 2.0
     finally:
         server.stop()

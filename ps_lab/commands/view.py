@@ -12,8 +12,8 @@ from typing import Annotated
 import typer
 
 from ps_lab._cli_util import EXIT_INTERRUPTED, fail, interrupted_line, lab_command
-from ps_lab.view import ViewSite, export_site, load_result, serve
-from ps_lab.view.relightlab import export_relightlab
+from ps_lab.view import ViewSite, export_site, serve
+from ps_lab.view.relightlab import export_relightlab, load_view_result
 
 
 @lab_command
@@ -21,7 +21,8 @@ def view(
     results: Annotated[
         list[Path],
         typer.Argument(
-            help="One or more ps-lab reconstruct result folders (two or more: side by side).",
+            help="One or more ps-lab reconstruct result folders, or RelightLab web folders "
+            "(info.json, plane_N.jpg) (two or more: side by side).",
             show_default=False,
         ),
     ],
@@ -61,7 +62,7 @@ def view(
         info = export_relightlab(results[0], export)
         typer.echo(f"RelightLab {info['type']} ({info['nplanes']} planes) written to {export}")
         return
-    site = ViewSite([load_result(result) for result in results])
+    site = ViewSite([load_view_result(result) for result in results])
     if export is not None:
         size = export_site(site, export)
         typer.echo(f"viewer written to {export} ({size / 2**20:.1f} MiB); serve the folder, e.g.")

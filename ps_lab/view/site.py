@@ -19,9 +19,12 @@ from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 from importlib import resources
 from pathlib import Path
 
+import numpy as np
+
 from ps_lab.errors import OutputError
 from ps_lab.io.files import staged_folder
-from ps_lab.view.relightlab import result_lights
+from ps_lab.view.appearance_tiles import AppearanceTiles, appearance_entry, appearance_tiles
+from ps_lab.view.relightlab import result_appearance, result_lights
 from ps_lab.view.result import ViewResult, colour_layers
 from ps_lab.view.tiles import Pyramid, manifest, mesh_bytes, pyramid
 
@@ -43,6 +46,7 @@ STATIC_FILES = {
 _TILE_PATH = re.compile(r"^data/r(\d+)/(\d+)/(\d+)_(\d+)\.bin$")
 _MESH_PATH = re.compile(r"^data/r(\d+)/mesh\.bin$")
 _COLOUR_PATH = re.compile(r"^data/r(\d+)/c/(\d+)/(\d+)_(\d+)\.bin$")
+_APPEARANCE_PATH = re.compile(r"^data/r(\d+)/a/(\d+)/(\d+)_(\d+)\.bin$")
 
 
 class ViewSite:
@@ -53,7 +57,8 @@ class ViewSite:
         self.pyramids: list[Pyramid] = [pyramid(result) for result in results]
         self._manifest = manifest(results, self.pyramids)
         self.colour = _colour_pyramids(results)
-        self._manifest = _manifest_extras(self._manifest, results, self.colour)
+        self.appearance, entries = _appearance_layers(results)
+        self._manifest = _manifest_extras(self._manifest, results, self.colour, entries)
 
     def get(self, path: str) -> tuple[bytes, str] | None:
         """``(bytes, content type)`` of a page-relative path, or None when there is none."""
@@ -69,7 +74,7 @@ class ViewSite:
                 return None
             data = self.pyramids[index].tile(level, col, row)
             return None if data is None else (data, "application/octet-stream")
-        found = _colour_tile(self.colour, path)
+        found = _colour_tile(self.colour, path) or _appearance_tile(self.appearance, path)
         if found is not None:
             return found, "application/octet-stream"
         match = _MESH_PATH.match(path)
@@ -90,6 +95,9 @@ class ViewSite:
         for index, levels in enumerate(self.colour):
             for level, col, row in levels.tiles() if levels is not None else ():
                 yield f"data/r{index}/c/{level}/{col}_{row}.bin"
+        for index, tiles in enumerate(self.appearance):
+            for level, col, row in tiles.tiles() if tiles is not None else ():
+                yield f"data/r{index}/a/{level}/{col}_{row}.bin"
 
 
 # --- colour and captured lights (issue 32) ------------------------------------------------------
@@ -122,11 +130,45 @@ def _colour_tile(colour: list[Pyramid | None], path: str) -> bytes | None:
     return colour[index].tile(level, col, row)
 
 
-def _manifest_extras(data: bytes, results: list[ViewResult], colour: list) -> bytes:
-    """The manifest with, per result, ``colour`` (colour tiles exist) and ``captured_lights``."""
+def _appearance_layers(
+    results: list[ViewResult],
+) -> tuple[list[AppearanceTiles | None], list[dict | None]]:
+    """Per result, its appearance fit's tiles (None: none, or not one the page relights) and
+    manifest entry (:mod:`ps_lab.view.appearance_tiles`)."""
+    tiles: list[AppearanceTiles | None] = []
+    entries: list[dict | None] = []
+    for result in results:
+        appearance = result_appearance(result.root)
+        layers = None
+        if appearance is not None:
+            mask = np.einsum("...k,...k->...", result.layers[..., :3], result.layers[..., :3])
+            layers = appearance_tiles(appearance, mask > 0.25, result.albedo_scale)
+        tiles.append(layers)
+        entries.append(appearance_entry(appearance, layers))
+    return tiles, entries
+
+
+def _appearance_tile(tiles: list[AppearanceTiles | None], path: str) -> bytes | None:
+    match = _APPEARANCE_PATH.match(path)
+    if not match:
+        return None
+    index, level, col, row = (int(g) for g in match.groups())
+    if index >= len(tiles) or tiles[index] is None:
+        return None
+    return tiles[index].tile(level, col, row)
+
+
+def _manifest_extras(
+    data: bytes, results: list[ViewResult], colour: list, appearance: list
+) -> bytes:
+    """The manifest with, per result, ``colour`` (colour tiles exist), ``appearance`` (the
+    fitted model's entry) and ``captured_lights``."""
     value = json.loads(data)
-    for entry, result, levels in zip(value["results"], results, colour, strict=True):
+    for entry, result, levels, fit in zip(
+        value["results"], results, colour, appearance, strict=True
+    ):
         entry["colour"] = levels is not None
+        entry["appearance"] = fit
         lights = result_lights(result.root)
         entry["captured_lights"] = None if lights is None else [
             [float(x) for x in row] for row in lights
