@@ -45,6 +45,7 @@ _NOT_FRAMES = {
     "normal16.png",
     "albedo.png",
     "albedo.npy",
+    "albedo.exr",
     "corruption.png",
     "calibration.png",
     "depth.npy",
