@@ -123,7 +123,9 @@ def frame_channels(header: DatasetHeader) -> int:
     return 3 if image.data.ndim == 3 and image.data.shape[-1] >= 3 else 1
 
 
-def colour_albedo_picture(albedo: np.ndarray, mask: np.ndarray, top: float | None = None) -> np.ndarray:
+def colour_albedo_picture(
+    albedo: np.ndarray, mask: np.ndarray, top: float | None = None
+) -> np.ndarray:
     """An 8-bit sRGB picture of a linear colour albedo (H, W, 3).
 
     One scale for the three channels (so the hue is kept): ``top`` (default the 99th percentile

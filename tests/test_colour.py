@@ -50,10 +50,12 @@ def _write(folder: Path, images: np.ndarray, lights: np.ndarray, mask: np.ndarra
             linear = np.clip(linear * intensities[i], 0.0, 1.0)
         if kind == "png16":
             counts = np.rint(linear * 65535).astype(np.uint16)
-            assert cv2.imwrite(str(folder / f"{i:03d}.png"), np.ascontiguousarray(counts[..., ::-1]))
+            bgr = np.ascontiguousarray(counts[..., ::-1])
+            assert cv2.imwrite(str(folder / f"{i:03d}.png"), bgr)
         else:  # an sRGB camera JPEG, quality 95
             counts = np.rint(linear_to_srgb(linear) * 255).astype(np.uint8)
-            assert cv2.imwrite(str(folder / f"{i:03d}.jpg"), np.ascontiguousarray(counts[..., ::-1]),
+            bgr = np.ascontiguousarray(counts[..., ::-1])
+            assert cv2.imwrite(str(folder / f"{i:03d}.jpg"), bgr,
                                [cv2.IMWRITE_JPEG_QUALITY, 95, *SAMPLING[sampling]])
     np.savetxt(folder / "light_directions.txt", lights)
     if intensities is not None:

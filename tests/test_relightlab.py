@@ -57,7 +57,8 @@ def test_export_read_back_relights_as_the_fit(tmp_path, model):
     assert is_relightlab_folder(tmp_path)
     on_disk = json.loads((tmp_path / "info.json").read_text())
     assert on_disk["type"] == ("ptm" if model == "ptm" else "hsh")
-    assert on_disk["colorspace"] == "rgb" and on_disk["nplanes"] == 3 * appearance.coefficients.shape[3]
+    assert on_disk["colorspace"] == "rgb"
+    assert on_disk["nplanes"] == 3 * appearance.coefficients.shape[3]
     assert len(on_disk["materials"][0]["scale"]) == on_disk["nplanes"]
     assert len(on_disk["lights"]) == 3 * N_LIGHTS
     assert sorted(p.name for p in tmp_path.glob("plane_*.jpg")) == [

@@ -505,8 +505,8 @@ def test_appearance_relight_in_chromium_matches_the_model(browser, colour_result
     view = load_result(result)
     scale = view.albedo_scale
     fit = read_appearance(result)
-    rounded = Appearance(fit.model, (fit.coefficients / scale).astype(np.float16).astype(np.float32),
-                         fit.meta)
+    coefficients = (fit.coefficients / scale).astype(np.float16).astype(np.float32)
+    rounded = Appearance(fit.model, coefficients, fit.meta)
     normals = view.layers[..., :3].astype(np.float16).astype(np.float64)
     norm = np.linalg.norm(normals, axis=2)
     mask = norm > 0.5

@@ -164,8 +164,11 @@ def load_view_result(root: Path, name: str | None = None) -> ViewResult:
         layers[..., 3] = mask
     exposure = float((info.get("ps_lab") or {}).get("exposure", 1.0))
     has = {"outliers": False, "error": False, "depth": False, "mesh": False}
-    metrics = {"method": f"RelightLab {info.get('type')}", "lights": len(info.get("lights", [])) // 3,
-               "pixels": int(mask.sum())}
+    metrics = {
+        "method": f"RelightLab {info.get('type')}",
+        "lights": len(info.get("lights", [])) // 3,
+        "pixels": int(mask.sum()),
+    }
     return ViewResult(root, name or root.name, layers, 1.0 / exposure, has, metrics, None)
 
 
