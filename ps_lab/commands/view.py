@@ -6,6 +6,7 @@ import os
 import sys
 import threading
 import webbrowser
+from enum import Enum
 from pathlib import Path
 from typing import Annotated
 
@@ -14,6 +15,11 @@ import typer
 from ps_lab._cli_util import EXIT_INTERRUPTED, fail, interrupted_line, lab_command
 from ps_lab.view import ViewSite, export_site, serve
 from ps_lab.view.relightlab import export_relightlab, load_view_result
+
+
+class ExportFormat(str, Enum):  # noqa: UP042 - typer needs str-valued choices
+    site = "site"
+    relight = "relight"
 
 
 @lab_command
@@ -44,19 +50,18 @@ def view(
         ),
     ] = None,
     export_format: Annotated[
-        str,
+        ExportFormat,
         typer.Option(
             "--format",
-            help="With --export: 'site' (the viewer as a static folder) or 'relight' "
+            case_sensitive=False,
+            help="With --export: site (the viewer as a static folder) or relight "
             "(RelightLab's web layout of one result's PTM / HSH fit: info.json, plane_N.jpg, "
             "normals.png, albedo.png; opens in OpenLIME's RTI layer).",
         ),
-    ] = "site",
+    ] = ExportFormat.site,
 ) -> None:
     """Relight results under a virtual light, see their layers and mesh, compare them."""
-    if export_format not in ("site", "relight"):
-        raise fail(f"--format {export_format!r}: choose site or relight")
-    if export_format == "relight":
+    if export_format is ExportFormat.relight:
         if export is None or len(results) != 1:
             raise fail("--format relight needs --export DIR and exactly one result")
         info = export_relightlab(results[0], export)

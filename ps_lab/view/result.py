@@ -23,14 +23,7 @@ from ps_lab.errors import DatasetError
 from ps_lab.io.images import check_is_file
 from ps_lab.io.truth import open_normal_gt
 
-__all__ = [
-    "CHANNELS",
-    "ViewResult",
-    "colour_layers",
-    "decimate_mesh",
-    "load_result",
-    "vertex_normals",
-]
+__all__ = ["CHANNELS", "ViewResult", "decimate_mesh", "load_result", "vertex_normals"]
 
 #: The channels of :attr:`ViewResult.layers`: normal x, y, z, albedo (divided by
 #: :attr:`ViewResult.albedo_scale`), outlier share 0..1, angular error in degrees (NaN without
@@ -153,29 +146,6 @@ def load_result(root: Path, name: str | None = None) -> ViewResult:
         parts = root.resolve().parts
         name = "/".join(parts[-3:]) if len(parts) >= 3 else str(root)
     return ViewResult(root, name, layers, scale, has, metrics, mesh)
-
-
-def colour_layers(result: ViewResult) -> np.ndarray | None:
-    """A colour result's tiled colour layers, or None for a grey one (issue 32).
-
-    Eight channels as :data:`CHANNELS` lays them out for the pyramid: the normals (0-2), then
-    the albedo's R, G, B divided by :attr:`ViewResult.albedo_scale` (3-5), zeros (6-7); served
-    beside the layer tiles as ``data/r{i}/c/...``.
-    """
-    albedo_file = result.root / "albedo.npy"
-    if not albedo_file.exists():
-        return None
-    albedo = _load_npy(albedo_file)
-    if albedo.ndim != 3 or albedo.shape[2] != 3:
-        return None
-    _check_shape(albedo_file, albedo.shape, result.shape)
-    normals = result.layers[..., 0:3]
-    mask = np.einsum("...k,...k->...", normals, normals) > 0.25
-    out = np.zeros((*result.shape, 8), np.float32)
-    out[..., 0:3] = normals
-    colour = np.nan_to_num(np.asarray(albedo, np.float32)) / np.float32(result.albedo_scale)
-    out[..., 3:6] = np.where(mask[..., None], colour, 0.0)
-    return out
 
 
 def _load_npy(path: Path) -> np.ndarray:

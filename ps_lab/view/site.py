@@ -10,7 +10,6 @@ into a folder that any static web server (or ``python -m http.server``) serves a
 from __future__ import annotations
 
 import functools
-import json
 import logging
 import re
 from collections.abc import Callable, Iterator
@@ -19,13 +18,10 @@ from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 from importlib import resources
 from pathlib import Path
 
-import numpy as np
-
 from ps_lab.errors import OutputError
 from ps_lab.io.files import staged_folder
-from ps_lab.view.appearance_tiles import AppearanceTiles, appearance_entry, appearance_tiles
-from ps_lab.view.relightlab import result_appearance, result_lights
-from ps_lab.view.result import ViewResult, colour_layers
+from ps_lab.view.extras import SiteExtras
+from ps_lab.view.result import ViewResult
 from ps_lab.view.tiles import Pyramid, manifest, mesh_bytes, pyramid
 
 __all__ = ["HOST", "STATIC_FILES", "ViewSite", "export_site", "serve"]
@@ -45,8 +41,6 @@ STATIC_FILES = {
 
 _TILE_PATH = re.compile(r"^data/r(\d+)/(\d+)/(\d+)_(\d+)\.bin$")
 _MESH_PATH = re.compile(r"^data/r(\d+)/mesh\.bin$")
-_COLOUR_PATH = re.compile(r"^data/r(\d+)/c/(\d+)/(\d+)_(\d+)\.bin$")
-_APPEARANCE_PATH = re.compile(r"^data/r(\d+)/a/(\d+)/(\d+)_(\d+)\.bin$")
 
 
 class ViewSite:
@@ -56,15 +50,17 @@ class ViewSite:
         self.results = results
         self.pyramids: list[Pyramid] = [pyramid(result) for result in results]
         self._manifest = manifest(results, self.pyramids)
-        self.colour = _colour_pyramids(results)
-        self.appearance, entries = _appearance_layers(results)
-        self._manifest = _manifest_extras(self._manifest, results, self.colour, entries)
+        self.extras = SiteExtras(results)  # colour, appearance, captured lights (issue 32)
+        self._manifest = self.extras.manifest(self._manifest)
 
     def get(self, path: str) -> tuple[bytes, str] | None:
         """``(bytes, content type)`` of a page-relative path, or None when there is none."""
         path = path.lstrip("/") or "index.html"
         if path in STATIC_FILES:
             return _static(path), STATIC_FILES[path]
+        extra = self.extras.get(path)
+        if extra is not None:
+            return extra, "application/octet-stream"
         if path == "data/manifest.json":
             return self._manifest, "application/json"
         match = _TILE_PATH.match(path)
@@ -74,9 +70,6 @@ class ViewSite:
                 return None
             data = self.pyramids[index].tile(level, col, row)
             return None if data is None else (data, "application/octet-stream")
-        found = _colour_tile(self.colour, path) or _appearance_tile(self.appearance, path)
-        if found is not None:
-            return found, "application/octet-stream"
         match = _MESH_PATH.match(path)
         if match and int(match.group(1)) < len(self.results):
             data = mesh_bytes(self.results[int(match.group(1))])
@@ -92,88 +85,7 @@ class ViewSite:
                 yield f"data/r{index}/{level}/{col}_{row}.bin"
             if result.mesh is not None:
                 yield f"data/r{index}/mesh.bin"
-        for index, levels in enumerate(self.colour):
-            for level, col, row in levels.tiles() if levels is not None else ():
-                yield f"data/r{index}/c/{level}/{col}_{row}.bin"
-        for index, tiles in enumerate(self.appearance):
-            for level, col, row in tiles.tiles() if tiles is not None else ():
-                yield f"data/r{index}/a/{level}/{col}_{row}.bin"
-
-
-# --- colour and captured lights (issue 32) ------------------------------------------------------
-
-
-def _colour_pyramids(results: list[ViewResult]) -> list[Pyramid | None]:
-    """Per result, the pyramid of its colour layers (:func:`colour_layers`), None when grey."""
-    out: list[Pyramid | None] = []
-    for result in results:
-        layers = colour_layers(result)
-        out.append(None if layers is None else pyramid(_ColourLayers(result, layers)))
-    return out
-
-
-class _ColourLayers:
-    """What :func:`ps_lab.view.tiles.pyramid` reads of a result: its layers."""
-
-    def __init__(self, result: ViewResult, layers) -> None:
-        self.layers = layers
-        self.shape = result.shape
-
-
-def _colour_tile(colour: list[Pyramid | None], path: str) -> bytes | None:
-    match = _COLOUR_PATH.match(path)
-    if not match:
-        return None
-    index, level, col, row = (int(g) for g in match.groups())
-    if index >= len(colour) or colour[index] is None:
-        return None
-    return colour[index].tile(level, col, row)
-
-
-def _appearance_layers(
-    results: list[ViewResult],
-) -> tuple[list[AppearanceTiles | None], list[dict | None]]:
-    """Per result, its appearance fit's tiles (None: none, or not one the page relights) and
-    manifest entry (:mod:`ps_lab.view.appearance_tiles`)."""
-    tiles: list[AppearanceTiles | None] = []
-    entries: list[dict | None] = []
-    for result in results:
-        appearance = result_appearance(result.root)
-        layers = None
-        if appearance is not None:
-            mask = np.einsum("...k,...k->...", result.layers[..., :3], result.layers[..., :3])
-            layers = appearance_tiles(appearance, mask > 0.25, result.albedo_scale)
-        tiles.append(layers)
-        entries.append(appearance_entry(appearance, layers))
-    return tiles, entries
-
-
-def _appearance_tile(tiles: list[AppearanceTiles | None], path: str) -> bytes | None:
-    match = _APPEARANCE_PATH.match(path)
-    if not match:
-        return None
-    index, level, col, row = (int(g) for g in match.groups())
-    if index >= len(tiles) or tiles[index] is None:
-        return None
-    return tiles[index].tile(level, col, row)
-
-
-def _manifest_extras(
-    data: bytes, results: list[ViewResult], colour: list, appearance: list
-) -> bytes:
-    """The manifest with, per result, ``colour`` (colour tiles exist), ``appearance`` (the
-    fitted model's entry) and ``captured_lights``."""
-    value = json.loads(data)
-    for entry, result, levels, fit in zip(
-        value["results"], results, colour, appearance, strict=True
-    ):
-        entry["colour"] = levels is not None
-        entry["appearance"] = fit
-        lights = result_lights(result.root)
-        entry["captured_lights"] = None if lights is None else [
-            [float(x) for x in row] for row in lights
-        ]
-    return json.dumps(value, indent=1).encode()
+        yield from self.extras.paths()
 
 
 @functools.cache
