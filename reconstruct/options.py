@@ -15,6 +15,7 @@ from dataclasses import dataclass
 from typing import Any
 
 from ps_lab.errors import OutputError
+from ps_lab.io.appearance import APPEARANCE_MODELS
 from ps_lab.io.encoding import ENCODINGS
 from ps_lab.io.normal_maps import CONVENTIONS
 from ps_lab.reconstruct._solution import SolverInputError
@@ -170,6 +171,9 @@ class ReconstructOptions:
         object on the spheres' table, minus their radius). None: the dataset's
         ``object_outline.txt`` (``ps-lab calibrate --object``), else found from the shading
         (:func:`ps_lab.reconstruct.near.near_light_rounds`).
+    appearance : {"ps", "ptm", "hsh2", "hsh3", "rbf", "none"}
+        The appearance model fitted per pixel after the normals (``appearance.npz``;
+        :mod:`ps_lab.reconstruct.appearance`, docs/appearance.md); ``none``: no fit.
     """
 
     method: str = "auto"
@@ -192,8 +196,14 @@ class ReconstructOptions:
     encoding: str = "auto"
     normal_map: str = "opengl"
     object_outline: float | None = None
+    appearance: str = "ps"
 
     def __post_init__(self) -> None:
+        if self.appearance not in APPEARANCE_MODELS:
+            raise OutputError(
+                f"--appearance must be one of {', '.join(APPEARANCE_MODELS)}, "
+                f"got {self.appearance!r}"
+            )
         if self.encoding not in ENCODINGS:
             raise OutputError(
                 f"--encoding must be one of {', '.join(ENCODINGS)}, got {self.encoding!r}"

@@ -43,6 +43,7 @@ from ps_lab.io.truth import open_normal_gt
 from ps_lab.reconstruct._bands import LocalBands
 from ps_lab.reconstruct._colour import frame_channels, grey_albedo
 from ps_lab.reconstruct._warm_up import start_warm_up
+from ps_lab.reconstruct.appearance import fit_appearance_bands, solved_lights as _solved_lights
 from ps_lab.reconstruct._outputs import (
     ERROR_BIN_DEG,
     _Histogram,
@@ -223,6 +224,10 @@ def reconstruct_to_folder(
             timings["solve_seconds"] = solved.seconds
             written = time.perf_counter()
             metrics = _write_results(writer, stage, source, options, store, solved, timings)
+            metrics["appearance"] = fit_appearance_bands(
+                store, stage, options.appearance, *_solved_lights(source, solved),
+                progress_bars=bars,
+            )
             timings["write_seconds"] = time.perf_counter() - written
             metrics["timings"] = dict(timings)
             _write_surface(stage, options, metrics, bars)

@@ -31,6 +31,26 @@ class Method(str, Enum):  # noqa: UP042 - typer needs str-valued choices
     rpca = "rpca"
 
 
+class AppearanceModel(str, Enum):  # noqa: UP042
+    ps = "ps"
+    ptm = "ptm"
+    hsh2 = "hsh2"
+    hsh3 = "hsh3"
+    rbf = "rbf"
+    none = "none"
+
+
+AppearanceOption = Annotated[
+    AppearanceModel,
+    typer.Option(
+        case_sensitive=False,
+        help="Appearance model fitted per pixel for relighting (appearance.npz): ps (ps-lab's: "
+        "the normal and albedo plus gloss terms), ptm, hsh2, hsh3, rbf (as RTI tools fit "
+        "them) or none. See docs/appearance.md.",
+    ),
+]
+
+
 class Lights(str, Enum):  # noqa: UP042
     """Light model: LEDs at a finite distance or lights at infinity."""
 
@@ -220,6 +240,7 @@ def reconstruct(
             help="normal16.png / normals.exr y axis: opengl (up) or directx (down).",
         ),
     ] = NormalMap.opengl,
+    appearance: AppearanceOption = AppearanceModel.ps,
 ) -> None:
     """Estimate surface normals and albedo; write normals.npy, normal.png, albedo, metrics.json."""
     out = out if out is not None else dataset / "recon" / method.value
@@ -241,6 +262,7 @@ def reconstruct(
         encoding=encoding.value,
         normal_map=normal_map.value,
         segments=segments,
+        appearance=appearance.value,
     )
     try:
         result = reconstruct_to_folder(dataset, out, options, progress_bars=_terminal_bars)
@@ -276,6 +298,12 @@ def reconstruct(
         typer.echo(line)
     if "depth" in metrics:
         typer.echo(_depth_line(metrics["depth"]))
+    fitted = metrics.get("appearance", {})
+    if fitted.get("model", "none") != "none":
+        typer.echo(
+            f"appearance: {fitted['model']}, {fitted['coefficients_per_pixel']} coefficients "
+            "per pixel (appearance.npz)"
+        )
     typer.echo(f"results: {out}")
 
 
