@@ -339,9 +339,10 @@ class DaskBands:
                 )
                 for lights in (list(range(a, min(a + per_task, n))) for a in range(0, n, per_task))
             ]
-            for lights, observations, valid in gather(self.client, futures):
+            for lights, observations, valid, colour in gather(self.client, futures):
                 store.sample_observations[lights] = observations
                 store.sample_valid[lights] = valid
+                store.sample_colour[lights] = colour
                 progress(len(lights))
         except BaseException:
             store.close()
@@ -408,11 +409,11 @@ def worker_mask(header: DatasetHeader) -> np.ndarray:
     return mask
 
 
-def _stage_task(header, bands, lights, path, **kwargs) -> tuple[list[int], np.ndarray, np.ndarray]:
-    observations, valid = stage_lights(
+def _stage_task(header, bands, lights, path, **kwargs) -> tuple[list[int], np.ndarray, ...]:
+    observations, valid, colour = stage_lights(
         header, worker_mask(header), bands, lights, Path(path), **kwargs
     )
-    return lights, observations, valid
+    return lights, observations, valid, colour
 
 
 def _solve_task(

@@ -110,6 +110,8 @@ class ObservationStore:
     sample_observations : ndarray of shape (n, m), float32
         Observations of ``m`` evenly spaced mask pixels (for the solvers' noise estimate).
     sample_valid : ndarray of shape (n, m), bool
+    sample_colour : ndarray of shape (n, m, colours), float32
+        The sample's colour observations (no channels without colour).
 
     """
 
@@ -176,6 +178,8 @@ class ObservationStore:
         self.sample_index = np.unique(take).astype(np.int64)
         self.sample_observations = np.zeros((n_lights, self.sample_index.size), np.float32)
         self.sample_valid = np.zeros((n_lights, self.sample_index.size), bool)
+        # the sample's colour observations (n, m, C), for fits in colour (appearance models)
+        self.sample_colour = np.zeros((n_lights, self.sample_index.size, self.colours), np.float32)
 
     def __enter__(self) -> ObservationStore:
         return self
@@ -214,6 +218,8 @@ class ObservationStore:
         local = self.sample_index[lo:hi] - band.pixel_start
         self.sample_observations[light, lo:hi] = observations[local]
         self.sample_valid[light, lo:hi] = valid[local]
+        if self.colours and colour is not None:
+            self.sample_colour[light, lo:hi] = colour[local]
 
     def write_frame(
         self,
@@ -345,7 +351,7 @@ def stage_lights(
     shadow_threshold: float | None = None,
     sample_pixels: int = 20000,
     colours: int = 0,
-) -> tuple[np.ndarray, np.ndarray]:
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Stage some lights into an existing store file (one task of a distributed pass 1).
 
     The frames are read as :func:`stage_observations` reads them (same bits) and written into
@@ -369,6 +375,8 @@ def stage_lights(
     sample_observations : ndarray of shape (len(lights), m), float32
     sample_valid : ndarray of shape (len(lights), m), bool
         These lights' rows of the store's noise sample.
+    sample_colour : ndarray of shape (len(lights), m, colours), float32
+        Their colour observations.
 
     """
     frames = iter_frames(header.plan, lights, common_exposure=common_exposure)
@@ -376,7 +384,11 @@ def stage_lights(
         bands, len(header.names), mask, sample_pixels=sample_pixels, path=path, colours=colours
     ) as store:
         _stage_frames(store, header, frames, channel, shadow_threshold, None, lights)
-        return store.sample_observations[lights], store.sample_valid[lights]
+        return (
+            store.sample_observations[lights],
+            store.sample_valid[lights],
+            store.sample_colour[lights],
+        )
 
 
 def _stage_frames(store, header, frames, channel, shadow_threshold, progress, lights=None) -> None:
