@@ -7,10 +7,16 @@ reconstruction's appearance stage (:func:`ps_lab.reconstruct.appearance.fit_appe
 exactly as the pipeline calls it, and reports its wall time, pixel rate and peak resident memory
 (``VmHWM`` of this process, reset with ``/proc/self/clear_refs`` after the store is built).
 ``--bands K`` fits only the first K bands' rows (the mask covers them alone; the coefficient file
-is still the full image size) and projects the full time from the rate. Usage::
+is still the full image size) and projects the full time from the rate.
+
+``--glossy-capture DIR`` instead writes the glossy coloured stand-in of a real RTI capture used in
+docs/results.md (a relief with a coloured albedo, Cook-Torrance gloss, cast shadows, 72 lights
+within 70 degrees of the view, noise, sRGB JPEG quality 92) for ``ps-lab bench relight DIR``.
+Usage::
 
     python benchmarks/appearance.py [--megapixels 12] [--lights 96] [--model ps]
                                     [--memory-budget 1GB] [--bands K] [--folder DIR]
+    python benchmarks/appearance.py --glossy-capture DIR
 """
 
 from __future__ import annotations
@@ -124,6 +130,36 @@ def run(megapixels: float, lights: int, model: str, budget: str, bands: int | No
     }
 
 
+def glossy_capture(out: Path, seed: int = 7) -> None:
+    """Write the glossy coloured sRGB JPEG stand-in capture into ``out``."""
+    import cv2
+
+    from ps_lab import render
+    from ps_lab.io.encoding import linear_to_srgb
+
+    out.mkdir(parents=True, exist_ok=True)
+    rng = np.random.default_rng(seed)
+    height, width = 160, 200
+    yy, xx = np.mgrid[0:height, 0:width]
+    albedo = np.stack([0.55 + 0.3 * np.sin(xx / 13.0), 0.35 + 0.2 * np.cos(yy / 9.0),
+                       0.25 + 0.15 * np.sin((xx + yy) / 17.0)], axis=-1)
+    surface = render.relief_surface((height, width), seed=4, albedo=albedo)
+    n = 72
+    z = rng.uniform(math.cos(math.radians(70)), 1.0, n)
+    phi = rng.uniform(0, 2 * math.pi, n)
+    r = np.sqrt(1 - z * z)
+    lights = np.stack([r * np.cos(phi), r * np.sin(phi), z], axis=1)
+    images = render.render(surface, lights, specular=0.5, roughness=0.25, cast_shadows=True,
+                           noise_sigma=0.003, noise_fraction=1.0, rng=rng)
+    scale = 0.85 / np.percentile(images, 99.9)
+    for i, image in enumerate(images):
+        encoded = np.rint(linear_to_srgb(np.clip(image * scale, 0, 1)) * 255).astype(np.uint8)
+        cv2.imwrite(str(out / f"{i + 1:03d}.jpg"), np.ascontiguousarray(encoded[..., ::-1]),
+                    [cv2.IMWRITE_JPEG_QUALITY, 92])
+    np.savetxt(out / "light_directions.txt", lights)
+    cv2.imwrite(str(out / "mask.png"), surface.mask.astype(np.uint8) * 255)
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--megapixels", type=float, default=12.0)
@@ -132,7 +168,11 @@ def main() -> None:
     parser.add_argument("--memory-budget", default="1GB")
     parser.add_argument("--bands", type=int, default=None)
     parser.add_argument("--folder", type=Path, default=None)
+    parser.add_argument("--glossy-capture", type=Path, default=None)
     args = parser.parse_args()
+    if args.glossy_capture is not None:
+        glossy_capture(args.glossy_capture)
+        return
     folder = args.folder or Path(tempfile.mkdtemp(prefix="ps-lab-appearance-"))
     folder.mkdir(parents=True, exist_ok=True)
     try:

@@ -62,10 +62,20 @@ def find_captures(folder: Path) -> list[Path]:
     return sorted(p for p in folder.iterdir() if p.is_dir() and is_capture(p))
 
 
-def split_lights(n: int, every: int = HOLD_OUT_EVERY) -> tuple[np.ndarray, np.ndarray]:
-    """Training and held-out light indices: every ``every``-th light (8th, 16th...) held out."""
+def split_lights(
+    n: int, every: int = HOLD_OUT_EVERY, directions: np.ndarray | None = None
+) -> tuple[np.ndarray, np.ndarray]:
+    """Training and held-out light indices: every ``every``-th light (8th, 16th...) held out.
+
+    With ``directions`` (n, 3): the ``n // every`` lights farthest from the view axis (lowest
+    z) are held out instead, to measure extrapolation outside the training lights' range.
+    """
     index = np.arange(n)
-    held = (index % every) == every - 1
+    if directions is not None:
+        held = np.zeros(n, bool)
+        held[np.argsort(np.asarray(directions)[:, 2], kind="stable")[: n // every]] = True
+    else:
+        held = (index % every) == every - 1
     return index[~held], index[held]
 
 
@@ -131,14 +141,21 @@ def _colour_albedo(obs, valid, directions, normals):
 
 
 def evaluate_capture(
-    path: Path, models=MODELS, progress: Callable[[str], None] | None = None
+    path: Path,
+    models=MODELS,
+    progress: Callable[[str], None] | None = None,
+    *,
+    extrapolate: bool = False,
 ) -> RelightRow:
-    """Fit every model on the training lights of one capture; score the held-out lights."""
+    """Fit every model on the training lights of one capture; score the held-out lights.
+
+    ``extrapolate``: hold out the lowest lights instead (:func:`split_lights`).
+    """
     base, mask, obs = _load_colour(path)
     n = obs.shape[0]
-    train, test = split_lights(n)
     directions = base.light_directions / np.linalg.norm(base.light_directions, axis=1,
                                                         keepdims=True)
+    train, test = split_lights(n, directions=directions if extrapolate else None)
     started = time.perf_counter()
     normals, valid = _solver_normals(base, mask, train)
     solve_seconds = time.perf_counter() - started
@@ -188,9 +205,12 @@ def evaluate_capture(
     return row
 
 
-def run_relight(folder: Path, progress: Callable[[str], None] | None = None) -> list[RelightRow]:
+def run_relight(
+    folder: Path, progress: Callable[[str], None] | None = None, *, extrapolate: bool = False
+) -> list[RelightRow]:
     """:func:`evaluate_capture` on every capture under ``folder``."""
-    return [evaluate_capture(path, progress=progress) for path in find_captures(folder)]
+    return [evaluate_capture(path, progress=progress, extrapolate=extrapolate)
+            for path in find_captures(folder)]
 
 
 def format_table(rows: list[RelightRow], *, markdown: bool = False) -> str:

@@ -127,6 +127,14 @@ def relight(
             show_default=False,
         ),
     ] = None,
+    extrapolate: Annotated[
+        bool,
+        typer.Option(
+            "--extrapolate",
+            help="Hold out the lowest eighth of the lights (outside the training range) instead "
+            "of every 8th.",
+        ),
+    ] = False,
     markdown: MarkdownFlag = False,
     json_out: JsonFile = None,
 ) -> None:
@@ -140,7 +148,8 @@ def relight(
     with progress_bar(total, "relighting", enabled=True) as advance:
         rows = [
             bench_relight.evaluate_capture(
-                path, progress=lambda label: advance(1, description=label)
+                path, progress=lambda label: advance(1, description=label),
+                extrapolate=extrapolate,
             )
             for path in captures
         ]
