@@ -118,6 +118,32 @@ def test_pyramid_levels_average_and_tiles_round_trip():
     assert levels.tile(0, 3, 0) is None and levels.tile(3, 0, 0) is None
 
 
+def test_appearance_tiles_follow_the_layer_pyramid_and_rbf_gets_a_note():
+    # hsh3 coefficients on a 1100 x 700 plane: the same levels as the layers, a tile's planes
+    # are the level's coefficients term-major (3k + c) over the albedo scale; rbf is not tiled.
+    from ps_lab.io.appearance import Appearance
+    from ps_lab.view.appearance_tiles import appearance_entry, appearance_tiles
+
+    h, w = 700, 1100
+    mask = np.ones((h, w), bool)
+    rng = np.random.default_rng(3)
+    coefficients = rng.uniform(-1, 1, size=(h, w, 3, 9)).astype(np.float32)
+    tiles = appearance_tiles(Appearance("hsh3", coefficients, {"K": 9}), mask, 2.0)
+    assert [level.shape[:2] for level in tiles.levels] == [(700, 1100), (350, 550), (175, 275)]
+    assert tiles.planes == 7  # 27 coefficients, four to a plane
+    data = np.frombuffer(tiles.tile(0, 2, 1), "<f2").reshape(7, h - TILE, w - 2 * TILE, 4)
+    flat = data.transpose(1, 2, 0, 3).reshape(h - TILE, w - 2 * TILE, 28)[..., :27]
+    expected = coefficients[TILE:, 2 * TILE :].transpose(0, 1, 3, 2).reshape(*flat.shape[:2], 27)
+    np.testing.assert_array_equal(flat, (expected / 2.0).astype(np.float16))
+    block = coefficients[:2, :2].mean(axis=(0, 1)).T.reshape(27) / 2.0
+    np.testing.assert_allclose(tiles.levels[1][0, 0].astype(float), block, atol=2e-3)
+    assert tiles.tile(0, 3, 0) is None and tiles.tile(3, 0, 0) is None
+    rbf = Appearance("rbf", coefficients[..., :4], {"K": 4, "sigma": 0.5})
+    assert appearance_tiles(rbf, mask, 1.0) is None
+    entry = appearance_entry(rbf, None)
+    assert entry["planes"] is None and "Lambertian" in entry["note"]
+
+
 def test_vertex_normals_of_a_tilted_plane_and_decimation():
     ys, xs = np.mgrid[0:60, 0:60].astype(np.float64)
     z = 0.5 * xs - 0.25 * ys
