@@ -11,6 +11,8 @@ Every reader returns an :class:`Image`: linear values as float32 ``(H, W, C)`` w
 - camera RAW (``.dng .cr2 .cr3 .nef .arw``): :func:`ps_lab.io.raw.load_raw` — linear,
   (raw − black) / (white − black), 2×2 binned; saturated where the raw value reached the white
   level.
+- JPEG: saturated where any channel is within :data:`JPEG_CLIP_LEVELS` (4) of 255, since the
+  codec smears a clipped highlight's edge below 255.
 - non-linear files (JPEG; 8-bit PNG and TIFF that say so): decoded to linear by
   :func:`decode_nonlinear` with the transfer curve :func:`image_encoding` finds (``encoding``:
   ``"auto"`` from the file's ICC profile, EXIF colour space or PNG ``sRGB``/``gAMA`` chunk;
