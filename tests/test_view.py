@@ -271,6 +271,12 @@ def assert_shown(browser, panel: int, expected: np.ndarray, mask: np.ndarray) ->
     assert difference.max() <= 2.0, (difference.mean(), difference.max())
 
 
+def lambertian(browser) -> None:
+    """Relight Lambertian (results reconstructed by default carry an appearance fit)."""
+    browser.evaluate("psView.ready")
+    browser.evaluate("psView.set({appearance: false})")
+
+
 def settle(browser) -> None:
     frames = browser.evaluate("psView.stats.frames")
     browser.evaluate("psView.redraw()")
@@ -322,6 +328,7 @@ def test_relight_in_chromium_matches_n_dot_l_and_3d_shows_the_mesh(browser, sim_
     server = ViewServer(sim_result)
     try:
         browser.open(server.url)
+        lambertian(browser)
         assert browser.evaluate("psView.ready") is True
         assert browser.evaluate("psView.stats.glError") == 0
         assert browser.evaluate("!!document.createElement('canvas').getContext('webgl2')")
@@ -381,6 +388,7 @@ def test_compare_a_diligent_result_beside_the_simulated_one(browser, sim_result,
     server = ViewServer(diligent_result, sim_result)
     try:
         browser.open(server.url)
+        lambertian(browser)
         assert browser.evaluate("psView.ready") is True
         results = browser.evaluate("psView.results()")
         h, w = np.load(diligent_result / "normals.npy", mmap_mode="r").shape[:2]
@@ -426,6 +434,7 @@ def test_export_opens_from_a_plain_static_server(browser, sim_result, tmp_path):
                 assert time.monotonic() < deadline, "http.server did not start"
                 time.sleep(0.05)
         browser.open(f"http://127.0.0.1:{port}/")
+        lambertian(browser)
         assert browser.evaluate("psView.ready") is True
         check_relight(browser, sim_result)
     finally:
@@ -467,9 +476,20 @@ def test_colour_relight_in_chromium_shows_the_albedo_colour(browser, colour_resu
     server = ViewServer(colour_result)
     try:
         browser.open(server.url)
+        lambertian(browser)
         assert browser.evaluate("psView.ready") is True
         entry = browser.evaluate("psView.results()[0]")
         assert entry["colour"] is True and len(entry["captured_lights"]) == 16
+        # the light disc has a dot (#8ab4f8) at each captured light's direction
+        dots = browser.evaluate(
+            "(() => { const c = document.getElementById('light'), g = c.getContext('2d');"
+            " const w = c.width, r = w / 2 - 4;"
+            " return psView.results()[0].captured_lights.map(([x, y]) =>"
+            " Array.from(g.getImageData(Math.floor(w / 2 + x * r), Math.floor(w / 2 - y * r),"
+            " 1, 1).data)); })()"
+        )
+        blue = [d for d in dots if abs(d[0] - 138) < 40 and abs(d[2] - 248) < 40 and d[3] > 128]
+        assert len(blue) >= 14, dots  # (the current light's dot may cover one or two)
         browser.evaluate("psView.pixelScale(0, 1)")
         browser.evaluate("psView.setView({cx: 0.5, cy: 0.5})")
         light = [0.3, 0.2, float(np.sqrt(1 - 0.13))]
@@ -515,15 +535,20 @@ def _with_appearance(result: Path, folder: Path, model: str) -> Path:
         basis = appearance_basis("hsh3", lights)  # (n, 9)
         coefficients = np.einsum("kn,hwnc->hwck", np.linalg.pinv(basis), images)
         meta = {"basis": "hsh3", "K": 9}
-    else:
-        k = len(PS_TERMS)
+    else:  # "ps": the default terms; "ps-all": every kind of term the shader evaluates
+        terms = list(PS_TERMS) if model == "ps" else [
+            "lambert", "lx", "ly", "lz", "ambient", "lobe:4", "lobex:16", "lobey:16", "hsh:2",
+            "hsh:5",
+        ]
+        k = len(terms)
         coefficients = rng.uniform(0, 0.15, size=(h, w, 3, k)) * albedo.mean()
-        meta = {"basis": "ps", "K": k, "terms": list(PS_TERMS)}
+        meta = {"basis": "ps", "K": k, "terms": terms}
+        model = "ps"
     write_appearance(folder, Appearance(model, coefficients.astype(np.float32), meta))
     return folder
 
 
-@pytest.mark.parametrize("model", ["hsh3", "ps"])
+@pytest.mark.parametrize("model", ["hsh3", "ps", "ps-all"])
 def test_appearance_relight_in_chromium_matches_the_model(browser, colour_result, tmp_path, model):
     from ps_lab.io.appearance import Appearance, evaluate_appearance, read_appearance
 
@@ -543,7 +568,7 @@ def test_appearance_relight_in_chromium_matches_the_model(browser, colour_result
         browser.open(server.url)
         assert browser.evaluate("psView.ready") is True
         entry = browser.evaluate("psView.results()[0]")
-        assert entry["appearance"]["model"] == model and entry["appearance"]["planes"]
+        assert entry["appearance"]["model"] == fit.model and entry["appearance"]["planes"]
         browser.evaluate("psView.pixelScale(0, 1)")
         browser.evaluate("psView.setView({cx: 0.5, cy: 0.5})")
         light = [-0.35, 0.25, float(np.sqrt(1 - 0.35**2 - 0.25**2))]

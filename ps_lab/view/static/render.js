@@ -39,8 +39,10 @@ uniform int u_model;      // 0 Lambertian, 1 a basis of the light (ptm, hsh2, hs
 uniform int u_terms;
 uniform ivec2 u_tsize;
 uniform float u_basis[16];   // the basis at the light (ptm / hsh, and ps's hsh terms)
-uniform int u_kind[16];      // ps: 0 lambert, 1 ambient, 2 lobe, 3 a term of the light (u_basis)
-uniform float u_power[16];   // ps lobes: the exponent
+// ps: 0 lambert, 1 ambient, 2 lobe:P, 3 a term of the light (u_basis: hsh:i), 4 u_basis on the
+// lit side (lx, ly, lz: the light's component), 5 lobex:P / lobey:P (u_basis: h's component)
+uniform int u_kind[16];
+uniform float u_power[16];   // ps lobes: the exponent P
 uniform int u_mode;
 uniform vec3 u_light;
 uniform float u_exposure;
@@ -68,9 +70,15 @@ vec3 fitted(vec3 n, vec3 albedo) {    // io/appearance.py: evaluate_appearance, 
     float b = u_basis[k];
     if (u_model == 2) {
       int kind = u_kind[k];
+      float nh = max(dot(n, h), 0.0);
       if (kind == 0) b = max(nl, 0.0);
       else if (kind == 1) b = 1.0;
-      else if (kind == 2) b = nl > 0.0 ? pow(max(dot(n, h), 0.0), u_power[k]) : 0.0;
+      else if (kind == 2) b = nl > 0.0 ? pow(nh, u_power[k]) : 0.0;
+      else if (kind == 4) b = nl > 0.0 ? u_basis[k] : 0.0;
+      else if (kind == 5) {
+        float p = u_power[k] - 1.0;
+        b = nl > 0.0 ? (p > 0.0 ? pow(nh, p) : 1.0) * u_basis[k] : 0.0;
+      }
     }
     c += b * vec3(coefficient(px, 3 * k), coefficient(px, 3 * k + 1), coefficient(px, 3 * k + 2));
   }
@@ -154,13 +162,17 @@ function appearanceUniforms(fit, l) {
   const [x, y] = unitVector(l);
   if (fit.model === "ptm") basis.set([1, x, y, x * x, x * y, y * y]);
   else if (fit.model === "hsh2" || fit.model === "hsh3") basis.set(hshBasis(l).slice(0, fit.K));
-  else {
-    const hsh = hshBasis(l);
+  else {   // io/appearance.py: ps_term
+    const hsh = hshBasis(l), u = unitVector(l), h = unitVector([u[0], u[1], u[2] + 1]);
     fit.terms.forEach((term, k) => {
-      if (term === "lambert") kind[k] = 0;
-      else if (term === "ambient") kind[k] = 1;
-      else if (term.startsWith("lobe:")) { kind[k] = 2; power[k] = Number(term.slice(5)); }
-      else { kind[k] = 3; basis[k] = hsh[Number(term.slice(4))]; }
+      const [name, arg] = term.split(":");
+      if (name === "lambert") kind[k] = 0;
+      else if (name === "ambient") kind[k] = 1;
+      else if (name === "lobe") { kind[k] = 2; power[k] = Number(arg); }
+      else if (name === "hsh") { kind[k] = 3; basis[k] = hsh[Number(arg)]; }
+      else if (["lx", "ly", "lz"].includes(name)) { kind[k] = 4; basis[k] = u["xyz".indexOf(name[1])]; }
+      else if (name === "lobex" || name === "lobey") { kind[k] = 5; power[k] = Number(arg); basis[k] = h["xy".indexOf(name[4])]; }
+      else { kind[k] = 3; basis[k] = 0; }   // a term this page does not know: left out
     });
   }
   return { model: fit.model === "ps" ? 2 : 1, terms: fit.K, basis, kind, power };
