@@ -1,11 +1,24 @@
 """Light calibration from a chrome sphere (and intensities from a matte sphere).
 
-Pure functions on arrays; :func:`calibrate` runs the whole chain (sphere outline → highlights →
+Camera intrinsics and lens distortion from a board (:mod:`._camera`,
+:func:`calibrate_camera_files` behind ``ps-lab calibrate-camera``; the camera file and undistortion
+live in :mod:`ps_lab.io.camera`, re-exported here). Pure functions on arrays; :func:`calibrate` runs the whole chain (sphere outline → highlights →
 mirror-law directions → matte-sphere intensities) and :func:`write_calibration` writes the
 DiLiGenT light tables, ``calibration.json`` and ``calibration.png``. See ``docs/calibration.md``.
 """
 
 from ps_lab.calibration._calibrate import Calibration, calibrate
+from ps_lab.calibration._camera import (
+    BoardSpec,
+    CameraCalibration,
+    Detection,
+    calibrate_camera_files,
+    calibrate_from_corners,
+    camera_picture,
+    detect_corners,
+    grey_u8,
+    parse_board,
+)
 from ps_lab.calibration._circle import (
     Circle,
     CircleFit,
@@ -39,8 +52,29 @@ from ps_lab.calibration._rig_spheres import (
     rig_object_outline,
 )
 from ps_lab.calibration._spheres import chrome_score, circle_residual
+from ps_lab.io.camera import (
+    CameraModel,
+    distort_points,
+    undistort_frame,
+    undistort_points,
+    undistortion_maps,
+)
 
 __all__ = [
+    "BoardSpec",
+    "CameraCalibration",
+    "CameraModel",
+    "Detection",
+    "calibrate_camera_files",
+    "calibrate_from_corners",
+    "camera_picture",
+    "detect_corners",
+    "distort_points",
+    "grey_u8",
+    "parse_board",
+    "undistort_frame",
+    "undistort_points",
+    "undistortion_maps",
     "OUTPUT_FILES",
     "Calibration",
     "Circle",

@@ -186,6 +186,7 @@ def calibrate(
     outline: np.ndarray | None = None,
     led_intensities: str | np.ndarray = "equal",
     object_outline: str | float | None = None,
+    outline_name: str = "outline frame",
 ) -> Calibration:
     """Calibrate light directions (and intensities) from a chrome sphere seen in every frame.
 
@@ -250,16 +251,22 @@ def calibrate(
     stack, saturated = _prepare_frames(images, saturated)
     n, h, w, _ = stack.shape
     summary = summary_image(stack)
-    limb = _limb_images(summary, stack, outline)
+    limb = _limb_images(summary, stack, outline, outline_name)
     warnings: list[str] = []
-    circle, residual, source, points = chrome_sphere(
-        limb, stack, sphere, sphere_hint, roi, warnings
-    )
-    if source == "auto" and sphere_hint is not None and extra_sphere_hints:
-        raise missing_rig_sphere(1, sphere_hint)  # the search would find another of the rig's
-    found_others = other_spheres(
-        limb, stack, circle, source, extra_spheres, extra_sphere_hints, roi, warnings
-    )
+    try:
+        circle, residual, source, points = chrome_sphere(
+            limb, stack, sphere, sphere_hint, roi, warnings
+        )
+        if source == "auto" and sphere_hint is not None and extra_sphere_hints:
+            raise missing_rig_sphere(1, sphere_hint)  # the search would find another of the rig's
+        found_others = other_spheres(
+            limb, stack, circle, source, extra_spheres, extra_sphere_hints, roi, warnings
+        )
+    except CalibrationError as exc:
+        if outline is None:
+            raise
+        # The outlines were looked for on the outline frame: it is the file at fault.
+        raise CalibrationError(f"{outline_name}: {exc} (outlines are fitted on this frame)") from None
     others = [c for c, _ in found_others]
     try:
         found = _highlights(stack, circle, saturated, safe_radius, names, progress)
@@ -344,7 +351,7 @@ def calibrate(
 
 
 def _limb_images(
-    summary: np.ndarray, stack: np.ndarray, outline: np.ndarray | None
+    summary: np.ndarray, stack: np.ndarray, outline: np.ndarray | None, name: str
 ) -> LimbImages:
     if outline is None:
         return LimbImages(summary, stack)
@@ -353,10 +360,18 @@ def _limb_images(
         frame = frame.mean(axis=-1)
     if frame.shape != summary.shape:
         raise CalibrationError(
-            f"outline frame is {frame.shape[1]}x{frame.shape[0]}, the frames are "
+            f"{name} is {frame.shape[1]}x{frame.shape[0]}, the frames are "
             f"{summary.shape[1]}x{summary.shape[0]}"
         )
-    return LimbImages(np.nan_to_num(frame), None)
+    frame = np.nan_to_num(frame, nan=0.0, posinf=0.0, neginf=0.0)
+    top, bottom = float(frame.max()), float(frame.min())
+    if top <= 0 or top - bottom <= 1e-3 * top:
+        what = "black" if top <= 0 else f"blank (every pixel {top:.4g})"
+        raise CalibrationError(
+            f"{name} is {what}: no sphere outline to fit (a frame with room light, in which the "
+            "spheres' edges show)"
+        )
+    return LimbImages(frame, None)
 
 
 def circle_uncertainty_px(residual: float, n_points: int) -> float:

@@ -31,6 +31,7 @@ import numpy as np
 
 from ps_lab import render
 from ps_lab.capture import cameras, gphoto2_camera, lights
+from ps_lab.capture._rig_lens import simulated_lens
 from ps_lab.capture.faults import Fault
 from ps_lab.capture.lights import LightState
 from ps_lab.capture.rig import Rig, local_ptpip_port
@@ -390,6 +391,7 @@ def _simulated_camera(rig: Rig, simulation: Any, light_state: Any, **extra: Any)
         dn_per_electron=cfg.dn_per_electron,
         seed=cfg.seed,
         point_lights=simulation.point_lights,
+        lens=simulated_lens(rig.lens, rig.scene.width, rig.scene.height) if rig.scene else None,
         **extra,
     )
 

@@ -21,6 +21,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from ps_lab.capture._rig_lens import LensConfig, parse_lens
 from ps_lab.capture._rig_table import _kind, _Table
 from ps_lab.capture.faults import CAMERA_FAULT_KINDS, PTPIP_FAULT_KINDS, Fault
 from ps_lab.capture.faults import FAULT_KINDS as CONTROLLER_FAULT_KINDS
@@ -178,6 +179,7 @@ class Rig:
     faults: FaultsConfig = field(default_factory=FaultsConfig)
     description: str = ""
     source: Path | None = field(default=None, compare=False)
+    lens: LensConfig | None = None  # [lens]: capture/_rig_lens.py
 
     @property
     def n_lights(self) -> int:
@@ -193,6 +195,8 @@ class Rig:
         """Return the rig as a JSON-ready dict (what a capture run's manifest stores)."""
         snap = json_safe(dataclasses.asdict(self))
         snap.pop("source", None)
+        if snap.get("lens") is None:  # absent, as in runs captured before [lens]
+            snap.pop("lens", None)
         for key in ("pins", "elf"):  # firmware-only keys: absent elsewhere, as in older runs
             if snap["controller"].get(key) is None:
                 snap["controller"].pop(key, None)
@@ -314,14 +318,12 @@ def parse_rig(data: Mapping[str, Any], *, origin: str = "<rig>", source: Path | 
     top = _Table(dict(data), "", origin)
     name = top.str("name", source.stem if source is not None else "rig")
     description = top.str("description", "")
-    ctl_table = top.table("controller")
-    cam_table = top.table("camera")
-    if ctl_table is None:
-        raise RigError(f"{origin}: missing table [controller]")
-    if cam_table is None:
-        raise RigError(f"{origin}: missing table [camera]")
-    controller = _parse_controller(ctl_table)
-    camera = _parse_camera(cam_table)
+    ctl_table, cam_table = top.table("controller"), top.table("camera")
+    for key, table in (("controller", ctl_table), ("camera", cam_table)):
+        if table is None:
+            raise RigError(f"{origin}: missing table [{key}]")
+    controller, camera = _parse_controller(ctl_table), _parse_camera(cam_table)
+    lens = parse_lens(top.table("lens"), source, camera.driver == "simulated")
     cal_table = top.table("calibration")
     calibration = _parse_calibration(cal_table) if cal_table is not None else CalibrationConfig()
     scene_table = top.table("scene")
@@ -359,8 +361,7 @@ def parse_rig(data: Mapping[str, Any], *, origin: str = "<rig>", source: Path | 
     ):
         raise RigError(
             f"{origin}: [camera] light_state_file: required when a simulated camera works with a "
-            "serial "
-            "controller (the state file written by `ps-lab rig serve-sim --state-file`)"
+            "serial controller (the state file written by `ps-lab rig serve-sim --state-file`)"
         )
     if faults.controller and controller.driver != "simulated":
         raise RigError(
@@ -387,6 +388,7 @@ def parse_rig(data: Mapping[str, Any], *, origin: str = "<rig>", source: Path | 
         scene=scene,
         faults=faults,
         source=source,
+        lens=lens,
     )
 
 
@@ -463,10 +465,8 @@ _CAMERA_KEYS = {
 def _parse_camera(t: _Table) -> CameraConfig:
     driver = t.str("driver", required=True, choices=CAMERA_DRIVERS)
     for key in t.data:
-        other = {k for d, keys in _CAMERA_KEYS.items() if d != driver for k in keys} - _CAMERA_KEYS[
-            driver
-        ]
-        if key in other:
+        other = {k for d, keys in _CAMERA_KEYS.items() if d != driver for k in keys}
+        if key in other - _CAMERA_KEYS[driver]:
             raise t.error(key, f"does not apply to the {driver!r} camera")
     cfg = CameraConfig(
         driver=driver,

@@ -41,10 +41,12 @@ import cv2
 import numpy as np
 
 from ps_lab import __version__
+from ps_lab.capture._rig_lens import lens_camera_file
 from ps_lab.capture.connect import OpenRig, build_simulation, nominal_directions, open_rig
 from ps_lab.capture.plan import CapturePlan, PlannedFrame, make_plan
 from ps_lab.capture.rig import Rig, comparable_snapshot, snapshot_differences
 from ps_lab.errors import CameraError, DatasetError, PsLabError, RigError
+from ps_lab.io.camera import CAMERA_FILE
 from ps_lab.io.codecs import imread
 from ps_lab.io.files import PARTIAL_PREFIX, json_safe, publish_file, sha256, write_bytes_atomic
 from ps_lab.io.raw import is_raw_file, load_raw
@@ -482,6 +484,13 @@ class CaptureSession:
             }
         )
         self.manifest["frames"] = self.records
+        camera_file = lens_camera_file(self.rig.lens, self.rig.source)
+        if camera_file is not None:  # the run carries its camera: calibrate and reconstruct
+            try:  # undistort its frames with it, whatever becomes of the rig file
+                write_bytes_atomic(run / CAMERA_FILE, camera_file.read_bytes())
+            except OSError as exc:
+                raise RigError(f"[lens] camera: cannot copy {camera_file} into {run}: "
+                               f"{exc.strerror or exc}") from None
         write_manifest(run, self.manifest)
 
     def _write_simulation(self, opened: OpenRig) -> None:

@@ -159,12 +159,16 @@ def positive(value: float | None, option: str) -> None:
 
 
 @contextmanager
-def naming_folder(folder: Path) -> Iterator[None]:
-    """Prefix ``folder`` to a :class:`PsLabError` whose message names no file of it."""
+def naming_folder(folder: Path, unless: str | None = None) -> Iterator[None]:
+    """Prefix ``folder`` to a :class:`PsLabError` whose message names no file of it.
+
+    A message that starts with ``unless`` (another file at fault, such as an outline frame given
+    by the user) is left as it is.
+    """
     try:
         yield
     except PsLabError as exc:
-        if str(folder) in str(exc):
+        if str(folder) in str(exc) or (unless is not None and str(exc).startswith(unless)):
             raise
         try:
             renamed = type(exc)(f"{folder}: {exc}")

@@ -28,6 +28,7 @@ COMMANDS = {
     "view": "ps_lab.commands.view",
     "capture": "ps_lab.commands.capture",
     "calibrate": "ps_lab.commands.calibrate",
+    "calibrate-camera": "ps_lab.commands.calibrate_camera",
     "rig": "ps_lab.commands.rig",
     "bench": "ps_lab.commands.bench",
 }

@@ -11,7 +11,10 @@ Each stage is the ``ps-lab`` command a user would type, run as its own process:
 Then it prints a summary against the simulator's ground truth (``RUN/simulation/``), and runs the
 near-light variant (``--near-rig``, default ``rigs/simulated-near.toml``: LEDs on a dome 3x the
 object, two chrome spheres): capture, calibrate (LED positions), reconstruct with near lights and,
-on the same frames, with the directional model; ``--no-near`` skips it.
+on the same frames, with the directional model; ``--no-near`` skips it. Then the lens variant
+(``--lens-rig``, default ``rigs/simulated-lens.toml``: the same rig through a lens with k1 = -0.25):
+board frames (``ps-lab rig board-frames``), ``ps-lab calibrate-camera``, a capture that carries the
+camera (``--camera``), calibrate and reconstruct with undistortion; ``--no-lens`` skips it.
 """
 
 from __future__ import annotations
@@ -22,6 +25,7 @@ import shutil
 import subprocess
 import sys
 import time
+import tomllib
 from pathlib import Path
 
 import numpy as np
@@ -31,6 +35,7 @@ from ps_lab.reconstruct.metrics import angular_errors_deg, depth_error, error_su
 DEFAULT_RIG = Path("rigs/simulated.toml")
 DEFAULT_OUT = Path("demo-run")
 DEFAULT_NEAR_RIG = Path("rigs/simulated-near.toml")
+DEFAULT_LENS_RIG = Path("rigs/simulated-lens.toml")
 
 
 def _stage(title: str, args: list[str]) -> float:
@@ -67,8 +72,12 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--near-rig", type=Path, default=DEFAULT_NEAR_RIG,
                         help="near-light rig file (default %(default)s)")
     parser.add_argument("--no-near", action="store_true", help="skip the near-light variant")
+    parser.add_argument("--lens-rig", type=Path, default=DEFAULT_LENS_RIG,
+                        help="rig with a distorting lens (default %(default)s)")
+    parser.add_argument("--no-lens", action="store_true", help="skip the lens variant")
     args = parser.parse_args(argv)
-    for rig in [args.rig] + ([] if args.no_near else [args.near_rig]):
+    rigs = [args.rig] + ([] if args.no_near else [args.near_rig])
+    for rig in rigs + ([] if args.no_lens else [args.lens_rig]):
         if not rig.is_file():
             sys.exit(f"demo: rig file {rig} not found (run from the repository root)")
 
@@ -113,6 +122,8 @@ def main(argv: list[str] | None = None) -> None:
     print(f"see it relit:    ps-lab view {recon}")
     if not args.no_near:
         _near_variant(args.near_rig, args.out / "near")
+    if not args.no_lens:
+        _lens_variant(args.lens_rig, args.out / "lens")
 
 
 def _near_variant(rig: Path, run: Path) -> None:
@@ -150,6 +161,50 @@ def _near_variant(rig: Path, run: Path) -> None:
     print("time per stage: " + ", ".join(f"{k} {v:.1f} s" for k, v in seconds.items()))
     print(f"normal map:      {near / 'normal.png'}")
     print(f"calibration:     {run / 'calibration.png'}")
+
+
+def _lens_variant(rig: Path, folder: Path) -> None:
+    """Board frames, calibrate-camera, capture with the camera, calibrate, reconstruct."""
+    board, run, recon = folder / "board", folder / "run", folder / "run" / "recon"
+    seconds = {
+        "board frames": _stage("lens: board frames",
+                               ["rig", "board-frames", "--rig", str(rig), "--out", str(board)]),
+        "calibrate-camera": _stage(
+            "lens: calibrate-camera",
+            ["calibrate-camera", *sorted(str(p) for p in board.glob("board_*.png")),
+             "--board", "charuco:9x6:20:15:DICT_5X5_100", "--out", str(board)],
+        ),
+        "capture": _stage("lens: capture", ["capture", "--rig", str(rig), "--out", str(run),
+                                            "--camera", str(board / "camera.json")]),
+        "calibrate": _stage("lens: calibrate (undistorted frames)", ["calibrate", str(run)]),
+        "reconstruct": _stage("lens: reconstruct (undistorted frames)",
+                              ["reconstruct", str(run), "--out", str(recon)]),
+    }
+    camera = json.loads((board / "camera.json").read_text())
+    (fx, _, cx), (_, fy, cy), _ = camera["camera_matrix"]
+    lens = _rig_lens_truth(rig)
+    normal_error = json.loads((recon / "metrics.json").read_text())["angular_error_deg"]
+    print("\n== lens summary")
+    print(
+        f"camera vs the simulated lens:         focal "
+        f"{100 * ((fx * fy) ** 0.5 / lens['f'] - 1):+.2f} %, "
+        f"principal point off by ({cx - lens['cx']:+.2f}, {cy - lens['cy']:+.2f}) px, "
+        f"reprojection RMS {camera['rms_px']:.3f} px"
+    )
+    print(
+        f"normal error, undistorted frames:     mean {normal_error['mean']:.3f} deg, "
+        f"median {normal_error['median']:.3f} deg, p90 {normal_error['p90']:.3f} deg"
+    )
+    print("time per stage: " + ", ".join(f"{k} {v:.1f} s" for k, v in seconds.items()))
+    print(f"corners and residuals: {board / 'camera.png'}")
+
+
+def _rig_lens_truth(rig: Path) -> dict[str, float]:
+    """The simulated lens's focal length and principal point, as the rig file states them."""
+    data = tomllib.loads(rig.read_text("utf-8"))
+    lens, scene = data["lens"], data["scene"]
+    cx, cy = lens.get("principal_point", ((scene["width"] - 1) / 2, (scene["height"] - 1) / 2))
+    return {"f": float(lens.get("focal_length", scene["width"])), "cx": cx, "cy": cy}
 
 
 if __name__ == "__main__":

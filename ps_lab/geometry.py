@@ -60,6 +60,16 @@ class Camera(NamedTuple):
     focal_length: float
     principal_point: tuple[float, float]
 
+    @classmethod
+    def from_intrinsics(cls, fx: float, fy: float, cx: float, cy: float) -> Camera:
+        """The camera of a calibrated camera matrix (``camera.json``), on undistorted frames.
+
+        The scene frame has square pixels, so one focal length stands for both: the geometric
+        mean of ``fx`` and ``fy`` (they differ by the pixels' aspect ratio, ~1e-3 on a sensor
+        with square pixels).
+        """
+        return cls(float(np.sqrt(fx * fy)), (float(cx), float(cy)))
+
     def centre(self, shape: tuple[int, int]) -> np.ndarray:
         """(3,) the camera's centre in the scene frame."""
         ox, oy = frame_origin(shape)

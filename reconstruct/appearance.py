@@ -151,7 +151,7 @@ def fit_appearance_bands(
     -------
     dict
         The ``"appearance"`` entry of ``metrics.json``: model, coefficients per pixel, terms,
-        seconds.
+        ``timings`` (``fit_seconds``), and rbf's ``sigma``.
 
     """
     if model not in APPEARANCE_MODELS:
@@ -213,7 +213,7 @@ def fit_appearance_bands(
         "model": model,
         "coefficients_per_pixel": channels * meta["K"],
         "terms": meta["terms"],
-        "seconds": time.perf_counter() - started,
+        "timings": {"fit_seconds": time.perf_counter() - started},
         **({"sigma": sigma} if sigma is not None else {}),
     }
 

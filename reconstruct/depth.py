@@ -22,7 +22,7 @@ import os
 import time
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 from typing import Any
 
@@ -30,6 +30,7 @@ import numpy as np
 import tifffile
 
 from ps_lab.errors import OutputError
+from ps_lab.io.camera import CAMERA_FILE, CameraModel
 from ps_lab.io.codecs import imwrite
 from ps_lab.io.files import json_safe, staged_files
 from ps_lab.io.images import read_npy_header
@@ -72,11 +73,17 @@ class DepthOptions:
         Width of a pixel on the object in mm: depth and mesh in mm (default: in pixels).
     focal_length : float or None
         Perspective camera, focal length in pixels (default orthographic).
+    principal_point : (x, y) or None
+        Perspective camera's principal point in pixels (default the image centre).
+    camera : str or None
+        The ``camera.json`` the focal length and principal point come from (recorded).
     """
 
     method: str = "poisson"
     pixel_size: float | None = None
     focal_length: float | None = None
+    principal_point: tuple[float, float] | None = None
+    camera: str | None = None
 
     def __post_init__(self) -> None:
         if self.method not in INTEGRATION_METHODS:
@@ -225,6 +232,7 @@ def write_depth(
             None,
             options.method,
             focal_length=options.focal_length,
+            principal_point=options.principal_point,
             max_iterations=BILATERAL_MAX_ITERATIONS,
             progress=advance,
         )
@@ -245,7 +253,8 @@ def write_depth(
         top = np.nanpercentile(albedo[np.isfinite(result.depth)], 99) if result.pixels else 0
         colours = np.clip(np.nan_to_num(albedo) / top, 0, 1) if top > 0 else None
     vertices, vertex_colours, triangles = depth_mesh(
-        depth, colours, pixel_size=scale, focal_length=options.focal_length
+        depth, colours, pixel_size=scale, focal_length=options.focal_length,
+        principal_point=options.principal_point,
     )
     write_ply(
         folder / "mesh.ply",
@@ -350,6 +359,15 @@ def _folder_record(out: Path) -> dict[str, Any] | None:
     return record
 
 
+def _metrics_or_none(path: Path) -> dict[str, Any] | None:
+    """A result's ``metrics.json`` when it is readable JSON, else None (nothing recorded)."""
+    try:
+        record = json.loads(path.read_text("utf-8"))
+    except (OSError, UnicodeDecodeError, ValueError):
+        return None
+    return record if isinstance(record, dict) else None
+
+
 def _load_array(path: Path, what: str) -> np.ndarray:
     """A real-valued array from ``path`` (no pickles, no complex or text), or one error line.
 
@@ -383,6 +401,32 @@ def _load_array(path: Path, what: str) -> np.ndarray:
             f"{path}: {what} must be real numbers, got dtype {array.dtype}"
         )
     return array
+
+
+def with_camera(options: DepthOptions, camera: CameraModel) -> DepthOptions:
+    """``options`` with the perspective camera of a ``camera.json`` (on undistorted frames)."""
+    return replace(
+        options,
+        focal_length=camera.focal_length,
+        principal_point=(camera.cx, camera.cy),
+        camera=camera.source or CAMERA_FILE,
+    )
+
+
+def with_result_camera(options: DepthOptions, record: dict[str, Any] | None) -> DepthOptions:
+    """``options`` with the camera a result's ``metrics.json`` records (its dataset's
+    ``camera.json``), unchanged when it records none."""
+    camera = (record or {}).get("camera")
+    if not isinstance(camera, dict):
+        return options
+    try:
+        fx, fy, cx, cy = (float(camera[k]) for k in ("fx", "fy", "cx", "cy"))
+    except (KeyError, TypeError, ValueError):
+        return options
+    if not all(np.isfinite([fx, fy, cx, cy])) or fx <= 0 or fy <= 0:
+        return options
+    return replace(options, focal_length=float(np.sqrt(fx * fy)), principal_point=(cx, cy),
+                   camera=str(camera.get("file") or CAMERA_FILE))
 
 
 def integrate_result(
@@ -440,6 +484,8 @@ def integrate_result(
         )
     if albedo is not None and albedo.ndim == 3 and albedo.shape[2] == 1:
         albedo = albedo[..., 0]
+    if options.focal_length is None:
+        options = with_result_camera(options, _metrics_or_none(result / "metrics.json"))
     out = result if out is None else Path(out)
     record = _folder_record(out)  # before anything is written
     with staged_files(

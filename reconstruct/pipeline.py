@@ -35,6 +35,7 @@ import numpy as np
 from ps_lab.errors import DatasetError, OutputError
 from ps_lab.geometry import Camera
 from ps_lab.io.bands import ObservationStore, plan_bands
+from ps_lab.io.camera import camera_record
 from ps_lab.io.dataset import DatasetHeader, open_dataset
 from ps_lab.io.encoding import frames_encoding
 from ps_lab.io.files import json_safe, staged_folder
@@ -63,7 +64,12 @@ from ps_lab.reconstruct._passes import (
     solve_near_bands,
 )
 from ps_lab.reconstruct._solve import estimate_noise
-from ps_lab.reconstruct.depth import DepthOptions, write_depth, write_normal_maps
+from ps_lab.reconstruct.depth import (
+    DepthOptions,
+    with_result_camera,
+    write_depth,
+    write_normal_maps,
+)
 from ps_lab.reconstruct.integrate import IntegrationInputError
 from ps_lab.reconstruct.near import NearLights
 from ps_lab.reconstruct.options import (
@@ -270,6 +276,11 @@ def _near_lights(header: DatasetHeader, options: ReconstructOptions) -> NearLigh
     if header.camera is not None:
         f, cx, cy = header.camera
         camera = Camera(f, (cx, cy))
+    elif header.plan.camera is not None:  # camera.json: the calibrated intrinsics
+        camera = Camera.from_intrinsics(
+            header.plan.camera.fx, header.plan.camera.fy, header.plan.camera.cx,
+            header.plan.camera.cy,
+        )
     return NearLights(positions, header.light_directions, anisotropy, camera=camera)
 
 
@@ -375,6 +386,9 @@ def _write_results(
     metrics["shadow_threshold"] = options.shadow_threshold
     metrics["black_threshold"] = solved.black
     metrics["light_model"] = "directional" if source.near is None else "near"
+    camera = source.header.plan.camera
+    if camera is not None:
+        metrics["camera"] = camera_record(camera, Path(camera.source))
     if solved.near is not None:
         metrics["near"] = solved.near.record()
     metrics["streaming"] = {
@@ -404,7 +418,8 @@ def _write_surface(
             albedo = grey_albedo(np.load(stage / "albedo.npy"), options.channel)
             try:
                 depth = write_depth(
-                    stage, normals, albedo, DepthOptions(method=options.depth),
+                    stage, normals, albedo,
+                    with_result_camera(DepthOptions(method=options.depth), metrics),
                     progress_bars=bars,
                 )
             except IntegrationInputError as exc:  # the normals just solved cannot be integrated

@@ -99,6 +99,16 @@ class Initiator:
     """Command and event connections to a PTP/IP responder, one transaction at a time."""
 
     def __init__(self, port: int) -> None:
+        self.command = self.event = None
+        try:
+            self._introduce(port)
+        except BaseException:
+            for sock in (self.command, self.event):
+                if sock is not None:
+                    sock.close()
+            raise
+
+    def _introduce(self, port: int) -> None:
         self.command = socket.create_connection(("127.0.0.1", port), timeout=5)
         name = "test".encode("utf-16-le") + b"\0\0"
         self._send(self.command, ptp.INIT_COMMAND_REQUEST, bytes(16) + name + ptp.u32(0x10000))
@@ -574,3 +584,220 @@ def test_gphoto2_command_line_tool(tmp_path, gphoto2_home):
     with rawpy.imread(str(tmp_path / "cli.dng")) as raw:
         assert raw.raw_image_visible.shape == (240, 384)
         assert raw.raw_image_visible.mean() > 600  # lights 2 and 5 lit, above the black level
+
+
+# -- hostile initiators: no sequence leaves the camera busy ------------------------------------
+
+_HELLO = bytes(16) + "hostile".encode("utf-16-le") + b"\0\0" + ptp.u32(0x10000)
+
+
+def _reset(sock: socket.socket) -> None:
+    """Close with a TCP reset (SO_LINGER 0), as a crashed or killed initiator does."""
+    sock.setsockopt(socket.SOL_SOCKET, socket.SO_LINGER, struct.pack("ii", 1, 0))
+    sock.close()
+
+
+def _connect(port: int) -> socket.socket:
+    return socket.create_connection(("127.0.0.1", port), timeout=5)
+
+
+def _init_command(port: int, *, read_ack: bool = True) -> tuple[socket.socket, int]:
+    sock = _connect(port)
+    Initiator._send(sock, ptp.INIT_COMMAND_REQUEST, _HELLO)
+    if not read_ack:
+        return sock, 0
+    kind, payload = Initiator._read(sock)
+    assert kind == ptp.INIT_COMMAND_ACK, kind
+    return sock, struct.unpack_from("<I", payload)[0]
+
+
+def _both(port: int) -> tuple[socket.socket, socket.socket]:
+    command, number = _init_command(port)
+    event = _connect(port)
+    Initiator._send(event, ptp.INIT_EVENT_REQUEST, ptp.u32(number))
+    assert Initiator._read(event)[0] == ptp.INIT_EVENT_ACK
+    return command, event
+
+
+def _reset_after_request(port):
+    for _ in range(3):  # the reported case: three initiators in a row
+        sock, _ = _init_command(port, read_ack=False)
+        _reset(sock)
+
+
+def _close_after_request(port):
+    sock, _ = _init_command(port, read_ack=False)
+    sock.close()
+
+
+def _reset_after_ack(port):
+    _reset(_init_command(port)[0])
+
+
+def _reset_before_event_ack(port):
+    command, number = _init_command(port)
+    event = _connect(port)
+    Initiator._send(event, ptp.INIT_EVENT_REQUEST, ptp.u32(number))
+    _reset(event)
+    _reset(command)
+
+
+def _reset_event_only(port):
+    command, event = _both(port)
+    _reset(event)
+    return command  # still open: its place is released all the same
+
+
+def _reset_command_only(port):
+    command, event = _both(port)
+    _reset(command)
+    return event
+
+
+def _reset_in_a_session(port):
+    command, event = _both(port)
+    payload = ptp.u32(1) + ptp.u16(ptp.OPEN_SESSION) + ptp.u32(1) + ptp.u32(1)
+    Initiator._send(command, ptp.OPERATION_REQUEST, payload)
+    assert Initiator._read(command)[0] == ptp.OPERATION_RESPONSE
+    _reset(command)
+    _reset(event)
+
+
+def _reset_in_a_data_phase(port):
+    command, event = _both(port)
+    payload = ptp.u32(2) + ptp.u16(ptp.SET_DEVICE_PROP_VALUE) + ptp.u32(1) + ptp.u32(0x500D)
+    Initiator._send(command, ptp.OPERATION_REQUEST, payload)
+    Initiator._send(command, ptp.START_DATA, ptp.u32(1) + ptp.u64(4))
+    _reset(command)
+    return event
+
+
+def _oversized_data_phase(port):
+    command, event = _both(port)
+    payload = ptp.u32(2) + ptp.u16(ptp.SET_DEVICE_PROP_VALUE) + ptp.u32(1) + ptp.u32(0x500D)
+    Initiator._send(command, ptp.OPERATION_REQUEST, payload)
+    Initiator._send(command, ptp.START_DATA, ptp.u32(1) + ptp.u64(1 << 30))
+    chunk = ptp.u32(1) + bytes(8 << 20)
+    try:
+        for _ in range(3):  # 24 MiB for a property of 4 bytes: the camera hangs up
+            Initiator._send(command, ptp.DATA, chunk)
+    except OSError:
+        pass
+    return command, event
+
+
+def _no_event_connection(port):
+    return _init_command(port)[0]  # open, silent, never asks for its event connection
+
+
+def _stalled_mid_packet(port):
+    command, event = _both(port)
+    command.sendall(ptp.u32(30) + ptp.u32(ptp.OPERATION_REQUEST))  # a header, then nothing
+    return command, event
+
+
+def _silent_after_handshake(port):
+    return _both(port)  # alive and connected, says nothing: yields after YIELD_S
+
+
+def _many_silent_connections(port):
+    return [_connect(port) for _ in range(40)]  # never introduce themselves
+
+
+HOSTILE = {
+    "reset-after-init-command-request": _reset_after_request,
+    "close-after-init-command-request": _close_after_request,
+    "reset-after-init-command-ack": _reset_after_ack,
+    "reset-before-init-event-ack": _reset_before_event_ack,
+    "reset-event-connection-only": _reset_event_only,
+    "reset-command-connection-only": _reset_command_only,
+    "reset-in-a-session": _reset_in_a_session,
+    "reset-in-a-data-phase": _reset_in_a_data_phase,
+    "oversized-data-phase": _oversized_data_phase,
+    "no-event-connection": _no_event_connection,
+    "stalled-mid-packet": _stalled_mid_packet,
+    "silent-after-handshake": _silent_after_handshake,
+    "many-silent-connections": _many_silent_connections,
+}
+
+
+@pytest.fixture
+def short_timeouts(monkeypatch):
+    """The camera's patience in seconds, shortened so that the half-open cases run fast."""
+    from ps_lab.capture.simulated import ptpip_camera
+
+    for name, value in (("STALL_S", 0.5), ("EVENT_WAIT_S", 0.5), ("YIELD_S", 0.5)):
+        monkeypatch.setattr(ptpip_camera, name, value)
+    monkeypatch.setattr(ptpip_camera, "CONTENDED_S", 0.3)
+
+
+def _served_within(port: int, seconds: float) -> Initiator:
+    """The next initiator, tried until the camera frees its place (Init Fail busy until then)."""
+    deadline = time.monotonic() + seconds
+    while True:
+        try:
+            return Initiator(port)
+        except AssertionError:
+            if time.monotonic() > deadline:
+                raise
+            time.sleep(0.1)
+
+
+@pytest.mark.parametrize("sequence", sorted(HOSTILE))
+def test_hostile_initiator_never_leaves_the_camera_busy(sequence, short_timeouts, caplog):
+    """After each sequence a well-behaved initiator is served (at once where the peer is gone)."""
+    with PtpIpCamera(lambda *_: b"dng", port=0) as camera:
+        held = HOSTILE[sequence](camera.port)
+        if sequence.startswith(("reset", "close")):
+            cam = Initiator(camera.port)  # a dead holder is noticed at once: no waiting
+        else:
+            cam = _served_within(camera.port, 10.0)  # half-open: released after its timeout
+        assert cam.op(ptp.OPEN_SESSION, 1)[0] == ptp.OK
+        assert cam.op(ptp.GET_STORAGE_IDS)[0] == ptp.OK
+        cam.close()
+        for sock in held if isinstance(held, (list, tuple)) else [held] if held else []:
+            sock.close()
+        # ... and the place is free again for the next one
+        _served_within(camera.port, 5.0).close()
+
+
+def test_half_open_initiator_released_without_a_newcomer(short_timeouts):
+    """No event connection within EVENT_WAIT_S: the camera releases the place by itself."""
+    with PtpIpCamera(lambda *_: b"dng", port=0) as camera:
+        sock = _no_event_connection(camera.port)
+        deadline = time.monotonic() + 10.0
+        while camera._command is not None and time.monotonic() < deadline:
+            time.sleep(0.05)
+        assert camera._command is None
+        assert sock.recv(1) == b""  # the camera hung up on it
+        sock.close()
+
+
+def test_connected_initiator_keeps_its_place_while_active():
+    """A live initiator that has just spoken keeps the camera: a newcomer gets Init Fail busy."""
+    with PtpIpCamera(lambda *_: b"dng", port=0) as camera:
+        cam = Initiator(camera.port)
+        assert cam.op(ptp.OPEN_SESSION, 1)[0] == ptp.OK
+        other, _ = _init_command(camera.port, read_ack=False)
+        assert Initiator._read(other) == (ptp.INIT_FAIL, ptp.u32(ptp.FAIL_BUSY))
+        other.close()
+        assert cam.op(ptp.GET_STORAGE_IDS)[0] == ptp.OK
+        cam.close()
+
+
+def test_gphoto2_summary_after_hostile_initiators(tmp_path, gphoto2_home):
+    """Debian's gphoto2 --summary works after initiators reset in every phase of the handshake."""
+    tool = shutil.which("gphoto2")
+    if tool is None:
+        pytest.skip("Debian's gphoto2 command-line tool is not installed (apt-get install gphoto2)")
+    env = {**os.environ, "HOME": str(gphoto2_home), "LANG": "C"}
+    with PtpIpCamera(lambda *_: b"dng", port=0) as camera:
+        for sequence in ("reset-after-init-command-request", "reset-after-init-command-ack",
+                         "reset-before-init-event-ack", "reset-in-a-session"):  # fmt: skip
+            HOSTILE[sequence](camera.port)
+        summary = subprocess.run(
+            [tool, "--port", camera.address, "--summary"],
+            capture_output=True, text=True, timeout=60, env=env,  # fmt: skip
+        )
+    assert summary.returncode == 0, summary.stdout + summary.stderr
+    assert "Model: ps-lab simulated camera" in summary.stdout

@@ -17,7 +17,9 @@ import numpy as np
 from ps_lab.capture.cameras import FAULT_KINDS, Camera
 from ps_lab.errors import CameraError
 from ps_lab.io.dng import write_dng
+from ps_lab.io.camera import CameraModel
 from ps_lab.render import PointLights, render_scene
+from ps_lab.render.lens import distort_image
 
 __all__ = ["SimulatedCamera"]
 
@@ -115,6 +117,9 @@ class SimulatedCamera(Camera):
     point_lights : PointLights, optional
         The N lights as LEDs at a finite distance (row i - 1 is light i); the renderer then
         receives ``point_lights=`` the lit ones.
+    lens : CameraModel, optional
+        The lens's distortion, applied to every rendered frame (rig file ``[lens] distortion``):
+        the scene's ground truth stays in undistorted pixels.
 
     """
 
@@ -139,6 +144,7 @@ class SimulatedCamera(Camera):
         timeout_s: float = 10.0,
         render: RenderFunction | None = None,
         point_lights: PointLights | None = None,
+        lens: CameraModel | None = None,
     ) -> None:
         super().__init__(timeout_s=timeout_s)
         directions = np.asarray(light_directions, dtype=np.float64)
@@ -178,6 +184,7 @@ class SimulatedCamera(Camera):
         self.seed = int(seed)
         self.faults = _parse_faults(faults)
         self._render = render or _default_render
+        self.lens = lens
 
     @property
     def settings(self) -> dict[str, Any]:  # noqa: D102 - documented on the base class
@@ -224,6 +231,8 @@ class SimulatedCamera(Camera):
             radiance = np.repeat(radiance[..., None], 3, axis=2)
         if radiance.ndim != 3 or radiance.shape[2] != 3:
             raise CameraError(f"renderer returned shape {radiance.shape}, expected (H, W, 3)")
+        if self.lens is not None:
+            radiance = distort_image(radiance, self.lens).astype(np.float64)
         return radiance
 
     def sensor_mosaic(self, radiance: np.ndarray, frame_index: int) -> np.ndarray:

@@ -8,6 +8,7 @@ array is a uint32 element count followed by the elements. A PTP/IP packet is a u
 
 from __future__ import annotations
 
+import select
 import socket
 import struct
 from collections.abc import Iterable, Sequence
@@ -152,6 +153,61 @@ def event(code: int, transaction: int, params: Sequence[int] = ()) -> bytes:
     return packet(EVENT, u16(code) + u32(transaction) + b"".join(u32(p) for p in params))
 
 
+def device_info(model: str, operations: Sequence[int], properties: Sequence[int]) -> bytes:
+    """The DeviceInfo data set of a generic PTP camera storing DNG (as TIFF) files."""
+    return (
+        u16(STANDARD_VERSION)
+        + u32(0)  # VendorExtensionID: none, a generic PTP camera
+        + u16(0)
+        + ptp_string("")
+        + u16(0)  # FunctionalMode: standard
+        + u16_array(operations)
+        + u16_array((OBJECT_ADDED, OBJECT_REMOVED, CAPTURE_COMPLETE))
+        + u16_array(properties)
+        + u16_array((FORMAT_TIFF,))
+        + u16_array((FORMAT_TIFF,))
+        + ptp_string("ps-lab")
+        + ptp_string(model)
+        + ptp_string("1.0")
+        + ptp_string("PSLAB0001")
+    )
+
+
+def storage_info(capacity: int, free: int) -> bytes:
+    """The StorageInfo data set of one flat in-memory store."""
+    return (
+        u16(STORAGE_FIXED_RAM)
+        + u16(FILESYSTEM_GENERIC_FLAT)
+        + u16(ACCESS_READ_ONLY_WITH_DELETE)
+        + u64(capacity)
+        + u64(free)
+        + u32(0xFFFFFFFF)  # free space in images: not used
+        + ptp_string("Internal RAM")
+        + ptp_string("")
+    )
+
+
+def object_info(storage: int, size: int, name: str, date: str) -> bytes:
+    """The ObjectInfo data set of a DNG file (as TIFF) in the root of ``storage``."""
+    return (
+        u32(storage)
+        + u16(FORMAT_TIFF)
+        + u16(0)  # protection: none
+        + u32(size)
+        + u16(0)  # no thumbnail
+        + u32(0) * 3
+        + u32(0) * 3  # image size and depth: not reported
+        + u32(0)  # parent: the root
+        + u16(0)
+        + u32(0)
+        + u32(0)
+        + ptp_string(name)
+        + ptp_string(date)
+        + ptp_string(date)
+        + ptp_string("")
+    )
+
+
 @dataclass(frozen=True)
 class Request:
     """An Operation Request: data-phase info, operation code, transaction id, parameters."""
@@ -239,17 +295,23 @@ def read_packet(conn: socket.socket) -> tuple[int, bytes]:
     return kind, recv_exact(conn, length - 8)
 
 
-def read_data(conn: socket.socket) -> bytes:
-    """Read an initiator's data phase: Start Data, then Data packets up to End Data."""
+def read_data(conn: socket.socket, limit: int = 1 << 20) -> bytes:
+    """Read an initiator's data phase: Start Data, then Data packets up to End Data.
+
+    ValueError for a phase longer than ``limit`` bytes (this camera's settings are a few bytes).
+    """
     kind, _ = read_packet(conn)
     if kind != START_DATA:
         raise ValueError(f"expected a Start Data packet, got type {kind}")
-    parts = []
+    parts, size = [], 0
     while True:
         kind, payload = read_packet(conn)
         if kind not in (DATA, END_DATA):
             raise ValueError(f"expected a Data packet, got type {kind}")
         parts.append(payload[4:])
+        size += len(payload) - 4
+        if size > limit:
+            raise ValueError(f"data phase over {limit} bytes")
         if kind == END_DATA:
             return b"".join(parts)
 
@@ -258,3 +320,35 @@ def send_data(conn: socket.socket, transaction: int, data: bytes) -> None:
     """Send a data phase as one Start Data and one End Data packet."""
     conn.sendall(packet(START_DATA, u32(transaction) + u64(len(data))))
     conn.sendall(packet(END_DATA, u32(transaction) + data))
+
+
+def keep_alive(conn: socket.socket, idle_s: int = 5, interval_s: int = 2, count: int = 3) -> None:
+    """TCP keepalive: a peer that vanished (no FIN, no RST) is noticed in about 11 s."""
+    conn.setsockopt(socket.SOL_SOCKET, socket.SO_KEEPALIVE, 1)
+    for name, value in (("TCP_KEEPIDLE", idle_s), ("TCP_KEEPINTVL", interval_s),
+                        ("TCP_KEEPCNT", count)):  # fmt: skip
+        if hasattr(socket, name):  # Linux; elsewhere the system's defaults
+            conn.setsockopt(socket.IPPROTO_TCP, getattr(socket, name), value)
+
+
+def wait_readable(conn: socket.socket, timeout_s: float) -> bool:
+    """Whether ``conn`` has something to read (data, end of stream or an error) within timeout."""
+    try:
+        readable, _, _ = select.select([conn], [], [], timeout_s)
+    except (OSError, ValueError):  # closed meanwhile: reading will say so
+        return True
+    return bool(readable)
+
+
+def is_dead(conn: socket.socket | None) -> bool:
+    """Whether the peer closed or reset ``conn`` (peeks; never consumes a byte)."""
+    if conn is None or conn.fileno() < 0:
+        return True
+    if not wait_readable(conn, 0.0):
+        return False
+    try:
+        return conn.recv(1, socket.MSG_PEEK | socket.MSG_DONTWAIT) == b""
+    except (BlockingIOError, InterruptedError):  # its reader took the byte meanwhile
+        return False
+    except OSError:
+        return True

@@ -5,7 +5,12 @@ port) opens the command/data connection with an Init Command Request and gets an
 Ack carrying a connection number, then opens the event connection with an Init Event Request
 naming that number. Operations, their data phases (Start Data, Data..., End Data) and
 responses then run on the first connection; ObjectAdded and CaptureComplete arrive on the
-second. One initiator at a time: a second one gets Init Fail (busy).
+second. One initiator at a time: a second one gets Init Fail (busy) — unless the place is
+held by a dead or half-open initiator: one whose connection was closed or reset (seen at once),
+whose event connection has not come within ``EVENT_WAIT_S``, that stopped halfway through a
+packet for ``STALL_S`` (either: ``CONTENDED_S`` when another initiator asks), that was silent
+for ``YIELD_S`` with no capture running when another one asks, or that vanished from the network
+(TCP keepalive). Its place is released and the newcomer served.
 
 Supported: GetDeviceInfo (also outside a session), OpenSession / CloseSession, GetStorageIDs /
 GetStorageInfo (one flat in-memory store), GetNumObjects / GetObjectHandles / GetObjectInfo /
@@ -49,6 +54,17 @@ log = logging.getLogger("ps_lab.capture.simulated.ptpip")
 DEFAULT_PORT = 15740
 STORAGE_ID = 0x00010001
 _CHUNK = 256 * 1024  # payload bytes per Data packet
+#: Seconds a connection has for its first packet, and a packet (or a send) for its remaining bytes.
+STALL_S = 10.0
+#: Seconds an initiator has between its Init Command Ack and its Init Event Request
+#: (libgphoto2 sends it at once).
+EVENT_WAIT_S = 5.0
+#: ... and, with another initiator waiting, for that or for the rest of a packet it started.
+CONTENDED_S = 0.25
+#: Seconds of silence after which a connected initiator yields to a new one (no capture running).
+YIELD_S = 5.0
+_POLL_S = 0.25  # housekeeping period of a connection's thread
+_MAX_HANDSHAKES = 256  # connections waiting for their first packet; more are closed at once
 
 #: shoot(frame_index, exposure_s, gain_scale) -> the DNG file's bytes.
 Shooter = Callable[[int, float, float], bytes]
@@ -201,8 +217,13 @@ class PtpIpCamera:
         self._command: socket.socket | None = None
         self._event: socket.socket | None = None
         self._connection = 0  # connection number of the active initiator
+        self._held_since = 0.0  # time.monotonic() when the active initiator got its place
+        self._heard = 0.0  # ... and when it last sent a packet
+        self._handshakes = threading.BoundedSemaphore(_MAX_HANDSHAKES)
+        self._reading: dict[socket.socket, float] = {}  # connection -> since when, mid-packet
         self._session = 0
         self._capturing = False
+        self._operating = False
         self._workers: list[threading.Thread] = []
 
     # -- lifecycle --------------------------------------------------------------------------
@@ -231,7 +252,7 @@ class PtpIpCamera:
         except OSError as exc:
             listener.close()
             raise RigError(f"cannot listen on {self.host}:{self.port}: {exc.strerror}") from None
-        listener.listen(4)
+        listener.listen(128)
         self._listener = listener
         self.port = listener.getsockname()[1]
         if self.events_on_default_port and self.port != DEFAULT_PORT:
@@ -255,7 +276,7 @@ class PtpIpCamera:
             log.info("PTP/IP camera: port %d taken (%s): use %s", DEFAULT_PORT, exc.strerror,
                      self.address)
             return None
-        extra.listen(4)
+        extra.listen(128)
         return extra
 
     def stop(self) -> None:
@@ -301,46 +322,109 @@ class PtpIpCamera:
                 conn, _ = readable[0].accept()
             except (OSError, ValueError):
                 return
-            conn.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+            try:
+                conn.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+                ptp.keep_alive(conn)
+            except OSError:  # reset before we looked at it
+                conn.close()
+                continue
+            if not self._handshakes.acquire(blocking=False):  # too many not yet introduced
+                conn.close()
+                continue
             threading.Thread(
                 target=self._handshake, args=(conn,), name="ps-lab-ptpip-conn", daemon=True
             ).start()
 
     def _handshake(self, conn: socket.socket) -> None:
+        """Serve one connection until it ends; nothing it does escapes as a traceback."""
         try:
-            conn.settimeout(10.0)
-            kind, payload = ptp.read_packet(conn)
-            conn.settimeout(None)
+            try:
+                conn.settimeout(STALL_S)
+                kind, payload = ptp.read_packet(conn)
+            finally:
+                self._handshakes.release()
             if kind == ptp.INIT_COMMAND_REQUEST:
                 self._serve_command(conn, payload)
             elif kind == ptp.INIT_EVENT_REQUEST:
                 self._serve_events(conn, payload)
             else:
                 log.info("PTP/IP camera: first packet of type %d; closing", kind)
-                conn.close()
         except (ptp.ConnectionEnded, OSError, struct.error, ValueError) as exc:
             log.debug("PTP/IP camera: connection ended: %s", exc)
+        except Exception as exc:  # a bug here must not take the camera down nor print
+            log.warning("PTP/IP camera: connection dropped after an internal error: %r", exc)
+            log.debug("PTP/IP camera: traceback", exc_info=True)
+        finally:
             conn.close()
+
+    def _packets(self, conn: socket.socket, check: Callable[[], str | None]):
+        """Yield ``conn``'s packets; return when ``check()`` gives a reason to end (logged)."""
+        while not self._stop.is_set():
+            if not ptp.wait_readable(conn, _POLL_S):
+                reason = check()
+                if reason:
+                    log.info("PTP/IP camera: %s; its place is released", reason)
+                    return
+                continue
+            self._reading[conn] = time.monotonic()
+            try:
+                packet = ptp.read_packet(conn)  # the rest of it within STALL_S (socket timeout)
+            finally:
+                self._reading.pop(conn, None)
+            yield packet
+
+    def _stale_reason(self) -> str | None:
+        """Why the active initiator should give its place to a newcomer, or None (lock held)."""
+        now = time.monotonic()
+        if ptp.is_dead(self._command):
+            return "the initiator's command connection was closed"
+        partial = [now - self._reading.get(c, now) for c in (self._command, self._event)]
+        if max(partial) > CONTENDED_S:
+            return f"the initiator stopped halfway through a packet {max(partial):.1f} s ago"
+        if self._event is None:
+            if now - self._held_since > CONTENDED_S:
+                return "the initiator never opened its event connection"
+        elif ptp.is_dead(self._event):
+            return "the initiator's event connection was closed"
+        elif now - self._heard > YIELD_S and not (self._capturing or self._operating):
+            return f"the initiator was silent for {now - self._heard:.0f} s"
+        return None
 
     def _serve_command(self, conn: socket.socket, payload: bytes) -> None:
         with self._lock:
             if self._command is not None:
-                conn.sendall(ptp.packet(ptp.INIT_FAIL, ptp.u32(ptp.FAIL_BUSY)))
-                conn.close()
-                return
+                reason = self._stale_reason()
+                if reason is None:
+                    conn.sendall(ptp.packet(ptp.INIT_FAIL, ptp.u32(ptp.FAIL_BUSY)))
+                    return
+                log.info("PTP/IP camera: %s; a new initiator takes its place", reason)
+                self._drop()
             self._connection += 1
             self._command = conn
+            self._held_since = self._heard = time.monotonic()
             number = self._connection
-        initiator = ptp.utf16_name(payload[16:])
-        log.info("PTP/IP camera: initiator %r connected (connection %d)", initiator, number)
-        name = self.model.encode("utf-16-le") + b"\x00\x00"
-        ack = ptp.u32(number) + self.guid + name + ptp.u32(ptp.PTPIP_VERSION)
-        conn.sendall(ptp.packet(ptp.INIT_COMMAND_ACK, ack))
+
+        def check() -> str | None:
+            waited = time.monotonic() - self._held_since
+            if self._command is conn and self._event is None and waited > EVENT_WAIT_S:
+                return f"no event connection {EVENT_WAIT_S:g} s after the Init Command Ack"
+            return None
+
         try:
-            while not self._stop.is_set():
-                kind, payload = ptp.read_packet(conn)
+            initiator = ptp.utf16_name(payload[16:])
+            log.info("PTP/IP camera: initiator %r connected (connection %d)", initiator, number)
+            name = self.model.encode("utf-16-le") + b"\x00\x00"
+            ack = ptp.u32(number) + self.guid + name + ptp.u32(ptp.PTPIP_VERSION)
+            conn.sendall(ptp.packet(ptp.INIT_COMMAND_ACK, ack))
+            for kind, payload in self._packets(conn, check):
+                self._heard = time.monotonic()
                 if kind == ptp.OPERATION_REQUEST:
-                    self._operation(conn, ptp.Request.parse(payload))
+                    self._operating = True  # a long download is not silence
+                    try:
+                        self._operation(conn, ptp.Request.parse(payload))
+                    finally:
+                        self._operating = False
+                        self._heard = time.monotonic()
                 elif kind == ptp.PROBE_REQUEST:
                     conn.sendall(ptp.packet(ptp.PROBE_RESPONSE))
                 else:
@@ -355,13 +439,14 @@ class PtpIpCamera:
         with self._lock:
             if self._command is None or number != self._connection or self._event is not None:
                 conn.sendall(ptp.packet(ptp.INIT_FAIL, ptp.u32(ptp.FAIL_REJECTED_INITIATOR)))
-                conn.close()
                 return
             self._event = conn
-        conn.sendall(ptp.packet(ptp.INIT_EVENT_ACK))
+            self._heard = time.monotonic()
         try:
-            while not self._stop.is_set():
-                kind, _ = ptp.read_packet(conn)
+            with self._event_lock:
+                conn.sendall(ptp.packet(ptp.INIT_EVENT_ACK))
+            for kind, _ in self._packets(conn, lambda: None):
+                self._heard = time.monotonic()
                 if kind == ptp.PROBE_REQUEST:
                     with self._event_lock:
                         conn.sendall(ptp.packet(ptp.PROBE_RESPONSE))
@@ -394,7 +479,7 @@ class PtpIpCamera:
             try:
                 sock.sendall(ptp.event(code, 0xFFFFFFFF, params))
             except OSError as exc:
-                log.info("PTP/IP camera: event 0x%04x lost: %s", code, exc)
+                log.info("PTP/IP camera: event 0x%04x lost: %s", code, exc)  # the reader drops it
 
     # -- operations -------------------------------------------------------------------------
     def _operation(self, conn: socket.socket, req: ptp.Request) -> None:
@@ -417,23 +502,7 @@ class PtpIpCamera:
         conn.sendall(ptp.response(code, req.transaction, params))
 
     def _device_info(self, req: ptp.Request, _: bytes | None) -> tuple[int, bytes, tuple]:
-        data = (
-            ptp.u16(ptp.STANDARD_VERSION)
-            + ptp.u32(0)  # VendorExtensionID: none, a generic PTP camera
-            + ptp.u16(0)
-            + ptp.ptp_string("")
-            + ptp.u16(0)  # FunctionalMode: standard
-            + ptp.u16_array(_SUPPORTED_OPERATIONS)
-            + ptp.u16_array((ptp.OBJECT_ADDED, ptp.OBJECT_REMOVED, ptp.CAPTURE_COMPLETE))
-            + ptp.u16_array(sorted(_PROPERTIES))
-            + ptp.u16_array((ptp.FORMAT_TIFF,))
-            + ptp.u16_array((ptp.FORMAT_TIFF,))
-            + ptp.ptp_string("ps-lab")
-            + ptp.ptp_string(self.model)
-            + ptp.ptp_string("1.0")
-            + ptp.ptp_string("PSLAB0001")
-        )
-        return ptp.OK, data, ()
+        return ptp.OK, ptp.device_info(self.model, _SUPPORTED_OPERATIONS, sorted(_PROPERTIES)), ()
 
     def _open_session(self, req: ptp.Request, _: bytes | None) -> tuple[int, None, tuple]:
         session = req.params[0] if req.params else 0
@@ -457,17 +526,7 @@ class PtpIpCamera:
         capacity = 1 << 30
         with self._lock:
             used = sum(len(o.data) for o in self._objects.values())
-        data = (
-            ptp.u16(ptp.STORAGE_FIXED_RAM)
-            + ptp.u16(ptp.FILESYSTEM_GENERIC_FLAT)
-            + ptp.u16(ptp.ACCESS_READ_ONLY_WITH_DELETE)
-            + ptp.u64(capacity)
-            + ptp.u64(max(0, capacity - used))
-            + ptp.u32(0xFFFFFFFF)  # free space in images: not used
-            + ptp.ptp_string("Internal RAM")
-            + ptp.ptp_string("")
-        )
-        return ptp.OK, data, ()
+        return ptp.OK, ptp.storage_info(capacity, max(0, capacity - used)), ()
 
     def _handles(self, req: ptp.Request) -> tuple[int, list[int]]:
         storage = req.params[0] if req.params else 0xFFFFFFFF
@@ -500,24 +559,7 @@ class PtpIpCamera:
         obj = self._object(req)
         if obj is None:
             return ptp.INVALID_OBJECT_HANDLE, None, ()
-        data = (
-            ptp.u32(STORAGE_ID)
-            + ptp.u16(ptp.FORMAT_TIFF)
-            + ptp.u16(0)  # protection: none
-            + ptp.u32(len(obj.data))
-            + ptp.u16(0)  # no thumbnail
-            + ptp.u32(0) * 3
-            + ptp.u32(0) * 3  # image size and depth: not reported
-            + ptp.u32(0)  # parent: the root
-            + ptp.u16(0)
-            + ptp.u32(0)
-            + ptp.u32(0)
-            + ptp.ptp_string(obj.name)
-            + ptp.ptp_string(obj.date)
-            + ptp.ptp_string(obj.date)
-            + ptp.ptp_string("")
-        )
-        return ptp.OK, data, ()
+        return ptp.OK, ptp.object_info(STORAGE_ID, len(obj.data), obj.name, obj.date), ()
 
     def _get_object(self, req: ptp.Request, _: bytes | None) -> tuple[int, Any, tuple]:
         obj = self._object(req)

@@ -21,6 +21,7 @@ from ps_lab.calibration import (
 )
 from ps_lab.commands.reconstruct import Encoding, EncodingOption
 from ps_lab.errors import CalibrationError
+from ps_lab.io.camera import camera_record, undistort_frame
 from ps_lab.io.dataset import Frames, load_frames
 from ps_lab.io.encoding import frames_encoding
 from ps_lab.io.images import read_image
@@ -67,7 +68,12 @@ def calibrate(
         typer.Option(help="Output folder (default: DATA, so reconstruct picks the lights up)."),
     ] = None,
     focal_length: Annotated[
-        float | None, typer.Option(help="Lens focal length in mm, for the perspective correction.")
+        float | None,
+        typer.Option(
+            help="Lens focal length in mm, for the perspective correction (default: with two "
+            "or more chrome spheres, the intrinsics of a camera.json in DATA; its frames are "
+            "read undistorted in any case)."
+        ),
     ] = None,
     pixel_pitch: Annotated[
         float | None,
@@ -156,8 +162,11 @@ def calibrate(
         result = _calibrate_folder(
             frames, spheres, sphere_c, matte_c, roi_v, safe_radius, focal_px, pixel_size, outline,
             *_near_models(frames, object_outline, led_intensities),
+            outline_name=str(outline_frame[k]) if outline_frame else "outline frame",
         )
         result.metadata["encoding"] = frames_encoding(frames.root / frames.names[0], encoding.value)
+        if frames.camera is not None:
+            result.metadata["camera"] = camera_record(frames.camera, Path(frames.camera.source))
         results.append(result)
         roots.append(frames.root)
     result = combine_probes(results, [str(r) for r in roots])
@@ -219,13 +228,20 @@ def _near_models(
 
 def _calibrate_folder(
     frames: Frames, spheres, sphere_c, matte_c, roi_v, safe_radius, focal_px, pixel_size, outline,
-    object_outline, led_intensities,
+    object_outline, led_intensities, outline_name,
 ):
     """One folder's calibration (the rig snapshot's spheres unless circles are given)."""
     _, rig_matte = rig_circles(frames.manifest)
     rig_chrome = rig_chrome_spheres(frames.manifest)
     hints = [] if sphere_c is not None or roi_v is not None else rig_chrome
     n, height, width = frames.images.shape[:3]
+    principal_point = None
+    if focal_px is None and frames.camera is not None and max(len(spheres), len(hints)) > 1:
+        # camera.json with two or more chrome spheres (near lights): the LEDs are triangulated
+        # through the calibrated perspective camera. One sphere (directional lights) keeps the
+        # directional model's distant camera unless --focal-length asks for the correction.
+        focal_px = frames.camera.focal_length
+        principal_point = (frames.camera.cx, frames.camera.cy)
     circles = [("--sphere", c) for c in spheres] + [("--matte", matte_c)]
     for option, circle in circles:
         if circle is not None and not circle_in_image(circle, width, height):
@@ -235,7 +251,7 @@ def _calibrate_folder(
             )
     with (
         progress_bar(n * max(len(spheres), len(hints), 1), "highlights") as advance,
-        naming_folder(frames.root),
+        naming_folder(frames.root, unless=outline_name if outline is not None else None),
     ):
         return run_calibration(
             frames.images,
@@ -251,11 +267,13 @@ def _calibrate_folder(
             saturated=frames.saturated,
             safe_radius=safe_radius,
             focal_length_px=focal_px,
+            principal_point=principal_point,
             names=frames.names,
             progress=advance,
             outline=outline,
             led_intensities=led_intensities,
             object_outline=object_outline,
+            outline_name=outline_name,
         )
 
 
@@ -268,6 +286,8 @@ def _side_frame(path: Path, frames: Frames, encoding: str, what: str) -> np.ndar
             f"{path}: {what} is {image.shape[1]}x{image.shape[0]}, the frames of {frames.root} "
             f"are {w}x{h}"
         )
+    if frames.camera is not None:  # the light frames were undistorted: this one too
+        return undistort_frame(frames.camera, image.data)[0]
     return image.data
 
 
@@ -276,7 +296,8 @@ def _subtract_ambient(frames: Frames, path: Path, encoding: str) -> Frames:
     if ambient.shape[-1] != frames.images.shape[-1]:
         ambient = ambient.mean(axis=-1, keepdims=True)
     images = frames.images - ambient[None]
-    return Frames(images, frames.saturated, frames.names, frames.root, frames.manifest)
+    return Frames(images, frames.saturated, frames.names, frames.root, frames.manifest,
+                  frames.camera)
 
 
 def register(app: typer.Typer) -> None:

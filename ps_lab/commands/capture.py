@@ -8,6 +8,7 @@ from typing import Annotated
 import typer
 
 from ps_lab._cli_util import EXIT_INTERRUPTED, fail, lab_command, progress_bar
+from ps_lab.capture._rig_lens import with_lens_camera
 from ps_lab.capture.rig import apply_overrides, load_rig, parse_light_selection
 from ps_lab.capture.session import CaptureSession
 
@@ -51,10 +52,21 @@ def capture(
         float | None,
         typer.Option("--exposure", help="Exposure time in seconds (overrides the rig file)."),
     ] = None,
+    camera: Annotated[
+        Path | None,
+        typer.Option(
+            "--camera",
+            help="camera.json of `ps-lab calibrate-camera`, copied into the run (overrides the "
+            "rig file's [lens] camera); calibrate and reconstruct then undistort the frames.",
+            show_default=False,
+        ),
+    ] = None,
     quiet: Annotated[bool, typer.Option("--quiet", "-q", help="No progress bar.")] = False,
 ) -> None:
     """Capture a photometric-stereo run: dark frame, then each light; resumable and crash-safe."""
     rig_config = apply_overrides(load_rig(rig), port=port, exposure_s=exposure)
+    if camera is not None:
+        rig_config = with_lens_camera(rig_config, camera)
     selection = parse_light_selection(lights, rig_config.n_lights) if lights is not None else None
     session = CaptureSession(
         rig_config,

@@ -16,6 +16,7 @@ from ps_lab._cli_util import (
     lab_command,
     progress_bar,
 )
+from ps_lab.capture._rig_lens import board_target, write_rig_board_frames
 from ps_lab.capture.connect import parse_faults, serve_camera, serve_firmware, serve_simulator
 from ps_lab.capture.faults import parse_camera_faults
 from ps_lab.capture.lights import SerialLightController, walk_lights
@@ -212,6 +213,28 @@ def check(
     typer.echo(
         f"{port}: protocol v1 controller, {lights} lights switched one by one and "
         "reported correctly"
+    )
+
+
+@rig_app.command("board-frames")
+@lab_command
+def board_frames(
+    rig: Annotated[Path, typer.Option("--rig", help="A rig file with a simulated camera.")],
+    out: Annotated[Path, typer.Option("--out", help="Folder for board_001.png, ...")],
+    views: Annotated[int, typer.Option(min=3, max=100, help="Board poses to render.")] = 12,
+    seed: Annotated[int, typer.Option(min=0, help="Seed of the poses and the noise.")] = 0,
+) -> None:
+    """Render a ChArUco board at seeded poses through a simulated rig's lens ([lens]).
+
+    The frames a real rig's camera would take of a printed board, for `ps-lab calibrate-camera`.
+    """
+    config = load_rig(rig)
+    written = write_rig_board_frames(config, out, views, seed)
+    target = board_target(config.scene.width if config.scene is not None else 0)
+    typer.echo(f"wrote {len(written)} board frames to {out}")
+    typer.echo(
+        f"next: ps-lab calibrate-camera {out}/board_*.png --board charuco:{target.cols}x"
+        f"{target.rows}:{target.square:g}:{target.marker:g}:{target.dictionary} --out {out}"
     )
 
 

@@ -9,7 +9,9 @@ from typing import Annotated
 import typer
 
 from ps_lab._cli_util import lab_command, progress_bar
+from ps_lab.errors import DatasetError
 from ps_lab.render import SimulationSettings, check_new_dataset_folder, write_simulated_dataset
+from ps_lab.render.simulate import board_spec, simulated_board
 
 
 class SceneKind(str, Enum):
@@ -69,6 +71,25 @@ def simulate(
             help="png16 (scaled: peak = 0.9 x 65535), tiff32 or npy (linear)."
         ),
     ] = ImageFormat.png16,
+    lens: Annotated[
+        str | None,
+        typer.Option(
+            metavar="<k1,k2,p1,p2,k3>",
+            help="Lens distortion K1[,K2,P1,P2,K3] (OpenCV's radial-tangential model) applied "
+            "to the frames; ground truth stays undistorted (camera_truth.json).",
+            show_default=False,
+        ),
+    ] = None,
+    focal_length: Annotated[
+        float | None,
+        typer.Option(help="That lens's focal length in pixels (default: the image size).",
+                     show_default=False),
+    ] = None,
+    board_frames: Annotated[
+        int,
+        typer.Option(min=0, help="With --lens: also render this many ChArUco board views into "
+                     "OUT/board/ for `ps-lab calibrate-camera`."),
+    ] = 0,
 ) -> None:
     """Render a sphere or relief under random lights and write it as a dataset with ground truth.
 
@@ -87,15 +108,30 @@ def simulate(
         cast_shadows=cast_shadows,
         max_zenith_deg=max_zenith,
         image_format=image_format.value,
+        lens=None if lens is None else _lens(lens),
+        focal_length=focal_length,
+        board_frames=board_frames,
     )
     settings.validate()
     check_new_dataset_folder(out)
     with progress_bar(2 * lights, f"rendering {scene.value}") as advance:
         result = write_simulated_dataset(out, settings, progress=advance)
+    if board_frames and lens is not None:
+        typer.echo(
+            f"board views: ps-lab calibrate-camera {out}/board/*.png --board "
+            f"{board_spec(simulated_board(size))} --out {out}"
+        )
     typer.echo(
         f"wrote {result['images']} images of {size}x{size} "
         f"({result['pixels']} object pixels) to {out}"
     )
+
+
+def _lens(text: str) -> tuple[float, ...]:
+    try:
+        return tuple(float(v) for v in text.split(","))
+    except ValueError:
+        raise DatasetError(f"--lens {text}: give K1[,K2,P1,P2,K3] as numbers") from None
 
 
 def register(app: typer.Typer) -> None:

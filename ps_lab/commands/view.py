@@ -60,7 +60,11 @@ def view(
         ),
     ] = ExportFormat.site,
 ) -> None:
-    """Relight results under a virtual light, see their layers and mesh, compare them."""
+    """Relight results under a virtual light, see their layers and mesh, compare them.
+
+    The server listens on 127.0.0.1 and answers only requests addressed to its own names
+    (127.0.0.1, localhost, [::1]); it only reads, and drops a client that stalls for 10 s.
+    """
     if export_format is ExportFormat.relight:
         if export is None or len(results) != 1:
             raise fail("--format relight needs --export DIR and exactly one result")
@@ -82,7 +86,11 @@ def view(
             os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY")
         ):
             # webbrowser would start a console browser (lynx, w3m) in this terminal.
-            typer.echo("no display here: open the address in a browser (an SSH tunnel works)")
+            port_used = address.rstrip("/").rsplit(":", 1)[1]
+            typer.echo(
+                "no display here: open the address in a browser (an SSH tunnel works, to the "
+                f"same port: ssh -L {port_used}:127.0.0.1:{port_used} THIS-HOST)"
+            )
             return
         # In a thread: some browsers' launchers wait until the browser exits.
         threading.Thread(target=webbrowser.open, args=(address,), daemon=True).start()

@@ -26,31 +26,41 @@ _NATIVE_STDERR = threading.Lock()
 
 
 @contextmanager
-def native_stderr_captured() -> Iterator[list[str]]:
+def native_stderr_captured(fds: tuple[int, ...] = (2,)) -> Iterator[list[str]]:
     """Capture what C libraries print on the process's stderr (fd 2) in the block.
 
     libpng prints its own ``libpng error: ...`` line on a damaged stream before OpenCV returns
     None; the lines are yielded (filled in at the end of the block) for the caller's one error
-    line instead. One block at a time per process (a lock).
+    line instead. ``fds=(1, 2)`` also captures stdout (OpenEXR's binding prints warnings there).
+    One block at a time per process (a lock).
     """
     lines: list[str] = []
     with _NATIVE_STDERR:
+        for stream in (sys.stdout, sys.stderr):
+            try:
+                stream.flush()
+            except (OSError, ValueError, AttributeError):
+                pass
+        saved: dict[int, int] = {}
         try:
-            sys.stderr.flush()
-        except (OSError, ValueError, AttributeError):
+            for fd in fds:
+                saved[fd] = os.dup(fd)
+        except OSError:  # no such descriptor: capture what can be
             pass
-        try:
-            saved = os.dup(2)
-        except OSError:  # no fd 2 at all
-            yield lines
-            return
         with tempfile.TemporaryFile() as sink:
-            os.dup2(sink.fileno(), 2)
+            for fd in saved:
+                os.dup2(sink.fileno(), fd)
             try:
                 yield lines
             finally:
-                os.dup2(saved, 2)
-                os.close(saved)
+                for stream in (sys.stdout, sys.stderr):  # what Python code printed meanwhile
+                    try:
+                        stream.flush()
+                    except (OSError, ValueError, AttributeError):
+                        pass
+                for fd, copy in saved.items():
+                    os.dup2(copy, fd)
+                    os.close(copy)
                 sink.seek(0)
                 text = sink.read(4096).decode("utf-8", "replace")
                 lines.extend(line.strip() for line in text.splitlines() if line.strip())

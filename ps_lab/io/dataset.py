@@ -30,6 +30,7 @@ from pathlib import Path
 import numpy as np
 
 from ps_lab.errors import DatasetError
+from ps_lab.io.camera import CameraModel, undistort_frame
 from ps_lab.io.frames import (
     FramePlan,
     check_dataset_folder,
@@ -87,6 +88,8 @@ class Frames:
         The dataset folder.
     manifest : dict or None
         The parsed ``manifest.json`` of a capture run, else None.
+    camera : CameraModel or None
+        The dataset's ``camera.json``: the frames were undistorted with it.
 
     """
 
@@ -95,6 +98,7 @@ class Frames:
     names: list[str]
     root: Path
     manifest: dict | None
+    camera: CameraModel | None = None
 
 
 @dataclass(frozen=True)
@@ -137,7 +141,9 @@ def load_frames(path: Path, encoding: str = "auto") -> Frames:
 
     Repeats of a light are averaged, a dark frame (manifest ``kind: dark``, or ``dark.<ext>`` in an
     image folder) is subtracted after scaling it by the exposure ratio, and every frame is scaled to
-    the exposure of the first light frame when the exposures are known.
+    the exposure of the first light frame when the exposures are known. When the folder has a
+    ``camera.json`` (:mod:`ps_lab.io.camera`) the frames are undistorted; masks, circles and
+    ground truth are then in undistorted pixels.
 
     Parameters
     ----------
@@ -164,7 +170,8 @@ def load_frames(path: Path, encoding: str = "auto") -> Frames:
         saturated[i] = clipped
     assert images is not None and saturated is not None
     return Frames(
-        images=images, saturated=saturated, names=plan.names, root=plan.root, manifest=plan.manifest
+        images=images, saturated=saturated, names=plan.names, root=plan.root,
+        manifest=plan.manifest, camera=plan.camera,
     )
 
 
@@ -290,6 +297,10 @@ def read_light_frame(
     assert total is not None and clipped is not None
     if len(files) > 1:
         total = total / np.float32(len(files))
+    if plan.camera is not None:  # after the dark frame: both were recorded through the lens
+        undistorted, spread = undistort_frame(plan.camera, total, clipped)
+        assert spread is not None
+        total, clipped = undistorted, spread
     return total, clipped
 
 

@@ -24,9 +24,10 @@ from pathlib import Path
 import numpy as np
 
 from ps_lab.errors import DatasetError
+from ps_lab.io.camera import CAMERA_FILE, CameraModel, read_camera_file
 from ps_lab.io.files import sha256
 from ps_lab.io.images import ENCODINGS, SUPPORTED_SUFFIXES, check_is_file, is_supported
-from ps_lab.io.lights import find_lp, lp_image_files, read_lp
+from ps_lab.io.lights import find_lp, lp_image_files, read_lp_rows
 from ps_lab.io.result import is_result_folder, read_result_metrics
 from ps_lab.io.run import MANIFEST_NAME, is_run, read_manifest
 
@@ -48,6 +49,7 @@ _NOT_FRAMES = {
     "albedo.exr",
     "corruption.png",
     "calibration.png",
+    "camera.png",
     "depth.npy",
     "depth.tiff",
     "depth.png",
@@ -81,6 +83,8 @@ class FramePlan:
     manifest : dict or None
     encoding : str
         How the frames' integer values map to light (``ps_lab.io.encoding``).
+    camera : CameraModel or None
+        The dataset's ``camera.json`` (:mod:`ps_lab.io.camera`): its frames are read undistorted.
 
     """
 
@@ -91,6 +95,7 @@ class FramePlan:
     root: Path
     manifest: dict | None
     encoding: str = "auto"
+    camera: CameraModel | None = None
 
     @property
     def names(self) -> list[str]:
@@ -215,7 +220,9 @@ def plan_frames(path: Path, encoding: str = "auto") -> FramePlan:
         )
     check_dataset_folder(root)
     plan = _plan_run(root) if is_capture_run(root) else _plan_image_folder(root)
-    return replace(plan, encoding=encoding)
+    camera_file = root / CAMERA_FILE
+    camera = read_camera_file(camera_file) if camera_file.is_file() else None
+    return replace(plan, encoding=encoding, camera=camera)
 
 
 def is_mask_name(name: str) -> bool:
@@ -306,7 +313,8 @@ def _plan_image_folder(root: Path) -> FramePlan:
             files.append(file)
     elif not (root / _LIGHT_DIRECTIONS).exists() and (lp := find_lp(root)) is not None:
         # The images of an .lp file, in its order, wherever it says they are (RelightLab).
-        files = lp_image_files(lp, read_lp(lp)[0], is_supported)
+        names, _, lines = read_lp_rows(lp)
+        files = lp_image_files(lp, names, is_supported, lines)
         for file in files:
             check_is_file(file, "image file")
             if not is_supported(file):

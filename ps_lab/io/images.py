@@ -38,8 +38,9 @@ import OpenEXR
 import tifffile
 
 from ps_lab.errors import DatasetError, PsLabError
-from ps_lab.io.codecs import decode_image, decoder_said, imread
+from ps_lab.io.codecs import decode_image, decoder_said, imread, native_stderr_captured
 from ps_lab.io.encoding import ENCODINGS, JPEG_SUFFIXES, image_encoding
+from ps_lab.io.exr import exr_layout
 from ps_lab.io.raw import load_raw
 
 __all__ = ["ENCODINGS", "JPEG_SUFFIXES", "Image", "read_image", "read_image_size"]
@@ -549,16 +550,19 @@ def read_exr(path: Path) -> np.ndarray:
     DatasetError
         Not an OpenEXR file, or no channel layout above (the message names the file).
     """
+    layout = exr_layout(path)  # the header checked against the file before OpenEXR allocates
+    # Every part's samples as stored, and the first part's float32 copy: in units of 8 bytes.
+    pixels = layout.height * layout.width
+    check_decode_memory(path, layout.height, layout.width,
+                        -(-(layout.pixel_bytes + 4 * pixels * layout.channels) // (8 * pixels)))
     try:
-        with OpenEXR.File(str(path)) as exr:
-            low, high = exr.header()["dataWindow"]
-            width, height = int(high[0] - low[0] + 1), int(high[1] - low[1] + 1)
-            check_decode_memory(path, height, width, len(exr.channels()))
+        with native_stderr_captured((1, 2)) as said, OpenEXR.File(str(path)) as exr:
             channels = {name: np.asarray(c.pixels) for name, c in exr.channels().items()}
-    except PsLabError:
-        raise
     except Exception as exc:  # noqa: BLE001 - the OpenEXR bindings raise several types
-        raise DatasetError(f"{path}: corrupt or unreadable OpenEXR file ({exc})") from None
+        reason = str(exc).splitlines()[0][:200] if str(exc).strip() else type(exc).__name__
+        raise DatasetError(f"{path}: corrupt or unreadable OpenEXR file ({reason})") from None
+    if said:
+        raise DatasetError(f"{path}: corrupt OpenEXR file (OpenEXR: {said[0][:200]})")
     for name in ("RGB", "RGBA"):
         if name in channels:
             return channels[name][..., :3].astype(np.float32)

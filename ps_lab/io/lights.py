@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import json
 import logging
+import os
 import re
 from collections.abc import Callable
 from pathlib import Path
@@ -17,7 +18,7 @@ from pathlib import Path
 import numpy as np
 
 from ps_lab.errors import DatasetError
-from ps_lab.io.images import check_is_file
+from ps_lab.io.images import check_is_file, is_supported
 
 log = logging.getLogger("ps_lab.io.dataset")
 
@@ -46,10 +47,12 @@ def read_light_directions(path: Path, count: int | None = None) -> np.ndarray:
         raise DatasetError(
             f"{path}: {len(rows)} light directions but the dataset has {count} images"
         )
-    norms = np.linalg.norm(rows, axis=1)
+    norms = _lengths(rows)
     for i, norm in enumerate(norms):
         if norm < 1e-12:
             raise DatasetError(f"{path}: light {i + 1} (row {i + 1}) has zero length")
+        if not np.isfinite(norm):
+            raise DatasetError(f"{path}: light {i + 1} (row {i + 1}): {_TOO_LONG}")
     off = np.abs(norms - 1.0) > _UNIT_TOLERANCE
     if off.any():
         log.warning(
@@ -63,6 +66,15 @@ def read_light_directions(path: Path, count: int | None = None) -> np.ndarray:
     if problem is not None:
         raise DatasetError(f"{path}: {problem}")
     return unit
+
+
+_TOO_LONG = "light direction too long to normalise (a value beyond 1e150)"
+
+
+def _lengths(rows: np.ndarray) -> np.ndarray:
+    """Row lengths; infinite where squaring a value overflows (never a numpy warning)."""
+    with np.errstate(over="ignore", invalid="ignore"):
+        return np.where(np.abs(rows).max(axis=1) > 1e150, np.inf, np.linalg.norm(rows, axis=1))
 
 
 # Smallest singular value over the largest of the unit light directions below which the lights
@@ -252,6 +264,15 @@ def find_lp(folder: Path) -> Path | None:
 
 
 def read_lp(path: Path) -> tuple[list[str], np.ndarray]:
+    """Read a RelightLab / RTIBuilder / AliceVision ``.lp`` light file: (names, directions).
+
+    See :func:`read_lp_rows`, which also gives each row's line number.
+    """
+    names, directions, _ = read_lp_rows(path)
+    return names, directions
+
+
+def read_lp_rows(path: Path) -> tuple[list[str], np.ndarray, list[int]]:
     """Read a RelightLab / RTIBuilder / AliceVision ``.lp`` light file.
 
     The first line is the number of images, then one line ``filename x y z`` per image (the
@@ -265,6 +286,8 @@ def read_lp(path: Path) -> tuple[list[str], np.ndarray]:
     names : list of str
         The image file names as written (a path; see :func:`lp_image_files`).
     directions : ndarray of shape (n, 3), float64, unit rows
+    line_numbers : list of int
+        The line of each row in the file (1-based), for messages.
 
     Raises
     ------
@@ -284,12 +307,17 @@ def read_lp(path: Path) -> tuple[list[str], np.ndarray]:
         for number, line in enumerate(text.splitlines(), start=1)
         if line.strip() and not line.strip().startswith("#")
     ]
+    if not lines:
+        raise DatasetError(f"{path}: file is empty (the first line must be the number of images)")
+    first, head = lines[0]
     try:
-        count = int(lines[0][1].split()[0])
-    except (IndexError, ValueError):
-        raise DatasetError(f"{path}: first line must be the number of images") from None
+        count = int(head.split()[0])
+    except ValueError:
+        raise DatasetError(
+            f"{path}: line {first}: the first line must be the number of images, not {head[:40]!r}"
+        ) from None
     if count < 1:
-        raise DatasetError(f"{path}: says {count} images")
+        raise DatasetError(f"{path}: line {first}: says {count} images")
     rows_given = len(lines) - 1
     if rows_given < count:
         raise DatasetError(f"{path}: says {count} images but lists {rows_given}")
@@ -306,21 +334,38 @@ def read_lp(path: Path) -> tuple[list[str], np.ndarray]:
     for k, (number, line) in enumerate(lines[1 : count + 1]):
         fields = line.rsplit(maxsplit=3)
         try:
+            if len(fields) != 4:
+                raise ValueError
             rows[k] = [float(v) for v in fields[1:]]
-        except (ValueError, IndexError):
-            raise DatasetError(f"{path}: line {number}: expected 'filename x y z'") from None
-        if len(fields) != 4 or not np.all(np.isfinite(rows[k])):
-            raise DatasetError(f"{path}: line {number}: expected 'filename x y z'")
+        except ValueError:
+            raise DatasetError(
+                f"{path}: line {number}: expected 'filename x y z', got {line[:60]!r}"
+            ) from None
+        if not np.all(np.isfinite(rows[k])):
+            raise DatasetError(f"{path}: line {number}: a value is NaN or infinite (or overflows)")
+        head, _, last = fields[0].rpartition(" ")
+        if head and is_supported(Path(head)) and _is_number(last):  # 'a.png 1 0 1 5'
+            raise DatasetError(f"{path}: line {number}: expected 'filename x y z', got 4 numbers")
         names.append(fields[0])
-    norms = np.linalg.norm(rows, axis=1)
-    if np.any(norms < 1e-12):
-        first = int(np.flatnonzero(norms < 1e-12)[0])
-        raise DatasetError(f"{path}: line {lines[first + 1][0]}: light direction has zero length")
+    norms = _lengths(rows)
+    for k, norm in enumerate(norms):
+        if norm < 1e-12:
+            raise DatasetError(f"{path}: line {lines[k + 1][0]}: light direction has zero length")
+        if not np.isfinite(norm):
+            raise DatasetError(f"{path}: line {lines[k + 1][0]}: {_TOO_LONG}")
     unit = rows / norms[:, None]
     problem = light_geometry_problem(unit)
     if problem is not None:
         raise DatasetError(f"{path}: {problem}")
-    return names, unit
+    return names, unit, [number for number, _ in lines[1 : count + 1]]
+
+
+def _is_number(text: str) -> bool:
+    try:
+        float(text)
+    except ValueError:
+        return False
+    return True
 
 
 def write_lp(path: Path, names: list[str], directions: np.ndarray) -> None:
@@ -333,26 +378,47 @@ def write_lp(path: Path, names: list[str], directions: np.ndarray) -> None:
     path.write_text("\n".join(lines) + "\n", encoding="utf-8")
 
 
-def lp_image_files(path: Path, names: list[str], supported: Callable[[Path], bool]) -> list[Path]:
+def lp_image_files(
+    path: Path,
+    names: list[str],
+    supported: Callable[[Path], bool],
+    line_numbers: list[int] | None = None,
+) -> list[Path]:
     """The image file of each ``.lp`` entry, found as RelightLab and AliceVision find them.
 
-    Each name is taken relative to the ``.lp`` file's folder (backslashes read as slashes).
-    When that file does not exist, that folder and then the ``.lp``'s own are searched for the
-    name in any letter case, then for the same stem with any extension ``supported`` accepts (an
-    ``.lp`` written for ``image01.jpg`` finds ``image01.png`` or ``IMAGE01.TIF``); a Windows or
-    absolute path is looked up by its file name beside the ``.lp``.
+    Each name is taken as written, relative to the ``.lp`` file's folder (backslashes read as
+    slashes): ``a/001.png`` and ``b/001.png`` are two files. When that file does not exist, that
+    folder and then the ``.lp``'s own are searched for the name in another letter case, then for
+    the same stem with any extension ``supported`` accepts (an ``.lp`` written for
+    ``image01.jpg`` finds ``image01.png``), taken only when exactly one file matches; a Windows
+    or absolute path is looked up by its file name beside the ``.lp``.
 
     Raises
     ------
     DatasetError
-        Images not found (one line: how many, and the first few names), or two entries that find
-        the same file.
+        Images not found (one line: how many, and the first few names); a name that matches
+        several files (``001.png`` and ``001.tif`` for ``001.jpg``); two entries that find the
+        same file. The message names the ``.lp`` file and the line.
     """
+    files = _resolve_lp_names(path, names, supported, line_numbers)
+    missing = [name for name, file in zip(names, files, strict=True) if file is None]
+    if missing:
+        raise DatasetError(
+            f"{path}: lists {len(names)} images but {len(missing)} are not in {Path(path).parent} "
+            f"({', '.join(missing[:3])}{', ...' if len(missing) > 3 else ''})"
+        )
+    return [file for file in files if file is not None]
+
+
+def _resolve_lp_names(
+    path: Path, names: list[str], supported: Callable[[Path], bool], line_numbers: list[int] | None
+) -> list[Path | None]:
+    """Each entry's file (None: not found); DatasetError for an ambiguous name or a file twice."""
     base = Path(path).parent
+    lines = line_numbers or [k + 2 for k in range(len(names))]
     listings: dict[Path, list[Path]] = {}
-    files: list[Path] = []
-    missing: list[str] = []
-    for name in names:
+    files: list[Path | None] = []
+    for name, line in zip(names, lines, strict=True):
         written = name.replace("\\", "/")
         relative = Path(written)
         # A Windows or absolute path (C:/rti/a.png) is looked up by its name beside the .lp.
@@ -370,57 +436,80 @@ def lp_image_files(path: Path, names: list[str], supported: Callable[[Path], boo
             same_stem = [
                 p for p in entries if p.stem.lower() == relative.stem.lower() and supported(p)
             ]
-            if same_name or same_stem:
-                found = (same_name or same_stem)[0]
+            candidates = same_name or same_stem
+            if len(candidates) > 1:
+                shown = ", ".join(str(p.relative_to(base)) for p in candidates[:4])
+                raise DatasetError(
+                    f"{path}: line {line}: {name} is not there and matches {len(candidates)} "
+                    f"files ({shown}): write the file's name as it is"
+                )
+            if candidates:
+                found = candidates[0]
                 break
-        if found is None:
-            missing.append(name)
-        else:
-            files.append(found)
-    if missing:
-        raise DatasetError(
-            f"{path}: lists {len(names)} images but {len(missing)} are not in {base} "
-            f"({', '.join(missing[:3])}{', ...' if len(missing) > 3 else ''})"
-        )
-    seen: dict[Path, str] = {}
-    for name, file in zip(names, files, strict=True):
-        if file in seen:
-            raise DatasetError(f"{path}: {seen[file]} and {name} are both {file.name}")
-        seen[file] = name
+        files.append(found)
+    seen: dict[str, tuple[int, str]] = {}
+    for name, line, file in zip(names, lines, files, strict=True):
+        if file is None:
+            continue
+        key = os.path.normcase(os.path.abspath(file))
+        if key in seen:
+            first_line, first_name = seen[key]
+            raise DatasetError(
+                f"{path}: lines {first_line} and {line} ({first_name} and {name}) are both the "
+                f"image {Path(file).relative_to(base) if file.is_relative_to(base) else file}"
+            )
+        seen[key] = (line, name)
     return files
 
 
 def lp_directions_for(path: Path, image_files: list[Path]) -> np.ndarray:
-    """Directions of an ``.lp`` file in the order of ``image_files``, matched by file stem.
+    """Directions of an ``.lp`` file in the order of ``image_files``.
 
-    Names are compared without folder, extension or letter case (as :func:`lp_image_files`
-    finds files), so ``jpg/Image01.JPG`` in the ``.lp`` is the light of ``image01.png``.
+    Each image is the light of the row that names it (:func:`lp_image_files`: the path as
+    written, ``a/001.png`` and ``b/001.png`` being two lights); an image no row resolves to
+    (a file the ``.lp`` does not see) is matched by file name, then by stem, in any letter case,
+    when exactly one row has it (``jpg/Image01.JPG`` is the light of ``image01.png``).
 
     Raises
     ------
     DatasetError
-        An ``.lp`` file that lists more lights than the dataset has images, or an image with no
-        entry in it.
+        An ``.lp`` file that lists more lights than the dataset has images, an image with no
+        entry in it or with several, two images with the same entry; the message names the
+        ``.lp`` file and the line.
     """
-    names, directions = read_lp(path)
+    names, directions, lines = read_lp_rows(path)
     if len(names) > len(image_files):
         raise DatasetError(
             f"{path}: lists {len(names)} lights but the dataset has {len(image_files)} images"
         )
-    by_stem: dict[str, int] = {}
-    for i, name in enumerate(names):
-        by_stem.setdefault(_lp_stem(name), i)
-    order = []
-    for image in image_files:
-        index = by_stem.get(Path(image).stem.lower())
+    resolved = _resolve_lp_names(path, names, is_supported, lines)
+    by_file = {os.path.normcase(os.path.abspath(f)): k for k, f in enumerate(resolved) if f}
+    order: list[int] = []
+    for image in map(Path, image_files):
+        index = by_file.get(os.path.normcase(os.path.abspath(image)))
         if index is None:
-            raise DatasetError(f"{path}: no light for image {Path(image).name}")
+            index = _lp_row_by_name(path, names, lines, image)
+        if index in order:
+            other = Path(image_files[order.index(index)]).name
+            raise DatasetError(
+                f"{path}: line {lines[index]} ({names[index]}) is the light of both {other} and "
+                f"{image.name}: write each image's path as it is"
+            )
         order.append(index)
     return directions[order]
 
 
-def _lp_stem(name: str) -> str:
-    return Path(name.replace("\\", "/")).stem.lower()
+def _lp_row_by_name(path: Path, names: list[str], lines: list[int], image: Path) -> int:
+    """The one row naming ``image`` by file name, else by stem (any letter case)."""
+    written = [Path(n.replace("\\", "/")) for n in names]
+    for key in (lambda p: p.name.lower(), lambda p: p.stem.lower()):
+        rows = [k for k, w in enumerate(written) if key(w) == key(image)]
+        if len(rows) > 1:
+            shown = ", ".join(f"line {lines[k]} ({names[k]})" for k in rows[:4])
+            raise DatasetError(f"{path}: image {image.name} matches {len(rows)} rows: {shown}")
+        if rows:
+            return rows[0]
+    raise DatasetError(f"{path}: no light for image {image.name}")
 
 
 def write_dome(

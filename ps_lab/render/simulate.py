@@ -12,7 +12,10 @@ import tifffile
 
 from ps_lab.errors import DatasetError
 from ps_lab.io.codecs import imwrite
+from ps_lab.io.camera import CameraModel, write_camera
 from ps_lab.io.files import staged_folder
+from ps_lab.render.board import CharucoTarget, write_board_frames
+from ps_lab.render.lens import distort_image
 from ps_lab.render.lights import random_light_directions
 from ps_lab.render.shading import render
 from ps_lab.render.surfaces import relief_surface, sphere_surface
@@ -38,6 +41,22 @@ class SimulationSettings:
     cast_shadows: bool = True
     max_zenith_deg: float = 60.0
     image_format: str = "png16"
+    #: Lens distortion (k1, k2, p1, p2, k3) applied to the frames, or None (an ideal lens).
+    lens: tuple[float, ...] | None = None
+    #: Focal length of that lens in pixels (default: the image size).
+    focal_length: float | None = None
+    #: ChArUco board views written to ``board/`` through the same lens (0: none).
+    board_frames: int = 0
+
+    def camera(self) -> CameraModel | None:
+        """The simulated camera (principal point at the image centre), or None without a lens."""
+        if self.lens is None:
+            return None
+        f = float(self.focal_length if self.focal_length is not None else self.size)
+        c = (self.size - 1) / 2.0
+        coefficients = tuple(float(v) for v in self.lens) + (0.0,) * (5 - len(self.lens))
+        size = (self.size, self.size)
+        return CameraModel(f, f, c, c, coefficients, size)  # type: ignore[arg-type]
 
     def validate(self) -> None:
         """Raise :class:`DatasetError` on settings that cannot be rendered."""
@@ -57,10 +76,28 @@ class SimulationSettings:
             raise DatasetError("--specular and --noise-sigma must be >= 0")
         if not 0.0 <= self.noise_fraction <= 1.0:
             raise DatasetError(f"--noise-fraction must be in [0, 1], got {self.noise_fraction}")
+        if self.lens is not None and not (1 <= len(self.lens) <= 5
+                                          and all(np.isfinite(v) for v in self.lens)):
+            raise DatasetError("--lens: give 1 to 5 finite numbers K1[,K2,P1,P2,K3]")
+        if self.focal_length is not None and not self.focal_length > 0:
+            raise DatasetError(f"--focal-length must be positive, got {self.focal_length}")
+        if self.board_frames and self.board_frames < 3:
+            raise DatasetError(f"--board-frames: at least 3 views, got {self.board_frames}")
         if not 0.0 < self.max_zenith_deg < 90.0:
             raise DatasetError(
                 f"--max-zenith must be in (0, 90) degrees, got {self.max_zenith_deg}"
             )
+
+
+def simulated_board(size: int) -> CharucoTarget:
+    """The ChArUco board of ``ps-lab simulate --board-frames``: 9x6 squares, 20/15 mm."""
+    return CharucoTarget(9, 6, 20.0, 15.0, "DICT_5X5_100")
+
+
+def board_spec(target: CharucoTarget) -> str:
+    """The ``--board`` option of ``ps-lab calibrate-camera`` for ``target``."""
+    return (f"charuco:{target.cols}x{target.rows}:{target.square:g}:{target.marker:g}:"
+            f"{target.dictionary}")
 
 
 def check_new_dataset_folder(out: Path) -> None:
@@ -124,6 +161,10 @@ def write_simulated_dataset(
         progress=progress,
     )
 
+    camera = settings.camera()
+    if camera is not None:  # the ideal render seen through the lens; truth stays undistorted
+        images = np.stack([distort_image(image, camera) for image in images])
+
     digits = max(3, len(str(settings.lights)))
     suffix = {"png16": ".png", "tiff32": ".tiff", "npy": ".npy"}[settings.image_format]
     names = [f"{i + 1:0{digits}d}{suffix}" for i in range(settings.lights)]
@@ -158,6 +199,16 @@ def write_simulated_dataset(
             "png16_scale": scale if settings.image_format == "png16" else None,
         }
         (staging / "simulation.json").write_text(json.dumps(meta, indent=2) + "\n")
+        if camera is not None:
+            # The truth, under a name no reader takes for the dataset's calibrated camera: the
+            # ground truth (mask, normals, depth) is in undistorted pixels, the frames are not.
+            write_camera(staging / "camera_truth.json", camera, truth="simulated lens")
+            if settings.board_frames:
+                target = simulated_board(settings.size)
+                write_board_frames(staging / "board", target, camera, settings.board_frames,
+                                   seed=settings.seed)
+                meta["board"] = board_spec(target)
+                (staging / "simulation.json").write_text(json.dumps(meta, indent=2) + "\n")
     return {
         "path": out,
         "images": settings.lights,

@@ -16,19 +16,60 @@ Paths, relative to the page: ``data/manifest.json``, ``data/r{i}/{level}/{col}_{
 from __future__ import annotations
 
 import json
+import math
+import re
 from collections.abc import Iterator
 
 import numpy as np
 
+from ps_lab.io.files import json_safe
 from ps_lab.view.result import CHANNELS, ViewResult
 
-__all__ = ["TILE", "Pyramid", "manifest", "mesh_bytes", "pyramid"]
+__all__ = [
+    "TILE",
+    "Pyramid",
+    "manifest",
+    "mesh_address",
+    "mesh_bytes",
+    "pyramid",
+    "tile_address",
+]
 
 #: Tile side in pixels.
 TILE = 512
 
 #: Stored in place of a missing value in the error and relief channels (the shader tests < 0).
 MISSING = -1.0
+
+
+#: A number in a data path: decimal ASCII digits, no sign, no leading zero, at most 6 digits
+#: (a tile index of 5,000 digits is no path of the site, and never reaches ``int()``).
+_NUMBER = r"(0|[1-9][0-9]{0,5})"
+_TILE_PATH = re.compile(rf"data/r{_NUMBER}/{_NUMBER}/{_NUMBER}_{_NUMBER}\.bin", re.ASCII)
+_MESH_PATH = re.compile(rf"data/r{_NUMBER}/mesh\.bin", re.ASCII)
+
+#: No data path is longer (four 6-digit numbers and the words around them).
+_MAX_PATH = 64
+
+
+def tile_address(path: str) -> tuple[int, int, int, int] | None:
+    """``(result, level, col, row)`` of a tile path ``data/r{i}/{level}/{col}_{row}.bin``.
+
+    None for anything else: a longer path, a number with a sign, a leading zero, more than six
+    digits or a digit that is not ASCII (the length and the pattern are checked before any
+    ``int()``, so no request can make it convert a long number).
+    """
+    match = _TILE_PATH.fullmatch(path) if len(path) <= _MAX_PATH else None
+    if match is None:
+        return None
+    index, level, col, row = (int(g) for g in match.groups())
+    return index, level, col, row
+
+
+def mesh_address(path: str) -> int | None:
+    """The result index of a mesh path ``data/r{i}/mesh.bin``, or None (as :func:`tile_address`)."""
+    match = _MESH_PATH.fullmatch(path) if len(path) <= _MAX_PATH else None
+    return None if match is None else int(match.group(1))
 
 
 class Pyramid:
@@ -136,8 +177,38 @@ def mesh_bytes(result: ViewResult) -> bytes | None:
     )
 
 
+def _number(value: object) -> int | float | None:
+    """A finite number (not a bool, an integer within a float's exact range), else None."""
+    if isinstance(value, bool):
+        return None
+    if isinstance(value, int):
+        return value if abs(value) <= 2**53 else None
+    if isinstance(value, float):
+        return value if math.isfinite(value) else None
+    return None
+
+
+def _text(value: object) -> str | None:
+    return value[:200] if isinstance(value, str) else None
+
+
+def _error_summary(value: object) -> dict[str, float] | None:
+    """The error summary's entries that are finite numbers; None without a finite mean.
+
+    A result without errors has NaN there, which the page cannot show.
+    """
+    if not isinstance(value, dict):
+        return None
+    summary = {str(k): v for k, v in value.items() if _number(v) is not None}
+    return summary if "mean" in summary else None
+
+
 def manifest(results: list[ViewResult], pyramids: list[Pyramid]) -> bytes:
-    """``data/manifest.json``: per result its size, levels, layers, metrics and mesh counts."""
+    """``data/manifest.json``: per result its size, levels, layers, metrics and mesh counts.
+
+    The metrics come from a file: each is passed on only with the type the page reads (a
+    string, a finite number, an error summary with a finite mean), else as null.
+    """
     entries = []
     for result, levels in zip(results, pyramids, strict=True):
         h, w = result.shape
@@ -150,8 +221,8 @@ def manifest(results: list[ViewResult], pyramids: list[Pyramid]) -> bytes:
                 "min": [float(x) for x in vertices.min(axis=0)] if len(vertices) else [0, 0, 0],
                 "max": [float(x) for x in vertices.max(axis=0)] if len(vertices) else [0, 0, 0],
             }
-        metrics = result.metrics
-        error = metrics.get("angular_error_deg") if isinstance(metrics, dict) else None
+        metrics = result.metrics if isinstance(result.metrics, dict) else {}
+        depth = metrics.get("depth")
         entries.append(
             {
                 "name": result.name,
@@ -161,14 +232,14 @@ def manifest(results: list[ViewResult], pyramids: list[Pyramid]) -> bytes:
                 "levels": levels.level_sizes(),
                 "albedo_scale": result.albedo_scale,
                 "has": result.has,
-                "method": metrics.get("method"),
-                "lights": metrics.get("lights"),
-                "pixels": metrics.get("pixels"),
-                "angular_error_deg": error,
-                "depth_unit": (metrics.get("depth") or {}).get("unit")
-                if isinstance(metrics.get("depth"), dict)
-                else None,
+                "method": _text(metrics.get("method")),
+                "lights": _number(metrics.get("lights")),
+                "pixels": _number(metrics.get("pixels")),
+                "angular_error_deg": _error_summary(metrics.get("angular_error_deg")),
+                "depth_unit": _text(depth.get("unit")) if isinstance(depth, dict) else None,
                 "mesh": mesh,
             }
         )
-    return json.dumps({"format": "ps-lab-view-1", "results": entries}, indent=1).encode()
+    # Metrics come from a file: any value that JSON cannot hold (NaN, an infinity) becomes null.
+    document = json_safe({"format": "ps-lab-view-1", "results": entries})
+    return json.dumps(document, indent=1, allow_nan=False).encode()

@@ -1,0 +1,142 @@
+"""The rig file's ``[lens]`` table: the camera's calibration, and the simulated camera's lens.
+
+::
+
+    [lens]
+    camera = "camera.json"          # `ps-lab calibrate-camera` output, relative to the rig file:
+                                    # checked here, copied next to every run's manifest
+    distortion = [-0.2, 0.05, 0.0, 0.0, 0.0]   # simulated camera only: k1 k2 p1 p2 k3 applied
+    focal_length = 400.0            # to the rendered frames, with this focal length (pixels,
+    principal_point = [161.0, 118.5]  # default the scene width) and principal point (default
+                                    # the image centre), in loaded-image pixels
+
+A real camera's lens is what it is; ``distortion`` describes the simulated one (the truth a
+calibration of its board frames should find). Kept apart from :mod:`.rig` (the schema) so that
+the camera's calibration has one small owner.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from ps_lab.capture._rig_table import _Table
+from ps_lab.errors import PsLabError, RigError
+from ps_lab.io.camera import CameraModel, read_camera_file
+from ps_lab.render.board import CharucoTarget, write_board_frames
+
+
+@dataclass(frozen=True)
+class LensConfig:
+    """``[lens]``: the calibrated camera file, and a simulated camera's lens."""
+
+    camera: str | None = None
+    distortion: tuple[float, ...] | None = None
+    focal_length: float | None = None
+    principal_point: tuple[float, float] | None = None
+
+
+def parse_lens(t: _Table | None, source: Path | None, simulated: bool) -> LensConfig | None:
+    """Validate ``[lens]`` (None when the rig file has none); ``simulated``: the camera is."""
+    if t is None:
+        return None
+    camera = t.str("camera")
+    distortion = t.data.get("distortion")
+    if distortion is not None:
+        if not isinstance(distortion, list) or not 1 <= len(distortion) <= 5:
+            raise t.error("distortion", "expected 1 to 5 numbers [k1, k2, p1, p2, k3]")
+        distortion = t.vector("distortion", len(distortion))
+    focal_length = t.float("focal_length", lo=1e-6)
+    principal_point = t.vector("principal_point", 2)
+    t.done()
+    lens = LensConfig(camera, distortion, focal_length, principal_point)
+    if camera is not None:
+        lens_camera(lens, source, t.origin)  # checked now, not at the first frame
+    if distortion is not None and not simulated:
+        raise t.error("distortion", "describes the simulated camera's lens (a real lens is "
+                      "calibrated: give camera = \"camera.json\")")
+    if distortion is None and (focal_length is not None or principal_point is not None):
+        raise t.error("focal_length", "describes the simulated lens: give distortion too")
+    return lens
+
+
+def lens_camera_file(lens: LensConfig | None, source: Path | None) -> Path | None:
+    """The ``camera.json`` the rig names, resolved against the rig file's folder."""
+    if lens is None or lens.camera is None:
+        return None
+    path = Path(lens.camera).expanduser()
+    if not path.is_absolute() and source is not None:
+        path = Path(source).parent / path
+    return path
+
+
+def lens_camera(lens: LensConfig | None, source: Path | None, origin: str) -> CameraModel | None:
+    """The rig's calibrated camera, read and validated (a :class:`RigError` naming [lens])."""
+    path = lens_camera_file(lens, source)
+    if path is None:
+        return None
+    if not path.is_file():
+        raise RigError(f"{origin}: [lens] camera: {path} does not exist (write it with "
+                       "`ps-lab calibrate-camera`)")
+    try:
+        return read_camera_file(path)
+    except PsLabError as exc:
+        raise RigError(f"{origin}: [lens] camera: {exc}") from None
+
+
+def simulated_lens(lens: LensConfig | None, width: int, height: int) -> CameraModel | None:
+    """The simulated camera's lens on frames of ``width x height`` loaded pixels, or None."""
+    if lens is None or lens.distortion is None:
+        return None
+    f = float(lens.focal_length if lens.focal_length is not None else width)
+    cx, cy = lens.principal_point or ((width - 1) / 2.0, (height - 1) / 2.0)
+    coefficients = tuple(lens.distortion) + (0.0,) * (5 - len(lens.distortion))
+    size = (width, height)
+    return CameraModel(f, f, float(cx), float(cy), coefficients, size)  # type: ignore[arg-type]
+
+
+def with_lens_camera(rig: Any, camera_file: Path) -> Any:
+    """``rig`` with ``[lens] camera`` set to ``camera_file`` (``ps-lab capture --camera``)."""
+    lens = dataclasses.replace(rig.lens or LensConfig(), camera=str(Path(camera_file).resolve()))
+    try:
+        lens_camera(lens, None, "--camera")
+    except RigError as exc:
+        raise RigError(str(exc).replace("--camera: [lens] camera: ", "--camera ")) from None
+    return dataclasses.replace(rig, lens=lens)
+
+
+def write_rig_board_frames(rig: Any, out: Path, views: int = 12, seed: int = 0) -> list[Path]:
+    """Board frames a simulated rig's camera records: a ChArUco board at seeded poses.
+
+    The board (:func:`board_target`) is rendered through the rig's ``[lens]`` (its focal length,
+    principal point and distortion; an ideal lens of focal length = scene width without one) at
+    the loaded frames' size, what ``ps-lab calibrate-camera`` then calibrates.
+
+    Raises
+    ------
+    RigError
+        The rig's camera is not simulated (a real camera photographs a real board).
+    """
+    if rig.scene is None or not rig.simulated_camera:
+        raise RigError(f"{rig.source or rig.name}: board frames are rendered for a simulated "
+                       "camera only (photograph a printed board with a real one)")
+    width, height = rig.scene.width, rig.scene.height
+    camera = simulated_lens(rig.lens, width, height) or CameraModel(
+        float(width), float(width), (width - 1) / 2.0, (height - 1) / 2.0,
+        image_size=(width, height),
+    )
+    return write_board_frames(Path(out), board_target(width), camera, views, seed=seed)
+
+
+def board_target(width: int) -> CharucoTarget:
+    """The simulated rigs' board for frames ``width`` pixels wide.
+
+    9 x 6 squares of 20 mm with 15 mm DICT_5X5_100 markers from 320 px up; on smaller frames
+    6 x 4 squares with 16 mm DICT_4X4_50 markers, so that a marker's bit still spans ~3 pixels
+    (the ArUco decoder's limit is about 2).
+    """
+    if width >= 320:
+        return CharucoTarget(9, 6, 20.0, 15.0, "DICT_5X5_100")
+    return CharucoTarget(6, 4, 20.0, 16.0, "DICT_4X4_50")
