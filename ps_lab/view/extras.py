@@ -22,6 +22,7 @@ import numpy as np
 
 from ps_lab.errors import DatasetError
 from ps_lab.view.appearance_tiles import AppearanceTiles, appearance_entry, appearance_tiles
+from ps_lab.view.readers import present, read_array
 from ps_lab.view.relightlab import result_appearance, result_lights
 from ps_lab.view.result import ViewResult
 from ps_lab.view.tiles import Pyramid, pyramid
@@ -44,13 +45,10 @@ def colour_layers(result: ViewResult) -> np.ndarray | None:
         ``albedo.npy`` unreadable, or of another size than the normals.
     """
     albedo_file = result.root / "albedo.npy"
-    if not albedo_file.is_file():
+    if not present(albedo_file, "albedo"):
         return None
-    try:
-        albedo = np.load(albedo_file, mmap_mode="r", allow_pickle=False)
-    except (OSError, ValueError, EOFError) as exc:
-        raise DatasetError(f"{albedo_file}: corrupt or unreadable .npy file ({exc})") from None
-    if albedo.ndim != 3 or albedo.shape[2] != 3 or albedo.dtype.kind not in "fiu":
+    albedo = read_array(albedo_file, "albedo", (2, 3))  # checked before it is read
+    if albedo.ndim != 3 or albedo.shape[2] != 3:
         return None
     if tuple(albedo.shape[:2]) != tuple(result.shape):
         raise DatasetError(
