@@ -326,3 +326,50 @@ def test_ps_model_beats_rti_on_a_real_object():
     row = bench_relight.evaluate_capture(folder)
     best = max(row.cells[m]["psnr"] for m in ("ptm", "hsh2", "hsh3", "rbf"))
     assert row.cells["ps"]["psnr"] > best
+
+
+def test_relight_near_result_by_led_position(tmp_path):
+    folder = tmp_path / "near"
+    _tiny_result(folder, with_appearance=False)
+    (folder / "metrics.json").write_text(json.dumps({"format": RESULT_FORMAT,
+                                                     "light_model": "near"}))
+    np.save(folder / "depth.npy", np.zeros((3, 4), np.float32))
+    done = runner.invoke(app, ["relight", str(folder), "--light", "0,0,100", "--appearance",
+                               "lambertian", "--out", str(tmp_path / "near.exr")])
+    assert done.exit_code == 0, done.output
+    picture = read_exr(tmp_path / "near.exr")[..., 0]
+    # scene frame: origin at the image centre ((W-1)/2, (H-1)/2) = (1.5, 1); pixel (row 1,
+    # col 1) is the point (-0.5, 0, 0): cos = 100 / r, falloff (100 / r)^2, r^2 = 100^2 + 0.25
+    r = math.sqrt(100**2 + 0.25)
+    assert picture[1, 1] == pytest.approx(0.5 * (100 / r) * (100 / r) ** 2, rel=1e-6)
+
+
+@pytest.mark.parametrize("model", ["ps", "hsh3", "rbf"])
+def test_streamed_fit_equals_the_whole_array_fit(tmp_path, rng, model):
+    from ps_lab.io.bands import ObservationStore, plan_bands
+    from ps_lab.reconstruct.appearance import fit_appearance_bands
+
+    surface, lights, obs, mask = _glossy_scene(rng)
+    grey = obs.mean(axis=2).astype(np.float32)  # (n, P): one channel, as the store holds now
+    bands = plan_bands(mask, 300)  # several bands
+    assert len(bands) > 2
+    store = ObservationStore(bands, len(lights), mask, in_memory=True)
+    image = np.zeros((len(lights), *mask.shape), np.float32)
+    image[:, mask] = grey
+    for i in range(len(lights)):
+        store.write_frame(i, image[i], np.ones(mask.shape, bool))
+    normals = surface.normals.astype(np.float32)
+    albedo = surface.albedo.mean(axis=2).astype(np.float32)
+    np.save(tmp_path / "normals.npy", normals)
+    np.save(tmp_path / "albedo.npy", albedo)
+    with store:
+        record = fit_appearance_bands(store, tmp_path, model, lights)
+    streamed = read_appearance(tmp_path)
+    whole = fit_appearance(model, grey, lights, mask, normals[mask], albedo[mask])
+    assert record["coefficients_per_pixel"] == whole.coefficients.shape[3]
+    if model == "rbf":  # the basis comes from the store's sample, the whole fit's from all pixels
+        assert streamed.meta["sigma"] > 0
+        return
+    # Same sums per pixel in another block order: float32 storage of both.
+    scale = np.abs(whole.coefficients).max()
+    assert np.allclose(streamed.coefficients, whole.coefficients, atol=4 * EPS32 * scale)

@@ -28,7 +28,8 @@ def relight(
             "--light",
             metavar="X,Y,Z",
             help="Light direction in the dataset's light frame (x right, y up, z toward the "
-            "camera); repeat for several pictures.",
+            "camera); for a near-light result an LED position (scene frame, pixels); repeat "
+            "for several pictures.",
             show_default=False,
         ),
     ],

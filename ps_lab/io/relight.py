@@ -6,8 +6,12 @@
 files, all or none. Light directions are in the dataset's light frame (x right, y up, z toward
 the camera), the values in the solver's units (decoded, each channel divided by its light's
 intensity): an EXR holds them as float32 RGB, a PNG holds them sRGB-encoded, clipped to [0, 1].
-A near-light result is relit by a distant light of the given direction (relighting by an LED
-position through the near-light geometry is not implemented yet).
+A near-light result (``"light_model": "near"`` with its ``depth.npy``) takes ``--light`` as an LED
+position in the scene frame of ``light_positions.txt`` (pixel units): each pixel is lit from its
+own direction toward the LED, through the result's depth (heights above the spheres' plane) and
+camera (perspective when ``metrics.json`` records one, else orthographic), and scaled by the
+inverse-square falloff relative to the scene origin, as the solver modelled it
+(:func:`ps_lab.geometry.near_light_vectors`, an isotropic LED of unit intensity at the origin).
 """
 
 from __future__ import annotations
@@ -21,6 +25,7 @@ import numpy as np
 import OpenEXR
 
 from ps_lab.errors import DatasetError, OutputError
+from ps_lab.geometry import Camera, near_light_vectors, scene_points
 from ps_lab.io.appearance import Appearance, evaluate_appearance, lambertian, read_appearance
 from ps_lab.io.codecs import imwrite
 from ps_lab.io.encoding import linear_to_srgb
@@ -56,8 +61,9 @@ class RelightSource:
     metrics: dict[str, Any]
 
 
-def parse_light(text: str) -> np.ndarray:
-    """``"X,Y,Z"`` → the unit direction (3,); raises :class:`OutputError` naming ``--light``."""
+def parse_light(text: str, position: bool = False) -> np.ndarray:
+    """``"X,Y,Z"`` → the unit direction (3,) (or, ``position``, the point as given); raises
+    :class:`OutputError` naming ``--light``."""
     try:
         values = np.array([float(v) for v in str(text).split(",")], np.float64)
     except ValueError:
@@ -65,6 +71,8 @@ def parse_light(text: str) -> np.ndarray:
     if values.shape != (3,) or not np.all(np.isfinite(values)):
         raise OutputError(f"--light {text!r}: expected three numbers X,Y,Z (e.g. 0.3,0.2,0.93)")
     norm = float(np.linalg.norm(values))
+    if position:
+        return values
     if norm < 1e-9:
         raise OutputError(f"--light {text!r}: the direction is zero")
     return values / norm
@@ -179,17 +187,57 @@ def relight_result(
     """
     if not lights:
         raise OutputError("--light: give at least one direction X,Y,Z")
-    directions = [parse_light(text) for text in lights]
-    paths = relight_outputs(out, len(directions))
+    for text in lights:
+        parse_light(text, position=True)
+    paths = relight_outputs(out, len(lights))
     if Path(out).is_dir():
         raise OutputError(f"--out {out}: is a folder; give a file name ending in .exr or .png")
     source = read_relight_source(result, mode)
+    near = source.metrics.get("light_model") == "near"
+    points = _near_points(source) if near else None
+    given = [parse_light(text, position=near) for text in lights]
     parent = Path(out).parent if str(Path(out).parent) else Path(".")
     with staged_files(parent, prefix=".relight-", error=OutputError) as stage:
-        for path, light in zip(paths, directions, strict=True):
-            picture = relight_picture(source.normals, source.albedo, light, source.appearance)
+        for path, light in zip(paths, given, strict=True):
+            if points is None:
+                picture = relight_picture(source.normals, source.albedo, light, source.appearance)
+            else:
+                picture = _near_picture(source, points, light)
             _write_picture(stage / path.name, picture)
-    return list(zip(paths, directions, strict=True))
+    return list(zip(paths, given, strict=True))
+
+
+def _near_points(source: RelightSource) -> np.ndarray:
+    """Scene-frame points (H, W, 3) of a near-light result (NaN where it has no depth)."""
+    depth = _load(source.folder / "depth.npy")
+    shape = source.normals.shape[:2]
+    if depth.shape != shape:
+        raise DatasetError(f"{source.folder / 'depth.npy'}: shape {depth.shape} does not match "
+                           f"the normals {source.normals.shape}")
+    record = source.metrics.get("camera")
+    camera = None
+    if isinstance(record, dict) and all(k in record for k in ("fx", "fy", "cx", "cy")):
+        camera = Camera.from_intrinsics(record["fx"], record["fy"], record["cx"], record["cy"])
+    rows, cols = np.indices(shape)
+    heights = np.nan_to_num(np.asarray(depth, np.float64))
+    points = scene_points(shape, rows.ravel(), cols.ravel(), heights.ravel(), camera)
+    points = points.reshape(*shape, 3)
+    points[~np.isfinite(depth)] = np.nan
+    return points
+
+
+def _near_picture(source: RelightSource, points: np.ndarray, position: np.ndarray) -> np.ndarray:
+    """The picture under an isotropic LED at ``position`` (scene frame)."""
+    flat = np.nan_to_num(points.reshape(-1, 3))
+    vectors = near_light_vectors(flat, position[None], np.array([[0.0, 0.0, 1.0]]))[:, 0]
+    strength = np.linalg.norm(vectors, axis=1)
+    directions = vectors / np.where(strength > 0, strength, 1.0)[:, None]
+    shape = source.normals.shape[:2]
+    picture = relight_picture(source.normals, source.albedo, directions.reshape(*shape, 3),
+                              source.appearance)
+    picture *= strength.reshape(*shape, 1).astype(np.float32)
+    picture[~np.isfinite(points[..., 0])] = 0.0
+    return picture
 
 
 def _write_picture(path: Path, picture: np.ndarray) -> None:
