@@ -24,6 +24,7 @@ from ps_lab.reconstruct.depth import DepthOptions
 __all__ = [
     "BYTES_PER_OBSERVATION",
     "BYTES_PER_PIXEL",
+    "COLOUR_BYTES_PER_OBSERVATION",
     "DEFAULT_MEMORY_BUDGET",
     "IN_MEMORY_SHARE",
     "LIGHT_MODELS",
@@ -39,6 +40,9 @@ DEFAULT_MEMORY_BUDGET = 1 << 30
 # Bytes held per observation of a band while it is solved: the float32 observations, their
 # validity, the solver's usable and outlier masks, and headroom for the refinement sums.
 BYTES_PER_OBSERVATION = 12
+# Colour frames: bytes per observation of a band for its three colour channels (float32), staged
+# beside the solve channel and read for the colour albedo (reconstruct/_colour.py).
+COLOUR_BYTES_PER_OBSERVATION = 12
 # Bytes per pixel of a band: the solver's per-pixel results and the band's output images.
 BYTES_PER_PIXEL = 200
 # A store at most this share of the budget stays in memory; larger ones go to a temporary file.

@@ -42,6 +42,7 @@ from ps_lab.io.files import json_safe, staged_folder
 from ps_lab.io.result import METRICS, RESULT_FORMAT, is_result_folder
 from ps_lab.io.truth import open_normal_gt
 from ps_lab.reconstruct._bands import LocalBands
+from ps_lab.reconstruct._colour import frame_channels, grey_albedo
 from ps_lab.reconstruct._warm_up import start_warm_up
 from ps_lab.reconstruct.appearance import fit_appearance_bands, solved_lights as _solved_lights
 from ps_lab.reconstruct._outputs import (
@@ -75,6 +76,7 @@ from ps_lab.reconstruct.near import NearLights
 from ps_lab.reconstruct.options import (
     BYTES_PER_OBSERVATION,
     BYTES_PER_PIXEL,
+    COLOUR_BYTES_PER_OBSERVATION,
     DEFAULT_MEMORY_BUDGET,
     IN_MEMORY_SHARE,
     NEAR_BYTES_PER_OBSERVATION,
@@ -217,7 +219,9 @@ def reconstruct_to_folder(
         timings["read_seconds"] = time.perf_counter() - started
         warm_up.join()
         with store:
-            writer = _OutputWriter(stage, store.mask, source.truth, store.n_lights)
+            writer = _OutputWriter(
+                stage, store.mask, source.truth, store.n_lights, colours=store.colours
+            )
             black = black_level(store, source.header, options)
             if source.near is None:
                 solved = solve_bands(store, source, options, writer, bars, executor, black)
@@ -329,12 +333,15 @@ def _stage(
     n = len(header.names)
     budget = options.memory_budget
     extra = 0 if source.near is None else NEAR_BYTES_PER_OBSERVATION // BYTES_PER_OBSERVATION
+    # colour frames: the three channels are staged beside the solve channel (colour albedo)
+    colours = 3 if frame_channels(header) == 3 else 0
+    extra += COLOUR_BYTES_PER_OBSERVATION // BYTES_PER_OBSERVATION if colours else 0
     per_light = n * (1 + extra)
     pixels = int(mask.sum())
     keep_plan = options.method == "rpca" or options.refine_lights > 0
     limit = executor.band_pixels(band_pixels(budget, per_light), pixels, keep_plan)
     bands = plan_bands(mask, limit)
-    store_bytes = n * (4 * pixels + (pixels + 7 * len(bands)) // 8)
+    store_bytes = n * ((4 + 4 * colours) * pixels + (pixels + 7 * len(bands)) // 8)
     small = store_bytes <= IN_MEMORY_SHARE * budget
     in_memory = options.staging == "memory" or (options.staging == "auto" and small)
     with bars(n, "reading images") as advance:
@@ -348,6 +355,7 @@ def _stage(
             in_memory=in_memory,
             sample_pixels=_default(estimate_noise, "max_pixels", 20000),
             progress=advance,
+            colours=colours,
         )
     log.info(
         "read %d images (%dx%d, %d mask pixels) in %.1f s: %d bands of at most %d pixels, "
@@ -435,7 +443,7 @@ def _write_surface(
         write_normal_maps(stage, normals, mask, options.normal_map)
         metrics["normal_maps"] = {"convention": options.normal_map}
         if options.depth is not None:
-            albedo = np.load(stage / "albedo.npy")
+            albedo = grey_albedo(np.load(stage / "albedo.npy"), options.channel)
             try:
                 depth = write_depth(
                     stage, normals, albedo,
