@@ -10,17 +10,14 @@ is its sRGB picture (:func:`colour_albedo_picture`) and ``albedo.exr`` the float
 
 from __future__ import annotations
 
-import io
 from pathlib import Path
 
 import numpy as np
-import OpenEXR
 
-from ps_lab.errors import OutputError
 from ps_lab.io.dataset import DatasetHeader
 from ps_lab.io.encoding import linear_to_srgb
-from ps_lab.io.files import utf8_path
 from ps_lab.io.images import read_image
+from ps_lab.io.normal_maps import write_rgb_exr
 
 # Pixels per chunk of the colour albedo's float64 work arrays.
 COLOUR_CHUNK = 8192
@@ -154,15 +151,4 @@ def colour_albedo_picture(
 
 def write_albedo_exr(path: Path, albedo: np.ndarray) -> None:
     """Write a linear colour albedo (H, W, 3) as OpenEXR float channels R, G, B."""
-    pixels = np.ascontiguousarray(np.nan_to_num(np.asarray(albedo, np.float32)))
-    header = {"type": OpenEXR.scanlineimage, "compression": OpenEXR.ZIP_COMPRESSION}
-    try:
-        with OpenEXR.File(header, {"RGB": pixels}) as exr:
-            if utf8_path(path):
-                exr.write(str(path))
-            else:  # the library takes UTF-8 names only: encode in memory, write from Python
-                buffer = io.BytesIO()
-                exr.write(buffer)
-                Path(path).write_bytes(buffer.getvalue())
-    except (OSError, RuntimeError) as exc:
-        raise OutputError(f"{path}: cannot write the OpenEXR file ({exc})") from None
+    write_rgb_exr(path, albedo)
