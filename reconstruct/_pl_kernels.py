@@ -633,9 +633,10 @@ def pl_tile(y, w, lights, *, segments: int, lam, sigma_x2: float = 1e6, max_iter
     lights = np.asarray(lights, dtype=np.float64)
     per_pixel = lights.ndim == 3
     lights = np.ascontiguousarray(lights if per_pixel else lights[None])
-    lam_obs = np.ascontiguousarray(np.broadcast_to(np.asarray(lam, dtype=np.float64), (m, n)))
-    lam_pl = lam_obs if lam_pl is None else np.ascontiguousarray(
-        np.broadcast_to(np.asarray(lam_pl, dtype=np.float64), (m, n)))
+    # writable: a read-only view (broadcast_to) would make numba compile a second version
+    lam_obs = np.require(np.broadcast_to(np.asarray(lam, dtype=np.float64), (m, n)), None, "CW")
+    lam_pl = lam_obs if lam_pl is None else np.require(
+        np.broadcast_to(np.asarray(lam_pl, dtype=np.float64), (m, n)), None, "CW")
     x = np.zeros((m, 3))
     outliers = np.zeros((m, n), np.bool_)
     iters = np.zeros(m, np.int64)

@@ -172,7 +172,9 @@ def fit_appearance_bands(
     factor = np.ones(store.n_lights) if scale is None else np.asarray(scale, np.float64)
     normals = np.load(folder / "normals.npy", mmap_mode="r")
     albedo = np.load(folder / "albedo.npy", mmap_mode="r")
-    sample = _as_colour(store.sample_observations) / factor[:, None, None]
+    colour = getattr(store, "colours", 0)  # colour frames: fit the three channels (issue 32)
+    sample = (store.sample_colour if colour else _as_colour(store.sample_observations))
+    sample = sample / factor[:, None, None]
     channels = sample.shape[2]
     sigma, basis = None, None
     extra: dict[str, np.ndarray] = {}
@@ -196,7 +198,7 @@ def fit_appearance_bands(
                 vis_block = np.zeros((*block.shape[:2], VISIBILITY_TERMS), np.float32)
                 vis_block[..., 3] = 1.0
                 if band.pixel_count:
-                    observations, _ = store.read(band)
+                    observations = store.read_colour(band) if colour else store.read(band)[0]
                     obs = _as_colour(observations)
                     band_normals = np.asarray(normals[rows])[inside]
                     band_albedo = np.asarray(albedo[rows])[inside]

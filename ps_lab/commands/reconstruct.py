@@ -59,6 +59,15 @@ class Lights(str, Enum):  # noqa: UP042
     directional = "directional"
 
 
+class LedModel(str, Enum):  # noqa: UP042
+    """Near lights: the LEDs' emission model."""
+
+    auto = "auto"
+    isotropic = "isotropic"
+    beam = "beam"
+    flat_field = "flat-field"
+
+
 class Channel(str, Enum):  # noqa: UP042
     """How colour observations become one value per light and pixel."""
 
@@ -216,6 +225,16 @@ def reconstruct(
     fixed_intensities: FixedIntensitiesOption = False,
     memory_budget: MemoryBudgetOption = "1GB",
     lights: LightsOption = Lights.auto,
+    led_model: Annotated[
+        LedModel,
+        typer.Option(
+            case_sensitive=False,
+            help="Near lights: isotropic (1/d^2 and the intensities only), beam (each LED's "
+            "fitted axis and cos^mu exponent, light_axes.txt), flat-field (per-LED gains "
+            "measured on a flat board, flat_field.npz); auto: flat-field, else beam, else "
+            "isotropic, by the files of 'ps-lab calibrate --flat-field'.",
+        ),
+    ] = LedModel.auto,
     scheduler: Annotated[
         str | None,
         typer.Option(
@@ -253,6 +272,7 @@ def reconstruct(
         fixed_intensities=fixed_intensities,
         memory_budget=parse_memory_size(memory_budget),
         lights=lights.value,
+        led_model=led_model.value,
         scheduler=scheduler,
         lam=lam,
         sigma_x2=sigma_x2,

@@ -16,20 +16,19 @@ inverse-square falloff relative to the scene origin, as the solver modelled it
 
 from __future__ import annotations
 
-import io
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
-import OpenEXR
 
 from ps_lab.errors import DatasetError, OutputError
 from ps_lab.geometry import Camera, near_light_vectors, scene_points
 from ps_lab.io.appearance import Appearance, evaluate_appearance, lambertian, read_appearance
 from ps_lab.io.codecs import imwrite
 from ps_lab.io.encoding import linear_to_srgb
-from ps_lab.io.files import staged_files, utf8_path
+from ps_lab.io.files import staged_files
+from ps_lab.io.normal_maps import write_rgb_exr
 from ps_lab.io.result import read_result_metrics
 
 __all__ = [
@@ -248,14 +247,4 @@ def _write_picture(path: Path, picture: np.ndarray) -> None:
         if not imwrite(path, np.ascontiguousarray(encoded[..., ::-1])):
             raise OutputError(f"{path}: OpenCV could not write the PNG")
         return
-    header = {"type": OpenEXR.scanlineimage, "compression": OpenEXR.ZIP_COMPRESSION}
-    try:
-        with OpenEXR.File(header, {"RGB": rgb}) as exr:
-            if utf8_path(path):
-                exr.write(str(path))
-            else:
-                buffer = io.BytesIO()
-                exr.write(buffer)
-                path.write_bytes(buffer.getvalue())
-    except (OSError, RuntimeError) as exc:
-        raise OutputError(f"{path}: cannot write the OpenEXR file ({exc})") from None
+    write_rgb_exr(path, rgb)
