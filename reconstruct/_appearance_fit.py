@@ -308,7 +308,14 @@ def fit_block(
         assert normals is not None and albedo is not None
         normals = np.asarray(normals, np.float64)
         solved = np.linalg.norm(normals, axis=1) > 0.5
-        vis = fit_visibility(observations, directions, normals, albedo)
+        d = np.asarray(directions)
+        obs = np.asarray(observations)
+        rho = np.asarray(albedo)
+        vis = np.concatenate([  # in blocks: the (P, n) work arrays stay in cache
+            fit_visibility(obs[:, part], d if d.ndim == 2 else d[:, part], normals[part],
+                           rho[part])
+            for part in (slice(s, s + PS_CHUNK) for s in range(0, len(normals), PS_CHUNK))
+        ]) if len(normals) else np.zeros((0, 4))
         vis[~solved] = (0.0, 0.0, 0.0, 1.0)
         coeffs = fit_ps(observations, directions, normals, albedo, terms, visibility=vis)
         return coeffs, vis.astype(np.float32)
