@@ -9,9 +9,14 @@ channel divided by its light's intensity), and returns coefficients ``(P, C, K)`
 - ``rbf``: the observations projected on a per-channel basis of the training lights
   (:func:`rbf_setup`: an uncentred PCA of a pixel sample and the Gaussian width chosen by
   leave-one-light-out prediction on that sample);
-- ``ps``: the residual of the solver's Lambertian term, ``y − ρ·max(n·l, 0)``, fitted on the
-  model's terms per pixel by ridge-regularised least squares (the ridge shrinks toward the
-  Lambertian model, which is what extrapolation falls back on).
+- ``ps``: first the visibility ``V(l) = clamp(w·[l, 1], 0, 1)`` (:func:`fit_visibility`:
+  least squares of a 0/1 label, "the pixel is lit", on the training lights that face it), then
+  the residual of the visible Lambertian term, ``y − V·ρ·max(n·l, 0)``, fitted on the model's
+  terms (the direct ones times ``V``) per pixel by ridge-regularised least squares (the ridge
+  shrinks toward the Lambertian model, which is what extrapolation falls back on).
+
+Every fit is vectorised over the pixels of a block: normal equations ``(P, K, K)`` by batched
+products, one solve per pixel for all channels.
 """
 
 from __future__ import annotations
@@ -22,7 +27,9 @@ from ps_lab.io.appearance import (
     BASIS_TERMS,
     PS_TERMS,
     appearance_basis,
+    is_direct,
     ps_basis,
+    ps_visibility,
     rbf_weights,
 )
 
@@ -33,6 +40,13 @@ PS_RIDGE = 1e-4
 # Pixels per chunk of the ps fit (bounds its (n, chunk, K) float64 basis).
 PS_CHUNK = 8192
 _SIGMAS = np.geomspace(0.03, 1.0, 16)
+# Visibility: a training light shadows the pixel when the pixel is below this fraction of its
+# Lambertian prediction; only lights with n·l above VIS_MARGIN carry evidence (near the
+# terminator the ratio is noise); ridge toward V = 1 (relative to the lights' count).
+VIS_LABEL = 0.5
+VIS_MARGIN = 0.1
+VIS_RIDGE = 1e-3
+VIS_ROUNDS = 4
 
 
 def _finite(observations: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -120,6 +134,77 @@ def fit_rbf(observations: np.ndarray, basis: np.ndarray) -> np.ndarray:
     return np.einsum("cnk,npc->pck", basis, obs).astype(np.float32)
 
 
+def fit_visibility(
+    observations: np.ndarray,
+    directions: np.ndarray,
+    normals: np.ndarray,
+    albedo: np.ndarray,
+) -> np.ndarray:
+    """The ps model's visibility weights per pixel (cast shadows).
+
+    Each training light that faces the pixel (``n·l > VIS_MARGIN``) is labelled lit (1) when
+    the channel-mean observation is at least ``VIS_LABEL`` of the Lambertian prediction
+    ``ρ·max(n·l, 0)``, else shadowed (0); ``w`` is the least-squares fit of the labels by
+    ``w·[l, 1]``, ridge toward ``(0, 0, 0, 1)`` (no shadow), refitted ``VIS_ROUNDS`` times
+    without the lights the clamp to [0, 1] already fits. Vectorised over pixels.
+
+    Parameters
+    ----------
+    observations : ndarray of shape (n, P, C) (or (n, P))
+    directions : ndarray of shape (n, 3) or (n, P, 3)
+    normals : ndarray of shape (P, 3)
+    albedo : ndarray of shape (P,) or (P, C)
+
+    Returns
+    -------
+    ndarray of shape (P, 4), float64: ``V(l) = clamp(w·[l, 1], 0, 1)``
+
+    """
+    obs = np.asarray(observations, np.float64)
+    obs = obs[..., None] if obs.ndim == 2 else obs
+    n, p, _ = obs.shape
+    good = np.isfinite(obs)
+    # Pixel-major (P, n) layout: the per-pixel sums over lights below are matrix products (and
+    # so is the channel sum: a reduction over a short last axis is slow).
+    ones = np.ones(obs.shape[2])
+    if good.all():
+        count = np.full((n, p), float(obs.shape[2]))
+        total = obs @ ones
+    else:
+        count = good.astype(np.float64) @ ones
+        total = np.where(good, obs, 0.0) @ ones
+    mean = (total / np.maximum(count, 1.0)).T
+    seen = (count > 0).T
+    d = np.asarray(directions, np.float64)
+    rho = np.asarray(albedo, np.float64)
+    rho = rho.mean(axis=1) if rho.ndim == 2 else rho
+    if d.ndim == 2:
+        shade = np.asarray(normals, np.float64) @ d.T  # (P, n)
+        features = np.concatenate([d, np.ones((n, 1))], axis=1)  # (n, 4)
+        outer = (features[:, :, None] * features[:, None, :]).reshape(n, 16)
+    else:
+        shade = np.einsum("npk,pk->pn", d, np.asarray(normals, np.float64))
+        features = np.concatenate([d, np.ones((n, p, 1))], axis=2)  # (n, P, 4)
+    facing = (shade > VIS_MARGIN) & seen
+    label = (mean >= VIS_LABEL * rho[:, None] * np.maximum(shade, 0.0)).astype(np.float64)
+    ridge = np.diag([VIS_RIDGE] * 3 + [1e-6]) * n
+    prior = ridge @ np.array([0.0, 0.0, 0.0, 1.0])
+    weight = facing.astype(np.float64)
+    w = np.tile([0.0, 0.0, 0.0, 1.0], (p, 1))
+    for _ in range(VIS_ROUNDS):
+        if d.ndim == 2:
+            gram = (weight @ outer).reshape(p, 4, 4)
+            rhs = (weight * label) @ features
+        else:
+            gram = np.einsum("pn,npi,npj->pij", weight, features, features)
+            rhs = np.einsum("pn,npi->pi", weight * label, features)
+        w = np.linalg.solve(gram + ridge, (rhs + prior)[..., None])[..., 0]
+        value = w @ features.T if d.ndim == 2 else np.einsum("npi,pi->pn", features, w)
+        settled = ((value >= 1) & (label == 1)) | ((value <= 0) & (label == 0))
+        weight = (facing & ~settled).astype(np.float64)
+    return w
+
+
 def fit_ps(
     observations: np.ndarray,
     directions: np.ndarray,
@@ -128,8 +213,9 @@ def fit_ps(
     terms: tuple[str, ...] = PS_TERMS,
     ridge: float = PS_RIDGE,
     chunk: int = PS_CHUNK,
+    visibility: np.ndarray | None = None,
 ) -> np.ndarray:
-    """The ps model's coefficients: ridge least squares of the Lambertian residual.
+    """The ps model's coefficients: ridge least squares of the visible Lambertian residual.
 
     Parameters
     ----------
@@ -144,6 +230,8 @@ def fit_ps(
         Relative to the mean diagonal of each pixel's normal matrix.
     chunk : int
         Pixels per block.
+    visibility : ndarray of shape (P, 4) or None
+        :func:`fit_visibility`'s weights (None: V = 1).
 
     Returns
     -------
@@ -159,27 +247,34 @@ def fit_ps(
     k = len(terms)
     out = np.zeros((p, c, k), np.float32)
     solved = np.linalg.norm(normals, axis=1) > 0.5
+    direct = np.array([is_direct(t) for t in terms])
     eye = np.eye(k)
     for start in range(0, p, chunk):
         part = slice(start, min(start + chunk, p))
         nrm = normals[part]
         dd = d if d.ndim == 2 else d[:, part]
-        basis = ps_basis(dd, nrm, terms)  # (n, q, K)
-        shade = np.maximum(np.einsum("nqk,qk->nq", dd if dd.ndim == 3 else
-                                     np.broadcast_to(dd[:, None], (n, nrm.shape[0], 3)), nrm), 0)
-        residual = obs[:, part] - rho[part][None] * shade[..., None]
-        bt = basis.transpose(1, 2, 0)  # (q, K, n)
+        planes = np.moveaxis(ps_basis(dd, nrm, terms), -1, 0)  # (K, n, q), contiguous
+        shade = dd @ nrm.T if dd.ndim == 2 else np.einsum("nqk,qk->nq", dd, nrm)
+        shade = np.maximum(shade, 0.0)
+        if visibility is not None:
+            v = ps_visibility(dd, visibility[part])  # (n, q)
+            shade *= v
+            planes[direct] *= v
+        residual = obs[:, part] - rho[part][None] * shade[..., None]  # (n, q, C)
         w = good[:, part]
         if w.all():
-            gram = np.matmul(bt, basis.transpose(1, 0, 2))[:, None]  # (q, 1, K, K)
+            bt = np.ascontiguousarray(planes.transpose(2, 0, 1))  # (q, K, n)
+            gram = np.matmul(bt, bt.transpose(0, 2, 1))  # (q, K, K)
+            rhs = np.matmul(bt, residual.transpose(1, 0, 2))  # (q, K, C)
+            scale = np.trace(gram, axis1=1, axis2=2)[:, None, None] / k
+            x = np.linalg.solve(gram + (ridge * scale + 1e-12) * eye, rhs).transpose(0, 2, 1)
         else:
+            bt = planes.transpose(2, 0, 1)  # (q, K, n)
             wt = w.astype(np.float64).transpose(1, 2, 0)[..., None, :]  # (q, C, 1, n)
-            gram = np.matmul(bt[:, None] * wt, basis.transpose(1, 0, 2)[:, None])
-            residual = residual * w
-        rhs = np.matmul(bt, residual.transpose(1, 0, 2)).transpose(0, 2, 1)  # (q, C, K)
-        scale = np.trace(gram, axis1=2, axis2=3)[..., None, None] / k
-        gram = gram + (ridge * scale + 1e-12) * eye
-        x = np.linalg.solve(np.broadcast_to(gram, (gram.shape[0], c, k, k)), rhs[..., None])[..., 0]
+            gram = np.matmul(bt[:, None] * wt, bt.transpose(0, 2, 1)[:, None])  # (q, C, K, K)
+            rhs = np.matmul(bt, (residual * w).transpose(1, 0, 2)).transpose(0, 2, 1)
+            scale = np.trace(gram, axis1=2, axis2=3)[..., None, None] / k
+            x = np.linalg.solve(gram + (ridge * scale + 1e-12) * eye, rhs[..., None])[..., 0]
         x[~solved[part]] = 0.0
         out[part] = x
     return out
@@ -194,14 +289,34 @@ def fit_block(
     albedo: np.ndarray | None = None,
     rbf_basis: np.ndarray | None = None,
     terms: tuple[str, ...] = PS_TERMS,
-) -> np.ndarray:
-    """Fit ``model`` on one block of pixels; returns coefficients (P, C, K) float32."""
+) -> tuple[np.ndarray, np.ndarray | None]:
+    """Fit ``model`` on one block of pixels.
+
+    Returns
+    -------
+    coefficients : ndarray of shape (P, C, K), float32
+    visibility : ndarray of shape (P, 4), float32, or None
+        The ps model's visibility weights (None for the other models).
+
+    """
     if model in BASIS_TERMS:
-        return fit_linear(model, observations, directions)
+        return fit_linear(model, observations, directions), None
     if model == "rbf":
         assert rbf_basis is not None
-        return fit_rbf(observations, rbf_basis)
+        return fit_rbf(observations, rbf_basis), None
     if model == "ps":
         assert normals is not None and albedo is not None
-        return fit_ps(observations, directions, normals, albedo, terms)
+        normals = np.asarray(normals, np.float64)
+        solved = np.linalg.norm(normals, axis=1) > 0.5
+        d = np.asarray(directions)
+        obs = np.asarray(observations)
+        rho = np.asarray(albedo)
+        vis = np.concatenate([  # in blocks: the (P, n) work arrays stay in cache
+            fit_visibility(obs[:, part], d if d.ndim == 2 else d[:, part], normals[part],
+                           rho[part])
+            for part in (slice(s, s + PS_CHUNK) for s in range(0, len(normals), PS_CHUNK))
+        ]) if len(normals) else np.zeros((0, 4))
+        vis[~solved] = (0.0, 0.0, 0.0, 1.0)
+        coeffs = fit_ps(observations, directions, normals, albedo, terms, visibility=vis)
+        return coeffs, vis.astype(np.float32)
     raise ValueError(f"no fit for appearance model {model!r}")

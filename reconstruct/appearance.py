@@ -22,6 +22,7 @@ from ps_lab.io.appearance import (
     APPEARANCE_MODELS,
     BASIS_TERMS,
     PS_TERMS,
+    VISIBILITY_TERMS,
     Appearance,
     write_appearance,
 )
@@ -40,6 +41,7 @@ __all__ = [
 # Pixels per block of the streamed fit: bounds its float64 copies to ~17 bytes x lights x block.
 FIT_CHUNK = 8192
 _TEMP = ".appearance-coefficients.npy"
+_TEMP_VIS = ".appearance-visibility.npy"
 
 
 def _terms(model: str, channels: int, lights: int) -> list[str]:
@@ -56,6 +58,8 @@ def model_meta(model: str, channels: int, lights: int, sigma: float | None = Non
     """The ``meta`` of an :class:`Appearance` of ``model`` (basis, K, term names, sigma)."""
     terms = _terms(model, channels, lights)
     meta: dict[str, Any] = {"basis": model, "K": len(terms), "terms": terms, "channels": channels}
+    if model == "ps":
+        meta["visibility"] = "clip-linear"
     if sigma is not None:
         meta["sigma"] = float(sigma)
     return meta
@@ -106,8 +110,12 @@ def fit_appearance(
     meta = model_meta(model, c, n, sigma)
     coeffs = np.zeros((*mask.shape, c, meta["K"]), np.float32)
     if model != "none":
-        coeffs[mask] = fit_block(model, obs, directions, normals=normals, albedo=albedo,
-                                 rbf_basis=basis)
+        coeffs[mask], vis = fit_block(model, obs, directions, normals=normals, albedo=albedo,
+                                      rbf_basis=basis)
+        if vis is not None:
+            extra["visibility"] = np.zeros((*mask.shape, VISIBILITY_TERMS), np.float32)
+            extra["visibility"][..., 3] = 1.0
+            extra["visibility"][mask] = vis
     return Appearance(model, coeffs, meta, extra)
 
 
@@ -176,8 +184,10 @@ def fit_appearance_bands(
     meta = model_meta(model, channels, store.n_lights, sigma)
     height, width = store.shape
     shape = (height, width, channels, meta["K"])
-    temp = folder / _TEMP
+    temp, temp_vis = folder / _TEMP, folder / _TEMP_VIS
     offset = allocate_npy(temp, shape, np.float32)
+    vis_offset = (allocate_npy(temp_vis, (height, width, VISIBILITY_TERMS), np.float32)
+                  if model == "ps" else None)
     bars = progress_bars or _no_bar
     try:
         with bars(store.pixels, f"appearance {model}: pixels") as advance:
@@ -185,15 +195,18 @@ def fit_appearance_bands(
                 rows = slice(band.row_start, band.row_stop)
                 inside = store.mask[rows]
                 block = np.zeros((band.row_stop - band.row_start, width, *shape[2:]), np.float32)
+                vis_block = np.zeros((*block.shape[:2], VISIBILITY_TERMS), np.float32)
+                vis_block[..., 3] = 1.0
                 if band.pixel_count:
                     observations = store.read_colour(band) if colour else store.read(band)[0]
                     obs = _as_colour(observations)
                     band_normals = np.asarray(normals[rows])[inside]
                     band_albedo = np.asarray(albedo[rows])[inside]
                     coeffs = np.empty((band.pixel_count, *shape[2:]), np.float32)
+                    vis = np.empty((band.pixel_count, VISIBILITY_TERMS), np.float32)
                     for start in range(0, band.pixel_count, FIT_CHUNK):
                         part = slice(start, min(start + FIT_CHUNK, band.pixel_count))
-                        coeffs[part] = fit_block(
+                        coeffs[part], part_vis = fit_block(
                             model,
                             obs[:, part] / factor[:, None, None],
                             directions,
@@ -201,17 +214,26 @@ def fit_appearance_bands(
                             albedo=band_albedo[part],
                             rbf_basis=basis,
                         )
+                        if part_vis is not None:
+                            vis[part] = part_vis
                         advance(part.stop - part.start)
                     block[inside] = coeffs
+                    vis_block[inside] = vis
                 write_npy_rows(temp, offset, band.row_start, block)
+                if vis_offset is not None:
+                    write_npy_rows(temp_vis, vis_offset, band.row_start, vis_block)
         coefficients = np.load(temp, mmap_mode="r")
+        if vis_offset is not None:
+            extra["visibility"] = np.load(temp_vis, mmap_mode="r")
         write_appearance(folder, Appearance(model, coefficients, meta, extra))
         del coefficients
+        extra.pop("visibility", None)
     finally:
         temp.unlink(missing_ok=True)
+        temp_vis.unlink(missing_ok=True)
     return {
         "model": model,
-        "coefficients_per_pixel": channels * meta["K"],
+        "coefficients_per_pixel": channels * meta["K"] + (VISIBILITY_TERMS if model == "ps" else 0),
         "terms": meta["terms"],
         "timings": {"fit_seconds": time.perf_counter() - started},
         **({"sigma": sigma} if sigma is not None else {}),

@@ -21,9 +21,12 @@ from ps_lab.io.appearance import (
     PS_TERMS,
     Appearance,
     appearance_basis,
+    coefficients_per_pixel,
     evaluate_appearance,
     hsh_basis,
+    is_direct,
     ps_basis,
+    ps_visibility,
     ptm_basis,
     rbf_weights,
     read_appearance,
@@ -31,7 +34,13 @@ from ps_lab.io.appearance import (
 )
 from ps_lab.io.images import read_exr
 from ps_lab.io.result import RESULT_FORMAT
-from ps_lab.reconstruct._appearance_fit import fit_linear, fit_ps, fit_rbf, rbf_setup
+from ps_lab.reconstruct._appearance_fit import (
+    fit_linear,
+    fit_ps,
+    fit_rbf,
+    fit_visibility,
+    rbf_setup,
+)
 from ps_lab.reconstruct.appearance import fit_appearance
 
 runner = CliRunner()
@@ -151,6 +160,99 @@ def test_ps_fit_round_trip(rng):
     assert np.allclose(picture.reshape(40, 3), expected, atol=1e-5)
 
 
+def test_ps_fit_with_a_visibility_round_trip(rng):
+    # Data exactly in the model's span for a given visibility: V·(ρ·max(n·l, 0) + direct terms)
+    # + ambient; the coefficients are recovered and the file relights as the formula says.
+    lights = hemisphere(48, rng, 60)
+    normals = hemisphere(40, rng, 40)
+    albedo = rng.uniform(0.2, 0.9, (40, 3))
+    vis = np.concatenate([rng.normal(scale=0.8, size=(40, 3)), rng.uniform(0.6, 1.2, (40, 1))], 1)
+    truth = rng.normal(scale=0.1, size=(40, 3, len(PS_TERMS)))
+    v = ps_visibility(lights, vis)  # (n, P)
+    assert 0 < np.mean(v < 1) < 1  # some lights are (partly) shadowed
+    direct = np.array([is_direct(t) for t in PS_TERMS])
+    assert list(direct) == [True, True, True, False, True, True]
+    basis = ps_basis(lights, normals, PS_TERMS)
+    basis = np.where(direct, basis * v[..., None], basis)
+    shade = np.maximum(lights @ normals.T, 0) * v
+    obs = albedo[None] * shade[..., None] + np.einsum("npk,pck->npc", basis, truth)
+    coeffs = fit_ps(obs, lights, normals, albedo, ridge=0.0, visibility=vis)
+    cond = max(np.linalg.cond(basis[:, p]) for p in range(40))
+    bound = 12 * 48 * EPS * cond**2 + EPS32
+    assert np.max(np.abs(coeffs - truth)) <= bound * np.abs(truth).max() * 10
+    app = Appearance("ps", coeffs.reshape(5, 8, 3, -1),
+                     {"basis": "ps", "K": len(PS_TERMS), "terms": list(PS_TERMS)},
+                     {"visibility": vis.reshape(5, 8, 4).astype(np.float32)})
+    new = hemisphere(1, rng, 60)[0]
+    picture = evaluate_appearance(app, new, normals.reshape(5, 8, 3), albedo.reshape(5, 8, 3))
+    v_new = np.clip(vis.astype(np.float32).astype(np.float64) @ np.append(new, 1.0), 0, 1)
+    b_new = ps_basis(new[None], normals, PS_TERMS)[0]
+    b_new = np.where(direct, b_new * v_new[:, None], b_new)
+    expected = (albedo * (np.maximum(normals @ new, 0) * v_new)[:, None]
+                + np.einsum("pk,pck->pc", b_new, truth))
+    assert np.allclose(picture.reshape(40, 3), expected, atol=1e-5)
+
+
+def test_visibility_is_one_without_shadows_and_separates_a_cast_shadow(rng):
+    lights = hemisphere(60, rng, 70)
+    normals = np.tile([0.0, 0.0, 1.0], (3, 1))
+    albedo = np.full((3, 3), 0.5)
+    obs = albedo[None] * np.maximum(lights @ normals.T, 0)[..., None]
+    # pixel 1: shadowed from every light with l_x < -0.2 (a wall on its left); pixel 2: a
+    # shadow on the right, half as deep (ambient light fills it): below half -> shadowed
+    obs[lights[:, 0] < -0.2, 1] = 0.0
+    obs[lights[:, 0] > 0.3, 2] *= 0.3
+    w = fit_visibility(obs, lights, normals, albedo)
+    # no shadow: exactly the prior V = 1 (labels all 1 agree with it)
+    assert np.allclose(w[0], [0, 0, 0, 1], atol=1e-9)
+    v = ps_visibility(lights, w)
+    assert np.allclose(v[:, 0], 1.0, atol=1e-9)
+    # the half-space separates the training lights: V > 1/2 where lit, < 1/2 where shadowed
+    # (except lights within 0.1 of the boundary in l_x, where a least-squares ramp is soft)
+    for p, shadowed in ((1, lights[:, 0] < -0.2), (2, lights[:, 0] > 0.3)):
+        edge = np.abs(lights[:, 0] - (-0.2 if p == 1 else 0.3)) < 0.1
+        assert np.all(v[shadowed & ~edge, p] < 0.5)
+        assert np.all(v[~shadowed & ~edge, p] > 0.5)
+
+
+def test_visibility_of_a_ps_model_is_validated(tmp_path):
+    app = Appearance("ps", np.zeros((2, 3, 3, len(PS_TERMS)), np.float32),
+                     {"basis": "ps", "K": len(PS_TERMS), "terms": list(PS_TERMS)},
+                     {"visibility": np.zeros((2, 3, 3), np.float32)})
+    write_appearance(tmp_path, app)
+    with pytest.raises(DatasetError, match="appearance.npz: visibility must be"):
+        read_appearance(tmp_path)
+    good = Appearance(app.model, app.coefficients, app.meta,
+                      {"visibility": np.ones((2, 3, 4), np.float32)})
+    write_appearance(tmp_path, good)
+    back = read_appearance(tmp_path)
+    assert np.array_equal(back.extra["visibility"], good.extra["visibility"])
+    assert coefficients_per_pixel(back) == 3 * len(PS_TERMS) + 4
+
+
+def test_visibility_helps_on_held_out_lights_of_a_relief_with_cast_shadows(rng):
+    surface = render.relief_surface((48, 48), seed=3)
+    lights = hemisphere(64, rng, 65)
+    images = render.render(surface, lights, cast_shadows=True)  # (n, H, W)
+    mask = surface.mask
+    obs = images[:, mask]
+    train, test = bench_relight.split_lights(len(lights))
+    normals = surface.normals[mask]
+    albedo = surface.albedo[mask]
+    with_vis = fit_appearance("ps", obs[train], lights[train], mask, normals, albedo)
+    coeffs = fit_ps(obs[train], lights[train], normals, albedo)
+    without = Appearance("ps", np.zeros_like(with_vis.coefficients), with_vis.meta)
+    without.coefficients[mask] = coeffs
+    errors = {"vis": [], "none": []}
+    for k in test:
+        truth = np.clip(obs[k], 0, 1)
+        for name, app in (("vis", with_vis), ("none", without)):
+            picture = evaluate_appearance(app, lights[k], surface.normals, surface.albedo)
+            errors[name].append(np.mean((np.clip(picture[mask][..., 0], 0, 1) - truth) ** 2))
+    gain = 10 * np.log10(np.mean(errors["none"]) / np.mean(errors["vis"]))
+    assert gain > 1.0, (gain, errors)
+
+
 def test_rbf_fit_keeps_data_of_low_rank(rng):
     lights = hemisphere(30, rng)
     planes = rng.normal(size=(30, 4))  # rank 4 < 9 terms: the basis spans it
@@ -241,7 +343,7 @@ def test_reconstruct_appearance_then_relight(tmp_path, rng, model):
     metrics = json.loads((out / "metrics.json").read_text())
     fitted = read_appearance(out)
     assert metrics["appearance"]["model"] == model == fitted.model
-    assert metrics["appearance"]["coefficients_per_pixel"] == fitted.coefficients.shape[3]
+    assert metrics["appearance"]["coefficients_per_pixel"] == coefficients_per_pixel(fitted)
     relit = runner.invoke(app, ["relight", str(out), "--light", "0.2,0.3,0.9",
                                 "--light", "0,0,1", "--out", str(tmp_path / "pic.exr")])
     assert relit.exit_code == 0, relit.output
@@ -366,10 +468,13 @@ def test_streamed_fit_equals_the_whole_array_fit(tmp_path, rng, model):
         record = fit_appearance_bands(store, tmp_path, model, lights)
     streamed = read_appearance(tmp_path)
     whole = fit_appearance(model, grey, lights, mask, normals[mask], albedo[mask])
-    assert record["coefficients_per_pixel"] == whole.coefficients.shape[3]
+    assert record["coefficients_per_pixel"] == coefficients_per_pixel(whole)
     if model == "rbf":  # the basis comes from the store's sample, the whole fit's from all pixels
         assert streamed.meta["sigma"] > 0
         return
     # Same sums per pixel in another block order: float32 storage of both.
     scale = np.abs(whole.coefficients).max()
     assert np.allclose(streamed.coefficients, whole.coefficients, atol=4 * EPS32 * scale)
+    if model == "ps":
+        assert np.allclose(streamed.extra["visibility"], whole.extra["visibility"],
+                           atol=4 * EPS32 * np.abs(whole.extra["visibility"]).max())

@@ -535,20 +535,27 @@ def _with_appearance(result: Path, folder: Path, model: str) -> Path:
         basis = appearance_basis("hsh3", lights)  # (n, 9)
         coefficients = np.einsum("kn,hwnc->hwck", np.linalg.pinv(basis), images)
         meta = {"basis": "hsh3", "K": 9}
-    else:  # "ps": the default terms; "ps-all": every kind of term the shader evaluates
-        terms = list(PS_TERMS) if model == "ps" else [
+    else:  # "ps": the default terms (with "ps-vis" a visibility); "ps-all": every kind of term
+        terms = list(PS_TERMS) if model in ("ps", "ps-vis") else [
             "lambert", "lx", "ly", "lz", "ambient", "lobe:4", "lobex:16", "lobey:16", "hsh:2",
             "hsh:5",
         ]
         k = len(terms)
         coefficients = rng.uniform(0, 0.15, size=(h, w, 3, k)) * albedo.mean()
         meta = {"basis": "ps", "K": k, "terms": terms}
+        if model == "ps-vis":  # V = clamp(w·[l, 1], 0, 1): a shadow edge across the object
+            vis = np.zeros((h, w, 4), np.float32)
+            vis[..., 0] = rng.uniform(-1.0, 2.0, (h, w))  # V from 0 to 0.85 under the light
+            vis[..., 3] = 0.5
+            extra = {"visibility": vis}
+            meta["visibility"] = "clip-linear"
         model = "ps"
-    write_appearance(folder, Appearance(model, coefficients.astype(np.float32), meta))
+    write_appearance(folder, Appearance(model, coefficients.astype(np.float32), meta,
+                                        extra if meta.get("visibility") else {}))
     return folder
 
 
-@pytest.mark.parametrize("model", ["hsh3", "ps", "ps-all"])
+@pytest.mark.parametrize("model", ["hsh3", "ps", "ps-all", "ps-vis"])
 def test_appearance_relight_in_chromium_matches_the_model(browser, colour_result, tmp_path, model):
     from ps_lab.io.appearance import Appearance, evaluate_appearance, read_appearance
 
@@ -557,7 +564,9 @@ def test_appearance_relight_in_chromium_matches_the_model(browser, colour_result
     scale = view.albedo_scale
     fit = read_appearance(result)
     coefficients = (fit.coefficients / scale).astype(np.float16).astype(np.float32)
-    rounded = Appearance(fit.model, coefficients, fit.meta)
+    extra = {name: np.asarray(value).astype(np.float16).astype(np.float32)
+             for name, value in fit.extra.items()}
+    rounded = Appearance(fit.model, coefficients, fit.meta, extra)
     normals = view.layers[..., :3].astype(np.float16).astype(np.float64)
     norm = np.linalg.norm(normals, axis=2)
     mask = norm > 0.5

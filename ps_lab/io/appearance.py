@@ -52,9 +52,23 @@ with the view ``v = (0, 0, 1)``, ``h = normalise(l + v)``, and ``b_k`` named in
   ``lobe:P``, a lobe whose axis may move away from ``n`` (first order);
 - ``"hsh:i"``: the HSH term ``h_i(l)`` above.
 
+**Visibility** (cast shadows; ``extra["visibility"]``, (H, W, 4) float32, one per pixel shared by
+the channels, ``meta["visibility"] = "clip-linear"``): a soft half-space of the light directions
+from which the pixel is not shadowed by the rest of the object::
+
+    V(l) = clamp(w_x·l_x + w_y·l_y + w_z·l_z + w_1, 0, 1)
+
+multiplies the Lambertian term and every term lit by the light (``lambert``, ``lx``, ``ly``,
+``lz``, ``lobe*``), not ``ambient`` nor ``hsh:i``::
+
+    I_c(l) = V(l) · (ρ_c · max(n·l, 0) + Σ_direct C[c, k] · b_k) + Σ_other C[c, k] · b_k
+
+(GLSL: ``float V = clamp(dot(vis, vec4(l, 1.0)), 0.0, 1.0);``). Without ``extra["visibility"]``,
+``V = 1``. :func:`ps_visibility` evaluates it.
+
 The default term list is :data:`PS_TERMS`: ``lx, ly, lz, ambient, lobe:4, lobe:32`` (6 per
-channel; with the normal's 2 and the albedo it is 9 numbers per channel-pixel in grey, 23 in
-colour, against HSH order 3's 9 and 27). Every term is bounded by 1 for any light, so the model
+channel) with the visibility (4 per pixel); with the normal's 2 and the albedo it is 27 numbers
+per pixel in colour (13 in grey), as many as HSH order 3's 27 (9). Every term is bounded by 1 for any light, so the model
 cannot explode outside the captured range of lights (unlike PTM's and HSH's polynomials).
 
 ``none``: Lambertian only, ``ρ_c · max(n·l, 0)``, no coefficients.
@@ -79,14 +93,17 @@ __all__ = [
     "APPEARANCE_MODELS",
     "BASIS_TERMS",
     "PS_TERMS",
+    "VISIBILITY_TERMS",
     "Appearance",
     "appearance_basis",
     "coefficients_per_pixel",
     "evaluate_appearance",
     "hsh_basis",
+    "is_direct",
     "lambertian",
     "ps_basis",
     "ps_term",
+    "ps_visibility",
     "ptm_basis",
     "rbf_weights",
     "read_appearance",
@@ -101,6 +118,10 @@ BASIS_TERMS = {"ptm": 6, "hsh2": 4, "hsh3": 9}
 PS_TERMS: tuple[str, ...] = ("lx", "ly", "lz", "ambient", "lobe:4", "lobe:32")
 
 _VIEW = np.array([0.0, 0.0, 1.0])
+#: ps terms that model light arriving directly (multiplied by the visibility).
+DIRECT_KINDS = ("lambert", "lx", "ly", "lz", "lobe", "lobex", "lobey")
+#: Numbers per pixel of the ps model's visibility.
+VISIBILITY_TERMS = 4
 
 
 @dataclass(frozen=True)
@@ -127,8 +148,39 @@ class Appearance:
 
 
 def coefficients_per_pixel(appearance: Appearance) -> int:
-    """Stored numbers per pixel: ``C * K`` (the normal and albedo of ``ps`` are not counted)."""
-    return int(appearance.coefficients.shape[2] * appearance.coefficients.shape[3])
+    """Stored numbers per pixel: ``C * K`` plus the visibility's 4 (the normal and albedo of
+    ``ps`` are not counted)."""
+    count = int(appearance.coefficients.shape[2] * appearance.coefficients.shape[3])
+    return count + (VISIBILITY_TERMS if "visibility" in appearance.extra else 0)
+
+
+def is_direct(term: str) -> bool:
+    """Whether a ps term models direct light (multiplied by the visibility)."""
+    return term.partition(":")[0] in DIRECT_KINDS
+
+
+def ps_visibility(directions: np.ndarray, weights: np.ndarray) -> np.ndarray:
+    """The ps model's visibility ``clamp(w·[l, 1], 0, 1)``.
+
+    Parameters
+    ----------
+    directions : ndarray of shape (m, 3) or (m, P, 3)
+        Unit light directions (per pixel for near lights).
+    weights : ndarray of shape (P, 4)
+        Per pixel ``(w_x, w_y, w_z, w_1)``.
+
+    Returns
+    -------
+    ndarray of shape (m, P), float64
+
+    """
+    d = _unit(directions)
+    w = np.asarray(weights, np.float64)
+    if d.ndim == 2:
+        value = d @ w[:, :3].T
+    else:
+        value = np.einsum("mpk,pk->mp", d, w[:, :3])
+    return np.clip(value + w[:, 3], 0.0, 1.0)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -299,10 +351,11 @@ def ps_basis(
     else:
         shade = np.einsum("mpk,pk->mp", d, n)
         nh = np.einsum("mpk,pk->mp", half, n)
-    out = np.empty((*shade.shape, len(terms)))
+    # Terms first in memory (each term one contiguous (m, P) plane), viewed as (m, P, K).
+    out = np.empty((len(terms), *shade.shape))
     for k, term in enumerate(terms):
-        out[..., k] = _term(term, d, half, shade, nh)
-    return out
+        out[k] = _term(term, d, half, shade, nh)
+    return np.moveaxis(out, 0, -1)
 
 
 def rbf_weights(directions: np.ndarray, lights: np.ndarray, sigma: float) -> np.ndarray:
@@ -400,10 +453,18 @@ def evaluate_appearance(
             out = np.einsum("hwck,ck->hwc", coeffs, planes)
     elif model in ("ps", "none"):
         out = lambertian(light, normals, albedo).astype(np.float64)
+        d = light.reshape(1, -1, 3) if per_pixel else light.reshape(1, 3)
+        vis = appearance.extra.get("visibility") if model == "ps" else None
+        if vis is not None:
+            v = ps_visibility(d, vis.reshape(-1, VISIBILITY_TERMS))[0].reshape(height, width)
+            out = out * v[..., None]
         if model == "ps" and coeffs.shape[3]:
             n = np.nan_to_num(np.asarray(normals, np.float64)).reshape(-1, 3)
-            d = light.reshape(1, -1, 3) if per_pixel else light.reshape(1, 3)
-            basis = ps_basis(d, n, tuple(appearance.meta["terms"]))[0]  # (P, K)
+            terms = tuple(appearance.meta["terms"])
+            basis = ps_basis(d, n, terms)[0]  # (P, K)
+            if vis is not None:
+                direct = np.array([is_direct(t) for t in terms])
+                basis = np.where(direct, basis * v.reshape(-1, 1), basis)
             extra = np.einsum("pck,pk->pc", coeffs.reshape(height * width, -1, coeffs.shape[3]),
                               basis).reshape(height, width, -1)
             out = out + extra
@@ -493,6 +554,12 @@ def _validate(path: Path, model: str, coeffs: np.ndarray, meta: Any, extra: dict
                 ps_term(str(term), _VIEW, _VIEW)
             except ValueError:
                 fail(f"unknown ps term {term!r}")
+    vis = extra.get("visibility")
+    if vis is not None and (model != "ps" or vis.dtype != np.float32
+                            or vis.shape != (*coeffs.shape[:2], VISIBILITY_TERMS)
+                            or not np.all(np.isfinite(vis))):
+        fail(f"visibility must be a finite float32 (H, W, 4) of a ps model, not {vis.dtype} "
+             f"{vis.shape}")
     if model == "rbf":
         lights, basis = extra.get("lights"), extra.get("basis")
         if lights is None or basis is None or lights.ndim != 2 or lights.shape[1] != 3:

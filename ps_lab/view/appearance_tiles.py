@@ -4,7 +4,9 @@ A result with ``appearance.npz`` (``ps-lab reconstruct --appearance``), or a Rel
 gets a third tile set beside its layers, ``data/r{i}/a/{level}/{col}_{row}.bin``: the ``3·K``
 coefficients of every pixel, term-major (coefficient ``3k + c`` is term ``k`` of channel ``c``),
 divided by the result's ``albedo_scale`` (so the relit picture has the Lambertian layer's scale),
-packed four to an RGBA16F plane and the planes stacked one under the other (a tile is one
+then, for a ``ps`` model with a visibility (``extra["visibility"]``), its four weights
+``w_x, w_y, w_z, w_1`` (coefficients ``3K .. 3K + 3``, not scaled), packed four to an RGBA16F
+plane and the planes stacked one under the other (a tile is one
 ``w × (h · planes)`` texture the shader reads with ``texelFetch``). Levels are those of
 :mod:`ps_lab.view.tiles` (2 × 2 blocks averaged over their mask pixels: the linear models'
 relit picture of a block is the block's mean picture).
@@ -90,6 +92,9 @@ def appearance_tiles(
     # term-major: index 3k + c
     flat = coefficients[:, :, :3, :].transpose(0, 1, 3, 2).reshape(h, w, 3 * k)
     flat = np.where(mask[..., None], np.nan_to_num(flat) / np.float32(albedo_scale), 0.0)
+    vis = appearance.extra.get("visibility") if appearance.model == "ps" else None
+    if vis is not None:  # V = clamp(w·[l, 1], 0, 1), shared by the channels, unscaled
+        flat = np.concatenate([flat, np.asarray(vis, np.float32)], axis=2)
     levels = [_half(flat)]
     current, inside = flat, mask.astype(np.float32)
     while max(current.shape[:2]) > TILE:
@@ -107,6 +112,7 @@ def appearance_entry(appearance: Appearance | None, tiles: AppearanceTiles | Non
         "model": appearance.model,
         "K": k,
         "terms": list(appearance.meta.get("terms", [])) if appearance.model == "ps" else [],
+        "visibility": appearance.model == "ps" and "visibility" in appearance.extra,
         "planes": None if tiles is None else tiles.planes,
         "note": None,
     }

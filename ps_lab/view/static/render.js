@@ -43,6 +43,7 @@ uniform float u_basis[16];   // the basis at the light (ptm / hsh, and ps's hsh 
 // lit side (lx, ly, lz: the light's component), 5 lobex:P / lobey:P (u_basis: h's component)
 uniform int u_kind[16];
 uniform float u_power[16];   // ps lobes: the exponent P
+uniform bool u_vis;          // ps visibility: coefficients 3K .. 3K + 3 hold w (io/appearance.py)
 uniform int u_mode;
 uniform vec3 u_light;
 uniform float u_exposure;
@@ -64,7 +65,14 @@ vec3 fitted(vec3 n, vec3 albedo) {    // io/appearance.py: evaluate_appearance, 
   ivec2 px = clamp(ivec2(v_uv * vec2(u_tsize)), ivec2(0), u_tsize - 1);
   float nl = dot(n, u_light);
   vec3 h = normalize(u_light + vec3(0.0, 0.0, 1.0));
-  vec3 c = u_model == 2 ? albedo * max(nl, 0.0) : vec3(0.0);
+  // ps visibility (cast shadows): V = clamp(w . [l, 1], 0, 1) on the Lambertian and direct terms
+  float V = 1.0;
+  if (u_model == 2 && u_vis) {
+    vec4 w = vec4(coefficient(px, 3 * u_terms), coefficient(px, 3 * u_terms + 1),
+                  coefficient(px, 3 * u_terms + 2), coefficient(px, 3 * u_terms + 3));
+    V = clamp(dot(w, vec4(u_light, 1.0)), 0.0, 1.0);
+  }
+  vec3 c = u_model == 2 ? V * albedo * max(nl, 0.0) : vec3(0.0);
   for (int k = 0; k < 16; k++) {
     if (k >= u_terms) break;
     float b = u_basis[k];
@@ -79,6 +87,7 @@ vec3 fitted(vec3 n, vec3 albedo) {    // io/appearance.py: evaluate_appearance, 
         float p = u_power[k] - 1.0;
         b = nl > 0.0 ? (p > 0.0 ? pow(nh, p) : 1.0) * u_basis[k] : 0.0;
       }
+      if (kind == 0 || kind == 2 || kind == 4 || kind == 5) b *= V;   // io/appearance.py: is_direct
     }
     c += b * vec3(coefficient(px, 3 * k), coefficient(px, 3 * k + 1), coefficient(px, 3 * k + 2));
   }
@@ -158,7 +167,7 @@ function hshBasis(l) {    // Gautron et al. 2004 as RTIBuilder / RelightLab defi
 // The uniforms of a fitted model at light l: { model, basis, kind, power } (model 0: Lambertian).
 function appearanceUniforms(fit, l) {
   const basis = new Float32Array(16), kind = new Int32Array(16), power = new Float32Array(16);
-  if (!fit || !fit.planes) return { model: 0, terms: 0, basis, kind, power };
+  if (!fit || !fit.planes) return { model: 0, terms: 0, basis, kind, power, vis: false };
   const [x, y] = unitVector(l);
   if (fit.model === "ptm") basis.set([1, x, y, x * x, x * y, y * y]);
   else if (fit.model === "hsh2" || fit.model === "hsh3") basis.set(hshBasis(l).slice(0, fit.K));
@@ -175,7 +184,7 @@ function appearanceUniforms(fit, l) {
       else { kind[k] = 3; basis[k] = 0; }   // a term this page does not know: left out
     });
   }
-  return { model: fit.model === "ps" ? 2 : 1, terms: fit.K, basis, kind, power };
+  return { model: fit.model === "ps" ? 2 : 1, terms: fit.K, basis, kind, power, vis: !!fit.visibility };
 }
 
 function program(gl, vs, fs) {
