@@ -226,6 +226,15 @@ def solve_near(
     params = _method_params(method, method_params)
     n, p = obs.shape
     used: dict = {"method": method, "light_model": "near"}
+    if method == "auto":
+        # The per-pixel choice between SBL and PL-SBL is a test against each pixel's own noise
+        # (the per-observation model: a noise floor relative to the pixel's scale, per light),
+        # which near lights do not estimate (one relative lam below); with one lam the test is
+        # miscalibrated and picks PL where it is worse (docs/solvers.md), so near lights' default
+        # solves with SBL, its parameters as given.
+        params = _method_params("sbl", {k: v for k, v in method_params.items()
+                                        if k in _method_params("sbl", {})})
+        method = used["solved_with"] = "sbl"
     if method not in ("ls", "plls"):
         noise = params.pop("noise_sigma")
         if noise is None:
