@@ -194,25 +194,27 @@ def _left_out_terms(design, target, d, prior, prior_rhs, scored, weight, divide)
     return terms
 
 
-def bend_score(y, a, x, inliers, lam_test, k):
+def bend_score(y, a, x, lam_test, k, clip=3.0):
     """Score statistic of the Lambertian fit ``x`` against ``k`` segments (issue 31's gate).
 
-    The weighted (1 / lam_test) residual sum of squares on the inliers that the hinges
-    ``max(a.x - b_j, 0)`` (``b_j`` the ``j u / k``-th smallest fitted value) remove from the
-    regression of ``y - a.x`` on the lights; NaN when it cannot be tested.
+    The weighted (1 / lam_test) residual sum of squares that the hinges ``max(a.x - b_j, 0)``
+    (``b_j`` the ``j u / k``-th smallest fitted value) remove from the regression of the
+    residuals ``y - a.x``, clipped at ``clip sqrt(lam_test)``, on the lights; NaN when it
+    cannot be tested.
     """
-    fit, r, wt = (a @ x)[inliers], (y - a @ x)[inliers], 1.0 / lam_test[inliers]
+    fit, wt = a @ x, 1.0 / lam_test
+    r = np.clip(y - fit, -clip * np.sqrt(lam_test), clip * np.sqrt(lam_test))
     if k < 2 or fit.size < 4 * (k + 2):
         return np.nan
     srt = np.sort(fit)
     hinges = [np.maximum(fit - srt[(j * fit.size) // k], 0.0) for j in range(1, k)]
-    full = np.column_stack([a[inliers], *hinges])
+    full = np.column_stack([a, *hinges])
 
     def reduction(design):
         g = design.T @ (wt * r)
         return g @ np.linalg.solve(design.T @ (wt[:, None] * design), g)
 
-    return reduction(full) - reduction(a[inliers])
+    return reduction(full) - reduction(a)
 
 
 def auto_pixel(y, a, *, lam, lam_pl=None, segments=3, sigma_x2=1e6, max_iter=20, tol=1e-4,
@@ -220,7 +222,7 @@ def auto_pixel(y, a, *, lam, lam_pl=None, segments=3, sigma_x2=1e6, max_iter=20,
                sbl_max_iter=100, slope_floor=1e-3, gate_noise=None, gate_false_alarm=0.01):
     """SBL, or PL-SBL where SBL fails the score test and PL predicts better (issue 31).
 
-    The gate: SBL's inliers' :func:`bend_score` at the noise ``max(lam_pl, gate_noise^2)``
+    The gate: SBL's :func:`bend_score` at the noise ``max(lam_pl, gate_noise^2)``
     exceeds the chi^2 quantile of ``1 - gate_false_alarm`` with ``k - 1`` degrees of freedom
     (``gate_noise`` None: no gate). Scored: usable observations not flagged by both fits;
     each fit's weights held at their final values and refitted without each scored
@@ -239,7 +241,7 @@ def auto_pixel(y, a, *, lam, lam_pl=None, segments=3, sigma_x2=1e6, max_iter=20,
     if gate_noise is not None:
         k = max(1, min(segments, y.size // 4))
         lam_test = np.maximum(np.broadcast_to(lam_pl, y.shape), gate_noise**2)
-        score = bend_score(y, a, x_sbl, e_sbl <= outlier_threshold, lam_test, k)
+        score = bend_score(y, a, x_sbl, lam_test, k)
         if not score > chi2.ppf(1.0 - gate_false_alarm, k - 1):
             return sbl_result
     fit = {}
@@ -315,13 +317,18 @@ def solve_oracle(observations, lights, method, valid=None, *, statistic=False, *
         if method == "auto":
             pixel_params = {**pixel_params, "outlier_threshold": threshold}
         x, stat, it = PIXEL_ORACLES[method](y / scale, a, **pixel_params)
+        fitted = stat
+        if method == "auto":  # its albedo: on SBL's inliers, whichever model it kept
+            keys = ("lam", "sigma_x2", "tol", "gamma_floor", "gamma_start")
+            fitted = sbl_pixel(y / scale, a, **{k: v for k, v in pixel_params.items() if k in keys},
+                               max_iter=pixel_params.get("sbl_max_iter", 100))[1]
         x = x * scale
         albedo[j] = np.linalg.norm(x)
         if albedo[j] > 0:
             normals[j] = x / albedo[j]
             outliers[np.flatnonzero(v), j] = stat > threshold
             statistics[np.flatnonzero(v), j] = stat
-            albedo[j] = lambertian_equivalent(normals[j], y, a, stat <= threshold, albedo[j])
+            albedo[j] = lambertian_equivalent(normals[j], y, a, fitted <= threshold, albedo[j])
         iterations[j] = it
     if statistic:
         return normals, albedo, outliers, iterations, statistics
