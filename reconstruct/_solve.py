@@ -12,6 +12,7 @@ import numpy as np
 
 from . import _kernels, _pl_kernels
 from ._linalg import SOLVABLE_REL_DET, inverse6, outer6, pixel_scale
+from ._pl_algebra import gate_variance
 from ._rpca import solve_rpca
 from ._solution import (
     ALBEDO_DEFINITION,
@@ -51,7 +52,7 @@ MIN_TILE_SIZE = 512
 NOISE_PIECE_PIXELS = 1000
 # Noise level floor (relative to the pixel scale): the paper's lambda for noise-free data.
 LAMBDA_FLOOR = 1e-6
-# Smallest outlier threshold (relative to the pixel scale).
+# Smallest outlier threshold (relative to the pixel scale); _pl_algebra.GATE_NOISE is its third.
 MIN_OUTLIER_THRESHOLD = 0.05
 NOISE_SAMPLE_PIXELS = 4000
 # Observations below this share of the pixel scale are not used to estimate the noise.
@@ -320,8 +321,8 @@ def pl_noise_level(observations, light_directions, valid=None, *, segments: int 
         return _noise_level(np.concatenate(list(mapper(fit, pieces))))
 
     raw = level(y, w)
-    if raw <= 0.0:
-        return raw
+    if raw <= 0.0 or 2.0 * raw <= math.sqrt(LAMBDA_FLOOR):
+        return raw  # the consistency factor (< 2) cannot lift it over the noise variance's floor
 
     def lambertian(rows):
         res = _kernels.l1_tile(y[rows], w[rows], lights, max_iter=30, tol=1e-6, delta=1e-6,
@@ -547,6 +548,11 @@ def solve(
             return Solution(sol.normals, np.where(np.isnan(rho), sol.albedo, rho), sol.outliers,
                             sol.iterations, sol.params)
         used.update({"tile_size": bound, "threads": workers})
+        if method == "auto":
+            from ._auto import auto_tiles  # noqa: PLC0415 (it builds on this module)
+
+            return auto_tiles(obs, lights, usable, params, used, starts, tile, mapper, progress,
+                              workers)
         return _solve_tiles(obs, lights, usable, method, params, used, starts, tile, mapper,
                             progress)
 
@@ -593,9 +599,13 @@ def _solve_params(n, method, params, residuals, pl_noise=None) -> dict:
         if noise is not None:
             used["noise_sigma"] = float(noise)
         if method in ("plsbl", "auto") and params["lam"] is None:
-            if sigma_pl is None:
+            if sigma_pl is None and method == "auto":
+                # measured after SBL, on the pixels whose Lambertian fit fails (_auto_tiles)
+                params["noise_sigma_pl"] = None
+            elif sigma_pl is None:
                 sigma_pl = pl_noise(params["segments"], noise)
-            used["noise_sigma_pl"] = params["noise_sigma_pl"] = float(sigma_pl)
+            if sigma_pl is not None:
+                used["noise_sigma_pl"] = params["noise_sigma_pl"] = float(sigma_pl)
         if method in SBL_LIKE and params["tol"] is None:
             params["tol"] = max(SBL_TOL_MIN, SBL_TOL_NOISE_SHARE * noise)
     used.update({k: v for k, v in params.items()
@@ -607,9 +617,10 @@ def _pl_sbl_tile(y, w, lights, **params):
     return _pl_kernels.pl_tile(y, w, lights, **params)
 
 
-def _auto_tile(y, w, lights, **params):
-    sbl_max_iter = params.pop("sbl_max_iter", DEFAULTS["sbl"]["max_iter"])
-    return _pl_kernels.pl_tile(y, w, lights, choose=True, sbl_max_iter=sbl_max_iter, **params)
+def _auto_tile(y, w, lights, *, sbl_max_iter=DEFAULTS["sbl"]["max_iter"], **params):
+    lam_test = gate_variance(params.get("lam_pl", params["lam"]))  # the score test's (_auto)
+    return _pl_kernels.pl_tile(y, w, lights, choose=True, sbl_max_iter=sbl_max_iter,
+                               lam_test=lam_test, **params)
 
 
 def _pl_ls_tile(y, w, lights, *, segments):
@@ -651,23 +662,34 @@ def _solve_tiles(obs, lights, usable, method, params, used, starts, tile, mapper
                 lam_pl = sbl_lambda(scale, params["noise_sigma_pl"], floor, factors)
                 tile_params["lam_pl" if method == "auto" else "lam"] = lam_pl
         res = kernel(y, w, lights, **tile_params)
-        x = res.x.astype(np.float64) * scale[:, None]
-        length = np.linalg.norm(x, axis=1)
-        good = ok & (length > 0) & np.isfinite(length)
-        unit = np.where(good[:, None], x / np.where(good, length, 1.0)[:, None], 0.0)
-        normals[a:b] = unit
-        # one albedo for every method: the Lambertian-equivalent reflectance on the inliers
-        rho = _albedo_rows(unit @ lights.T, (w > 0) & ~res.outliers, y) * scale
-        albedo[a:b] = np.where(good, np.where(np.isnan(rho), length, rho), 0.0)
-        outliers[:, a:b] = (res.outliers & good[:, None]).T
-        iterations[a:b] = np.where(ok, res.iterations, 0)
-        if segments is not None:
-            segments[a:b] = np.where(ok, res.segments, 0)
+        _store_tile(a, b, y, w, scale, ok, res, lights, normals, albedo, outliers, iterations,
+                    segments)
         return b - a
 
     for done in mapper(run_tile, starts):
         if progress is not None:
             progress(done)
+    return _finish_solution(used, normals, albedo, outliers, iterations, segments)
+
+
+def _store_tile(a, b, y, w, scale, ok, res, lights, normals, albedo, outliers, iterations,
+                segments):
+    """Unit normals, the Lambertian-equivalent albedo and flags of pixels a:b into the outputs."""
+    x = res.x.astype(np.float64) * scale[:, None]
+    length = np.linalg.norm(x, axis=1)
+    good = ok & (length > 0) & np.isfinite(length)
+    unit = np.where(good[:, None], x / np.where(good, length, 1.0)[:, None], 0.0)
+    normals[a:b] = unit
+    # one albedo for every method: the Lambertian-equivalent reflectance on the inliers
+    rho = _albedo_rows(unit @ lights.T, (w > 0) & ~res.outliers, y) * scale
+    albedo[a:b] = np.where(good, np.where(np.isnan(rho), length, rho), 0.0)
+    outliers[:, a:b] = (res.outliers & good[:, None]).T
+    iterations[a:b] = np.where(ok, res.iterations, 0)
+    if segments is not None:
+        segments[a:b] = np.where(ok, res.segments, 0)
+
+
+def _finish_solution(used, normals, albedo, outliers, iterations, segments):
     if segments is not None:
         solved = segments > 0
         used["pixels_per_segments"] = {int(k): int(c) for k, c in

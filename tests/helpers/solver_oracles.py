@@ -317,18 +317,13 @@ def solve_oracle(observations, lights, method, valid=None, *, statistic=False, *
         if method == "auto":
             pixel_params = {**pixel_params, "outlier_threshold": threshold}
         x, stat, it = PIXEL_ORACLES[method](y / scale, a, **pixel_params)
-        fitted = stat
-        if method == "auto":  # its albedo: on SBL's inliers, whichever model it kept
-            keys = ("lam", "sigma_x2", "tol", "gamma_floor", "gamma_start")
-            fitted = sbl_pixel(y / scale, a, **{k: v for k, v in pixel_params.items() if k in keys},
-                               max_iter=pixel_params.get("sbl_max_iter", 100))[1]
         x = x * scale
         albedo[j] = np.linalg.norm(x)
         if albedo[j] > 0:
             normals[j] = x / albedo[j]
             outliers[np.flatnonzero(v), j] = stat > threshold
             statistics[np.flatnonzero(v), j] = stat
-            albedo[j] = lambertian_equivalent(normals[j], y, a, fitted <= threshold, albedo[j])
+            albedo[j] = lambertian_equivalent(normals[j], y, a, stat <= threshold, albedo[j])
         iterations[j] = it
     if statistic:
         return normals, albedo, outliers, iterations, statistics
