@@ -21,18 +21,20 @@ import numpy as np
 
 from . import _pl_kernels
 from ._pl_algebra import GATE_NOISE, gate_variance
-from ._solve import (DEFAULTS, _finish_solution, _prepare_tile,
-                     _store_tile, pl_noise_level, sbl_lambda)
+from ._tiles import _finish_solution, _prepare_tile, _store_tile, sbl_lambda
 
-def auto_tiles(obs, lights, usable, params, used, starts, tile, mapper, progress, workers):
-    """Solve the tiles starting at ``starts`` with ``auto`` (module docstring); the Solution."""
+def auto_tiles(obs, lights, usable, params, used, starts, tile, mapper, progress, pl_noise_of):
+    """Solve the tiles starting at ``starts`` with ``auto`` (module docstring); the Solution.
+
+    ``pl_noise_of(columns)``: the PL model's noise on those pixels (``_solve.pl_noise_level``).
+    """
     n, p = obs.shape
     per_pixel = params["lam"] is None
     floor, factors = params.get("noise_floor"), params.get("light_noise")
     kernel_params = {k: v for k, v in params.items()
                      if k not in ("noise_floor", "light_noise", "noise_sigma_pl", "lam",
                                   "sbl_max_iter")}
-    sbl_max_iter = params.get("sbl_max_iter", DEFAULTS["sbl"]["max_iter"])
+    sbl_max_iter = params["sbl_max_iter"]
     sigma_pl = params.get("noise_sigma_pl")
 
     def noise(scale, sigma):
@@ -55,9 +57,7 @@ def auto_tiles(obs, lights, usable, params, used, starts, tile, mapper, progress
     used["pixels_failing_lambertian_test"] = count
     if count and sigma_pl is None and per_pixel:
         columns = np.concatenate([t[0] + f for t, f in zip(tiles, failing, strict=True)])
-        sigma_pl = pl_noise_level(obs[:, columns], lights, usable[:, columns],
-                                  segments=params["segments"], noise_sigma=used["noise_sigma"],
-                                  mapper=mapper, workers=workers)
+        sigma_pl = pl_noise_of(columns)
     if sigma_pl is not None:
         used["noise_sigma_pl"] = float(sigma_pl)
     elif per_pixel:
