@@ -1,14 +1,14 @@
-"""The default method ``auto`` over tiles: SBL, a lack-of-fit test, PL-SBL where it fails.
+"""The default method ``auto`` over tiles: SBL, a score test, PL-SBL where SBL fails it.
 
-Two passes (docs/solvers.md, "The default `auto`"):
+Two passes (docs/solvers.md, "The default `auto`", rule 0):
 
-1. every pixel is solved by SBL (its own kernel, iterations and tolerance) and its inliers'
-   standardised residuals ``sum r_i^2 / lam_i`` are compared with the chi^2 quantile of their
-   degrees of freedom (:func:`._pl_algebra._lack_of_fit`), with ``lam_i`` the noise variance of
-   the larger model (the PL model's noise, never below ``GATE_NOISE``): a lack-of-fit test
-   measures the smaller model's misfit against the pure error, not against its own residuals,
-   which hold that misfit. The PL noise is not known yet, so this pass tests with its lower
-   bound (the noise floor alone): a pixel that passes it passes the real test too;
+1. every pixel is solved by SBL (its own kernel, iterations and tolerance) and its fit is tested
+   against the bent response of the PL model by a robust score test
+   (:func:`._pl_algebra._bend_score`: chi^2 with ``K - 1`` degrees of freedom), weighted by the
+   noise variance of the larger model (the PL model's noise, never below ``GATE_NOISE``): a
+   test of fit measures the smaller model's misfit against the pure error, not against its own
+   residuals, which hold that misfit. The PL noise is not known yet, so this pass tests with its
+   lower bound (the noise floor alone): a pixel that passes it passes the real test too;
 2. only if some pixels fail, the PL model's noise is measured on a sample of *them*
    (:func:`._solve.pl_noise_level`), and those pixels are tested again at that noise and,
    where they still fail, fitted by PL-SBL and compared with SBL by their left-out residuals

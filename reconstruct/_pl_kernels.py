@@ -27,7 +27,7 @@ Cholesky. Beyond the paper (docs/solvers.md has the measurements):
   ``gamma``, ``tau^2``, plus the log Jacobian ``sum_i log s_{k(i)}`` of ``y -> f(y)``; recorded,
   no longer used for the choice);
 - the ``auto`` kernel solves every pixel with ``K = 1`` (SBL, its own kernel and iterations);
-  where SBL's inliers fail a chi^2 lack-of-fit test it fits ``K`` segments too, and keeps PL
+  where SBL's fit fails a chi^2 score test towards K segments it fits them too, and keeps PL
   only where it predicts the pixel's observations better (closed-form leave-one-out residuals
   by more than one standard error of the gain: :func:`_choose`, docs/solvers.md).
 
@@ -65,8 +65,8 @@ CHOICE_Z = 1.0
 # leverage is then at most 1/4, so that a left-out residual measures prediction (with fewer, it
 # is dominated by the 1 / (1 - h) inflation of interpolated observations; docs/solvers.md).
 CHOICE_PER_UNKNOWN = 4
-# The Lambertian model's lack-of-fit test: PL-SBL (which nests it) is fitted and compared only
-# where SBL's standardised inlier residuals exceed their chi^2 quantile at this false-alarm rate.
+# The Lambertian model's score test: PL-SBL (which nests it) is fitted and compared only
+# where the score statistic of SBL's fit exceeds its chi^2 quantile at this false-alarm rate.
 GATE_FALSE_ALARM = 0.01
 
 
@@ -650,9 +650,9 @@ def pl_tile(y, w, lights, *, segments: int, lam, sigma_x2: float = 1e6, max_iter
     sbl_max_iter : int
         With ``choose``: the one-segment model's iterations.
     lam_test : float or ndarray of shape (m, 1) or (m, n), optional
-        With ``choose``: the noise variance of the Lambertian model's lack-of-fit test
-        (:func:`_lack_of_fit`); the ``K``-segment model is fitted and compared only where
-        ``sum r_i^2 / lam_test_i`` over SBL's inliers exceeds the chi^2 quantile of
+        With ``choose``: the noise variance of the Lambertian model's score test
+        (:func:`._pl_algebra._bend_score`); the ``K``-segment model is fitted and compared only
+        where the score statistic of SBL's fit exceeds the chi^2 quantile of
         ``1 - false_alarm`` (``gate`` of the result: that excess). None: no test.
     stage : {"both", "sbl", "pl"}
         With ``choose``: "sbl" fits SBL and runs the test only (``sbl_weights``, ``gate`` kept
