@@ -668,8 +668,8 @@ def pl_tile(y, w, lights, *, segments: int, lam, sigma_x2: float = 1e6, max_iter
     lam_pl = lam_obs if lam_pl is None else np.ascontiguousarray(
         np.broadcast_to(np.asarray(lam_pl, dtype=np.float64), (m, n)))
     gate = choose and lam_test is not None
-    lam_t = (np.ascontiguousarray(np.broadcast_to(np.asarray(lam_test, dtype=np.float64), (m, n)))
-             if gate else np.ones((1, 1)))
+    lam_t = (np.require(np.broadcast_to(np.asarray(lam_test, dtype=np.float64), (m, n)), None, "CW")
+             if gate else np.ones((1, 1)))  # writable, as lam (one compiled version)
     q_table = chi2_quantiles(n, false_alarm) if gate else np.zeros(1)
     if sbl_fit is not None:  # stage "pl": SBL's fit of the "sbl" stage, updated in place
         x, outliers, iters, segs = (np.array(sbl_fit.x), np.array(sbl_fit.outliers),
