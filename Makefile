@@ -6,7 +6,7 @@ BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 LAUNCHER := $(abspath $(BIN))/ps-lab
 
-.PHONY: demo test test-slow bench lint lint-imports clean launcher
+.PHONY: demo test test-slow bench lint lint-imports clean launcher warm-up
 
 $(STAMP): pyproject.toml Makefile
 	@command -v $(PYTHON) >/dev/null 2>&1 || { echo "need $(PYTHON) (set PYTHON=...)"; exit 1; }
@@ -20,7 +20,18 @@ $(STAMP): pyproject.toml Makefile
 launcher: $(STAMP)
 	@sh tools/launcher.sh link $(LAUNCHER)
 
-demo: $(STAMP)
+# Compile the numba kernels once, at install, into numba's cache (__pycache__ next to the
+# sources): with an empty cache the first reconstruct would compile for a minute or more. Numba
+# keys an entry by its source file's mtime, so an edited or pulled kernel source warms again.
+KERNEL_SOURCES := $(wildcard reconstruct/*.py) ps_lab/render/near.py
+WARM := $(VENV)/.kernels-compiled
+$(WARM): $(STAMP) $(KERNEL_SOURCES)
+	$(BIN)/python -m ps_lab.reconstruct._warm_up
+	@touch $(WARM)
+
+warm-up: $(WARM)
+
+demo: $(WARM)
 	$(BIN)/python -m ps_lab.demo
 	@sh tools/launcher.sh check $(LAUNCHER)
 
@@ -38,7 +49,9 @@ NUMERICAL_TESTS := tests/test_solvers.py tests/test_pl_solvers.py tests/test_nea
 	tests/test_refine.py tests/test_streaming.py tests/test_distributed.py
 
 # Import contracts first, then the tests, then the numerical ones for the second CPU target.
-test: lint-imports
+# Each pytest run compiles (or loads) every kernel for its CPU target before its first test
+# (tests/conftest.py), so no test pays the compile against its timeout.
+test: lint-imports $(WARM)
 	$(BIN)/python -m pytest -q
 	NUMBA_CPU_NAME=generic $(BIN)/python -m pytest -q $(NUMERICAL_TESTS)
 

@@ -6,6 +6,8 @@ Usage (from the repository root):
     .venv/bin/python benchmarks/near.py speed
     .venv/bin/python benchmarks/near.py table [--focal-px 1500]
     .venv/bin/python benchmarks/near.py outline
+    .venv/bin/python benchmarks/near.py ablation [--sphere-radius 25]
+    .venv/bin/python benchmarks/near.py leds [--mu 0 1 2 3]
 
 ``table`` renders the second rig (``ps_lab.render.table_rig``: identical LEDs, spheres and object
 on one table, no matte sphere, 16-bit PNG, and its far twin), runs ``ps-lab calibrate`` with the
@@ -13,6 +15,14 @@ two ``--sphere`` circles (plus the variants of the intensity model and the outli
 and ``ps-lab reconstruct`` near / directional / far, and prints the table of docs/solvers.md.
 ``outline`` measures the searched outline height's error on that rig over dome sizes and object
 heights (default options).
+
+``ablation`` renders the table rig at the issue-33 size (dome 660 px, object 230 px) with less
+noise (300 000 e- at full scale) and replaces one factor of the near solve at a time by the truth:
+the LED positions, the intensities at the origin, the outline's height, the depth itself.
+``leds`` renders LEDs with ``cos^mu`` beams (axes tilted up to 8 deg, outputs 1 +- 10 %) and a flat
+matte board under them, calibrates with ``--flat-field`` and reconstructs with each
+``--led-model``; then a second board, 15 px higher and with other noise, reconstructed as the
+object (normals against the plane's).
 
 ``sweep`` renders the scene of ``rigs/simulated-near.toml`` (400x300, a glossy relief of 200 px,
 two chrome spheres and a matte sphere of radius 50) with 24 LEDs on a dome of ``ratio`` x 200 px
@@ -251,6 +261,117 @@ def outline() -> None:
                       f"{e_dir:.2f} | {record['rounds']} |", flush=True)
 
 
+def _spheres_args(rig) -> list[str]:
+    return [a for c in rig.spheres for a in ("--sphere", f"{c[0]:g},{c[1]:g},{c[2]:g}")]
+
+
+def ablation(sphere_radius: float) -> None:
+    import ps_lab.reconstruct.near as near_module
+
+    rig = replace(TableRig(), dome_radius=660.0, object_radius=115.0, full_well=3e5,
+                  read_noise=1.5e-5, spheres=((60.0, 296.0, sphere_radius),
+                                              (420.0, 62.0, sphere_radius)))
+    spheres = _spheres_args(rig)
+    with tempfile.TemporaryDirectory() as tmp:
+        near, far = Path(tmp) / "near", Path(tmp) / "far"
+        scene = write_table_rig(near, rig)
+        write_table_rig(far, rig, far=True, reference_peak=scene["raw_peak"])
+        _cli(["calibrate", str(far), *spheres])
+        _cli(["reconstruct", str(far), "--out", str(Path(tmp) / "f")])
+        e_far, _ = _mean(Path(tmp) / "f")
+        h, w = rig.shape
+        truth = np.array(scene["leds"], float) + [rig.origin_px[0] - (w - 1) / 2,
+                                                  (h - 1) / 2 - rig.origin_px[1], -sphere_radius]
+        _cli(["calibrate", str(near), *spheres])
+        found = read_light_positions(near / "light_positions.txt")
+        error = 100 * np.linalg.norm(found - truth, axis=1) / rig.dome_radius
+        print(f"# ablation, spheres r={sphere_radius:g}: LED positions mean {error.mean():.2f} % "
+              f"max {error.max():.2f} %; far twin {e_far:.3f} deg")
+        print("| truth given for | near SBL | near / far | outline (truth "
+              f"{-sphere_radius:g}) |\n|---|---|---|---|")
+        saved = {n: (near / n).read_text() for n in ("light_positions.txt",
+                                                      "light_intensities.txt")}
+        heights = np.where(scene["mask"], scene["height"] - sphere_radius, -sphere_radius)
+        anchored = near_module._anchored_heights
+        equal = 1.0 / np.sum(truth * truth, axis=1)
+        cases = {"nothing": (), "positions": ("pos",), "intensities": ("int",),
+                 "outline height": ("out",), "depth": ("depth",),
+                 "positions + intensities": ("pos", "int"),
+                 "positions + intensities + depth": ("pos", "int", "depth")}
+        for label, given in cases.items():
+            for name, text in saved.items():
+                (near / name).write_text(text)
+            (near / "object_outline.txt").unlink(missing_ok=True)
+            if "pos" in given:
+                np.savetxt(near / "light_positions.txt", truth, fmt="%.6f")
+            if "int" in given:
+                np.savetxt(near / "light_intensities.txt",
+                           np.repeat((equal / equal.mean())[:, None], 3, axis=1), fmt="%.9f")
+            if "out" in given or "depth" in given:
+                np.savetxt(near / "object_outline.txt", [-sphere_radius])
+            near_module._anchored_heights = ((lambda *a, **k: heights) if "depth" in given
+                                             else anchored)
+            try:
+                _cli(["reconstruct", str(near), "--out", str(Path(tmp) / "n")])
+            finally:
+                near_module._anchored_heights = anchored
+            e_near, record = _mean(Path(tmp) / "n")
+            print(f"| {label} | {e_near:.3f} | {e_near / e_far:.2f} | "
+                  f"{record['outline_height_px']:.1f} |", flush=True)
+
+
+def leds(mus: list[float]) -> None:
+    import shutil
+
+    import cv2
+
+    from ps_lab.render.table_rig import write_board_frames
+
+    base = replace(TableRig(), dome_radius=660.0, object_radius=115.0)
+    spheres = _spheres_args(base)
+    print("| LEDs | no board (equal, isotropic) | isotropic (fitted outputs) | beam | flat-field "
+          "| flat board 15 px up: none / beam / flat-field (mean, max deg) |")
+    print("|---|---|---|---|---|---|")
+    for mu in mus:
+        rig = replace(base, beam_mu=mu, beam_tilt_deg=8.0 if mu else 0.0,
+                      output_spread=0.1 if mu else 0.0)
+        with tempfile.TemporaryDirectory() as tmp:
+            near, board, test = Path(tmp) / "near", Path(tmp) / "board", Path(tmp) / "test"
+            write_table_rig(near, rig)
+            write_board_frames(board, rig)
+            row = []
+            _cli(["calibrate", str(near), *spheres, "--object", "table"])
+            _cli(["reconstruct", str(near), "--out", str(Path(tmp) / "plain")])
+            row.append(f"{_mean(Path(tmp) / 'plain')[0]:.3f}")
+            plain = {n: (near / n).read_text() for n in ("light_intensities.txt",)}
+            _cli(["calibrate", str(near), *spheres, "--object", "table", "--flat-field",
+                  str(board)])
+            for model in ("isotropic", "beam", "flat-field"):
+                _cli(["reconstruct", str(near), "--led-model", model, "--out",
+                      str(Path(tmp) / model)])
+                row.append(f"{_mean(Path(tmp) / model)[0]:.3f}")
+            write_board_frames(test, rig, height=15.0, noise_seed=99)
+            h, w = rig.shape
+            cv2.imwrite(str(test / "mask.png"), np.full((h, w), 255, np.uint8))
+            for name in ("light_positions.txt", "light_directions.txt", "light_axes.txt",
+                         "light_anisotropy.txt", "flat_field.npz", "light_intensities.txt"):
+                shutil.copy(near / name, test / name)
+            np.savetxt(test / "object_outline.txt", [15.0 - rig.spheres[0][2]])
+            board_row = []
+            for model in ("none", "beam", "flat-field"):
+                if model == "none":  # the calibration without a board: equal isotropic LEDs
+                    (test / "light_intensities.txt").write_text(plain["light_intensities.txt"])
+                else:
+                    shutil.copy(near / "light_intensities.txt", test / "light_intensities.txt")
+                _cli(["reconstruct", str(test), "--led-model",
+                      "isotropic" if model == "none" else model, "--out", str(Path(tmp) / "b")])
+                normals = np.load(Path(tmp) / "b" / "normals.npy")
+                err = np.degrees(np.arccos(np.clip(normals[..., 2], -1.0, 1.0)))
+                board_row.append(f"{err.mean():.2f}, {err.max():.2f}")
+            print(f"| mu = {mu:g}{', tilt 8, +-10 %' if mu else ''} | {' | '.join(row)} | "
+                  f"{' / '.join(board_row)} |", flush=True)
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     sub = parser.add_subparsers(dest="command", required=True)
@@ -261,6 +382,10 @@ def main() -> None:
     p = sub.add_parser("table")
     p.add_argument("--focal-px", type=float, default=None)
     sub.add_parser("outline")
+    p = sub.add_parser("ablation")
+    p.add_argument("--sphere-radius", type=float, default=25.0)
+    p = sub.add_parser("leds")
+    p.add_argument("--mu", type=float, nargs="+", default=[0, 1, 2, 3])
     args = parser.parse_args()
     if args.command == "sweep":
         sweep(args.ratios, None if args.no_threshold else THRESHOLD)
@@ -268,6 +393,10 @@ def main() -> None:
         table(args.focal_px)
     elif args.command == "outline":
         outline()
+    elif args.command == "ablation":
+        ablation(args.sphere_radius)
+    elif args.command == "leds":
+        leds(args.mu)
     else:
         speed()
 

@@ -35,6 +35,7 @@ from ps_lab.calibration._geometry import (
 )
 from ps_lab.calibration._highlight import Highlight, locate_highlight
 from ps_lab.calibration._intensity import fit_light_intensities, led_intensities_at_origin
+from ps_lab.calibration._leds import LedModel, calibrate_leds, with_led_model
 from ps_lab.calibration._positions import Triangulation, reflected_rays, triangulate_lights
 from ps_lab.calibration._probes import combine_probes
 from ps_lab.calibration._report import (
@@ -80,8 +81,10 @@ __all__ = [
     "Circle",
     "CircleFit",
     "Highlight",
+    "LedModel",
     "Triangulation",
     "calibrate",
+    "calibrate_leds",
     "calibration_picture",
     "calibration_record",
     "chrome_score",
@@ -105,6 +108,7 @@ __all__ = [
     "rig_object_outline",
     "summary_image",
     "triangulate_lights",
+    "with_led_model",
     "write_calibration",
     "zenith_azimuth_deg",
 ]

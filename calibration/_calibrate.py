@@ -7,6 +7,8 @@ preview.
 
 from __future__ import annotations
 
+from typing import Any
+
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field, replace
 
@@ -14,11 +16,12 @@ import numpy as np
 
 from ps_lab.calibration._circle import Circle, circle_inside_image, refine_circle, summary_image
 from ps_lab.calibration._geometry import light_directions_from_highlights
-from ps_lab.calibration._highlight import Highlight, locate_highlight
+from ps_lab.calibration._highlight import Highlight, locate_highlight, share_source_radius
 from ps_lab.calibration._intensity import fit_light_intensities, led_intensities_at_origin
 from ps_lab.calibration._positions import (
     MIN_RAY_ANGLE_DEG,
     Triangulation,
+    ray_sigmas,
     reflected_rays,
     triangulate_lights,
 )
@@ -121,6 +124,7 @@ class Calibration:
     intensity_source: str = "all ones (no matte target)"
     object_outline: float | None = None
     camera: Camera | None = None
+    led_model: Any = None  # calibration._leds.LedModel (ps-lab calibrate --flat-field)
 
     @property
     def light_positions(self) -> np.ndarray | None:
@@ -454,7 +458,7 @@ def _triangulate(
     disagree within their noise say nothing about the distance.
     """
     shape = stack.shape[1:3]
-    origins, directions = [], []
+    origins, directions, sigmas = [], [], []
     for c, hl in [(circle, highlights), *((c, None) for c in others)]:
         if hl is None:
             try:
@@ -468,9 +472,13 @@ def _triangulate(
         o, d = reflected_rays(hl, c, shape, camera)
         origins.append(o)
         directions.append(d)
+        # equal pixel precision on every sphere (the highlights' own uncertainty measures their
+        # shape's asymmetry more than their noise): the weights follow the geometry
+        sigmas.append(ray_sigmas(hl, c))
     result = triangulate_lights(
         np.array(origins),
         np.array(directions),
+        sigmas=np.array(sigmas),
         min_angle_deg=MIN_RAY_ANGLE_DEG
         if uncertainty is None
         else np.maximum(MIN_RAY_ANGLE_DEG, 3.0 * uncertainty),
@@ -514,7 +522,8 @@ def _highlights(
             second = hl.second_blob
             if second is not None:
                 second = (second[0] + bx0, second[1] + by0, second[2])
-            found.append(replace(hl, x=hl.x + bx0, y=hl.y + by0, second_blob=second))
+            found.append(replace(hl, x=hl.x + bx0, y=hl.y + by0, second_blob=second,
+                                 centroid=(hl.centroid[0] + bx0, hl.centroid[1] + by0)))
         except CalibrationError as exc:
             found.append(None)
             problems.append((j, str(exc)))
@@ -532,7 +541,8 @@ def _highlights(
         j, msg = problems[0]
         more = f" (and {len(problems) - 1} more frame(s) failed)" if len(problems) > 1 else ""
         raise CalibrationError(f"{_frame_label(j, names)}: {msg}{more}")
-    return found  # type: ignore[return-value]  # no None left: every one is a problem above
+    # no None left: every one is a problem above
+    return share_source_radius(found, circle)  # type: ignore[arg-type]
 
 
 def _dim_highlights(found: list[Highlight | None]) -> list[tuple[int, str]]:

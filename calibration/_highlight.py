@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 from scipy import ndimage
@@ -26,7 +26,9 @@ class Highlight:
     saturated : bool
         Whether the blob contains saturated pixels.
     source_radius_deg : float
-        Angular radius of the light estimated from the blob's second moments (0 when unresolved).
+        Angular radius of the light estimated from the blob's second moments (0 when unresolved;
+        NaN when the highlight lies too near the sphere's centre to tell the source from the blur:
+        :func:`share_source_radius` then gives it the other frames' median).
     second_blob : tuple of (x, y, share) or None
         The strongest rejected secondary blob (inter-reflection) and its energy relative to the
         highlight.
@@ -37,6 +39,8 @@ class Highlight:
     uncertainty_px : float
         Standard uncertainty of the position (pixels): the noise propagated through the
         centroid and its spread over nearby thresholds, whichever is larger.
+    centroid : (float, float)
+        The blob's weighted centroid before the extended-source correction.
 
     """
 
@@ -49,6 +53,7 @@ class Highlight:
     second_blob: tuple[float, float, float] | None
     estimator: str = "centroid"
     uncertainty_px: float = 0.0
+    centroid: tuple[float, float] = (float("nan"), float("nan"))
 
 
 _EIGHT = np.ones((3, 3), dtype=bool)
@@ -67,11 +72,16 @@ def locate_highlight(
 
     The highlight is the blob above half of the peak contrast (8-connected) with the most energy;
     its position is the centroid of (value − sphere level) over the blob grown by 2 px, which keeps
-    the anti-aliased fringe and is unbiased for a blob that is symmetric before sampling. The
-    image of a light of angular radius ``a`` is the orthographic projection of a spherical cap of
-    normals of half-angle ``b = a / 2``; the area-weighted centroid of that projection lies at
-    ``cos(b)`` times the projected cap centre (exact), which is corrected here with ``b`` from the
-    blob's second moments.
+    the anti-aliased fringe and is unbiased for a blob that is symmetric before sampling (a
+    symmetric blur moves no centroid). A light of angular radius ``a`` images as the mirror map
+    of a cap of directions; the map keeps areas, so the centroid is the cap's mean image position,
+    pulled toward the centre by about ``rho a^2 / 8`` (:func:`_corrected`, to second order in
+    ``a``). ``a`` comes from the blob's second moments, the blur's part taken out: the blur widens
+    the blob alike in every direction, the mirror stretches the cap tangentially over radially by
+    ``1 / cos^2(theta)`` (:func:`_source_radius`). The former isotropic estimate read the blur as
+    source size and over-corrected: +0.012 px outward on a 40 px sphere, 0.13 % / 0.34 % (mean /
+    worst) of the dome radius in LED positions, 4x the uncorrected centroid's (docs/solvers.md,
+    "Near lights").
 
     Parameters
     ----------
@@ -167,9 +177,7 @@ def locate_highlight(
         )
         / total
     )
-    lam = float(np.linalg.eigvalsh(cov)[-1])
-    sin_b = np.sqrt(max(4.0 * (lam - 1.0 / 12.0), 0.0)) / r
-    cos_b = np.sqrt(max(1.0 - min(sin_b, 1.0) ** 2, 1e-6))
+    source = _source_radius(cov, mx - cx, my - cy, r)
     estimator = "centroid"
     spread = _threshold_spread(img, level, contrast, disc, (0.4, 0.5, 0.6), xx, yy)
     core = _core_centroid(img, level, contrast, blob, xx, yy, 0.9)
@@ -180,11 +188,11 @@ def locate_highlight(
             mx, my, lam = core
             # The core is the (clipped) cap's image: the same cos(b) bias as the centroid, b
             # from the core's tangential extent (the streaks would inflate the blob's).
-            sin_b = np.sqrt(max(4.0 * (lam - 1.0 / 12.0), 0.0)) / r
-            cos_b = np.sqrt(max(1.0 - min(sin_b, 1.0) ** 2, 1e-6))
+            sin_b = float(np.sqrt(max(4.0 * (lam - 1.0 / 12.0), 0.0)) / r)
+            source = 2.0 * float(np.arcsin(min(sin_b, 1.0)))
             spread = _core_spread(img, level, contrast, blob, xx, yy)
     noise_px = sigma * np.sqrt(np.sum(dxw * dxw + dyw * dyw)) / max(total, 1e-30)
-    hx, hy = cx + (mx - cx) / cos_b, cy + (my - cy) / cos_b
+    hx, hy = _corrected(mx, my, circle, source if np.isfinite(source) else 0.0)
     rel = np.hypot(hx - cx, hy - cy) / r
     if rel > safe_radius:
         raise CalibrationError(
@@ -197,7 +205,8 @@ def locate_highlight(
         contrast=contrast,
         area=int(blob.sum()),
         saturated=bool(sat is not None and (sat & blob).any()),
-        source_radius_deg=float(2.0 * np.degrees(np.arcsin(min(sin_b, 1.0)))),
+        source_radius_deg=float(np.degrees(source)),
+        centroid=(mx, my),
         second_blob=second,
         estimator=estimator,
         uncertainty_px=float(max(noise_px, spread)),
@@ -208,6 +217,76 @@ def locate_highlight(
 # the half-peak centroid away from the bright core; on compact blobs (rendered discs, 40-150 px
 # spheres, peaks 0.8x-20x white) the two agree within 0.6 px. Beyond this offset the core is used.
 STREAK_OFFSET_PX = 1.0
+# Below this sin^2 of the normal's angle from the view the cap's foreshortening is too small to
+# tell it from the blur (theta < 26.6 deg, 1 - cos(theta) < 0.11): the source radius is left to
+# the other frames.
+MIN_SIN2_THETA = 0.2
+
+
+def _source_radius(cov: np.ndarray, dx: float, dy: float, r: float) -> float:
+    """Angular radius ``a`` (radians) of the light whose highlight has covariance ``cov``, or NaN.
+
+    ``(dx, dy)``: the centroid's offset from the sphere's centre (pixels), at the normal's angle
+    ``theta`` from the view. The mirror maps a direction cap of radius ``a`` to an ellipse of
+    semi-axes ``a r / (2 cos theta)`` (tangential) and ``a r cos(theta) / 2`` (radial). The blur
+    widens both alike: by a constant width where the highlight is clipped to a plateau, so the
+    standard deviations' difference ``(a r / 4)(1 / cos theta - cos theta)`` is kept exactly; by
+    a constant variance where it is not, so the difference shrinks and ``a`` errs small (where
+    the blur dominates the blob, the source is small).
+    """
+    rho2 = dx * dx + dy * dy
+    sin2 = rho2 / (r * r)
+    if sin2 < MIN_SIN2_THETA or sin2 >= 1.0:
+        return float("nan")
+    e = np.array([dx, dy]) / np.sqrt(rho2)
+    t = np.array([-e[1], e[0]])
+    sd_r = np.sqrt(max(float(e @ cov @ e), 0.0))
+    sd_t = np.sqrt(max(float(t @ cov @ t), 0.0))
+    cos_theta = np.sqrt(1.0 - sin2)
+    return float(4.0 * max(sd_t - sd_r, 0.0) / (r * (1.0 / cos_theta - cos_theta)))
+
+
+def _corrected(mx: float, my: float, circle: Circle, source: float) -> tuple[float, float]:
+    """The mirror point of a light of angular radius ``source`` whose blob centroid is (mx, my).
+
+    The mirror maps directions to the image with constant area (``dA / dOmega = r^2 / 4``), so
+    the blob's centroid is the mean of the image position ``f`` over the source's cap of
+    directions: ``f + (a^2 / 8) lap f`` to second order, where for ``f`` the radial image
+    coordinate ``rho = r sin(theta)`` (reflected direction at ``2 theta`` from the view)
+    ``lap f = r (1 - 3 sin^2 theta - 1 / cos^2 theta) / (4 sin theta)`` (``-rho`` near the
+    centre: the ``cos(a / 2)`` shrink of a cap of normals).
+    """
+    cx, cy, r = circle
+    rho = float(np.hypot(mx - cx, my - cy))
+    if source <= 0 or rho <= 0:
+        return mx, my
+    s = min(rho / r, 0.999)
+    lap = r * (1.0 - 3.0 * s * s - 1.0 / (1.0 - s * s)) / (4.0 * s)
+    scale = (rho - source * source / 8.0 * lap) / rho
+    return cx + (mx - cx) * scale, cy + (my - cy) * scale
+
+
+def share_source_radius(found: list[Highlight], circle: Circle) -> list[Highlight]:
+    """Highlights whose source radius is unresolved (NaN) get the median of the others.
+
+    The lights of one rig are alike in angular size; a highlight near the sphere's centre cannot
+    measure it (see :func:`_source_radius`) but needs little correction (about
+    ``rho a^2 / 8``).
+    """
+    radii = np.array([hl.source_radius_deg for hl in found])
+    known = radii[np.isfinite(radii)]
+    share = float(np.median(known)) if known.size else 0.0
+    out = []
+    for hl in found:
+        if np.isfinite(hl.source_radius_deg):
+            out.append(hl)
+            continue
+        mx, my = hl.centroid
+        x, y = _corrected(mx, my, circle, np.radians(share))
+        out.append(replace(hl, x=float(x), y=float(y), source_radius_deg=share))
+    return out
+
+
 def _disc(radius: float) -> np.ndarray:
     r = max(1, int(round(radius)))
     y, x = np.mgrid[-r : r + 1, -r : r + 1]

@@ -123,16 +123,50 @@ def _perspective_rays(hl, circle, shape, camera):
     return centre[None, :] + r * normals, directions
 
 
+def ray_sigmas(highlights: np.ndarray, circle: Circle, uncertainty_px: np.ndarray | float = 1.0
+               ) -> np.ndarray:
+    """Angular standard deviation (radians) of each reflected ray from its highlight's.
+
+    A highlight moved by ``u`` pixels turns the normal by ``u / r`` tangentially and by
+    ``u / (r n_z)`` radially (the limb foreshortens), the reflected ray by twice that; the radial
+    (larger) one is used. ``uncertainty_px`` is floored at 0.02 px (the sub-pixel sampling limit
+    of a centroid), so no ray gets an unbounded weight.
+
+    Parameters
+    ----------
+    highlights : ndarray of shape (n, 2)
+    circle : Circle
+    uncertainty_px : float or ndarray of shape (n,)
+
+    Returns
+    -------
+    ndarray of shape (n,)
+    """
+    hl = np.asarray(highlights, dtype=np.float64).reshape(-1, 2)
+    cx, cy, r = circle
+    rho2 = ((hl[:, 0] - cx) ** 2 + (hl[:, 1] - cy) ** 2) / (r * r)
+    nz = np.sqrt(np.clip(1.0 - rho2, 0.05, 1.0))
+    u = np.maximum(np.broadcast_to(np.asarray(uncertainty_px, float), (len(hl),)), 0.02)
+    return 2.0 * u / (r * nz)
+
+
 def triangulate_lights(
     origins: np.ndarray,
     directions: np.ndarray,
     *,
     min_angle_deg: float | np.ndarray = MIN_RAY_ANGLE_DEG,
+    sigmas: np.ndarray | None = None,
 ) -> Triangulation:
     """Least-squares intersection of each light's rays.
 
-    The point minimising the sum of squared distances to rays ``o_k + t d_k`` solves
-    ``(sum_k (I - d_k d_k^T)) P = sum_k (I - d_k d_k^T) o_k``.
+    The point minimising the weighted sum of squared distances to rays ``o_k + t d_k`` solves
+    ``(sum_k w_k (I - d_k d_k^T)) P = sum_k w_k (I - d_k d_k^T) o_k``. With ``sigmas`` (each
+    ray's angular standard deviation) the weights are ``w_k = 1 / (t_k sigma_k)^2``, ``t_k`` the
+    distance from the ray's origin to the point: a ray's angular error moves it by ``t_k
+    sigma_k`` at the light, so this is the maximum-likelihood point (two passes: the first,
+    unweighted, gives the distances). A sphere near an LED sees it under a larger angle between
+    the rays of other spheres but with no better angular precision; the far sphere's ray is the
+    less certain one at the light.
 
     Parameters
     ----------
@@ -141,6 +175,9 @@ def triangulate_lights(
     min_angle_deg : float or ndarray of shape (n,)
         A light whose rays all lie within this angle of each other is too far to place: its
         position is NaN and its direction the mean of its rays.
+    sigmas : ndarray of shape (s, n), optional
+        Angular standard deviation of each ray (radians; :func:`ray_sigmas`). None: equal
+        weights.
 
     Returns
     -------
@@ -152,14 +189,20 @@ def triangulate_lights(
         raise ValueError(f"need rays of shape (s >= 2, n, 3), got {o.shape} and {d.shape}")
     n = o.shape[1]
     projector = np.eye(3) - d[..., :, None] * d[..., None, :]  # (s, n, 3, 3)
-    system = projector.sum(axis=0)
-    target = np.einsum("snij,snj->ni", projector, o)
     cosines = np.clip(np.einsum("snk,tnk->nst", d, d), -1.0, 1.0)
     spread = np.degrees(np.arccos(cosines.min(axis=(1, 2))))
     ok = spread >= min_angle_deg
     positions = np.full((n, 3), np.nan)
-    if ok.any():
-        positions[ok] = np.linalg.solve(system[ok], target[ok][..., None])[..., 0]
+    weights = np.ones(o.shape[:2])
+    for _ in range(1 if sigmas is None else 2):
+        system = np.einsum("sn,snij->nij", weights, projector)
+        target = np.einsum("sn,snij,snj->ni", weights, projector, o)
+        if ok.any():
+            positions[ok] = np.linalg.solve(system[ok], target[ok][..., None])[..., 0]
+        if sigmas is not None:
+            reach = np.linalg.norm(np.where(ok[None, :, None], positions[None] - o, 1.0), axis=2)
+            weights = 1.0 / (reach * np.asarray(sigmas, np.float64)) ** 2
+            weights /= weights.mean(axis=0, keepdims=True)
     offset = positions[None] - o
     along = np.einsum("snk,snk->sn", offset, d)
     perp = offset - along[..., None] * d

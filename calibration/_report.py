@@ -17,6 +17,7 @@ from ps_lab.calibration._calibrate import Calibration
 from ps_lab.errors import CalibrationError
 from ps_lab.io.codecs import imwrite
 from ps_lab.io.files import staged_files
+from ps_lab.io.led_model import FLAT_FIELD, LIGHT_AXES, write_flat_field
 from ps_lab.io.lights import write_dome, write_lp
 
 CALIBRATION_FORMAT = "ps-lab-calibration"
@@ -30,7 +31,8 @@ OUTPUT_FILES = (
 # Written with two or more chrome spheres (LED positions); removed from the output folder otherwise,
 # so an earlier near-light calibration cannot outlive a new one.
 POSITION_FILES = (
-    "light_positions.txt", "light_anisotropy.txt", "object_outline.txt", "camera.txt"
+    "light_positions.txt", "light_anisotropy.txt", "object_outline.txt", "camera.txt",
+    LIGHT_AXES, FLAT_FIELD,
 )
 #: The LED positions as a RelightLab dome (``ps_lab.io.lights.write_dome``).
 DOME_FILE = "lights.dome"
@@ -356,9 +358,19 @@ def write_calibration(calibration: Calibration, out_dir: Path) -> dict[str, Path
                         calibration.triangulation.positions,
                         calibration.light_directions,
                         calibration.image_shape[1],
+                        led_model=None if calibration.led_model is None else {
+                            "axes": calibration.led_model.beams.axes,
+                            "mu": calibration.led_model.beams.mu,
+                            "outputs": calibration.led_model.beams.outputs},
                     )
                     names.append(DOME_FILE)
-                if calibration.anisotropy:
+                if calibration.led_model is not None:  # per-LED beams and the flat-field
+                    beams = calibration.led_model.beams
+                    np.savetxt(staging / POSITION_FILES[1], beams.mu[:, None], fmt="%.6f")
+                    np.savetxt(staging / LIGHT_AXES, beams.axes, fmt="%.9f")
+                    write_flat_field(staging / FLAT_FIELD, calibration.led_model.flat)
+                    names += [POSITION_FILES[1], LIGHT_AXES, FLAT_FIELD]
+                elif calibration.anisotropy:
                     count = len(calibration.light_directions)
                     anisotropy = np.full((count, 1), calibration.anisotropy)
                     np.savetxt(staging / POSITION_FILES[1], anisotropy, fmt="%.6f")

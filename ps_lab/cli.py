@@ -24,6 +24,7 @@ COMMANDS = {
     "reconstruct": "ps_lab.commands.reconstruct",
     "batch": "ps_lab.commands.batch",
     "integrate": "ps_lab.commands.integrate",
+    "relight": "ps_lab.commands.relight",
     "view": "ps_lab.commands.view",
     "capture": "ps_lab.commands.capture",
     "calibrate": "ps_lab.commands.calibrate",

@@ -122,6 +122,7 @@ def near_light_vectors(
     light_intensities: np.ndarray | None = None,
     *,
     anisotropy: float | np.ndarray | None = None,
+    axes: np.ndarray | None = None,
 ) -> np.ndarray:
     """Per-point light vectors of LEDs at a finite distance (direction times relative irradiance).
 
@@ -130,7 +131,7 @@ def near_light_vectors(
         L_j(X) = e_j u_j(X) (|P_j - O| / |P_j - X|)^2 (c_j(X) / c_j(O))^mu_j
 
     with ``u_j(X) = (P_j - X) / |P_j - X|``, ``O`` the scene origin, ``c_j(X)`` the cosine between
-    the LED's axis (it points at ``O``) and the ray from the LED to ``X`` (radiance ∝ cos^mu of
+    the LED's axis (``axes``, default: it points at ``O``) and the ray from the LED to ``X`` (radiance ∝ cos^mu of
     that angle; ``mu_j = 0``: isotropic), and ``e_j`` the light's intensity *at the origin* — the
     intensity of the directional model, so ``light_intensities.txt`` keeps its meaning. A light
     whose position is NaN (too far to triangulate) is directional: ``L_j = e_j d_j``.
@@ -147,6 +148,8 @@ def near_light_vectors(
         Intensity at the origin (default ones).
     anisotropy : float or ndarray of shape (n,), optional
         Exponent ``mu`` of each LED's emission (default 0).
+    axes : ndarray of shape (n, 3), optional
+        Unit optical axis of each LED (default: from the LED toward the origin).
 
     Returns
     -------
@@ -170,8 +173,14 @@ def near_light_vectors(
     mu = np.broadcast_to(np.asarray(0.0 if anisotropy is None else anisotropy, float), (n,))
     if np.any(mu != 0):
         ref = np.sqrt(ref2)
-        # cos of the angle between the axis (-P/|P|) and the ray P -> X: ((X - P) . (-P)) / ...
-        cos = np.einsum("mnk,nk->mn", d, pos) / (dist * ref[None, :])
+        if axes is None:
+            # cos of the angle between the axis (-P/|P|) and the ray P -> X: ((X - P) . (-P)) / ...
+            cos = np.einsum("mnk,nk->mn", d, pos) / (dist * ref[None, :])
+        else:  # (c(X) / c(O)): the ray P -> X against the axis, over the ray P -> O's
+            a = np.asarray(axes, dtype=np.float64).reshape(n, 3)
+            a = np.where(far[:, None], -pos, a)
+            at_origin = np.clip(-np.einsum("nk,nk->n", a, pos) / ref, 1e-6, None)
+            cos = -np.einsum("mnk,nk->mn", d, a) / (dist * at_origin[None, :])
         gain = gain * np.clip(cos, 0.0, None) ** mu[None, :]
     out = d * gain[:, :, None]
     if far.any():

@@ -19,6 +19,7 @@ import numpy as np
 
 from ps_lab.io.bands import Band, ObservationStore, stage_observations
 from ps_lab.io.dataset import DatasetHeader
+from ps_lab.reconstruct._colour import colour_albedo
 from ps_lab.reconstruct._refine import light_fit_sums
 from ps_lab.reconstruct._solution import Solution
 from ps_lab.reconstruct._solve import solve
@@ -42,6 +43,9 @@ class BandResult:
         Unit normals, zeros where unsolved (last pass only; None on refinement passes).
     albedo : ndarray of shape (P,), float32, or None
         Zero where unsolved.
+    colour_albedo : ndarray of shape (P, C), float32, or None
+        Per-channel albedo (:func:`ps_lab.reconstruct._colour.colour_albedo`) when the band's
+        colour observations were given (last pass only); zero where unsolved.
     corruption : ndarray of shape (P,), float32, or None
         Share of each pixel's usable observations flagged as outliers.
     solved : ndarray of shape (P,), bool, or None
@@ -66,6 +70,7 @@ class BandResult:
     params: dict
     normals: np.ndarray | None = None
     albedo: np.ndarray | None = None
+    colour_albedo: np.ndarray | None = None
     corruption: np.ndarray | None = None
     solved: np.ndarray | None = None
     iteration_counts: np.ndarray | None = None
@@ -91,6 +96,7 @@ def solve_band(
     truth_rows: np.ndarray | None = None,
     progress: Callable[[int], None] | None = None,
     black: np.ndarray | None = None,
+    colour: np.ndarray | None = None,
 ) -> BandResult:
     """Solve one band and reduce the solution.
 
@@ -120,6 +126,9 @@ def solve_band(
     black : ndarray of shape (n,) or None
         Each light's level of black: observations at or below it are shadows, dropped
         (:func:`ps_lab.reconstruct._shadows.black_threshold`).
+    colour : ndarray of shape (n, P, C) or None
+        The band's colour observations (:meth:`ps_lab.io.bands.ObservationStore.read_colour`):
+        with ``final``, the result carries their per-channel albedo over the solver's inliers.
 
     Returns
     -------
@@ -141,6 +150,8 @@ def solve_band(
     result = BandResult(index, dict(solution.params))
     if final:
         _reduce_for_writer(result, solution, valid)
+        if colour is not None:
+            result.colour_albedo = band_colour_albedo(result, solution, valid, colour, vectors)
     else:
         result.fit_sums = _fit_sums(observations, valid, solution)
     if truth_rows is not None:
@@ -155,6 +166,20 @@ def reduce_solution(index: int, solution: Solution, valid: np.ndarray) -> BandRe
     result = BandResult(index, dict(solution.params))
     _reduce_for_writer(result, solution, valid)
     return result
+
+
+def band_colour_albedo(
+    result: BandResult, solution: Solution, valid: np.ndarray, colour: np.ndarray, vectors
+) -> np.ndarray:
+    """The per-channel albedo (P, C) of a reduced band: inliers = valid and not outliers.
+
+    ``vectors`` (n, 3) or (n, P, 3): the light vectors the band was solved with (the colour
+    observations are divided by the file's intensities, as the solve channel's are).
+    """
+    inliers = valid & ~np.asarray(solution.outliers, dtype=bool)
+    albedo = colour_albedo(result.normals, inliers, colour, vectors)
+    albedo[~result.solved] = 0.0
+    return albedo
 
 
 def _reduce_for_writer(result: BandResult, solution: Solution, valid: np.ndarray) -> None:
@@ -227,6 +252,7 @@ class LocalBands:
         in_memory: bool,
         sample_pixels: int,
         progress: Callable[[int], None],
+        colours: int = 0,
     ) -> ObservationStore:
         """Pass 1: :func:`ps_lab.io.bands.stage_observations`."""
         return stage_observations(
@@ -239,6 +265,7 @@ class LocalBands:
             in_memory=in_memory,
             sample_pixels=sample_pixels,
             progress=progress,
+            colours=colours,
         )
 
     def solve(
@@ -274,4 +301,5 @@ class LocalBands:
                 truth_rows=None if truth is None else band_truth(truth, store.mask, band),
                 progress=advance,
                 black=black,
+                colour=store.read_colour(band) if final else None,
             )

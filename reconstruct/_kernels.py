@@ -192,6 +192,7 @@ def l1_tile(y, w, lights, *, max_iter: int, tol: float, delta: float,
     x = np.zeros((m, 3))
     outliers = np.zeros(y.shape, np.bool_)
     iters = np.zeros(m, np.int64)
+    y, w = np.require(y, np.float64, "CW"), np.require(w, np.float64, "CW")  # numba: one version
     _l1_kernel(y, w, light_table(lights), int(max_iter), float(tol), float(delta),
                float(outlier_threshold), x, outliers, iters)
     return TileResult(x, outliers, iters)
@@ -288,7 +289,9 @@ def sbl_tile(y, w, lights, *, lam, sigma_x2: float, max_iter: int, tol: float,
     x = np.zeros((m, 3))
     outliers = np.zeros(y.shape, np.bool_)
     iters = np.zeros(m, np.int64)
-    lam_obs = np.ascontiguousarray(np.broadcast_to(np.asarray(lam, dtype=np.float64), y.shape))
+    # writable: a read-only view (broadcast_to) would make numba compile a second version
+    lam_obs = np.require(np.broadcast_to(np.asarray(lam, dtype=np.float64), y.shape), None, "CW")
+    y, w = np.require(y, np.float64, "CW"), np.require(w, np.float64, "CW")
     _sbl_kernel(y, w, light_table(lights), lam_obs, 1.0 / float(sigma_x2),
                 int(max_iter), float(tol), float(gamma_floor), float(gamma_start),
                 float(outlier_threshold), x, outliers, iters)

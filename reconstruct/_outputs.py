@@ -1,7 +1,8 @@
 """Result files of a reconstruction, written band by band: normal and albedo maps, pictures.
 
 Files (see ``docs/datasets.md``): ``normals.npy``, ``normal.png``, ``albedo.npy``, ``albedo.png``,
-``corruption.png`` and, when lights were refined, ``light_directions.txt`` /
+(colour frames: ``albedo.npy`` (H, W, 3) linear RGB, ``albedo.png`` sRGB and ``albedo.exr``;
+:mod:`._colour`), ``corruption.png`` and, when lights were refined, ``light_directions.txt`` /
 ``light_intensities.txt``. :mod:`ps_lab.reconstruct.pipeline` owns the flow and writes
 ``metrics.json`` from the summary :meth:`_OutputWriter.finish` returns.
 """
@@ -19,6 +20,7 @@ from ps_lab.errors import DatasetError, OutputError
 from ps_lab.io.files import allocate_npy, write_npy_rows
 from ps_lab.io.lights import write_light_table
 from ps_lab.reconstruct._bands import reduce_solution
+from ps_lab.reconstruct._colour import colour_albedo_picture, write_albedo_exr
 from ps_lab.reconstruct.metrics import angular_errors_deg
 
 # Angular errors are summarised from a histogram of this bin width (degrees): median and p90 are
@@ -162,13 +164,17 @@ def _iteration_statistics(counts: np.ndarray) -> dict[str, float]:
 class _OutputWriter:
     """Result files written band by band: memory-mapped ``.npy`` rows and 8-bit pictures."""
 
-    def __init__(self, folder: Path, mask: np.ndarray, truth, n_lights: int) -> None:
+    def __init__(
+        self, folder: Path, mask: np.ndarray, truth, n_lights: int, colours: int = 0
+    ) -> None:
         self.folder = folder
         self.mask = mask
         self.truth = truth
+        self.colours = int(colours)
         height, width = mask.shape
         self.offsets = {}
-        for name, shape in (("normals", (height, width, 3)), ("albedo", (height, width))):
+        albedo_shape = (height, width, self.colours) if self.colours else (height, width)
+        for name, shape in (("normals", (height, width, 3)), ("albedo", albedo_shape)):
             # Reserved on disk first: a full disk is an error line here, not SIGBUS later.
             offset = allocate_npy(folder / f"{name}.npy", shape, np.float32)
             self.offsets[name] = (offset, shape[1:])
@@ -200,8 +206,12 @@ class _OutputWriter:
         height, width = inside.shape
         normals = np.zeros((height, width, 3), np.float32)
         normals[inside] = result.normals
-        albedo = np.zeros((height, width), np.float32)
-        albedo[inside] = result.albedo
+        if self.colours and result.colour_albedo is not None:
+            albedo = np.zeros((height, width, self.colours), np.float32)
+            albedo[inside] = result.colour_albedo
+        else:
+            albedo = np.zeros((height, width), np.float32)
+            albedo[inside] = result.albedo
         corruption = np.zeros((height, width), np.float32)
         corruption[inside] = result.corruption
         solved_map = np.zeros((height, width), bool)
@@ -210,7 +220,9 @@ class _OutputWriter:
         self._write_rows("albedo", band.row_start, albedo)
         self.normal_png[rows] = normal_picture(normals, solved_map)
         self.corruption_png[rows] = corruption_picture(corruption)
-        self.albedo_values[band.pixel_start : band.pixel_start + band.pixel_count] = albedo[inside]
+        # grey: the values; colour: the brightest channel (the picture's one scale)
+        values = albedo[inside] if albedo.ndim == 2 else albedo[inside].max(axis=-1)
+        self.albedo_values[band.pixel_start : band.pixel_start + band.pixel_count] = values
         counts = result.iteration_counts
         if counts.size > self.iterations.size:
             counts = counts.copy()
@@ -238,13 +250,19 @@ class _OutputWriter:
         self.normal_png = None
         write_png(folder / "corruption.png", self.corruption_png)
         self.corruption_png = None
-        albedo_png = np.zeros(mask.shape, np.uint8)
         values = self.albedo_values
         top = float(np.percentile(values, 99)) if values.size else 0.0
-        if np.isfinite(top) and top > 0:
-            albedo_png[mask] = np.clip(np.rint(values / top * 255.0), 0, 255).astype(np.uint8)
-        write_png(folder / "albedo.png", albedo_png)
-        del albedo_png
+        if self.colours:
+            albedo = np.load(folder / "albedo.npy", mmap_mode="r")
+            write_png(folder / "albedo.png", colour_albedo_picture(albedo, mask, top))
+            write_albedo_exr(folder / "albedo.exr", albedo)
+            del albedo
+        else:
+            albedo_png = np.zeros(mask.shape, np.uint8)
+            if np.isfinite(top) and top > 0:
+                albedo_png[mask] = np.clip(np.rint(values / top * 255.0), 0, 255).astype(np.uint8)
+            write_png(folder / "albedo.png", albedo_png)
+            del albedo_png
         if lights is not None:
             write_light_table(folder / "light_directions.txt", lights)
         if intensities is not None:
@@ -263,6 +281,11 @@ class _OutputWriter:
             "valid_observation_share": self.valid_count / max(self.observation_count, 1),
             "outlier_share": self.outlier_count / max(self.valid_count, 1),
             "unsolved_pixels": pixels - self.solved_count,
+            "albedo": {
+                "channels": "rgb" if self.colours else "grey",
+                "definition": "Lambertian-equivalent reflectance per channel, linear, each "
+                "channel divided by its light intensity" if self.colours else "solver",
+            },
         }
         if self.truth is not None:
             metrics["angular_error_deg"] = self.errors.summary()

@@ -22,7 +22,7 @@ import numpy as np
 
 from ps_lab.io.bands import ObservationStore
 from ps_lab.io.dataset import DatasetHeader
-from ps_lab.reconstruct._bands import BandResult
+from ps_lab.reconstruct._bands import BandResult, band_colour_albedo, reduce_solution
 from ps_lab.reconstruct._outputs import _OutputWriter
 from ps_lab.reconstruct._refine import fit_lights
 from ps_lab.reconstruct._shadows import black_threshold
@@ -221,7 +221,13 @@ def solve_near_bands(
             params.update(solution.params)
             normals[r, c] = solution.normals
             if final:
-                writer.add(band, solution, valid)
+                reduced = reduce_solution(band.index, solution, valid)
+                colour = store.read_colour(band)
+                if colour is not None:
+                    reduced.colour_albedo = band_colour_albedo(
+                        reduced, solution, valid, colour, vectors.transpose(1, 0, 2)
+                    )
+                writer.add(band, reduced)
         return normals
 
     def sample_solve(observations, valid, vectors):
@@ -386,6 +392,7 @@ def _solve_pass(
         if writer is not None:
             writer.add(band, band_result)
             band_result.normals = band_result.albedo = band_result.corruption = None
+            band_result.colour_albedo = None
         done[band.index] = band_result
         log.info(
             "%s: band %d/%d done (%d pixels, %.1f s since the pass began)",

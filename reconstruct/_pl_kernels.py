@@ -664,17 +664,18 @@ def pl_tile(y, w, lights, *, segments: int, lam, sigma_x2: float = 1e6, max_iter
     lights = np.asarray(lights, dtype=np.float64)
     per_pixel = lights.ndim == 3
     lights = np.ascontiguousarray(lights if per_pixel else lights[None])
-    lam_obs = np.ascontiguousarray(np.broadcast_to(np.asarray(lam, dtype=np.float64), (m, n)))
-    lam_pl = lam_obs if lam_pl is None else np.ascontiguousarray(
-        np.broadcast_to(np.asarray(lam_pl, dtype=np.float64), (m, n)))
+    # writable: a read-only view (broadcast_to) would make numba compile a second version
+    lam_obs = np.require(np.broadcast_to(np.asarray(lam, dtype=np.float64), (m, n)), None, "CW")
+    lam_pl = lam_obs if lam_pl is None else np.require(
+        np.broadcast_to(np.asarray(lam_pl, dtype=np.float64), (m, n)), None, "CW")
     gate = choose and lam_test is not None
     lam_t = (np.require(np.broadcast_to(np.asarray(lam_test, dtype=np.float64), (m, n)), None, "CW")
-             if gate else np.ones((1, 1)))  # writable, as lam (one compiled version)
+             if gate else np.ones((1, 1)))
     q_table = chi2_quantiles(n, false_alarm) if gate else np.zeros(1)
     if sbl_fit is not None:  # stage "pl": SBL's fit of the "sbl" stage, updated in place
         x, outliers, iters, segs = (np.array(sbl_fit.x), np.array(sbl_fit.outliers),
                                     np.array(sbl_fit.iterations), np.array(sbl_fit.segments))
-        v_io = np.ascontiguousarray(sbl_fit.sbl_weights)
+        v_io = np.require(sbl_fit.sbl_weights, np.float64, "CW")
     else:
         x = np.zeros((m, 3))
         outliers = np.zeros((m, n), np.bool_)

@@ -308,13 +308,16 @@ class DaskBands:
         in_memory: bool,
         sample_pixels: int,
         progress: Callable[[int], None],
+        colours: int = 0,
     ) -> ObservationStore:
         """Pass 1 as tasks: workers stage groups of lights into a file in ``folder``.
 
         ``in_memory`` is ignored: the workers need a file.
         """
         n = len(header.names)
-        store = ObservationStore(bands, n, mask, folder=folder, sample_pixels=sample_pixels)
+        store = ObservationStore(
+            bands, n, mask, folder=folder, sample_pixels=sample_pixels, colours=colours
+        )
         try:
             per_task = 1
             if header.plan.dark_files:  # each task averages the dark frame again
@@ -331,13 +334,15 @@ class DaskBands:
                     channel=channel,
                     shadow_threshold=shadow_threshold,
                     sample_pixels=sample_pixels,
+                    colours=colours,
                     key=f"ps-lab-stage-{self.token}-{lights[0]}",
                 )
                 for lights in (list(range(a, min(a + per_task, n))) for a in range(0, n, per_task))
             ]
-            for lights, observations, valid in gather(self.client, futures):
+            for lights, observations, valid, colour in gather(self.client, futures):
                 store.sample_observations[lights] = observations
                 store.sample_valid[lights] = valid
+                store.sample_colour[lights] = colour
                 progress(len(lights))
         except BaseException:
             store.close()
@@ -373,6 +378,7 @@ class DaskBands:
                 final=final,
                 with_truth=truth is not None,
                 black=black,
+                colours=store.colours,
                 key=f"ps-lab-band-{self.token}-{self.passes}-{band.index}",
             )
             for band in store.bands
@@ -403,22 +409,24 @@ def worker_mask(header: DatasetHeader) -> np.ndarray:
     return mask
 
 
-def _stage_task(header, bands, lights, path, **kwargs) -> tuple[list[int], np.ndarray, np.ndarray]:
-    observations, valid = stage_lights(
+def _stage_task(header, bands, lights, path, **kwargs) -> tuple[list[int], np.ndarray, ...]:
+    observations, valid, colour = stage_lights(
         header, worker_mask(header), bands, lights, Path(path), **kwargs
     )
-    return lights, observations, valid
+    return lights, observations, valid, colour
 
 
 def _solve_task(
-    header, path, bands, index, vectors, *, method, parameters, final, with_truth, black=None
+    header, path, bands, index, vectors, *, method, parameters, final, with_truth, black=None,
+    colours=0,
 ) -> BandResult:
     band = bands[index]
     mask = worker_mask(header)
     with ObservationStore(
-        bands, len(header.names), mask, sample_pixels=0, path=Path(path)
+        bands, len(header.names), mask, sample_pixels=0, path=Path(path), colours=colours
     ) as store:
         observations, valid = store.read(band)
+        colour = store.read_colour(band) if final else None
     truth = open_normal_gt(header.root, mask.shape) if with_truth else None
     return solve_band(
         observations,
@@ -431,4 +439,5 @@ def _solve_task(
         final=final,
         truth_rows=None if truth is None else band_truth(truth, mask, band),
         black=black,
+        colour=colour,
     )

@@ -26,11 +26,12 @@ import numpy as np
 from scipy import ndimage
 
 from ps_lab.geometry import Camera, near_light_vectors, scene_points
+from ps_lab.io.led_model import FlatField
 
 from . import _near_kernels
 from ._linalg import inverse6
 from ._near_refine import fit_near_intensities
-from ._solution import Solution, SolverInputError
+from ._solution import ALBEDO_DEFINITION, Solution, SolverInputError, _albedo_rows
 from ._solve import (
     DEFAULT_TILE_SIZE,
     LAMBDA_FLOOR,
@@ -99,6 +100,11 @@ class NearLights:
         The perspective camera that sees them (:class:`ps_lab.geometry.Camera`); None:
         orthographic. Each pixel's point then lies on its own ray (:meth:`points`), and depth is
         integrated under perspective.
+    axes : ndarray of shape (n, 3) or None
+        Each LED's optical axis for the ``cos^mu`` beam (None: toward the origin).
+    flat_field : FlatField or None
+        Per-LED gains measured on a flat board (:class:`ps_lab.io.led_model.FlatField`),
+        multiplied onto the light vectors (the LED model ``flat-field``).
     """
 
     positions: np.ndarray
@@ -106,6 +112,8 @@ class NearLights:
     anisotropy: np.ndarray = field(default_factory=lambda: np.zeros(0))
     intensities: np.ndarray = field(default_factory=lambda: np.zeros(0))
     camera: Camera | None = None
+    axes: np.ndarray | None = None
+    flat_field: FlatField | None = None
 
     def points(self, shape, rows, cols, heights) -> np.ndarray:
         """Scene-frame points (m, 3) of pixels at heights above the spheres' plane."""
@@ -115,7 +123,11 @@ class NearLights:
         """Light vectors (m, n, 3) at scene-frame points (m, 3), the intensity factors applied."""
         mu = self.anisotropy if np.size(self.anisotropy) else None
         e = self.intensities if np.size(self.intensities) else None
-        return near_light_vectors(points, self.positions, self.directions, e, anisotropy=mu)
+        vectors = near_light_vectors(points, self.positions, self.directions, e, anisotropy=mu,
+                                     axes=self.axes)
+        if self.flat_field is not None:
+            vectors *= self.flat_field.at(points)[:, :, None]
+        return vectors
 
 
 # --- per-pixel-light solves -------------------------------------------------------------------
@@ -253,8 +265,12 @@ def solve_near(
         x = res.x * scale[:, None]
         length = np.linalg.norm(x, axis=1)
         good = ok & (length > 0) & np.isfinite(length)
-        normals[a:b] = np.where(good[:, None], x / np.where(good, length, 1.0)[:, None], 0.0)
-        albedo[a:b] = np.where(good, length, 0.0)
+        unit = np.where(good[:, None], x / np.where(good, length, 1.0)[:, None], 0.0)
+        normals[a:b] = unit
+        # one albedo for every method: the Lambertian-equivalent reflectance on the inliers
+        rho = _albedo_rows(np.einsum("pk,pnk->pn", unit, lights), (w > 0) & ~res.outliers,
+                           y) * scale
+        albedo[a:b] = np.where(good, np.where(np.isnan(rho), length, rho), 0.0)
         outliers[:, a:b] = (res.outliers & good[:, None]).T
         iterations[a:b] = np.where(ok, res.iterations, 0)
         return b - a
@@ -270,6 +286,7 @@ def solve_near(
             progress(count)
     if workers > 1 and len(starts) > 1:
         pool.shutdown()
+    used["albedo"] = ALBEDO_DEFINITION
     return Solution(normals, albedo, outliers, iterations, used)
 
 

@@ -15,6 +15,7 @@ from dataclasses import dataclass
 from typing import Any
 
 from ps_lab.errors import OutputError
+from ps_lab.io.appearance import APPEARANCE_MODELS
 from ps_lab.io.encoding import ENCODINGS
 from ps_lab.io.normal_maps import CONVENTIONS
 from ps_lab.reconstruct._solution import SolverInputError
@@ -23,6 +24,7 @@ from ps_lab.reconstruct.depth import DepthOptions
 __all__ = [
     "BYTES_PER_OBSERVATION",
     "BYTES_PER_PIXEL",
+    "COLOUR_BYTES_PER_OBSERVATION",
     "DEFAULT_MEMORY_BUDGET",
     "IN_MEMORY_SHARE",
     "LIGHT_MODELS",
@@ -38,6 +40,9 @@ DEFAULT_MEMORY_BUDGET = 1 << 30
 # Bytes held per observation of a band while it is solved: the float32 observations, their
 # validity, the solver's usable and outlier masks, and headroom for the refinement sums.
 BYTES_PER_OBSERVATION = 12
+# Colour frames: bytes per observation of a band for its three colour channels (float32), staged
+# beside the solve channel and read for the colour albedo (reconstruct/_colour.py).
+COLOUR_BYTES_PER_OBSERVATION = 12
 # Bytes per pixel of a band: the solver's per-pixel results and the band's output images.
 BYTES_PER_PIXEL = 200
 # A store at most this share of the budget stays in memory; larger ones go to a temporary file.
@@ -45,6 +50,7 @@ IN_MEMORY_SHARE = 0.25
 _SIZE_UNITS = {"": 1 << 20, "k": 1 << 10, "m": 1 << 20, "g": 1 << 30, "t": 1 << 40}
 STAGING = ("auto", "memory", "file")
 LIGHT_MODELS = ("auto", "near", "directional")
+LED_MODELS = ("auto", "isotropic", "beam", "flat-field")
 # Per-pixel light vectors (float64 x 3) held beside a band's observations in near-light mode.
 NEAR_BYTES_PER_OBSERVATION = 24
 
@@ -166,6 +172,15 @@ class ReconstructOptions:
         object on the spheres' table, minus their radius). None: the dataset's
         ``object_outline.txt`` (``ps-lab calibrate --object``), else found from the shading
         (:func:`ps_lab.reconstruct.near.near_light_rounds`).
+    appearance : {"ps", "ptm", "hsh2", "hsh3", "rbf", "none"}
+        The appearance model fitted per pixel after the normals (``appearance.npz``;
+        :mod:`ps_lab.reconstruct.appearance`, docs/appearance.md); ``none``: no fit.
+    led_model : {"auto", "isotropic", "beam", "flat-field"}
+        Near lights: the LEDs' emission. ``isotropic`` (the intensities at the origin and
+        ``light_anisotropy.txt``'s exponents about the direction to the origin), ``beam``
+        (``light_axes.txt`` and ``light_anisotropy.txt``: each LED's fitted axis and exponent),
+        ``flat-field`` (``flat_field.npz``: gains measured on a board); ``auto``: flat-field,
+        else beam, else isotropic, by the files present (``ps-lab calibrate --flat-field``).
     """
 
     method: str = "auto"
@@ -188,8 +203,15 @@ class ReconstructOptions:
     encoding: str = "auto"
     normal_map: str = "opengl"
     object_outline: float | None = None
+    appearance: str = "ps"
+    led_model: str = "auto"
 
     def __post_init__(self) -> None:
+        if self.appearance not in APPEARANCE_MODELS:
+            raise OutputError(
+                f"--appearance must be one of {', '.join(APPEARANCE_MODELS)}, "
+                f"got {self.appearance!r}"
+            )
         if self.encoding not in ENCODINGS:
             raise OutputError(
                 f"--encoding must be one of {', '.join(ENCODINGS)}, got {self.encoding!r}"
@@ -207,6 +229,9 @@ class ReconstructOptions:
             raise OutputError(f"object outline height {self.object_outline} is not finite")
         if self.staging not in STAGING:
             raise OutputError(f"staging must be auto, memory or file, got {self.staging!r}")
+        if self.led_model not in LED_MODELS:
+            raise OutputError(f"--led-model must be one of {', '.join(LED_MODELS)}, "
+                              f"got {self.led_model!r}")
         if self.lights not in LIGHT_MODELS:
             raise OutputError(f"lights must be auto, near or directional, got {self.lights!r}")
         budget = self.memory_budget

@@ -42,7 +42,9 @@ from ps_lab.io.files import json_safe, staged_folder
 from ps_lab.io.result import METRICS, RESULT_FORMAT, is_result_folder
 from ps_lab.io.truth import open_normal_gt
 from ps_lab.reconstruct._bands import LocalBands
+from ps_lab.reconstruct._colour import frame_channels, grey_albedo
 from ps_lab.reconstruct._warm_up import start_warm_up
+from ps_lab.reconstruct.appearance import fit_appearance_bands, solved_lights as _solved_lights
 from ps_lab.reconstruct._outputs import (
     ERROR_BIN_DEG,
     _Histogram,
@@ -69,10 +71,12 @@ from ps_lab.reconstruct.depth import (
     write_normal_maps,
 )
 from ps_lab.reconstruct.integrate import IntegrationInputError
+from ps_lab.io.led_model import FLAT_FIELD, LIGHT_AXES, read_flat_field, read_light_axes
 from ps_lab.reconstruct.near import NearLights
 from ps_lab.reconstruct.options import (
     BYTES_PER_OBSERVATION,
     BYTES_PER_PIXEL,
+    COLOUR_BYTES_PER_OBSERVATION,
     DEFAULT_MEMORY_BUDGET,
     IN_MEMORY_SHARE,
     NEAR_BYTES_PER_OBSERVATION,
@@ -215,7 +219,9 @@ def reconstruct_to_folder(
         timings["read_seconds"] = time.perf_counter() - started
         warm_up.join()
         with store:
-            writer = _OutputWriter(stage, store.mask, source.truth, store.n_lights)
+            writer = _OutputWriter(
+                stage, store.mask, source.truth, store.n_lights, colours=store.colours
+            )
             black = black_level(store, source.header, options)
             if source.near is None:
                 solved = solve_bands(store, source, options, writer, bars, executor, black)
@@ -225,6 +231,10 @@ def reconstruct_to_folder(
             timings["solve_seconds"] = solved.seconds
             written = time.perf_counter()
             metrics = _write_results(writer, stage, source, options, store, solved, timings)
+            metrics["appearance"] = fit_appearance_bands(
+                store, stage, options.appearance, *_solved_lights(source, solved),
+                progress_bars=bars,
+            )
             timings["write_seconds"] = time.perf_counter() - written
             metrics["timings"] = dict(timings)
             _write_surface(stage, options, metrics, bars)
@@ -272,7 +282,30 @@ def _near_lights(header: DatasetHeader, options: ReconstructOptions) -> NearLigh
             header.plan.camera.fx, header.plan.camera.fy, header.plan.camera.cx,
             header.plan.camera.cy,
         )
-    return NearLights(positions, header.light_directions, anisotropy, camera=camera)
+    axes, flat = _led_model(header.root, options.led_model, n)
+    if flat is not None or options.led_model == "isotropic":
+        anisotropy = np.zeros(n)  # the board's gains carry the beam; or no beam asked for
+    return NearLights(positions, header.light_directions, anisotropy, camera=camera, axes=axes,
+                      flat_field=flat)
+
+
+def _led_model(root, model: str, n: int):
+    """The LED axes and flat-field ``--led-model`` asks for (files of ``calibrate --flat-field``)."""
+    axes_file, flat_file = root / LIGHT_AXES, root / FLAT_FIELD
+    if model == "auto":
+        model = ("flat-field" if flat_file.is_file() else "beam" if axes_file.is_file()
+                 else "isotropic")
+    if model == "flat-field":
+        if not flat_file.is_file():
+            raise DatasetError(f"{root}: --led-model flat-field needs {FLAT_FIELD} "
+                               "(ps-lab calibrate --flat-field BOARD_FOLDER)")
+        return None, read_flat_field(flat_file, n)
+    if model == "beam":
+        if not axes_file.is_file():
+            raise DatasetError(f"{root}: --led-model beam needs {LIGHT_AXES} "
+                               "(ps-lab calibrate --flat-field BOARD_FOLDER)")
+        return read_light_axes(axes_file, n), None
+    return None, None
 
 
 @contextmanager
@@ -300,12 +333,15 @@ def _stage(
     n = len(header.names)
     budget = options.memory_budget
     extra = 0 if source.near is None else NEAR_BYTES_PER_OBSERVATION // BYTES_PER_OBSERVATION
+    # colour frames: the three channels are staged beside the solve channel (colour albedo)
+    colours = 3 if frame_channels(header) == 3 else 0
+    extra += COLOUR_BYTES_PER_OBSERVATION // BYTES_PER_OBSERVATION if colours else 0
     per_light = n * (1 + extra)
     pixels = int(mask.sum())
     keep_plan = options.method == "rpca" or options.refine_lights > 0
     limit = executor.band_pixels(band_pixels(budget, per_light), pixels, keep_plan)
     bands = plan_bands(mask, limit)
-    store_bytes = n * (4 * pixels + (pixels + 7 * len(bands)) // 8)
+    store_bytes = n * ((4 + 4 * colours) * pixels + (pixels + 7 * len(bands)) // 8)
     small = store_bytes <= IN_MEMORY_SHARE * budget
     in_memory = options.staging == "memory" or (options.staging == "auto" and small)
     with bars(n, "reading images") as advance:
@@ -319,6 +355,7 @@ def _stage(
             in_memory=in_memory,
             sample_pixels=_default(estimate_noise, "max_pixels", 20000),
             progress=advance,
+            colours=colours,
         )
     log.info(
         "read %d images (%dx%d, %d mask pixels) in %.1f s: %d bands of at most %d pixels, "
@@ -378,6 +415,10 @@ def _write_results(
         metrics["camera"] = camera_record(camera, Path(camera.source))
     if solved.near is not None:
         metrics["near"] = solved.near.record()
+        lights = source.near
+        metrics["near"]["led_model"] = ("flat-field" if lights.flat_field is not None else "beam"
+                                        if lights.axes is not None and np.any(lights.anisotropy)
+                                        else "isotropic")
     metrics["streaming"] = {
         "bands": len(store.bands),
         "max_band_pixels": max(band.pixel_count for band in store.bands),
@@ -402,7 +443,7 @@ def _write_surface(
         write_normal_maps(stage, normals, mask, options.normal_map)
         metrics["normal_maps"] = {"convention": options.normal_map}
         if options.depth is not None:
-            albedo = np.load(stage / "albedo.npy")
+            albedo = grey_albedo(np.load(stage / "albedo.npy"), options.channel)
             try:
                 depth = write_depth(
                     stage, normals, albedo,

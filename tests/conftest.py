@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import time
 from pathlib import Path
 
 import numpy as np
@@ -35,6 +36,28 @@ def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item
                 item.add_marker(skip_device)
         if "slow" in item.keywords and not run_slow:
             item.add_marker(skip_slow)
+
+
+@pytest.hookimpl(trylast=True)
+def pytest_collection_finish(session: pytest.Session) -> None:
+    # Compile (or load) every numba kernel for this CPU target (NUMBA_CPU_NAME included) before
+    # the first test, into the cache the tests' subprocesses read: with an empty cache a test
+    # would otherwise pay a minute or more of compiling against its timeout.
+    if session.config.option.collectonly or not session.items:
+        return
+    from ps_lab.reconstruct._warm_up import cache_folder, warm_all
+
+    reporter = session.config.pluginmanager.get_plugin("terminalreporter")
+
+    def say(line: str) -> None:
+        if reporter is not None:
+            reporter.write_line(line)
+
+    started = time.perf_counter()
+    compiled = warm_all(say)
+    if compiled:
+        say(f"compiled {len(compiled)} numba kernels in {time.perf_counter() - started:.0f} s "
+            f"before the first test (cache: {cache_folder()})")
 
 
 @pytest.fixture

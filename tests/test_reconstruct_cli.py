@@ -145,9 +145,13 @@ def test_colour_channels_and_rerun_replaces(tmp_path):
         assert result.exit_code == 0, result.output
         assert json.loads((out / "metrics.json").read_text())["channel"] == channel
         mask = cv2.imread(str(tmp_path / "colour" / "mask.png"), cv2.IMREAD_UNCHANGED) > 0
-        albedo[channel] = float(np.median(np.load(out / "albedo.npy")[mask]))
-    np.testing.assert_allclose(albedo["r"] / albedo["b"], 0.8 / 0.3, rtol=0.02)
-    np.testing.assert_allclose(albedo["mean"] / albedo["b"], (0.8 + 0.5 + 0.3) / 3 / 0.3, rtol=0.02)
+        # colour frames: albedo.npy is per channel (H, W, 3) whatever channel the normals used
+        colour = np.load(out / "albedo.npy")[mask]
+        assert colour.shape[1] == 3
+        albedo[channel] = np.median(colour, axis=0)
+    for channel in ("r", "b", "mean"):
+        np.testing.assert_allclose(albedo[channel][0] / albedo[channel][2], 0.8 / 0.3, rtol=0.02)
+        np.testing.assert_allclose(albedo[channel][1] / albedo[channel][2], 0.5 / 0.3, rtol=0.02)
 
 
 def test_refuses_to_replace_a_folder_that_is_not_a_result(tmp_path):

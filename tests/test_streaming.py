@@ -297,7 +297,7 @@ def test_staging_removed_after_success(capture, tmp_path, monkeypatch):
     assert listing(tmp_path / "results") == {
         "out", *(f"out/{name}" for name in
                  ("normals.npy", "albedo.npy", "normal.png", "albedo.png", "corruption.png",
-                  "metrics.json", "normal16.png", "normals.exr"))  # fmt: skip
+                  "metrics.json", "normal16.png", "normals.exr", "appearance.npz"))  # fmt: skip
     }
     assert not list((tmp_path / "sys-tmp").iterdir())
 

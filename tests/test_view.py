@@ -14,6 +14,7 @@ from __future__ import annotations
 import json
 import os
 import re
+import shutil
 import signal
 import socket
 import subprocess
@@ -21,6 +22,7 @@ import sys
 import time
 from pathlib import Path
 
+import cv2
 import numpy as np
 import pytest
 from typer.testing import CliRunner
@@ -116,6 +118,32 @@ def test_pyramid_levels_average_and_tiles_round_trip():
     assert levels.tile(0, 3, 0) is None and levels.tile(3, 0, 0) is None
 
 
+def test_appearance_tiles_follow_the_layer_pyramid_and_rbf_gets_a_note():
+    # hsh3 coefficients on a 1100 x 700 plane: the same levels as the layers, a tile's planes
+    # are the level's coefficients term-major (3k + c) over the albedo scale; rbf is not tiled.
+    from ps_lab.io.appearance import Appearance
+    from ps_lab.view.appearance_tiles import appearance_entry, appearance_tiles
+
+    h, w = 700, 1100
+    mask = np.ones((h, w), bool)
+    rng = np.random.default_rng(3)
+    coefficients = rng.uniform(-1, 1, size=(h, w, 3, 9)).astype(np.float32)
+    tiles = appearance_tiles(Appearance("hsh3", coefficients, {"K": 9}), mask, 2.0)
+    assert [level.shape[:2] for level in tiles.levels] == [(700, 1100), (350, 550), (175, 275)]
+    assert tiles.planes == 7  # 27 coefficients, four to a plane
+    data = np.frombuffer(tiles.tile(0, 2, 1), "<f2").reshape(7, h - TILE, w - 2 * TILE, 4)
+    flat = data.transpose(1, 2, 0, 3).reshape(h - TILE, w - 2 * TILE, 28)[..., :27]
+    expected = coefficients[TILE:, 2 * TILE :].transpose(0, 1, 3, 2).reshape(*flat.shape[:2], 27)
+    np.testing.assert_array_equal(flat, (expected / 2.0).astype(np.float16))
+    block = coefficients[:2, :2].mean(axis=(0, 1)).T.reshape(27) / 2.0
+    np.testing.assert_allclose(tiles.levels[1][0, 0].astype(float), block, atol=2e-3)
+    assert tiles.tile(0, 3, 0) is None and tiles.tile(3, 0, 0) is None
+    rbf = Appearance("rbf", coefficients[..., :4], {"K": 4, "sigma": 0.5})
+    assert appearance_tiles(rbf, mask, 1.0) is None
+    entry = appearance_entry(rbf, None)
+    assert entry["planes"] is None and "Lambertian" in entry["note"]
+
+
 def test_vertex_normals_of_a_tilted_plane_and_decimation():
     ys, xs = np.mgrid[0:60, 0:60].astype(np.float64)
     z = 0.5 * xs - 0.25 * ys
@@ -206,8 +234,15 @@ def expected_shading(result: Path, light, exposure: float = 1.0, use_albedo: boo
     norm = np.linalg.norm(normals, axis=2)
     mask = norm > 0.5
     unit = normals / np.where(mask, norm, 1.0)[..., None]
-    linear = np.clip(np.maximum(unit @ np.asarray(light), 0) * albedo * exposure, 0, 1)
+    shade = np.maximum(unit @ np.asarray(light), 0)
+    colour = np.load(result / "albedo.npy")
+    if use_albedo and colour.ndim == 3:  # colour results: per channel, then the screenshot's mean
+        colour = (colour / view.albedo_scale).astype(np.float16).astype(np.float64)
+        linear = np.clip(shade[..., None] * colour * exposure, 0, 1)
+    else:
+        linear = np.clip(shade * albedo * exposure, 0, 1)
     srgb = np.where(linear <= 0.0031308, linear * 12.92, 1.055 * linear ** (1 / 2.4) - 0.055)
+    srgb = srgb.mean(axis=-1) if srgb.ndim == 3 else srgb
     return srgb * 255.0, mask
 
 
@@ -234,6 +269,12 @@ def assert_shown(browser, panel: int, expected: np.ndarray, mask: np.ndarray) ->
     shown = picture[rows][:, cols].astype(np.float64).mean(axis=2)
     difference = np.abs(shown - expected)[interior(mask)]
     assert difference.max() <= 2.0, (difference.mean(), difference.max())
+
+
+def lambertian(browser) -> None:
+    """Relight Lambertian (results reconstructed by default carry an appearance fit)."""
+    browser.evaluate("psView.ready")
+    browser.evaluate("psView.set({appearance: false})")
 
 
 def settle(browser) -> None:
@@ -287,6 +328,7 @@ def test_relight_in_chromium_matches_n_dot_l_and_3d_shows_the_mesh(browser, sim_
     server = ViewServer(sim_result)
     try:
         browser.open(server.url)
+        lambertian(browser)
         assert browser.evaluate("psView.ready") is True
         assert browser.evaluate("psView.stats.glError") == 0
         assert browser.evaluate("!!document.createElement('canvas').getContext('webgl2')")
@@ -346,6 +388,7 @@ def test_compare_a_diligent_result_beside_the_simulated_one(browser, sim_result,
     server = ViewServer(diligent_result, sim_result)
     try:
         browser.open(server.url)
+        lambertian(browser)
         assert browser.evaluate("psView.ready") is True
         results = browser.evaluate("psView.results()")
         h, w = np.load(diligent_result / "normals.npy", mmap_mode="r").shape[:2]
@@ -391,8 +434,217 @@ def test_export_opens_from_a_plain_static_server(browser, sim_result, tmp_path):
                 assert time.monotonic() < deadline, "http.server did not start"
                 time.sleep(0.05)
         browser.open(f"http://127.0.0.1:{port}/")
+        lambertian(browser)
         assert browser.evaluate("psView.ready") is True
         check_relight(browser, sim_result)
     finally:
         server.terminate()
         server.wait(timeout=10)
+
+
+# ---- colour (issue 32) -------------------------------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def colour_result(tmp_path_factory) -> Path:
+    """A coloured relief (orange: R > G > B) written as 16-bit PNGs, least squares."""
+    from ps_lab import render
+
+    root = tmp_path_factory.mktemp("view-colour")
+    data, out = root / "orange", root / "orange-ls"
+    data.mkdir()
+    rng = np.random.default_rng(4)
+    shape = (64, 80)
+    surface = render.relief_surface(shape, seed=2, albedo=(0.85, 0.45, 0.2))
+    lights = render.random_light_directions(16, rng)
+    images = render.render(surface, lights)
+    scale = 0.9 / float(images.max())
+    for i, image in enumerate(images):
+        counts = np.rint(np.clip(image * scale, 0, 1) * 65535).astype(np.uint16)
+        cv2.imwrite(str(data / f"{i:03d}.png"), np.ascontiguousarray(counts[..., ::-1]))
+    np.savetxt(data / "light_directions.txt", lights)
+    cv2.imwrite(str(data / "mask.png"), surface.mask.astype(np.uint8) * 255)
+    result = runner.invoke(app, ["reconstruct", str(data), "--method", "ls", "--out", str(out)])
+    assert result.exit_code == 0, result.output
+    return out
+
+
+def test_colour_relight_in_chromium_shows_the_albedo_colour(browser, colour_result):
+    view = load_result(colour_result)
+    colour = np.load(colour_result / "albedo.npy").astype(np.float64) / view.albedo_scale
+    colour = colour.astype(np.float16).astype(np.float64)
+    server = ViewServer(colour_result)
+    try:
+        browser.open(server.url)
+        lambertian(browser)
+        assert browser.evaluate("psView.ready") is True
+        entry = browser.evaluate("psView.results()[0]")
+        assert entry["colour"] is True and len(entry["captured_lights"]) == 16
+        # the light disc has a dot (#8ab4f8) at each captured light's direction
+        dots = browser.evaluate(
+            "(() => { const c = document.getElementById('light'), g = c.getContext('2d');"
+            " const w = c.width, r = w / 2 - 4;"
+            " return psView.results()[0].captured_lights.map(([x, y]) =>"
+            " Array.from(g.getImageData(Math.floor(w / 2 + x * r), Math.floor(w / 2 - y * r),"
+            " 1, 1).data)); })()"
+        )
+        blue = [d for d in dots if abs(d[0] - 138) < 40 and abs(d[2] - 248) < 40 and d[3] > 128]
+        assert len(blue) >= 14, dots  # (the current light's dot may cover one or two)
+        browser.evaluate("psView.pixelScale(0, 1)")
+        browser.evaluate("psView.setView({cx: 0.5, cy: 0.5})")
+        light = [0.3, 0.2, float(np.sqrt(1 - 0.13))]
+        browser.evaluate(f"psView.setLight({json.dumps(light)})")
+        settle(browser)
+        normals = view.layers[..., :3].astype(np.float16).astype(np.float64)
+        norm = np.linalg.norm(normals, axis=2)
+        mask = norm > 0.5
+        shade = np.maximum((normals / np.where(mask, norm, 1)[..., None]) @ light, 0)
+        linear = np.clip(shade[..., None] * colour, 0, 1)
+        expected = 255 * np.where(linear <= 0.0031308, linear * 12.92,
+                                  1.055 * linear ** (1 / 2.4) - 0.055)
+        rows, cols, picture = shown_pixels(browser, 0, view.shape)
+        shown = picture[rows][:, cols].astype(np.float64)[..., :3]
+        inner = interior(mask)
+        difference = np.abs(shown - expected)[inner]
+        print("colour relight vs numpy (levels, per channel): mean",
+              difference.mean(axis=0).tolist(), "max", difference.max(axis=0).tolist())
+        assert difference.max() <= 2.0
+        # the three channels differ as the object's colour does (orange: R > G > B)
+        means = shown[inner].mean(axis=0)
+        assert means[0] > means[1] + 20 and means[1] > means[2] + 20, means
+    finally:
+        server.stop()
+
+
+def _with_appearance(result: Path, folder: Path, model: str) -> Path:
+    """A copy of ``result`` with an appearance fit: an HSH 3 fit of its Lambertian renders plus
+    a seeded gloss, or ps terms with seeded coefficients."""
+    from ps_lab.io.appearance import PS_TERMS, Appearance, appearance_basis, write_appearance
+
+    shutil.copytree(result, folder)
+    normals = np.load(result / "normals.npy").astype(np.float64)
+    albedo = np.load(result / "albedo.npy").astype(np.float64)
+    h, w = normals.shape[:2]
+    rng = np.random.default_rng(7)
+    if model == "hsh3":
+        lights = np.loadtxt(json.loads((result / "metrics.json").read_text())["dataset"]
+                            + "/light_directions.txt")
+        shade = np.maximum(normals @ lights.T, 0)  # (H, W, n)
+        gloss = 0.5 * shade ** 8
+        images = albedo[..., None, :] * (shade + gloss)[..., None]  # (H, W, n, 3)
+        basis = appearance_basis("hsh3", lights)  # (n, 9)
+        coefficients = np.einsum("kn,hwnc->hwck", np.linalg.pinv(basis), images)
+        meta = {"basis": "hsh3", "K": 9}
+    else:  # "ps": the default terms (with "ps-vis" a visibility); "ps-all": every kind of term
+        terms = list(PS_TERMS) if model in ("ps", "ps-vis") else [
+            "lambert", "lx", "ly", "lz", "ambient", "lobe:4", "lobex:16", "lobey:16", "hsh:2",
+            "hsh:5",
+        ]
+        k = len(terms)
+        coefficients = rng.uniform(0, 0.15, size=(h, w, 3, k)) * albedo.mean()
+        meta = {"basis": "ps", "K": k, "terms": terms}
+        if model == "ps-vis":  # V = clamp(w·[l, 1], 0, 1): a shadow edge across the object
+            vis = np.zeros((h, w, 4), np.float32)
+            vis[..., 0] = rng.uniform(-1.0, 2.0, (h, w))  # V from 0 to 0.85 under the light
+            vis[..., 3] = 0.5
+            extra = {"visibility": vis}
+            meta["visibility"] = "clip-linear"
+        model = "ps"
+    write_appearance(folder, Appearance(model, coefficients.astype(np.float32), meta,
+                                        extra if meta.get("visibility") else {}))
+    return folder
+
+
+@pytest.mark.parametrize("model", ["hsh3", "ps", "ps-all", "ps-vis"])
+def test_appearance_relight_in_chromium_matches_the_model(browser, colour_result, tmp_path, model):
+    from ps_lab.io.appearance import Appearance, evaluate_appearance, read_appearance
+
+    result = _with_appearance(colour_result, tmp_path / model, model)
+    view = load_result(result)
+    scale = view.albedo_scale
+    fit = read_appearance(result)
+    coefficients = (fit.coefficients / scale).astype(np.float16).astype(np.float32)
+    extra = {name: np.asarray(value).astype(np.float16).astype(np.float32)
+             for name, value in fit.extra.items()}
+    rounded = Appearance(fit.model, coefficients, fit.meta, extra)
+    normals = view.layers[..., :3].astype(np.float16).astype(np.float64)
+    norm = np.linalg.norm(normals, axis=2)
+    mask = norm > 0.5
+    unit = normals / np.where(mask, norm, 1)[..., None]
+    albedo = (np.load(result / "albedo.npy") / scale).astype(np.float16).astype(np.float64)
+    server = ViewServer(result)
+    try:
+        browser.open(server.url)
+        assert browser.evaluate("psView.ready") is True
+        entry = browser.evaluate("psView.results()[0]")
+        assert entry["appearance"]["model"] == fit.model and entry["appearance"]["planes"]
+        browser.evaluate("psView.pixelScale(0, 1)")
+        browser.evaluate("psView.setView({cx: 0.5, cy: 0.5})")
+        light = [-0.35, 0.25, float(np.sqrt(1 - 0.35**2 - 0.25**2))]
+        browser.evaluate(f"psView.setLight({json.dumps(light)})")
+        numbers, pictures = {}, {}
+        for switch in (True, False):
+            browser.evaluate(f"psView.set({{appearance: {json.dumps(switch)}}})")
+            settle(browser)
+            if switch:
+                linear = evaluate_appearance(rounded, np.asarray(light), unit, albedo)
+            else:
+                linear = np.maximum(unit @ light, 0)[..., None] * albedo
+            linear = np.clip(linear.astype(np.float64), 0, 1)
+            expected = 255 * np.where(linear <= 0.0031308, linear * 12.92,
+                                      1.055 * linear ** (1 / 2.4) - 0.055)
+            rows, cols, picture = shown_pixels(browser, 0, view.shape)
+            shown = picture[rows][:, cols].astype(np.float64)[..., :3]
+            inner = interior(mask)
+            difference = np.abs(shown - expected)[inner]
+            numbers[switch] = (float(difference.mean()), float(difference.max()),
+                               float(np.abs(shown - expected)[inner].mean()))
+            assert difference.max() <= 2.0, numbers
+            pictures[switch] = expected[inner]
+        # the model's picture is not the Lambertian one: the switch shows a difference
+        numbers["model_vs_lambertian"] = float(np.abs(pictures[True] - pictures[False]).mean())
+        assert numbers["model_vs_lambertian"] > 3.0, numbers
+        print(f"{model} relight vs numpy (mean, max levels): appearance {numbers[True]}, "
+              f"Lambertian {numbers[False]}, model vs Lambertian {numbers['model_vs_lambertian']}")
+    finally:
+        server.stop()
+
+
+def test_a_relightlab_export_relights_in_chromium(browser, colour_result, tmp_path):
+    """ps-lab view opens RelightLab's web layout (its own export) and relights it as its fit."""
+    from ps_lab.io.appearance import Appearance, evaluate_appearance
+    from ps_lab.io.relightlab import read_relightlab
+    from ps_lab.view.relightlab import load_view_result
+
+    result = _with_appearance(colour_result, tmp_path / "fit", "hsh3")
+    out = tmp_path / "relightlab"
+    done = runner.invoke(app, ["view", str(result), "--export", str(out), "--format", "relight"])
+    assert done.exit_code == 0, done.output
+    view = load_view_result(out)
+    fit, _ = read_relightlab(out)
+    rounded = Appearance("hsh3", (fit.coefficients / view.albedo_scale).astype(np.float16)
+                         .astype(np.float32), fit.meta)
+    mask = np.linalg.norm(view.layers[..., :3], axis=2) > 0.5
+    server = ViewServer(out)
+    try:
+        browser.open(server.url)
+        assert browser.evaluate("psView.ready") is True
+        entry = browser.evaluate("psView.results()[0]")
+        assert entry["appearance"]["model"] == "hsh3" and len(entry["captured_lights"]) == 16
+        browser.evaluate("psView.pixelScale(0, 1)")
+        browser.evaluate("psView.setView({cx: 0.5, cy: 0.5})")
+        light = [0.4, -0.2, float(np.sqrt(1 - 0.2))]
+        browser.evaluate(f"psView.setLight({json.dumps(light)})")
+        settle(browser)
+        linear = np.clip(evaluate_appearance(rounded, np.asarray(light), view.layers[..., :3],
+                                             np.zeros(view.shape)).astype(np.float64), 0, 1)
+        expected = 255 * np.where(linear <= 0.0031308, linear * 12.92,
+                                  1.055 * linear ** (1 / 2.4) - 0.055)
+        rows, cols, picture = shown_pixels(browser, 0, view.shape)
+        shown = picture[rows][:, cols].astype(np.float64)[..., :3]
+        difference = np.abs(shown - expected)[interior(mask)]
+        print("RelightLab folder relight vs numpy (levels): mean", float(difference.mean()),
+              "max", float(difference.max()))
+        assert difference.max() <= 2.0
+    finally:
+        server.stop()

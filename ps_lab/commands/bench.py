@@ -11,6 +11,7 @@ import typer
 from ps_lab._cli_util import HELP_SETTINGS, HelpGroup, lab_command, progress_bar
 from ps_lab.bench import paper as bench_paper
 from ps_lab.bench import real as bench_real
+from ps_lab.bench import relight as bench_relight
 from ps_lab.bench import report
 
 MarkdownFlag = Annotated[
@@ -113,6 +114,48 @@ def real(
     typer.echo(bench_real.format_table(rows, markdown=markdown))
     if json_out is not None:
         json_out.write_text(json.dumps(bench_real.results_as_dict(rows), indent=1))
+
+
+@bench_app.command("relight")
+@lab_command
+def relight(
+    folder: Annotated[
+        Path | None,
+        typer.Argument(
+            help="A capture folder, or a folder of them (default: the shared DiLiGenT objects, "
+            "../shared/data/diligent-8bit from the repository root).",
+            show_default=False,
+        ),
+    ] = None,
+    extrapolate: Annotated[
+        bool,
+        typer.Option(
+            "--extrapolate",
+            help="Hold out the lowest eighth of the lights (outside the training range) instead "
+            "of every 8th.",
+        ),
+    ] = False,
+    markdown: MarkdownFlag = False,
+    json_out: JsonFile = None,
+) -> None:
+    """Held-out relighting PSNR and SSIM of every appearance model (every 8th light left out)."""
+    folder = folder if folder is not None else bench_relight.DEFAULT_FOLDER
+    captures = bench_relight.find_captures(folder)
+    if not captures:
+        typer.echo(f"skipped: no capture folders (light directions) under {folder}")
+        return
+    total = len(captures) * len(bench_relight.MODELS)
+    with progress_bar(total, "relighting", enabled=True) as advance:
+        rows = [
+            bench_relight.evaluate_capture(
+                path, progress=lambda label: advance(1, description=label),
+                extrapolate=extrapolate,
+            )
+            for path in captures
+        ]
+    typer.echo(bench_relight.format_table(rows, markdown=markdown))
+    if json_out is not None:
+        json_out.write_text(json.dumps(bench_relight.results_as_dict(rows), indent=1))
 
 
 def register(app: typer.Typer) -> None:

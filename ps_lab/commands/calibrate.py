@@ -17,6 +17,7 @@ from ps_lab.calibration import (
     rig_circles,
     rig_led_intensities,
     rig_object_outline,
+    with_led_model,
     write_calibration,
 )
 from ps_lab.commands.reconstruct import Encoding, EncodingOption
@@ -111,6 +112,25 @@ def calibrate(
             "radiant intensity (one row per light).",
         ),
     ] = None,
+    flat_field: Annotated[
+        Path | None,
+        typer.Option(
+            "--flat-field",
+            metavar="<folder>",
+            help="Frames of a flat matte board under every light (same lights, same order, "
+            "same camera): fits each LED's axis, cos^mu beam and output (light_axes.txt, "
+            "light_anisotropy.txt, light_intensities.txt) and a per-light gain map "
+            "(flat_field.npz); reconstruct --led-model chooses. Needs two chrome spheres.",
+        ),
+    ] = None,
+    board: Annotated[
+        str,
+        typer.Option(
+            metavar="<table|Z>",
+            help="With --flat-field: the board's height, 'table' (on the table the chrome "
+            "spheres rest on) or pixels above the spheres' centres' plane.",
+        ),
+    ] = "table",
     encoding: EncodingOption = Encoding.auto,
     outline_frame: Annotated[
         list[Path] | None,
@@ -170,6 +190,8 @@ def calibrate(
         results.append(result)
         roots.append(frames.root)
     result = combine_probes(results, [str(r) for r in roots])
+    if flat_field is not None:
+        result = _with_board(result, flat_field, board, encoding.value)
     frames_root = roots[0]
     n = len(result.light_directions)
     paths = write_calibration(result, out if out is not None else frames_root)
@@ -202,6 +224,21 @@ def calibrate(
         typer.secho(f"warning: {warning}", fg=typer.colors.YELLOW, err=True)
     for path in paths.values():
         typer.echo(f"wrote {path}")
+
+
+def _with_board(result, folder: Path, board: str, encoding: str):
+    """The calibration with the LED model fitted on ``--flat-field``'s board frames."""
+    height: str | float = board
+    if board != "table":
+        try:
+            height = float(board)
+        except ValueError:
+            raise CalibrationError(f"--board {board}: give 'table' or a height in pixels") from None
+        if not np.isfinite(height):
+            raise CalibrationError(f"--board {board}: must be a finite number")
+    frames = load_frames(folder, encoding)
+    with naming_folder(frames.root):
+        return with_led_model(result, frames.images, height, saturated=frames.saturated)
 
 
 def _near_models(

@@ -31,12 +31,41 @@ class Method(str, Enum):  # noqa: UP042 - typer needs str-valued choices
     rpca = "rpca"
 
 
+class AppearanceModel(str, Enum):  # noqa: UP042
+    ps = "ps"
+    ptm = "ptm"
+    hsh2 = "hsh2"
+    hsh3 = "hsh3"
+    rbf = "rbf"
+    none = "none"
+
+
+AppearanceOption = Annotated[
+    AppearanceModel,
+    typer.Option(
+        case_sensitive=False,
+        help="Appearance model fitted per pixel for relighting (appearance.npz): ps (ps-lab's: "
+        "the normal and albedo plus gloss terms), ptm, hsh2, hsh3, rbf (as RTI tools fit "
+        "them) or none. See docs/appearance.md.",
+    ),
+]
+
+
 class Lights(str, Enum):  # noqa: UP042
     """Light model: LEDs at a finite distance or lights at infinity."""
 
     auto = "auto"
     near = "near"
     directional = "directional"
+
+
+class LedModel(str, Enum):  # noqa: UP042
+    """Near lights: the LEDs' emission model."""
+
+    auto = "auto"
+    isotropic = "isotropic"
+    beam = "beam"
+    flat_field = "flat-field"
 
 
 class Channel(str, Enum):  # noqa: UP042
@@ -196,6 +225,16 @@ def reconstruct(
     fixed_intensities: FixedIntensitiesOption = False,
     memory_budget: MemoryBudgetOption = "1GB",
     lights: LightsOption = Lights.auto,
+    led_model: Annotated[
+        LedModel,
+        typer.Option(
+            case_sensitive=False,
+            help="Near lights: isotropic (1/d^2 and the intensities only), beam (each LED's "
+            "fitted axis and cos^mu exponent, light_axes.txt), flat-field (per-LED gains "
+            "measured on a flat board, flat_field.npz); auto: flat-field, else beam, else "
+            "isotropic, by the files of 'ps-lab calibrate --flat-field'.",
+        ),
+    ] = LedModel.auto,
     scheduler: Annotated[
         str | None,
         typer.Option(
@@ -220,6 +259,7 @@ def reconstruct(
             help="normal16.png / normals.exr y axis: opengl (up) or directx (down).",
         ),
     ] = NormalMap.opengl,
+    appearance: AppearanceOption = AppearanceModel.ps,
 ) -> None:
     """Estimate surface normals and albedo; write normals.npy, normal.png, albedo, metrics.json."""
     out = out if out is not None else dataset / "recon" / method.value
@@ -232,6 +272,7 @@ def reconstruct(
         fixed_intensities=fixed_intensities,
         memory_budget=parse_memory_size(memory_budget),
         lights=lights.value,
+        led_model=led_model.value,
         scheduler=scheduler,
         lam=lam,
         sigma_x2=sigma_x2,
@@ -241,6 +282,7 @@ def reconstruct(
         encoding=encoding.value,
         normal_map=normal_map.value,
         segments=segments,
+        appearance=appearance.value,
     )
     try:
         result = reconstruct_to_folder(dataset, out, options, progress_bars=_terminal_bars)
@@ -276,6 +318,12 @@ def reconstruct(
         typer.echo(line)
     if "depth" in metrics:
         typer.echo(_depth_line(metrics["depth"]))
+    fitted = metrics.get("appearance", {})
+    if fitted.get("model", "none") != "none":
+        typer.echo(
+            f"appearance: {fitted['model']}, {fitted['coefficients_per_pixel']} coefficients "
+            "per pixel (appearance.npz)"
+        )
     typer.echo(f"results: {out}")
 
 

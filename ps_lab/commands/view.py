@@ -6,13 +6,20 @@ import os
 import sys
 import threading
 import webbrowser
+from enum import Enum
 from pathlib import Path
 from typing import Annotated
 
 import typer
 
 from ps_lab._cli_util import EXIT_INTERRUPTED, fail, interrupted_line, lab_command
-from ps_lab.view import ViewSite, export_site, load_result, serve
+from ps_lab.view import ViewSite, export_site, serve
+from ps_lab.view.relightlab import export_relightlab, load_view_result
+
+
+class ExportFormat(str, Enum):  # noqa: UP042 - typer needs str-valued choices
+    site = "site"
+    relight = "relight"
 
 
 @lab_command
@@ -20,7 +27,8 @@ def view(
     results: Annotated[
         list[Path],
         typer.Argument(
-            help="One or more ps-lab reconstruct result folders (two or more: side by side).",
+            help="One or more ps-lab reconstruct result folders, or RelightLab web folders "
+            "(info.json, plane_N.jpg) (two or more: side by side).",
             show_default=False,
         ),
     ],
@@ -41,13 +49,29 @@ def view(
             show_default=False,
         ),
     ] = None,
+    export_format: Annotated[
+        ExportFormat,
+        typer.Option(
+            "--format",
+            case_sensitive=False,
+            help="With --export: site (the viewer as a static folder) or relight "
+            "(RelightLab's web layout of one result's PTM / HSH fit: info.json, plane_N.jpg, "
+            "normals.png, albedo.png; opens in OpenLIME's RTI layer).",
+        ),
+    ] = ExportFormat.site,
 ) -> None:
     """Relight results under a virtual light, see their layers and mesh, compare them.
 
     The server listens on 127.0.0.1 and answers only requests addressed to its own names
     (127.0.0.1, localhost, [::1]); it only reads, and drops a client that stalls for 10 s.
     """
-    site = ViewSite([load_result(result) for result in results])
+    if export_format is ExportFormat.relight:
+        if export is None or len(results) != 1:
+            raise fail("--format relight needs --export DIR and exactly one result")
+        info = export_relightlab(results[0], export)
+        typer.echo(f"RelightLab {info['type']} ({info['nplanes']} planes) written to {export}")
+        return
+    site = ViewSite([load_view_result(result) for result in results])
     if export is not None:
         size = export_site(site, export)
         typer.echo(f"viewer written to {export} ({size / 2**20:.1f} MiB); serve the folder, e.g.")

@@ -90,8 +90,10 @@ class ObservationStore:
     """Masked observations (float32) and their validity (packed bits), stored band by band.
 
     Layout: for each band, the ``(n, P_band)`` float32 observations light after light, then the
-    packed validity bits of each light (``ceil(P_band / 8)`` bytes per light), so that one band's
-    block is read contiguously. The backing is a temporary file, or a bytes buffer in memory when
+    packed validity bits of each light (``ceil(P_band / 8)`` bytes per light) and, with
+    ``colours`` = C > 0, the ``(n, P_band, C)`` float32 colour observations (each channel divided
+    by the light's intensity for it; :meth:`read_colour`), so that one band's block is read
+    contiguously. The backing is a temporary file, or a bytes buffer in memory when
     the store is small: the code is the same. Use as a context manager or call :meth:`close`,
     which deletes the file.
 
@@ -103,9 +105,13 @@ class ObservationStore:
     mask : ndarray of shape (H, W), bool
     path : Path or None
         The backing file (None in memory).
+    colours : int
+        Colour channels staged beside the solve channel (0: none).
     sample_observations : ndarray of shape (n, m), float32
         Observations of ``m`` evenly spaced mask pixels (for the solvers' noise estimate).
     sample_valid : ndarray of shape (n, m), bool
+    sample_colour : ndarray of shape (n, m, colours), float32
+        The sample's colour observations (no channels without colour).
 
     """
 
@@ -119,8 +125,11 @@ class ObservationStore:
         in_memory: bool = False,
         sample_pixels: int = 20000,
         path: Path | None = None,
+        colours: int = 0,
     ) -> None:
         self.bands = bands
+        self.colours = int(colours)
+        self._colour_offsets: list[int] = []
         self.n_lights = n_lights
         self.mask = mask
         self.shape = mask.shape
@@ -132,6 +141,8 @@ class ObservationStore:
             offset += n_lights * band.pixel_count * 4
             self._offsets.append((values, offset))
             offset += n_lights * _packed_size(band.pixel_count)
+            self._colour_offsets.append(offset)
+            offset += n_lights * band.pixel_count * self.colours * 4
         self.nbytes = offset
         self.path: Path | None = None
         self._owned = path is None
@@ -167,6 +178,8 @@ class ObservationStore:
         self.sample_index = np.unique(take).astype(np.int64)
         self.sample_observations = np.zeros((n_lights, self.sample_index.size), np.float32)
         self.sample_valid = np.zeros((n_lights, self.sample_index.size), bool)
+        # the sample's colour observations (n, m, C), for fits in colour (appearance models)
+        self.sample_colour = np.zeros((n_lights, self.sample_index.size, self.colours), np.float32)
 
     def __enter__(self) -> ObservationStore:
         return self
@@ -180,10 +193,23 @@ class ObservationStore:
         if self.path is not None and self._owned:
             self.path.unlink(missing_ok=True)
 
-    def write(self, light: int, band: Band, observations: np.ndarray, valid: np.ndarray) -> None:
-        """Store one light's observations (P_band,) float32 and validity (P_band,) of a band."""
+    def write(
+        self,
+        light: int,
+        band: Band,
+        observations: np.ndarray,
+        valid: np.ndarray,
+        colour: np.ndarray | None = None,
+    ) -> None:
+        """Store one light's observations (P_band,) float32 and validity (P_band,) of a band.
+
+        ``colour`` (P_band, C): its colour observations, when the store keeps colour.
+        """
         values, bits = self._offsets[band.index]
         count = band.pixel_count
+        if self.colours and colour is not None:
+            self._stream.seek(self._colour_offsets[band.index] + light * count * self.colours * 4)
+            self._stream.write(np.ascontiguousarray(colour, dtype=np.float32).data)
         self._stream.seek(values + light * count * 4)
         self._stream.write(np.ascontiguousarray(observations, dtype=np.float32).data)
         self._stream.seek(bits + light * _packed_size(count))
@@ -192,13 +218,34 @@ class ObservationStore:
         local = self.sample_index[lo:hi] - band.pixel_start
         self.sample_observations[light, lo:hi] = observations[local]
         self.sample_valid[light, lo:hi] = valid[local]
+        if self.colours and colour is not None:
+            self.sample_colour[light, lo:hi] = colour[local]
 
-    def write_frame(self, light: int, observations: np.ndarray, valid: np.ndarray) -> None:
-        """Store one light's observations and validity, both (H, W), band by band (mask pixels)."""
+    def write_frame(
+        self,
+        light: int,
+        observations: np.ndarray,
+        valid: np.ndarray,
+        colour: np.ndarray | None = None,
+    ) -> None:
+        """Store one light's observations and validity, both (H, W), band by band (mask pixels).
+
+        ``colour`` (H, W, C): the colour observations, when the store keeps colour.
+        """
         for band in self.bands:
             rows = slice(band.row_start, band.row_stop)
             inside = self.mask[rows]
-            self.write(light, band, observations[rows][inside], valid[rows][inside])
+            part = None if colour is None else colour[rows][inside]
+            self.write(light, band, observations[rows][inside], valid[rows][inside], part)
+
+    def read_colour(self, band: Band) -> np.ndarray | None:
+        """One band's colour observations (n, P_band, C) float32 (None: no colour staged)."""
+        if not self.colours:
+            return None
+        colour = np.empty((self.n_lights, band.pixel_count, self.colours), np.float32)
+        self._stream.seek(self._colour_offsets[band.index])
+        self._read_exactly(colour)
+        return colour
 
     def read(self, band: Band) -> tuple[np.ndarray, np.ndarray]:
         """One band's observations (n, P_band) float32 and validity (n, P_band) bool."""
@@ -240,6 +287,7 @@ def stage_observations(
     in_memory: bool = False,
     sample_pixels: int = 20000,
     progress: Callable[[int], None] | None = None,
+    colours: int = 0,
 ) -> ObservationStore:
     """Read every frame once, one at a time, and store its mask pixels band by band.
 
@@ -264,6 +312,9 @@ def stage_observations(
         Size of the noise-estimation sample (see :class:`ObservationStore`).
     progress : callable or None
         ``progress(1)`` after each light.
+    colours : int
+        Also stage this many colour channels (3 for colour frames, 0: none; see
+        :class:`ObservationStore`).
 
     Returns
     -------
@@ -278,6 +329,7 @@ def stage_observations(
         folder=folder,
         in_memory=in_memory,
         sample_pixels=sample_pixels,
+        colours=colours,
     )
     try:
         _stage_frames(store, header, iter_frames(header.plan), channel, shadow_threshold, progress)
@@ -298,7 +350,8 @@ def stage_lights(
     channel: str = "mean",
     shadow_threshold: float | None = None,
     sample_pixels: int = 20000,
-) -> tuple[np.ndarray, np.ndarray]:
+    colours: int = 0,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Stage some lights into an existing store file (one task of a distributed pass 1).
 
     The frames are read as :func:`stage_observations` reads them (same bits) and written into
@@ -308,7 +361,7 @@ def stage_lights(
 
     Parameters
     ----------
-    header, mask, bands, channel, shadow_threshold, sample_pixels
+    header, mask, bands, channel, shadow_threshold, sample_pixels, colours
         As for :func:`stage_observations` (the same values as the process that made the store).
     lights : list of int
         Light indices to stage.
@@ -322,14 +375,20 @@ def stage_lights(
     sample_observations : ndarray of shape (len(lights), m), float32
     sample_valid : ndarray of shape (len(lights), m), bool
         These lights' rows of the store's noise sample.
+    sample_colour : ndarray of shape (len(lights), m, colours), float32
+        Their colour observations.
 
     """
     frames = iter_frames(header.plan, lights, common_exposure=common_exposure)
     with ObservationStore(
-        bands, len(header.names), mask, sample_pixels=sample_pixels, path=path
+        bands, len(header.names), mask, sample_pixels=sample_pixels, path=path, colours=colours
     ) as store:
         _stage_frames(store, header, frames, channel, shadow_threshold, None, lights)
-        return store.sample_observations[lights], store.sample_valid[lights]
+        return (
+            store.sample_observations[lights],
+            store.sample_valid[lights],
+            store.sample_colour[lights],
+        )
 
 
 def _stage_frames(store, header, frames, channel, shadow_threshold, progress, lights=None) -> None:
@@ -346,8 +405,13 @@ def _stage_frames(store, header, frames, channel, shadow_threshold, progress, li
         observations, valid = observe(
             frame, clipped, header.light_intensities[i], channel, shadow_threshold
         )
+        colour = None
+        if store.colours and frame.ndim == 3 and frame.shape[-1] >= store.colours:
+            # each channel divided by the light's intensity for it (the rule of observe)
+            scale = np.asarray(header.light_intensities[i], np.float32)[: store.colours]
+            colour = frame[..., : store.colours] / scale
         del frame, clipped
-        store.write_frame(i, observations, valid)
-        del observations, valid
+        store.write_frame(i, observations, valid, colour)
+        del observations, valid, colour
         if progress is not None:
             progress(1)

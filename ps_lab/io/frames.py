@@ -46,6 +46,7 @@ _NOT_FRAMES = {
     "normal16.png",
     "albedo.png",
     "albedo.npy",
+    "albedo.exr",
     "corruption.png",
     "calibration.png",
     "camera.png",

@@ -11,6 +11,8 @@ Every reader returns an :class:`Image`: linear values as float32 ``(H, W, C)`` w
 - camera RAW (``.dng .cr2 .cr3 .nef .arw``): :func:`ps_lab.io.raw.load_raw` — linear,
   (raw − black) / (white − black), 2×2 binned; saturated where the raw value reached the white
   level.
+- JPEG: saturated where any channel is within :data:`JPEG_CLIP_LEVELS` (4) of 255, since the
+  codec smears a clipped highlight's edge below 255.
 - non-linear files (JPEG; 8-bit PNG and TIFF that say so): decoded to linear by
   :func:`decode_nonlinear` with the transfer curve :func:`image_encoding` finds (``encoding``:
   ``"auto"`` from the file's ICC profile, EXIF colour space or PNG ``sRGB``/``gAMA`` chunk;
@@ -133,6 +135,8 @@ def read_image(path: Path, encoding: str = "auto") -> Image:
             f"{path}: unsupported image type {suffix!r} (supported: {' '.join(SUPPORTED_SUFFIXES)})"
         )
     image = _to_linear(array, path)
+    if suffix in JPEG_SUFFIXES:
+        image = _jpeg_clipping(image, array)
     if image.bit_depth is None:
         return image
     return decoded(image, image_encoding(path, encoding))
@@ -595,6 +599,20 @@ def _bgr_to_rgb(array: np.ndarray) -> np.ndarray:
     if array.ndim == 3 and array.shape[2] == 4:
         return array[:, :, [2, 1, 0, 3]]
     return array
+
+
+#: A JPEG's clipped highlights decode up to this many levels below 255 (its 8 x 8 blocks smear the
+#: clipped edge; measured up to 4 at quality 95-100): such pixels are saturated too.
+JPEG_CLIP_LEVELS = 4
+
+
+def _jpeg_clipping(image: Image, array: np.ndarray) -> Image:
+    """Mark a JPEG's pixels within :data:`JPEG_CLIP_LEVELS` of 255 in any channel as saturated."""
+    if array.dtype != np.uint8:
+        return image
+    near = np.any(np.atleast_3d(array) >= 255 - JPEG_CLIP_LEVELS, axis=2)
+    return Image(image.data, image.saturated | near, image.exposure_s, image.bit_depth,
+                 image.encoding)
 
 
 def _to_linear(array: np.ndarray, path: Path) -> Image:

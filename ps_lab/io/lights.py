@@ -518,6 +518,8 @@ def write_dome(
     directions: np.ndarray,
     image_width: int,
     label: str = "ps-lab",
+    *,
+    led_model: dict | None = None,
 ) -> None:
     """Write LED positions as a RelightLab dome file (``.dome``, JSON, ``lights3d``).
 
@@ -541,6 +543,10 @@ def write_dome(
         Image width in pixels.
     label : str
         The dome's name.
+    led_model : dict, optional
+        The LEDs' fitted emission (``ps-lab calibrate --flat-field``): ``axes`` (n, 3), ``mu``
+        (n,), ``outputs`` (n,). Written as ``ledModel`` (``{"axis", "mu", "output"}`` per light,
+        an extension RelightLab ignores; ``ledAdjust`` stays empty).
     """
     positions = np.asarray(positions, np.float64)
     directions = np.asarray(directions, np.float64)
@@ -567,4 +573,11 @@ def write_dome(
         "positions3d": points(full),
         "ledAdjust": [],
     }
+    if led_model is not None:
+        axes = np.asarray(led_model["axes"], np.float64)
+        dome["ledModel"] = [
+            {"axis": {"x": float(a[0]), "y": float(a[1]), "z": float(a[2])}, "mu": float(m),
+             "output": float(o)}
+            for a, m, o in zip(axes, led_model["mu"], led_model["outputs"], strict=True)
+        ]
     path.write_text(json.dumps(dome, indent=1) + "\n", encoding="utf-8")

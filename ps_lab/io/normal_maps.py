@@ -79,8 +79,16 @@ def write_normals_exr(path: Path, normals: np.ndarray, convention: str = "opengl
 
     With ``convention="directx"`` G holds -y (see :func:`to_convention`).
     """
-    normals = to_convention(np.asarray(normals, np.float32), convention)
-    pixels = np.ascontiguousarray(np.nan_to_num(normals))
+    write_rgb_exr(path, to_convention(np.asarray(normals, np.float32), convention))
+
+
+def write_rgb_exr(path: Path, rgb: np.ndarray) -> None:
+    """Write a float image (H, W, 3) as OpenEXR float channels R, G, B (ZIP, scanlines).
+
+    The one OpenEXR writer of the result files (normals, colour albedo, relit pictures); NaN
+    is written as 0. A name that is not UTF-8 is encoded in memory and written from Python.
+    """
+    pixels = np.ascontiguousarray(np.nan_to_num(np.asarray(rgb, np.float32)))
     header = {"type": OpenEXR.scanlineimage, "compression": OpenEXR.ZIP_COMPRESSION}
     try:
         with OpenEXR.File(header, {"RGB": pixels}) as exr:

@@ -102,6 +102,7 @@ def render_near(
     *,
     z_offset: float = 0.0,
     anisotropy: float | np.ndarray | None = None,
+    axes: np.ndarray | None = None,
     cast_shadows: bool = True,
     specular: float = 0.0,
     roughness: float = 0.3,
@@ -124,7 +125,9 @@ def render_near(
     z_offset : float
         Height of the surface's ``height = 0`` above the spheres' plane.
     anisotropy : float or ndarray of shape (n,), optional
-        Exponent ``mu`` of the LEDs' ``cos^mu`` emission about their axes (pointing at the origin).
+        Exponent ``mu`` of the LEDs' ``cos^mu`` emission about their axes.
+    axes : ndarray of shape (n, 3), optional
+        Each LED's unit optical axis (default: pointing at the origin).
     cast_shadows, specular, roughness
         As for :func:`ps_lab.render.render`.
 
@@ -148,7 +151,7 @@ def render_near(
     normals = surface.normals[rows, cols]
     albedo_p = albedo[rows, cols].reshape(rows.size, -1)
     points = scene_points((h, w), rows, cols, surface.height[rows, cols] + z_offset)
-    vectors = near_light_vectors(points, pos, pos, anisotropy=anisotropy)  # (m, n, 3)
+    vectors = near_light_vectors(points, pos, pos, anisotropy=anisotropy, axes=axes)  # (m, n, 3)
     irradiance = np.linalg.norm(vectors, axis=2)
     unit = vectors / np.maximum(irradiance, 1e-300)[:, :, None]
     n_dot_l = np.einsum("mk,mnk->mn", normals, unit)
@@ -289,20 +292,25 @@ class PointLights:
     ----------
     positions : ndarray of shape (k, 3)
         Scene-frame positions (pixel units) of the lit LEDs.
-    anisotropy : float
-        Exponent ``mu`` of their ``cos^mu`` emission (axes aimed at the scene origin).
+    anisotropy : float or ndarray of shape (k,)
+        Exponent ``mu`` of their ``cos^mu`` emission.
     radius : float
         Radius of each LED's emitting disc (pixel units), seen in the chrome spheres.
+    axes : ndarray of shape (k, 3) or None
+        Each LED's optical axis (None: aimed at the scene origin).
     """
 
     positions: np.ndarray
-    anisotropy: float = 0.0
+    anisotropy: float | np.ndarray = 0.0
     radius: float = 15.0
+    axes: np.ndarray | None = None
 
     def select(self, rows: np.ndarray) -> PointLights:
         """The LEDs ``rows`` (0-based) only."""
+        mu = self.anisotropy
         return PointLights(
             np.asarray(self.positions, dtype=np.float64)[rows].reshape(-1, 3),
-            self.anisotropy,
+            mu if np.ndim(mu) == 0 else np.asarray(mu, dtype=np.float64)[rows].reshape(-1),
             self.radius,
+            None if self.axes is None else np.asarray(self.axes, np.float64)[rows].reshape(-1, 3),
         )

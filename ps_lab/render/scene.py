@@ -180,7 +180,8 @@ def render_scene(
             else:
                 images = render_near(
                     surface, point_lights.positions, intensities,
-                    anisotropy=point_lights.anisotropy, **shading,
+                    anisotropy=point_lights.anisotropy, axes=point_lights.axes,
+                    **shading,
                 )
             frame += images.sum(axis=0)
     return frame

@@ -10,13 +10,15 @@ the image's right, y to the image's top; the world origin lies on the table belo
 ``-z``; pixel (row, col) sees the vertical line ``x = col - origin_px[0]``, ``y = origin_px[1] -
 row``.
 
-The scene (:class:`TableRig`): 24 isotropic LEDs of equal radiant intensity on rings of a dome
-centred on the table; two chrome spheres resting on the table (centres at ``z = r``); the object,
+The scene (:class:`TableRig`): 24 LEDs on rings of a dome centred on the table (isotropic and of
+equal radiant intensity by default; optionally ``cos^mu`` beams whose axes are aimed at the dome
+centre to within a random tilt, and outputs that differ by a random factor); two chrome spheres resting on the table (centres at ``z = r``); the object,
 a height field ``z = h(x, y) >= 0`` standing on the table inside a disc (its top below the
 spheres' centres); no matte sphere. Shading: Lambert plus a Blinn-Phong lobe, ``1/d^2``
 fall-off, cast shadows marched over the height field. The far twin lights the same scene from
 the same directions (dome centre to LED) at infinity, with the irradiance the LEDs give the dome
-centre.
+centre. :func:`write_board_frames` renders the flat-field target: a flat matte board on the
+table filling the frame, under every LED.
 """
 
 from __future__ import annotations
@@ -28,7 +30,8 @@ import cv2
 import numpy as np
 from scipy import ndimage
 
-__all__ = ["TableRig", "render_table_rig", "write_table_rig"]
+__all__ = ["TableRig", "chrome_frames", "render_board", "render_table_rig", "write_board_frames",
+           "write_table_rig"]
 
 
 @dataclass(frozen=True)
@@ -62,6 +65,13 @@ class TableRig:
     full_well : float
         Electrons at full scale (shot noise); ``read_noise`` in units of full scale.
     seed : int
+    beam_mu : float
+        Each LED's radiance falls off as ``cos^mu`` of the angle from its optical axis (0:
+        isotropic, 1: a Lambertian emitter).
+    beam_tilt_deg : float
+        Each axis points at the dome centre, turned by a random angle up to this.
+    output_spread : float
+        Each LED's output is ``1 + U(-spread, spread)`` (seeded).
     """
 
     shape: tuple[int, int] = (360, 480)
@@ -87,6 +97,9 @@ class TableRig:
     focal_px: float | None = None
     principal_px: tuple[float, float] | None = None
     extra: dict = field(default_factory=dict)
+    beam_mu: float = 0.0
+    beam_tilt_deg: float = 0.0
+    output_spread: float = 0.0
 
     def camera_centre(self) -> np.ndarray | None:
         """(3,) world position of a perspective camera's centre (None: orthographic).
@@ -117,6 +130,39 @@ class TableRig:
                 a = np.radians(offset + 360.0 * k / count)
                 out.append([np.cos(e) * np.cos(a), np.cos(e) * np.sin(a), np.sin(e)])
         return self.dome_radius * np.array(out)
+
+    def led_axes(self) -> np.ndarray:
+        """(24, 3) unit optical axes: toward the dome centre, turned by up to ``beam_tilt_deg``."""
+        leds = self.led_positions()
+        axes = -leds / np.linalg.norm(leds, axis=1, keepdims=True)
+        if self.beam_tilt_deg <= 0:
+            return axes
+        rng = np.random.default_rng(self.seed + 101)
+        tilt = np.radians(self.beam_tilt_deg) * np.sqrt(rng.uniform(0, 1, len(axes)))
+        turn = rng.uniform(0, 2 * np.pi, len(axes))
+        out = []
+        for a, t, phi in zip(axes, tilt, turn, strict=True):
+            e1 = np.cross(a, [0.0, 0.0, 1.0] if abs(a[2]) < 0.9 else [1.0, 0.0, 0.0])
+            e1 /= np.linalg.norm(e1)
+            e2 = np.cross(a, e1)
+            out.append(np.cos(t) * a + np.sin(t) * (np.cos(phi) * e1 + np.sin(phi) * e2))
+        return np.array(out)
+
+    def led_outputs(self) -> np.ndarray:
+        """(24,) relative outputs (radiant intensity on the axis), ``1 +- output_spread``."""
+        n = len(self.led_positions())
+        if self.output_spread <= 0:
+            return np.ones(n)
+        rng = np.random.default_rng(self.seed + 202)
+        return 1.0 + rng.uniform(-self.output_spread, self.output_spread, n)
+
+    def led_emission(self, j: int, toward: np.ndarray) -> np.ndarray:
+        """LED j's radiant intensity toward points (m, 3): output times ``cos^mu``."""
+        led = self.led_positions()[j]
+        w = np.asarray(toward, float) - led[None, :]
+        cos = w @ self.led_axes()[j] / np.linalg.norm(w, axis=1)
+        beam = np.clip(cos, 0.0, None) ** self.beam_mu if self.beam_mu else np.ones(len(w))
+        return self.led_outputs()[j] * beam
 
     def pixel_xy(self) -> tuple[np.ndarray, np.ndarray]:
         """World x, y of every pixel centre, each (H, W)."""
@@ -217,12 +263,13 @@ def _object_images(rig: TableRig, lights: np.ndarray, far: bool) -> np.ndarray:
     for j, light in enumerate(lights):
         if far:
             u = np.broadcast_to(light / np.linalg.norm(light), points.shape)
-            irradiance = np.full(px.size, 1.0 / rig.dome_radius ** 2)
+            irradiance = np.full(px.size, rig.led_emission(j, np.zeros((1, 3)))[0]
+                                 / rig.dome_radius ** 2)
         else:
             d = light[None, :] - points
             dist2 = np.einsum("mk,mk->m", d, d)
             u = d / np.sqrt(dist2)[:, None]
-            irradiance = 1.0 / dist2  # equal radiant intensity, isotropic
+            irradiance = rig.led_emission(j, points) / dist2
         cos = np.einsum("mk,mk->m", nrm, u)
         half = u + view
         half /= np.linalg.norm(half, axis=1, keepdims=True)
@@ -303,6 +350,11 @@ def _chrome_images(rig: TableRig, lights: np.ndarray, far: bool, supersample: in
     return out
 
 
+def chrome_frames(rig: TableRig) -> np.ndarray:
+    """The chrome spheres alone under every LED (n, H, W), float, before noise and clipping."""
+    return _chrome_images(rig, rig.led_positions(), False)
+
+
 def render_table_rig(rig: TableRig, *, far: bool = False) -> dict:
     """Render the rig (float frames in units of full scale, before noise) and its truth.
 
@@ -349,3 +401,52 @@ def write_table_rig(folder: Path, rig: TableRig, *, far: bool = False,
     np.savetxt(folder / "truth" / "led_positions_world.txt", scene["leds"])
     np.save(folder / "truth" / "height_world.npy", scene["height"])
     return scene
+
+
+def render_board(rig: TableRig, height: float = 0.0) -> dict:
+    """A flat matte board at ``height`` above the table filling the frame, under every LED.
+
+    The flat-field target: Lambertian (the rig's albedo), no spheres, no object; float frames
+    scaled so the brightest pixel is ``rig.peak``.
+
+    Returns
+    -------
+    dict
+        ``frames`` (n, H, W), ``height`` (the board's, above the table), ``leds`` (n, 3; world).
+    """
+    h, w = rig.shape
+    x, y = rig.pixel_xy()
+    eye = rig.camera_centre()
+    if eye is not None:  # each pixel's ray meets the board's plane
+        rows, cols = np.mgrid[0:h, 0:w].astype(np.float64)
+        d = rig.rays(rows, cols)
+        t = (height - eye[2]) / d[..., 2]
+        x, y = eye[0] + t * d[..., 0], eye[1] + t * d[..., 1]
+    points = np.column_stack([x.ravel(), y.ravel(), np.full(x.size, float(height))])
+    leds = rig.led_positions()
+    frames = np.zeros((len(leds), h, w))
+    for j, led in enumerate(leds):
+        d = led[None, :] - points
+        dist2 = np.einsum("mk,mk->m", d, d)
+        cos = np.clip(d[:, 2] / np.sqrt(dist2), 0.0, None)
+        frames[j] = (rig.albedo * rig.led_emission(j, points) * cos / dist2).reshape(h, w)
+    frames *= rig.peak / frames.max()
+    return {"frames": frames, "height": float(height), "leds": leds}
+
+
+def write_board_frames(folder: Path, rig: TableRig, height: float = 0.0, *,
+                       noise_seed: int | None = None) -> dict:
+    """Write :func:`render_board`'s frames as 16-bit PNGs (``001.png`` ...; shot and read noise).
+
+    ``noise_seed`` (default ``rig.seed + 7``) draws the noise; the LEDs stay the rig's.
+    """
+    board = render_board(rig, height)
+    rng = np.random.default_rng(rig.seed + 7 if noise_seed is None else noise_seed)
+    folder = Path(folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    for j, frame in enumerate(board["frames"]):
+        electrons = rng.poisson(np.clip(frame, 0.0, 2.0) * rig.full_well) / rig.full_well
+        noisy = electrons + rng.normal(0.0, rig.read_noise, frame.shape)
+        value = np.clip(np.round(noisy * 65535.0), 0, 65535).astype(np.uint16)
+        cv2.imwrite(str(folder / f"{j + 1:03d}.png"), value)
+    return board

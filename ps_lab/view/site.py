@@ -25,6 +25,7 @@ from pathlib import Path
 
 from ps_lab.errors import OutputError
 from ps_lab.io.files import staged_folder
+from ps_lab.view.extras import SiteExtras
 from ps_lab.view.result import ViewResult
 from ps_lab.view.tiles import Pyramid, manifest, mesh_address, mesh_bytes, pyramid, tile_address
 
@@ -60,12 +61,17 @@ class ViewSite:
         self.results = results
         self.pyramids: list[Pyramid] = [pyramid(result) for result in results]
         self._manifest = manifest(results, self.pyramids)
+        self.extras = SiteExtras(results)  # colour, appearance, captured lights (issue 32)
+        self._manifest = self.extras.manifest(self._manifest)
 
     def get(self, path: str) -> tuple[bytes, str] | None:
         """``(bytes, content type)`` of a page-relative path, or None when there is none."""
         path = path.lstrip("/") or "index.html"
         if path in STATIC_FILES:
             return _static(path), STATIC_FILES[path]
+        extra = self.extras.get(path)
+        if extra is not None:
+            return extra, "application/octet-stream"
         if path == "data/manifest.json":
             return self._manifest, "application/json"
         address = tile_address(path)
@@ -90,6 +96,7 @@ class ViewSite:
                 yield f"data/r{index}/{level}/{col}_{row}.bin"
             if result.mesh is not None:
                 yield f"data/r{index}/mesh.bin"
+        yield from self.extras.paths()
 
 
 @functools.cache

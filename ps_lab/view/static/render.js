@@ -29,6 +29,21 @@ const IMAGE_FS = `#version 300 es
 precision highp float;
 uniform sampler2D u_a;
 uniform sampler2D u_b;
+uniform sampler2D u_c0;   // colour tiles (issue 32): normals and albedo R
+uniform sampler2D u_c1;   // albedo G, B
+uniform bool u_colour;
+// Appearance (issue 32; ps_lab/view/appearance_tiles.py): coefficient 3k + c of term k, channel c,
+// four to an RGBA plane, planes stacked in one texture of u_tsize.x x (u_tsize.y * planes).
+uniform highp sampler2D u_coef;
+uniform int u_model;      // 0 Lambertian, 1 a basis of the light (ptm, hsh2, hsh3), 2 ps
+uniform int u_terms;
+uniform ivec2 u_tsize;
+uniform float u_basis[16];   // the basis at the light (ptm / hsh, and ps's hsh terms)
+// ps: 0 lambert, 1 ambient, 2 lobe:P, 3 a term of the light (u_basis: hsh:i), 4 u_basis on the
+// lit side (lx, ly, lz: the light's component), 5 lobex:P / lobey:P (u_basis: h's component)
+uniform int u_kind[16];
+uniform float u_power[16];   // ps lobes: the exponent P
+uniform bool u_vis;          // ps visibility: coefficients 3K .. 3K + 3 hold w (io/appearance.py)
 uniform int u_mode;
 uniform vec3 u_light;
 uniform float u_exposure;
@@ -41,6 +56,43 @@ vec3 srgb(vec3 c) {
   c = clamp(c, 0.0, 1.0);
   return mix(c * 12.92, 1.055 * pow(c, vec3(1.0 / 2.4)) - 0.055, step(0.0031308, c));
 }
+float coefficient(ivec2 px, int i) {
+  vec4 t = texelFetch(u_coef, ivec2(px.x, px.y + (i / 4) * u_tsize.y), 0);
+  int j = i - (i / 4) * 4;
+  return j == 0 ? t.x : (j == 1 ? t.y : (j == 2 ? t.z : t.w));
+}
+vec3 fitted(vec3 n, vec3 albedo) {    // io/appearance.py: evaluate_appearance, per pixel
+  ivec2 px = clamp(ivec2(v_uv * vec2(u_tsize)), ivec2(0), u_tsize - 1);
+  float nl = dot(n, u_light);
+  vec3 h = normalize(u_light + vec3(0.0, 0.0, 1.0));
+  // ps visibility (cast shadows): V = clamp(w . [l, 1], 0, 1) on the Lambertian and direct terms
+  float V = 1.0;
+  if (u_model == 2 && u_vis) {
+    vec4 w = vec4(coefficient(px, 3 * u_terms), coefficient(px, 3 * u_terms + 1),
+                  coefficient(px, 3 * u_terms + 2), coefficient(px, 3 * u_terms + 3));
+    V = clamp(dot(w, vec4(u_light, 1.0)), 0.0, 1.0);
+  }
+  vec3 c = u_model == 2 ? V * albedo * max(nl, 0.0) : vec3(0.0);
+  for (int k = 0; k < 16; k++) {
+    if (k >= u_terms) break;
+    float b = u_basis[k];
+    if (u_model == 2) {
+      int kind = u_kind[k];
+      float nh = max(dot(n, h), 0.0);
+      if (kind == 0) b = max(nl, 0.0);
+      else if (kind == 1) b = 1.0;
+      else if (kind == 2) b = nl > 0.0 ? pow(nh, u_power[k]) : 0.0;
+      else if (kind == 4) b = nl > 0.0 ? u_basis[k] : 0.0;
+      else if (kind == 5) {
+        float p = u_power[k] - 1.0;
+        b = nl > 0.0 ? (p > 0.0 ? pow(nh, p) : 1.0) * u_basis[k] : 0.0;
+      }
+      if (kind == 0 || kind == 2 || kind == 4 || kind == 5) b *= V;   // io/appearance.py: is_direct
+    }
+    c += b * vec3(coefficient(px, 3 * k), coefficient(px, 3 * k + 1), coefficient(px, 3 * k + 2));
+  }
+  return c;
+}
 vec3 heat(float t) {       // black - red - yellow - white
   t = clamp(t, 0.0, 1.0);
   return clamp(vec3(3.0 * t, 3.0 * t - 1.0, 3.0 * t - 2.0), 0.0, 1.0);
@@ -52,13 +104,16 @@ void main() {
   if (len < 0.5) { o = vec4(u_bg, 1.0); return; }
   vec3 n = a.xyz / len;
   vec3 c;
-  if (u_mode == 0) {
-    float shade = max(dot(n, u_light), 0.0) * (u_albedo ? a.w : 1.0);
-    c = srgb(vec3(shade * u_exposure));
+  vec3 rgb = u_colour ? vec3(texture(u_c0, v_uv).w, texture(u_c1, v_uv).xy) : vec3(a.w);
+  if (u_mode == 0 && u_model > 0) {
+    c = srgb(fitted(n, rgb) * u_exposure);
+  } else if (u_mode == 0) {
+    float shade = max(dot(n, u_light), 0.0);
+    c = srgb((u_albedo ? rgb : vec3(1.0)) * shade * u_exposure);
   } else if (u_mode == 1) {
     c = (n + 1.0) * 0.5;
   } else if (u_mode == 2) {
-    c = vec3(clamp(a.w, 0.0, 1.0));
+    c = clamp(rgb, 0.0, 1.0);
   } else if (u_mode == 3) {
     c = heat(b.x);
   } else if (u_mode == 4) {
@@ -94,6 +149,43 @@ void main() {
   vec3 c = (u_albedo ? v_colour : vec3(0.8)) * shade * u_exposure;
   o = vec4(pow(clamp(c, 0.0, 1.0), vec3(1.0 / 2.2)), 1.0);
 }`;
+
+// ---- appearance bases (ps_lab/io/appearance.py) --------------------------------------------------
+function unitVector(l) { const n = Math.hypot(...l) || 1; return l.map((x) => x / n); }
+
+function hshBasis(l) {    // Gautron et al. 2004 as RTIBuilder / RelightLab define them, 9 terms
+  const [x, y, z] = unitVector(l);
+  const c = Math.min(1, Math.max(0, z)), phi = Math.atan2(y, x), s = Math.sqrt(Math.max(c - c * c, 0));
+  const cp = Math.cos(phi), sp = Math.sin(phi), k = Math.sqrt(30 / Math.PI);
+  return [
+    1 / Math.sqrt(2 * Math.PI), Math.sqrt(6 / Math.PI) * cp * s, Math.sqrt(3 / (2 * Math.PI)) * (2 * c - 1),
+    Math.sqrt(6 / Math.PI) * sp * s, k * Math.cos(2 * phi) * (c * c - c), k * cp * (2 * c - 1) * s,
+    Math.sqrt(5 / (2 * Math.PI)) * (6 * c * c - 6 * c + 1), k * sp * (2 * c - 1) * s, k * Math.sin(2 * phi) * (c * c - c),
+  ];
+}
+
+// The uniforms of a fitted model at light l: { model, basis, kind, power } (model 0: Lambertian).
+function appearanceUniforms(fit, l) {
+  const basis = new Float32Array(16), kind = new Int32Array(16), power = new Float32Array(16);
+  if (!fit || !fit.planes) return { model: 0, terms: 0, basis, kind, power, vis: false };
+  const [x, y] = unitVector(l);
+  if (fit.model === "ptm") basis.set([1, x, y, x * x, x * y, y * y]);
+  else if (fit.model === "hsh2" || fit.model === "hsh3") basis.set(hshBasis(l).slice(0, fit.K));
+  else {   // io/appearance.py: ps_term
+    const hsh = hshBasis(l), u = unitVector(l), h = unitVector([u[0], u[1], u[2] + 1]);
+    fit.terms.forEach((term, k) => {
+      const [name, arg] = term.split(":");
+      if (name === "lambert") kind[k] = 0;
+      else if (name === "ambient") kind[k] = 1;
+      else if (name === "lobe") { kind[k] = 2; power[k] = Number(arg); }
+      else if (name === "hsh") { kind[k] = 3; basis[k] = hsh[Number(arg)]; }
+      else if (["lx", "ly", "lz"].includes(name)) { kind[k] = 4; basis[k] = u["xyz".indexOf(name[1])]; }
+      else if (name === "lobex" || name === "lobey") { kind[k] = 5; power[k] = Number(arg); basis[k] = h["xy".indexOf(name[4])]; }
+      else { kind[k] = 3; basis[k] = 0; }   // a term this page does not know: left out
+    });
+  }
+  return { model: fit.model === "ps" ? 2 : 1, terms: fit.K, basis, kind, power, vis: !!fit.visibility };
+}
 
 function program(gl, vs, fs) {
   const p = gl.createProgram();

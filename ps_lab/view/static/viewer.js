@@ -15,6 +15,7 @@ const state = {
   raking: false,
   elevation: 10,            // degrees, raking mode
   useAlbedo: true,
+  appearance: true,         // relight with the fitted appearance model where a result has one
   exposure: 1,
   errorMax: 30,
   view: { cx: 0.5, cy: 0.5, zoom: 1 },   // shared by all panels: centre (fraction), zoom over fit
@@ -73,15 +74,59 @@ function pump() {
     const [r, entry] = queue.shift();
     fetching++;
     stats.pending = fetching + queue.length;
-    fetch(`data/r${r}/${entry.level}/${entry.col}_${entry.row}.bin`)
-      .then((response) => {
-        if (!response.ok) throw new Error(`${response.status} ${response.url}`);
-        return response.arrayBuffer();
+    const get = (url) => fetch(url).then((response) => {
+      if (!response.ok) throw new Error(`${response.status} ${response.url}`);
+      return response.arrayBuffer();
+    });
+    const tail = `${entry.level}/${entry.col}_${entry.row}.bin`;
+    // Colour results: the colour tile (normals, albedo R | G, B) comes with the layer tile.
+    const fit = results[r].appearance;
+    Promise.all([
+      get(`data/r${r}/${tail}`),
+      results[r].colour ? get(`data/r${r}/c/${tail}`) : null,
+      fit && fit.planes ? get(`data/r${r}/a/${tail}`) : null,
+    ])
+      .then(([buffer, colour, coefficients]) => {
+        if (colour) entry.colourTextures = textures(results[r], entry, colour);
+        if (coefficients) entry.coefTexture = coefficientTexture(results[r], entry, coefficients, fit.planes);
+        uploadTile(results[r], entry, buffer);
       })
-      .then((buffer) => { uploadTile(results[r], entry, buffer); })
       .catch((error) => { status(`tile failed: ${error.message}`); })
       .finally(() => { fetching--; stats.pending = fetching + queue.length; pump(); redraw(); });
   }
+}
+
+function textures(result, entry, buffer) {
+  const size = result.levels[entry.level], t = result.tile;
+  const w = Math.min(t, size.width - entry.col * t), h = Math.min(t, size.height - entry.row * t);
+  const halves = new Uint16Array(buffer);
+  return [0, 1].map((plane) => {
+    const texture = gl.createTexture();
+    gl.bindTexture(gl.TEXTURE_2D, texture);
+    gl.pixelStorei(gl.UNPACK_ALIGNMENT, 1);
+    gl.texImage2D(gl.TEXTURE_2D, 0, gl.RGBA16F, w, h, 0, gl.RGBA, gl.HALF_FLOAT,
+      halves.subarray(plane * w * h * 4, (plane + 1) * w * h * 4));
+    gl.texParameteri(gl.TEXTURE_2D, gl.TEXTURE_MIN_FILTER, gl.LINEAR);
+    gl.texParameteri(gl.TEXTURE_2D, gl.TEXTURE_MAG_FILTER, entry.level === 0 ? gl.NEAREST : gl.LINEAR);
+    gl.texParameteri(gl.TEXTURE_2D, gl.TEXTURE_WRAP_S, gl.CLAMP_TO_EDGE);
+    gl.texParameteri(gl.TEXTURE_2D, gl.TEXTURE_WRAP_T, gl.CLAMP_TO_EDGE);
+    return texture;
+  });
+}
+
+function coefficientTexture(result, entry, buffer, planes) {
+  // planes of w x h RGBA16F stacked vertically: one texture, read with texelFetch
+  const size = result.levels[entry.level], t = result.tile;
+  const w = Math.min(t, size.width - entry.col * t), h = Math.min(t, size.height - entry.row * t);
+  const texture = gl.createTexture();
+  gl.bindTexture(gl.TEXTURE_2D, texture);
+  gl.pixelStorei(gl.UNPACK_ALIGNMENT, 1);
+  gl.texImage2D(gl.TEXTURE_2D, 0, gl.RGBA16F, w, h * planes, 0, gl.RGBA, gl.HALF_FLOAT, new Uint16Array(buffer));
+  gl.texParameteri(gl.TEXTURE_2D, gl.TEXTURE_MIN_FILTER, gl.NEAREST);
+  gl.texParameteri(gl.TEXTURE_2D, gl.TEXTURE_MAG_FILTER, gl.NEAREST);
+  gl.texParameteri(gl.TEXTURE_2D, gl.TEXTURE_WRAP_S, gl.CLAMP_TO_EDGE);
+  gl.texParameteri(gl.TEXTURE_2D, gl.TEXTURE_WRAP_T, gl.CLAMP_TO_EDGE);
+  return texture;
 }
 
 function uploadTile(result, entry, buffer) {
@@ -257,6 +302,17 @@ function drawImage(result, panel) {
   gl.uniform3fv(p.u.u_bg, BACKGROUND);
   gl.uniform1i(p.u.u_a, 0);
   gl.uniform1i(p.u.u_b, 1);
+  gl.uniform1i(p.u.u_c0, 2);
+  gl.uniform1i(p.u.u_c1, 3);
+  gl.uniform1i(p.u.u_colour, result.colour ? 1 : 0);
+  const fit = appearanceUniforms(state.appearance ? result.appearance : null, lightVector());
+  gl.uniform1i(p.u.u_model, fit.model);
+  gl.uniform1i(p.u.u_terms, fit.terms);
+  gl.uniform1fv(p.u["u_basis[0]"], fit.basis);
+  gl.uniform1iv(p.u["u_kind[0]"], fit.kind);
+  gl.uniform1fv(p.u["u_power[0]"], fit.power);
+  gl.uniform1i(p.u.u_vis, fit.vis ? 1 : 0);
+  gl.uniform1i(p.u.u_coef, 4);
   // The tiles of that level over the panel; the one-tile top level is drawn under them until
   // they have all arrived.
   const visible = [];
@@ -282,10 +338,18 @@ function drawTile(result, entry) {
   // A level's last pixel may stand for fewer than 2^level level-0 pixels: clamp to the image.
   const x = entry.col * t * f, y = entry.row * t * f;
   gl.uniform4f(p.u.u_rect, x, y, entry.w * f, entry.h * f);
+  gl.uniform2i(p.u.u_tsize, entry.w, entry.h);
+  gl.activeTexture(gl.TEXTURE4);
+  gl.bindTexture(gl.TEXTURE_2D, entry.coefTexture || null);
   gl.activeTexture(gl.TEXTURE0);
   gl.bindTexture(gl.TEXTURE_2D, entry.textures[0]);
   gl.activeTexture(gl.TEXTURE1);
   gl.bindTexture(gl.TEXTURE_2D, entry.textures[1]);
+  const colour = entry.colourTextures || entry.textures;
+  gl.activeTexture(gl.TEXTURE2);
+  gl.bindTexture(gl.TEXTURE_2D, colour[0]);
+  gl.activeTexture(gl.TEXTURE3);
+  gl.bindTexture(gl.TEXTURE_2D, colour[1]);
   gl.drawArrays(gl.TRIANGLE_STRIP, 0, 4);
 }
 
@@ -423,6 +487,13 @@ function drawLightWidget() {
   c.strokeStyle = "#5f6368";
   c.beginPath(); c.arc(w / 2, w / 2, r, 0, 2 * Math.PI); c.stroke();
   c.beginPath(); c.arc(w / 2, w / 2, r * Math.cos((60 * Math.PI) / 180), 0, 2 * Math.PI); c.stroke();
+  // The captured lights (issue 32): a small dot at each direction of the results' light files.
+  c.fillStyle = "#8ab4f8";
+  for (const result of results) {
+    for (const d of result.captured_lights || []) {
+      c.beginPath(); c.arc(w / 2 + d[0] * r, w / 2 - d[1] * r, 2, 0, 2 * Math.PI); c.fill();
+    }
+  }
   const l = lightVector();
   c.fillStyle = "#fdd663";
   c.beginPath(); c.arc(w / 2 + l[0] * r, w / 2 - l[1] * r, 6, 0, 2 * Math.PI); c.fill();
@@ -545,6 +616,7 @@ function bindControls() {
   bind("raking", "change", (t) => { state.raking = t.checked; if (t.checked) state.useAlbedo = false; document.getElementById("albedo").checked = state.useAlbedo; });
   bind("elevation", "input", (t) => { state.elevation = Number(t.value); document.getElementById("elevation-value").textContent = `${t.value}°`; });
   bind("albedo", "change", (t) => { state.useAlbedo = t.checked; });
+  bind("appearance", "change", (t) => { state.appearance = t.checked; });
   bind("exposure", "input", (t) => { state.exposure = Number(t.value); });
   bind("errmax", "change", (t) => { state.errorMax = Math.max(1, Number(t.value) || 30); });
   window.addEventListener("resize", redraw);
@@ -570,6 +642,11 @@ async function start() {
     state.errorMax = Math.max(1, Math.ceil(1.5 * p90));
     document.getElementById("errmax").value = state.errorMax;
   }
+  // The appearance switch: shown when a result has a fitted model; notes for the ones relit Lambertian.
+  const fits = results.filter((r) => r.appearance);
+  document.getElementById("appearance-box").style.display = fits.length ? "" : "none";
+  document.getElementById("appearance-model").textContent = [...new Set(fits.map((r) => r.appearance.model))].join(", ");
+  document.getElementById("appearance-note").textContent = fits.map((r) => r.appearance.note).filter(Boolean).join("; ");
   setMode("relight");
   drawLightWidget();
   results.forEach((r) => requestTile(r.index, r.levels.length - 1, 0, 0));

@@ -1,0 +1,151 @@
+"""The viewer's appearance layers: a fitted model's coefficients as tiled half-float planes.
+
+A result with ``appearance.npz`` (``ps-lab reconstruct --appearance``), or a RelightLab export,
+gets a third tile set beside its layers, ``data/r{i}/a/{level}/{col}_{row}.bin``: the ``3·K``
+coefficients of every pixel, term-major (coefficient ``3k + c`` is term ``k`` of channel ``c``),
+divided by the result's ``albedo_scale`` (so the relit picture has the Lambertian layer's scale),
+then, for a ``ps`` model with a visibility (``extra["visibility"]``), its four weights
+``w_x, w_y, w_z, w_1`` (coefficients ``3K .. 3K + 3``, not scaled), packed four to an RGBA16F
+plane and the planes stacked one under the other (a tile is one
+``w × (h · planes)`` texture the shader reads with ``texelFetch``). Levels are those of
+:mod:`ps_lab.view.tiles` (2 × 2 blocks averaged over their mask pixels: the linear models'
+relit picture of a block is the block's mean picture).
+
+The page's shader (``static/render.js``) evaluates the bases of :mod:`ps_lab.io.appearance`:
+``ptm``, ``hsh2``, ``hsh3`` (weights of the light computed once per frame) and ``ps`` (per pixel,
+with the tile's normal). ``rbf`` is relit Lambertian, with a note on the page.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+
+import numpy as np
+
+from ps_lab.io.appearance import BASIS_TERMS, Appearance
+from ps_lab.view.tiles import TILE
+
+__all__ = ["VIEW_MODELS", "AppearanceTiles", "appearance_entry", "appearance_tiles"]
+
+#: Models the page relights with their own basis (the others are Lambertian there).
+VIEW_MODELS = ("ptm", "hsh2", "hsh3", "ps")
+#: Most terms per channel the shader takes (its uniform arrays).
+MAX_TERMS = 16
+
+
+class AppearanceTiles:
+    """The levels of one result's coefficients, float16 (H_k, W_k, 3K), with tile access."""
+
+    def __init__(self, levels: list[np.ndarray]) -> None:
+        self.levels = levels
+
+    @property
+    def planes(self) -> int:
+        """RGBA planes per tile."""
+        return -(-self.levels[0].shape[2] // 4)
+
+    def tile(self, level: int, col: int, row: int) -> bytes | None:
+        """One tile's bytes: ``planes`` RGBA16F planes of ``w × h`` one after the other."""
+        if not 0 <= level < len(self.levels):
+            return None
+        data = self.levels[level]
+        h, w = data.shape[:2]
+        if not (0 <= col and col * TILE < w and 0 <= row and row * TILE < h):
+            return None
+        block = data[row * TILE : (row + 1) * TILE, col * TILE : (col + 1) * TILE]
+        padded = np.zeros((*block.shape[:2], 4 * self.planes), np.float16)
+        padded[..., : block.shape[2]] = block
+        planes = [padded[..., 4 * p : 4 * p + 4].ravel() for p in range(self.planes)]
+        return np.concatenate(planes).astype("<f2").tobytes()
+
+    def tiles(self) -> Iterator[tuple[int, int, int]]:
+        """Every ``(level, col, row)``."""
+        for level, data in enumerate(self.levels):
+            h, w = data.shape[:2]
+            for row in range(-(-h // TILE)):
+                for col in range(-(-w // TILE)):
+                    yield level, col, row
+
+
+def appearance_tiles(
+    appearance: Appearance, mask: np.ndarray, albedo_scale: float
+) -> AppearanceTiles | None:
+    """The tiled coefficients of a model the page relights (None for the others).
+
+    Parameters
+    ----------
+    appearance : Appearance
+        Coefficients (H, W, C, K), C = 3 or 1 (repeated to three).
+    mask : ndarray of shape (H, W), bool
+        The result's solved pixels (the layers' mask).
+    albedo_scale : float
+        The result's ``albedo_scale``; the coefficients are divided by it.
+    """
+    if appearance.model not in VIEW_MODELS:
+        return None
+    coefficients = np.asarray(appearance.coefficients, np.float32)
+    h, w, c, k = coefficients.shape
+    if k == 0 or k > MAX_TERMS or (h, w) != mask.shape:
+        return None
+    if c == 1:
+        coefficients = np.repeat(coefficients, 3, axis=2)
+    # term-major: index 3k + c
+    flat = coefficients[:, :, :3, :].transpose(0, 1, 3, 2).reshape(h, w, 3 * k)
+    flat = np.where(mask[..., None], np.nan_to_num(flat) / np.float32(albedo_scale), 0.0)
+    vis = appearance.extra.get("visibility") if appearance.model == "ps" else None
+    if vis is not None:  # V = clamp(w·[l, 1], 0, 1), shared by the channels, unscaled
+        flat = np.concatenate([flat, np.asarray(vis, np.float32)], axis=2)
+    levels = [_half(flat)]
+    current, inside = flat, mask.astype(np.float32)
+    while max(current.shape[:2]) > TILE:
+        current, inside = _halve(current, inside)
+        levels.append(_half(current))
+    return AppearanceTiles(levels)
+
+
+def appearance_entry(appearance: Appearance | None, tiles: AppearanceTiles | None) -> dict | None:
+    """The manifest's ``appearance`` entry: model, terms, planes, and a note when not relit."""
+    if appearance is None:
+        return None
+    k = int(appearance.coefficients.shape[3])
+    entry = {
+        "model": appearance.model,
+        "K": k,
+        "terms": list(appearance.meta.get("terms", [])) if appearance.model == "ps" else [],
+        "visibility": appearance.model == "ps" and "visibility" in appearance.extra,
+        "planes": None if tiles is None else tiles.planes,
+        "note": None,
+    }
+    if tiles is None:
+        entry["note"] = (
+            f"the page relights {appearance.model} as Lambertian (it evaluates "
+            f"{', '.join(VIEW_MODELS)}); ps-lab relight renders the fitted model"
+        )
+    elif appearance.model in BASIS_TERMS and k != BASIS_TERMS[appearance.model]:
+        entry["note"] = f"{appearance.model} with {k} terms"
+    return entry
+
+
+def _half(values: np.ndarray) -> np.ndarray:
+    top = float(np.finfo(np.float16).max)
+    return np.clip(values, -top, top).astype(np.float16)
+
+
+def _halve(values: np.ndarray, inside: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """2 × 2 blocks averaged over their mask pixels; a block is inside when half of it is."""
+    h, w, c = values.shape
+    if h % 2 or w % 2:
+        padded = np.zeros((h + h % 2, w + w % 2, c), np.float32)
+        padded[:h, :w] = values
+        mask = np.zeros(padded.shape[:2], np.float32)
+        mask[:h, :w] = inside
+        values, inside = padded, mask
+
+    def block_sum(x):
+        return x[0::2, 0::2] + x[1::2, 0::2] + x[0::2, 1::2] + x[1::2, 1::2]
+
+    count = block_sum(inside)
+    out = block_sum(values * inside[..., None]) / np.maximum(count, 1)[..., None]
+    keep = count >= 2
+    out[~keep] = 0.0
+    return out.astype(np.float32), keep.astype(np.float32)
