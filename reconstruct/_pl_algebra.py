@@ -8,7 +8,9 @@ from __future__ import annotations
 
 import math
 
+import numpy as np
 from numba import njit
+from scipy.stats import chi2
 
 from ._kernels import INLINE
 
@@ -218,3 +220,107 @@ def _loo_pl(target, fw, sw, slope_of, tab, n, u, prior, prior_rhs, mat, inv, low
             out[i] = sw[i] * e * e
             score += out[i]
     return score
+
+
+@njit(**INLINE)
+def _bend_score(y, w, lights, p, n, k_max, x_out, lam_row, q_table, vals, mat, inv, low, g,
+                col):
+    """Robust score test at pixel p of the Lambertian fit against ``k`` segments; its excess.
+
+    ``k = min(k_max, usable // 4)`` as the PL fit's; ``g``, ``col``: scratch of ``k + 2``.
+
+    SBL's fit ``x`` (posterior mean) is the restricted model. On the pixel's usable
+    observations, fitted values ``v_i = l_i . x``, residuals ``r_i = y_i - v_i`` clipped to
+    ``+-GATE_CLIP sqrt(lam_i)`` (Huber's psi at SBL's "3 sigma": a corruption counts no more than
+    one at the outlier threshold, but counts; SBL's own flags are not trusted, since they are
+    what the larger model disputes) and weights ``1 / lam_i``. The piecewise-linear model bends
+    the response at the ``j u / k``-th smallest value (``j = 1 .. k - 1``); to first order at the
+    Lambertian fit that adds the hinges ``h_j = max(v - b_j, 0)`` of the fitted values (breaks at
+    their order statistics) to the design. The score statistic is the weighted residual sum of
+    squares that the hinges remove from the regression of ``r`` on the lights,
+    ``g^T G^-1 g - g_L^T G_LL^-1 g_L`` (``G``, ``g``: the weighted products of ``[l, h]`` with
+    themselves and with ``r``), chi^2 with ``k - 1`` degrees of freedom under the Lambertian
+    model; ``q_table[k - 1]`` is its quantile. Returns the statistic less the quantile (> 0: the
+    Lambertian model fails towards the bent one), or -inf with fewer than four observations per
+    unknown of the ``k``-segment model or a singular design (no power: the smaller model is kept).
+    """
+    x0 = x_out[p, 0]
+    x1 = x_out[p, 1]
+    x2 = x_out[p, 2]
+    cnt = 0
+    for i in range(n):
+        if w[p, i] > 0.0:
+            vals[cnt] = lights[i, 0] * x0 + lights[i, 1] * x1 + lights[i, 2] * x2
+            cnt += 1
+    k = k_max if k_max < cnt // 4 else cnt // 4
+    u = k + 2
+    if k < 2 or cnt < 4 * u:
+        return -math.inf
+    # breaks: order statistics of the fitted values, as _design's of the observations
+    lo = 0
+    for j in range(1, k):
+        kth = (j * cnt) // k
+        inv[0, j] = _select(vals, lo, cnt, kth)
+        lo = kth
+    for j in range(1, k):
+        low[0, j] = inv[0, j]  # keep the breaks (inv and low are overwritten below)
+    for r in range(u):
+        for c in range(u):
+            mat[r, c] = 0.0
+    for r in range(u):
+        g[r] = 0.0
+    for i in range(n):
+        if not w[p, i] > 0.0:
+            continue
+        fit = lights[i, 0] * x0 + lights[i, 1] * x1 + lights[i, 2] * x2
+        wi = 1.0 / lam_row[i]
+        res = y[p, i] - fit
+        cap = GATE_CLIP * math.sqrt(lam_row[i])
+        res = cap if res > cap else (-cap if res < -cap else res)
+        col[0], col[1], col[2] = lights[i, 0], lights[i, 1], lights[i, 2]
+        for j in range(1, k):
+            h = fit - low[0, j]
+            col[2 + j] = h if h > 0.0 else 0.0
+        for r in range(u):
+            g[r] += wi * col[r] * res
+            for c in range(r, u):
+                mat[r, c] += wi * col[r] * col[c]
+    for r in range(u):
+        for c in range(r):
+            mat[r, c] = mat[c, r]
+    logdet = _cholesky_inverse(mat, inv, low, u)
+    if not logdet == logdet:
+        return -math.inf
+    full = 0.0
+    for r in range(u):
+        for c in range(u):
+            full += g[r] * inv[r, c] * g[c]
+    logdet = _cholesky_inverse(mat, inv, low, 3)
+    if not logdet == logdet:
+        return -math.inf
+    part = 0.0
+    for r in range(3):
+        for c in range(3):
+            part += g[r] * inv[r, c] * g[c]
+    return (full - part) - q_table[k - 1]
+
+
+# The score test's noise level is never below the smallest corruption SBL resolves: an inlier may
+# deviate by up to the outlier threshold (at least 0.05 of the pixel scale, _solve's
+# MIN_OUTLIER_THRESHOLD, "3 sigma"), so a residual the Lambertian fit calls noise does not make
+# it fail (float renders estimate sigma ~ 0 and would fail on any sub-threshold sparse corruption).
+GATE_NOISE = 0.05 / 3.0
+# Residuals enter the score test clipped at this many noise levels (Huber's psi; SBL's flag).
+GATE_CLIP = 3.0
+
+
+def gate_variance(lam):
+    """The score test's noise variance from a noise variance ``lam`` (array or float)."""
+    return np.maximum(lam, GATE_NOISE**2)
+
+
+def chi2_quantiles(n: int, false_alarm: float) -> np.ndarray:
+    """(n + 1,) the chi^2 quantiles of ``1 - false_alarm`` for 0 .. n degrees of freedom."""
+    q = np.full(n + 1, np.inf)
+    q[1:] = chi2.ppf(1.0 - false_alarm, np.arange(1, n + 1))
+    return q

@@ -26,10 +26,10 @@ Cholesky. Beyond the paper (docs/solvers.md has the measurements):
 - each pixel's log evidence in the space of ``y`` (the Gaussian marginal of ``t`` at the learned
   ``gamma``, ``tau^2``, plus the log Jacobian ``sum_i log s_{k(i)}`` of ``y -> f(y)``; recorded,
   no longer used for the choice);
-- the ``auto`` kernel solves every pixel with ``K = 1`` (SBL, its own kernel and iterations) and
-  with ``K`` segments, and keeps PL only where it predicts the pixel's observations better:
-  closed-form leave-one-out residuals of both fits on the same observations, under the same
-  noise, by more than one standard error of the gain (:func:`_choose`, docs/solvers.md).
+- the ``auto`` kernel solves every pixel with ``K = 1`` (SBL, its own kernel and iterations);
+  where SBL's fit fails a chi^2 score test towards K segments it fits them too, and keeps PL
+  only where it predicts the pixel's observations better (closed-form leave-one-out residuals
+  by more than one standard error of the gain: :func:`_choose`, docs/solvers.md).
 
 Inputs are those of :mod:`._kernels` (``y`` (m, n) scaled, ``w`` (m, n) 1/0, lights (n, 3) or,
 for near lights, (m, n, 3)).
@@ -45,7 +45,8 @@ from numba import njit
 
 from . import _kernels
 from ._kernels import INLINE, VECTOR, TileResult, _light_table, _sbl_pixel
-from ._pl_algebra import _cholesky_inverse, _loo_lambertian, _loo_pl, _select, _sum_log
+from ._pl_algebra import (_bend_score, _cholesky_inverse, _loo_lambertian, _loo_pl, _select,
+                          _sum_log, chi2_quantiles)
 
 # Rows of the per-pixel state: usable (1/0), observation noise in y units, in f units, gamma,
 # d = w / (gamma + lambda), corruption estimate of the last iteration, residual, a^T M^-1 a,
@@ -64,6 +65,9 @@ CHOICE_Z = 1.0
 # leverage is then at most 1/4, so that a left-out residual measures prediction (with fewer, it
 # is dominated by the 1 / (1 - h) inflation of interpolated observations; docs/solvers.md).
 CHOICE_PER_UNKNOWN = 4
+# The Lambertian model's score test: PL-SBL (which nests it) is fitted and compared only
+# where the score statistic of SBL's fit exceeds its chi^2 quantile at this false-alarm rate.
+GATE_FALSE_ALARM = 0.01
 
 
 @njit(**INLINE)
@@ -467,7 +471,8 @@ def _finish(p, k, x, slopes, breaks, st, n, threshold, x_out, outliers, segments
 def _pl_kernel(y, w, lights, per_pixel, lam, lam_pl, k_max, choose, sbl, ridge, learn_tau,
                max_iter,
                sbl_max_iter, tol, floor, start, threshold, x_out, outliers, iters, segments_out,
-               evidence_out, want_residuals, resid_out, choice_z):
+               evidence_out, want_residuals, resid_out, choice_z, gate, lam_test, q_table,
+               run_sbl, run_pl, v_io, stat_out):
     m, n = y.shape
     umax = k_max + 2
     st = np.zeros((STATE_ROWS, n))
@@ -502,10 +507,24 @@ def _pl_kernel(y, w, lights, per_pixel, lam, lam_pl, k_max, choose, sbl, ridge, 
                 sbl_st[_kernels._Y, i] = y[p, i]
                 sbl_st[_kernels._W, i] = w[p, i]
                 sbl_st[_kernels._LAM, i] = lam_row[i]
-            _sbl_pixel(sbl_st, sbl_tab, n, ridge, sbl_max_iter, tol, floor, start, threshold,
-                       x_out, outliers, iters, p)
-            segments_out[p] = 1
+            if run_sbl:
+                _sbl_pixel(sbl_st, sbl_tab, n, ridge, sbl_max_iter, tol, floor, start, threshold,
+                           x_out, outliers, iters, p)
+                segments_out[p] = 1
+                for i in range(n):
+                    v_io[p, i] = sbl_st[_kernels._V, i]
+            else:  # SBL's fit of an earlier pass (x_out, outliers, iters and its weights)
+                for i in range(n):
+                    sbl_st[_kernels._V, i] = v_io[p, i]
             if k_max == 1:
+                continue
+            if gate:
+                # the Lambertian model's score test towards K segments: PL only where it fails
+                stat_out[p] = _bend_score(y, w, lp, p, n, k_max, x_out, lam_test[p], q_table,
+                                          vals, mat, inv, low, x, rhs)
+                if not stat_out[p] > 0.0:
+                    continue
+            if not run_pl:
                 continue
         k, it, ev, tau2 = _pl_pixel(y, w, lp, p, k_max, lam_pl[p], ridge, learn_tau, max_iter,
                                     tol, floor, start, sbl, st, tab, mat, inv, low, x, rhs, prior,
@@ -582,13 +601,17 @@ class PLTileResult(TileResult):
     segments: np.ndarray | None = None  # (m,) int: 1 = the Lambertian model
     evidence: np.ndarray | None = None  # (m,) float
     residuals: np.ndarray | None = None  # (m, n): (f(y) - n.l) / slope, with ``residuals``
+    gate: np.ndarray | None = None  # (m,): the score test's statistic over its quantile
+    sbl_weights: np.ndarray | None = None  # (m, n): SBL's final d, from stage "sbl"
 
 
 def pl_tile(y, w, lights, *, segments: int, lam, sigma_x2: float = 1e6, max_iter: int = 100,
             tol: float = 1e-4, gamma_floor: float = 1e-10, gamma_start: float = 1e3,
             outlier_threshold: float = np.inf, learn_tau: bool = True, sbl: bool = True,
             choose: bool = False, sbl_max_iter: int = 100, lam_pl=None,
-            residuals: bool = False, choice_z: float = CHOICE_Z) -> PLTileResult:
+            residuals: bool = False, choice_z: float = CHOICE_Z, lam_test=None,
+            false_alarm: float = GATE_FALSE_ALARM, stage: str = "both",
+            sbl_fit: PLTileResult | None = None) -> PLTileResult:
     """Piecewise-linear model of ``segments`` segments on one tile (module docstring).
 
     Parameters
@@ -626,6 +649,14 @@ def pl_tile(y, w, lights, *, segments: int, lam, sigma_x2: float = 1e6, max_iter
         Learn the slopes' prior variance per pixel (else the authors' 1).
     sbl_max_iter : int
         With ``choose``: the one-segment model's iterations.
+    lam_test : float or ndarray of shape (m, 1) or (m, n), optional
+        With ``choose``: the noise variance of the Lambertian model's score test
+        (:func:`._pl_algebra._bend_score`); the ``K``-segment model is fitted and compared only
+        where the score statistic of SBL's fit exceeds the chi^2 quantile of
+        ``1 - false_alarm`` (``gate`` of the result: that excess). None: no test.
+    stage : {"both", "sbl", "pl"}
+        With ``choose``: "sbl" fits SBL and runs the test only (``sbl_weights``, ``gate`` kept
+        for a later "pl" pass on the same rows, which takes SBL's fit from ``sbl_fit``).
     """
     y = np.ascontiguousarray(y, dtype=np.float64)
     w = np.ascontiguousarray(w, dtype=np.float64)
@@ -637,16 +668,30 @@ def pl_tile(y, w, lights, *, segments: int, lam, sigma_x2: float = 1e6, max_iter
     lam_obs = np.require(np.broadcast_to(np.asarray(lam, dtype=np.float64), (m, n)), None, "CW")
     lam_pl = lam_obs if lam_pl is None else np.require(
         np.broadcast_to(np.asarray(lam_pl, dtype=np.float64), (m, n)), None, "CW")
-    x = np.zeros((m, 3))
-    outliers = np.zeros((m, n), np.bool_)
-    iters = np.zeros(m, np.int64)
-    segs = np.zeros(m, np.int64)
+    gate = choose and lam_test is not None
+    lam_t = (np.require(np.broadcast_to(np.asarray(lam_test, dtype=np.float64), (m, n)), None, "CW")
+             if gate else np.ones((1, 1)))
+    q_table = chi2_quantiles(n, false_alarm) if gate else np.zeros(1)
+    if sbl_fit is not None:  # stage "pl": SBL's fit of the "sbl" stage, updated in place
+        x, outliers, iters, segs = (np.array(sbl_fit.x), np.array(sbl_fit.outliers),
+                                    np.array(sbl_fit.iterations), np.array(sbl_fit.segments))
+        v_io = np.require(sbl_fit.sbl_weights, np.float64, "CW")
+    else:
+        x = np.zeros((m, 3))
+        outliers = np.zeros((m, n), np.bool_)
+        iters = np.zeros(m, np.int64)
+        segs = np.zeros(m, np.int64)
+        v_io = np.zeros((m, n) if choose else (1, 1))
     evidence = np.full(m, -np.inf)
+    stat = np.full(m, -np.inf)
     resid = np.zeros((m, n) if residuals else (1, 1))
     if m:
         _pl_kernel(y, w, lights, per_pixel, lam_obs, lam_pl, int(segments), bool(choose), bool(sbl),
                    1.0 / float(sigma_x2), bool(learn_tau), int(max_iter), int(sbl_max_iter),
                    float(tol),
                    float(gamma_floor), float(gamma_start), float(outlier_threshold), x, outliers,
-                   iters, segs, evidence, bool(residuals), resid, float(choice_z))
-    return PLTileResult(x, outliers, iters, segs, evidence, resid if residuals else None)
+                   iters, segs, evidence, bool(residuals), resid, float(choice_z), gate, lam_t,
+                   q_table, stage != "pl", stage != "sbl", v_io, stat)
+    return PLTileResult(x, outliers, iters, segs, evidence, resid if residuals else None,
+                        stat if gate else None, v_io if stage == "sbl" else None)
+

@@ -11,15 +11,12 @@ from contextlib import nullcontext
 import numpy as np
 
 from . import _kernels, _pl_kernels
-from ._linalg import SOLVABLE_REL_DET, inverse6, outer6, pixel_scale
+from ._linalg import SOLVABLE_REL_DET, pixel_scale  # noqa: F401 (near.py imports it from here)
+from ._auto import auto_tiles
+from ._pl_algebra import gate_variance
 from ._rpca import solve_rpca
-from ._solution import (
-    ALBEDO_DEFINITION,
-    METHODS,
-    Solution,
-    SolverInputError,
-    _albedo_rows,
-)
+from ._solution import ALBEDO_DEFINITION, METHODS, Solution, SolverInputError, _albedo_rows
+from ._tiles import LAMBDA_FLOOR, _finish_solution, _prepare_tile, _store_tile, sbl_lambda
 
 # Defaults of each method's parameters (in units of the pixel's robust scale, see `pixel_scale`).
 DEFAULTS: dict[str, dict] = {
@@ -49,9 +46,7 @@ TILES_PER_THREAD = 4
 MIN_TILE_SIZE = 512
 # The noise fit's pixel sample is cut into pieces of at least this many pixels for the threads.
 NOISE_PIECE_PIXELS = 1000
-# Noise level floor (relative to the pixel scale): the paper's lambda for noise-free data.
-LAMBDA_FLOOR = 1e-6
-# Smallest outlier threshold (relative to the pixel scale).
+# Smallest outlier threshold (relative to the pixel scale); _pl_algebra.GATE_NOISE is its third.
 MIN_OUTLIER_THRESHOLD = 0.05
 NOISE_SAMPLE_PIXELS = 4000
 # Observations below this share of the pixel scale are not used to estimate the noise.
@@ -77,36 +72,6 @@ NOISE_FLOOR_MIN_COUNT = 50
 SBL_TOL_NOISE_SHARE = 1.0 / 200.0
 SBL_TOL_MIN = 1e-4
 
-
-def sbl_lambda(scale: np.ndarray, noise_sigma: float, noise_floor: float,
-               light_noise: np.ndarray | None = None) -> np.ndarray:
-    """SBL's default noise variance per observation, in units of the pixel's scale squared.
-
-    Parameters
-    ----------
-    scale : ndarray of shape (m,)
-        The pixels' robust scales (:func:`pixel_scale`), in the observations' units.
-    noise_sigma : float
-        Noise proportional to the signal, relative to the pixel scale (:func:`estimate_noise`).
-    noise_floor : float
-        Noise constant in the observations' units (:func:`estimate_noise_model`).
-    light_noise : ndarray of shape (n,), optional
-        Relative size of the noise floor under each light (mean square 1; default all 1): a floor
-        constant in the *image* units becomes ``floor / intensity`` once each image is divided by
-        its light's intensity (:func:`light_noise_factors`).
-
-    Returns
-    -------
-    ndarray of shape (m, 1), or (m, n) with ``light_noise``
-        ``max(noise_sigma^2 + (noise_floor * light_noise_i / scale)^2, LAMBDA_FLOOR)`` (the floor
-        where ``scale`` is 0: unsolvable pixels).
-    """
-    s = np.asarray(scale, dtype=np.float64)[:, None]
-    f2 = np.ones(1) if light_noise is None else np.asarray(light_noise, dtype=np.float64) ** 2
-    with np.errstate(divide="ignore"):
-        inv = np.where(s > 0, 1.0 / np.where(s > 0, s, 1.0) ** 2, 0.0)
-    return np.maximum(noise_sigma * noise_sigma + noise_floor**2 * inv * f2[None, :],
-                      LAMBDA_FLOOR)
 
 
 def light_noise_factors(light_intensities: np.ndarray, channel: str = "mean") -> np.ndarray:
@@ -182,18 +147,6 @@ def _method_params(method: str, given: dict) -> dict:
         params["segments"] = int(k)
     return params
 
-
-def _prepare_tile(obs, usable, lights, a, b):
-    """Pixel-major scaled observations of pixels a:b and the solvable-pixel mask."""
-    y = np.array(obs[:, a:b].T, dtype=np.float64, order="C")  # a copy: scaled in place below
-    w = np.ascontiguousarray(usable[:, a:b].T)
-    scale = pixel_scale(y, w)
-    _, ok = inverse6(w.astype(np.float64) @ outer6(lights), SOLVABLE_REL_DET)
-    ok &= (scale > 0) & (w.sum(axis=1) >= 3)
-    w &= ok[:, None]
-    y /= np.where(ok, scale, 1.0)[:, None]
-    y[~w] = 0.0  # dropped observations may hold NaN or garbage: weight 0 must not see it
-    return y, w.astype(np.float64), scale, ok
 
 
 def estimate_noise(observations, light_directions, valid=None, *,
@@ -320,8 +273,8 @@ def pl_noise_level(observations, light_directions, valid=None, *, segments: int 
         return _noise_level(np.concatenate(list(mapper(fit, pieces))))
 
     raw = level(y, w)
-    if raw <= 0.0:
-        return raw
+    if raw <= 0.0 or 2.0 * raw <= math.sqrt(LAMBDA_FLOOR):
+        return raw  # the consistency factor (< 2) cannot lift it over the noise variance's floor
 
     def lambertian(rows):
         res = _kernels.l1_tile(y[rows], w[rows], lights, max_iter=30, tol=1e-6, delta=1e-6,
@@ -547,6 +500,15 @@ def solve(
             return Solution(sol.normals, np.where(np.isnan(rho), sol.albedo, rho), sol.outliers,
                             sol.iterations, sol.params)
         used.update({"tile_size": bound, "threads": workers})
+        if method == "auto":
+            def pl_noise_of(columns):  # the PL noise on some pixels (the gate's failures)
+                return pl_noise_level(obs[:, columns], lights, usable[:, columns],
+                                      segments=params["segments"],
+                                      noise_sigma=used["noise_sigma"], mapper=mapper,
+                                      workers=workers)
+
+            return auto_tiles(obs, lights, usable, params, used, starts, tile, mapper, progress,
+                              pl_noise_of)
         return _solve_tiles(obs, lights, usable, method, params, used, starts, tile, mapper,
                             progress)
 
@@ -593,9 +555,13 @@ def _solve_params(n, method, params, residuals, pl_noise=None) -> dict:
         if noise is not None:
             used["noise_sigma"] = float(noise)
         if method in ("plsbl", "auto") and params["lam"] is None:
-            if sigma_pl is None:
+            if sigma_pl is None and method == "auto":
+                # measured after SBL, on the pixels whose Lambertian fit fails (_auto_tiles)
+                params["noise_sigma_pl"] = None
+            elif sigma_pl is None:
                 sigma_pl = pl_noise(params["segments"], noise)
-            used["noise_sigma_pl"] = params["noise_sigma_pl"] = float(sigma_pl)
+            if sigma_pl is not None:
+                used["noise_sigma_pl"] = params["noise_sigma_pl"] = float(sigma_pl)
         if method in SBL_LIKE and params["tol"] is None:
             params["tol"] = max(SBL_TOL_MIN, SBL_TOL_NOISE_SHARE * noise)
     used.update({k: v for k, v in params.items()
@@ -607,9 +573,10 @@ def _pl_sbl_tile(y, w, lights, **params):
     return _pl_kernels.pl_tile(y, w, lights, **params)
 
 
-def _auto_tile(y, w, lights, **params):
-    sbl_max_iter = params.pop("sbl_max_iter", DEFAULTS["sbl"]["max_iter"])
-    return _pl_kernels.pl_tile(y, w, lights, choose=True, sbl_max_iter=sbl_max_iter, **params)
+def _auto_tile(y, w, lights, *, sbl_max_iter=DEFAULTS["sbl"]["max_iter"], **params):
+    lam_test = gate_variance(params.get("lam_pl", params["lam"]))  # the score test's (_auto)
+    return _pl_kernels.pl_tile(y, w, lights, choose=True, sbl_max_iter=sbl_max_iter,
+                               lam_test=lam_test, **params)
 
 
 def _pl_ls_tile(y, w, lights, *, segments):
@@ -651,27 +618,11 @@ def _solve_tiles(obs, lights, usable, method, params, used, starts, tile, mapper
                 lam_pl = sbl_lambda(scale, params["noise_sigma_pl"], floor, factors)
                 tile_params["lam_pl" if method == "auto" else "lam"] = lam_pl
         res = kernel(y, w, lights, **tile_params)
-        x = res.x.astype(np.float64) * scale[:, None]
-        length = np.linalg.norm(x, axis=1)
-        good = ok & (length > 0) & np.isfinite(length)
-        unit = np.where(good[:, None], x / np.where(good, length, 1.0)[:, None], 0.0)
-        normals[a:b] = unit
-        # one albedo for every method: the Lambertian-equivalent reflectance on the inliers
-        rho = _albedo_rows(unit @ lights.T, (w > 0) & ~res.outliers, y) * scale
-        albedo[a:b] = np.where(good, np.where(np.isnan(rho), length, rho), 0.0)
-        outliers[:, a:b] = (res.outliers & good[:, None]).T
-        iterations[a:b] = np.where(ok, res.iterations, 0)
-        if segments is not None:
-            segments[a:b] = np.where(ok, res.segments, 0)
+        _store_tile(a, b, y, w, scale, ok, res, lights, normals, albedo, outliers, iterations,
+                    segments)
         return b - a
 
     for done in mapper(run_tile, starts):
         if progress is not None:
             progress(done)
-    if segments is not None:
-        solved = segments > 0
-        used["pixels_per_segments"] = {int(k): int(c) for k, c in
-                                       zip(*np.unique(segments[solved], return_counts=True),
-                                           strict=True)}
-    used["albedo"] = ALBEDO_DEFINITION
-    return Solution(normals, albedo, outliers, iterations, used)
+    return _finish_solution(used, normals, albedo, outliers, iterations, segments)

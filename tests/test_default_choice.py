@@ -14,6 +14,8 @@ from ps_lab.reconstruct._shadows import black_threshold
 from ps_lab.reconstruct._solution import lambertian_albedo
 from ps_lab.render import random_light_directions, relief_surface, render, sphere_surface
 
+from helpers.tolerances import PL_NORMALS
+
 METHODS = ("ls", "l1", "sbl", "plls", "plsbl", "auto", "rpca")
 
 
@@ -142,3 +144,38 @@ def test_dark_subtracted_quantised_noise_has_no_atom():
     # 3 sigma of the noise at black, sigma = 3 DN (rounding adds 1/12 DN^2)
     sigma = np.sqrt(9.0 + 1.0 / 12.0) / 1000.0
     np.testing.assert_allclose(threshold, 3.0 * sigma, rtol=0.1)
+
+
+def test_score_gate_fails_at_its_false_alarm_rate_on_lambertian_data():
+    """Known additive noise (sigma of each pixel's scale): the gate's chi^2 test fails on ~1 %."""
+    from ps_lab.reconstruct import _pl_kernels, _solve
+
+    fails, tested = 0, 0
+    for seed in (0, 1):
+        rng = np.random.default_rng(seed)
+        lights = random_light_directions(40, rng, max_zenith_deg=60.0)
+        surface = relief_surface((48, 48), seed=seed)
+        clean = render(surface, lights, rng=rng)[:, surface.mask]
+        sigma = 0.05
+        scale = np.array([np.median(c[c > 0]) for c in clean.T])
+        obs = clean + sigma * scale * rng.standard_normal(clean.shape)
+        y, w, _, ok = _solve._prepare_tile(obs, clean > 0, lights, 0, obs.shape[1])
+        res = _pl_kernels.pl_tile(y[ok], w[ok], lights, segments=3, lam=sigma**2, choose=True,
+                                  lam_test=sigma**2, stage="sbl", outlier_threshold=3 * sigma)
+        gate = res.gate[np.isfinite(res.gate)]
+        fails += int(np.sum(gate > 0))
+        tested += gate.size
+    # binomial(2900, 0.01): 29 +- 5.4; the window is +-3 standard deviations and more
+    assert 0.003 < fails / tested < 0.02
+
+
+def test_default_is_sbl_on_noisy_lambertian_data():
+    """No pixel of a Lambertian render with noise fails the gate: the default is SBL, exactly."""
+    obs, lights, truth, rng = _scene(shape=(40, 40), n_lights=40, seed=3, sphere=False)
+    valid = obs > 0  # the shadows, known
+    obs = obs + 0.01 * rng.standard_normal(obs.shape) * obs.max()
+    auto = solve(obs, lights, valid=valid, method="auto", threads=1)
+    sbl = solve(obs, lights, valid=valid, method="sbl", threads=1)
+    assert auto.params["pixels_per_segments"] == {1: obs.shape[1]}
+    # the same SBL, summed over the lights in another kernel (rounding: PL_NORMALS)
+    np.testing.assert_allclose(auto.normals, sbl.normals, rtol=0, atol=PL_NORMALS)

@@ -34,7 +34,8 @@ from ps_lab.reconstruct._solve import (
 from ps_lab.render import random_light_directions, relief_surface, render, sphere_surface
 
 ORACLE_PARAMS = ("max_iter", "tol", "delta", "outlier_threshold", "sigma_x2", "gamma_floor",
-                 "gamma_start", "lam_sparse", "rho", "segments", "sbl_max_iter")
+                 "gamma_start", "lam_sparse", "rho", "segments", "sbl_max_iter", "gate_noise",
+                 "gate_false_alarm")
 
 
 def lights_upper(n, rng, max_zenith_deg=60.0):

@@ -13,6 +13,7 @@ with ``outlier_threshold`` to flag an observation (``|residual|`` for L1, the co
 from __future__ import annotations
 
 import numpy as np
+from scipy.stats import chi2
 
 
 def pixel_scale(y: np.ndarray) -> float:
@@ -193,15 +194,40 @@ def _left_out_terms(design, target, d, prior, prior_rhs, scored, weight, divide)
     return terms
 
 
+def bend_score(y, a, x, lam_test, k, clip=3.0):
+    """Score statistic of the Lambertian fit ``x`` against ``k`` segments (issue 31's gate).
+
+    The weighted (1 / lam_test) residual sum of squares that the hinges ``max(a.x - b_j, 0)``
+    (``b_j`` the ``j u / k``-th smallest fitted value) remove from the regression of the
+    residuals ``y - a.x``, clipped at ``clip sqrt(lam_test)``, on the lights; NaN when it
+    cannot be tested.
+    """
+    fit, wt = a @ x, 1.0 / lam_test
+    r = np.clip(y - fit, -clip * np.sqrt(lam_test), clip * np.sqrt(lam_test))
+    if k < 2 or fit.size < 4 * (k + 2):
+        return np.nan
+    srt = np.sort(fit)
+    hinges = [np.maximum(fit - srt[(j * fit.size) // k], 0.0) for j in range(1, k)]
+    full = np.column_stack([a, *hinges])
+
+    def reduction(design):
+        g = design.T @ (wt * r)
+        return g @ np.linalg.solve(design.T @ (wt[:, None] * design), g)
+
+    return reduction(full) - reduction(a)
+
+
 def auto_pixel(y, a, *, lam, lam_pl=None, segments=3, sigma_x2=1e6, max_iter=20, tol=1e-4,
                gamma_floor=1e-10, gamma_start=1e3, outlier_threshold=np.inf, choice_z=1.0,
-               sbl_max_iter=100, slope_floor=1e-3):
-    """SBL, or PL-SBL where it predicts the observations left out in turn better (issue 31).
+               sbl_max_iter=100, slope_floor=1e-3, gate_noise=None, gate_false_alarm=0.01):
+    """SBL, or PL-SBL where SBL fails the score test and PL predicts better (issue 31).
 
-    Scored: usable observations not flagged by both fits; each fit's weights held at their final
-    values and refitted without each scored observation (no closed form); the paired differences
-    of the squared left-out residuals (in y's units, weights 1 / lam) must sum to more than
-    ``choice_z`` standard errors.
+    The gate: SBL's :func:`bend_score` at the noise ``max(lam_pl, gate_noise^2)``
+    exceeds the chi^2 quantile of ``1 - gate_false_alarm`` with ``k - 1`` degrees of freedom
+    (``gate_noise`` None: no gate). Scored: usable observations not flagged by both fits;
+    each fit's weights held at their final values and refitted without each scored
+    observation (no closed form); the paired differences of the squared left-out residuals
+    (in y's units, weights 1 / lam) must sum to more than ``choice_z`` standard errors.
     """
     lam = np.broadcast_to(np.asarray(lam, dtype=float), y.shape)
     lam_pl = lam if lam_pl is None else lam_pl
@@ -212,6 +238,12 @@ def auto_pixel(y, a, *, lam, lam_pl=None, segments=3, sigma_x2=1e6, max_iter=20,
     sbl_result = x_sbl, e_sbl, it_sbl
     if segments == 1:
         return sbl_result
+    if gate_noise is not None:
+        k = max(1, min(segments, y.size // 4))
+        lam_test = np.maximum(np.broadcast_to(lam_pl, y.shape), gate_noise**2)
+        score = bend_score(y, a, x_sbl, lam_test, k)
+        if not score > chi2.ppf(1.0 - gate_false_alarm, k - 1):
+            return sbl_result
     fit = {}
     pl = pl_model(y, a, segments=segments, lam=lam_pl, sigma_x2=sigma_x2, max_iter=max_iter,
                   tol=tol, gamma_floor=gamma_floor, gamma_start=gamma_start, out=fit)
@@ -278,7 +310,9 @@ def solve_oracle(observations, lights, method, valid=None, *, statistic=False, *
             floor_term = (floor * factor[v] / scale) ** 2
             pixel_params = {**rest, "lam": np.maximum(sigma**2 + floor_term, 1e-6)}
             if method in ("plsbl", "auto"):  # the PL model's own relative noise
-                lam_pl = np.maximum(params["noise_sigma_pl"] ** 2 + floor_term, 1e-6)
+                # (auto: not measured when no pixel failed the gate, which then passes at 0)
+                sigma_pl = params["noise_sigma_pl"] or 0.0
+                lam_pl = np.maximum(sigma_pl**2 + floor_term, 1e-6)
                 pixel_params["lam" if method == "plsbl" else "lam_pl"] = lam_pl
         if method == "auto":
             pixel_params = {**pixel_params, "outlier_threshold": threshold}
