@@ -585,9 +585,6 @@ def test_appearance_relight_in_chromium_matches_the_model(browser, colour_result
         numbers, pictures = {}, {}
         for switch in (True, False):
             browser.evaluate(f"psView.set({{appearance: {json.dumps(switch)}}})")
-            # two settled frames: the one after the switch may still show the tiles' first draw
-            # (a first run in a fresh tree once showed a blank frame here; never reproduced warm)
-            settle(browser)
             settle(browser)
             if switch:
                 linear = evaluate_appearance(rounded, np.asarray(light), unit, albedo)

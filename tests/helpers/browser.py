@@ -153,8 +153,19 @@ class Browser:
             self.events.append(reply)
 
     def open(self, url: str, timeout: float = 30) -> None:
-        """Open ``url`` in a new page and attach to it (later commands go to that page)."""
+        """Open ``url`` in a new page and attach to it (later commands go to that page).
+
+        The page opened before is closed first: one page, one WebGL context at a time, so a test
+        never shares the GPU process's state with an earlier test's page that is still drawing.
+        """
+        previous = getattr(self, "target", None)
+        if previous is not None:
+            try:
+                self.send("Target.closeTarget", {"targetId": previous}, browser=True)
+            except BrowserError:
+                pass  # already gone
         target = self.send("Target.createTarget", {"url": "about:blank"}, browser=True)["targetId"]
+        self.target = target
         self.session = self.send(
             "Target.attachToTarget", {"targetId": target, "flatten": True}, browser=True
         )["sessionId"]
