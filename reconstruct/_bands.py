@@ -18,6 +18,7 @@ from typing import Any
 import numpy as np
 
 from ps_lab.io.bands import Band, ObservationStore, stage_observations
+from ps_lab.io.coding import Coding
 from ps_lab.io.dataset import DatasetHeader
 from ps_lab.reconstruct._colour import colour_albedo
 from ps_lab.reconstruct._refine import light_fit_sums
@@ -253,8 +254,9 @@ class LocalBands:
         sample_pixels: int,
         progress: Callable[[int], None],
         colours: int = 0,
+        coding: Coding | None = None,
     ) -> ObservationStore:
-        """Pass 1: :func:`ps_lab.io.bands.stage_observations`."""
+        """Pass 1: :func:`ps_lab.io.bands.stage_observations` (frames decoded in threads)."""
         return stage_observations(
             header,
             mask,
@@ -266,6 +268,8 @@ class LocalBands:
             sample_pixels=sample_pixels,
             progress=progress,
             colours=colours,
+            coding=coding,
+            threads=self.threads,
         )
 
     def solve(
@@ -288,7 +292,7 @@ class LocalBands:
             if band.pixel_count == 0:
                 continue
             advance(0, description=f"{label}: band {band.index + 1}/{count}")
-            observations, valid = store.read(band)
+            observations, valid, colour = store.observe(band, colour=final)
             yield solve_band(
                 observations,
                 valid,
@@ -301,5 +305,5 @@ class LocalBands:
                 truth_rows=None if truth is None else band_truth(truth, store.mask, band),
                 progress=advance,
                 black=black,
-                colour=store.read_colour(band) if final else None,
+                colour=colour,
             )

@@ -12,7 +12,9 @@ from __future__ import annotations
 
 import dataclasses
 import logging
+import os
 import time
+from concurrent.futures import ThreadPoolExecutor
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
@@ -329,6 +331,13 @@ def _whole_image_parameters(
     method = options.method
     if method in ("ls", "plls") or store.sample_index.size == 0:
         return {}
+    workers = int(options.threads) if options.threads else (os.cpu_count() or 1)
+    with ThreadPoolExecutor(max(workers, 1)) as pool:
+        return _noise_parameters(store, vectors, options, intensities, pool.map, workers)
+
+
+def _noise_parameters(store, vectors, options, intensities, mapper, workers) -> dict:
+    method = options.method
     sbl_like = method in ("sbl", "plsbl", "auto")
     light_noise = light_noise_factors(intensities, options.channel) if sbl_like else None
     sigma, floor = estimate_noise_model(
@@ -337,6 +346,8 @@ def _whole_image_parameters(
         store.sample_valid,
         max_pixels=store.sample_index.size,
         light_noise=light_noise,
+        mapper=mapper,
+        workers=workers,
     )
     if not sbl_like:
         return {"noise_sigma": sigma}
@@ -345,7 +356,7 @@ def _whole_image_parameters(
         whole["noise_sigma_pl"] = pl_noise_level(
             store.sample_observations, vectors, store.sample_valid,
             segments=options.segments or 3, noise_sigma=sigma,
-            max_pixels=store.sample_index.size)
+            max_pixels=store.sample_index.size, mapper=mapper, workers=workers)
     return whole
 
 

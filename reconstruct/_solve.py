@@ -108,6 +108,8 @@ def _check_inputs(observations, light_directions, valid):
         raise SolverInputError(f"observations must be (n_lights, n_pixels), got shape {obs.shape}")
     if not np.issubdtype(obs.dtype, np.number):
         raise SolverInputError(f"observations must be numeric, got {obs.dtype}")
+    # the tile kernels take C-ordered float32 (the store's) or float64 (one compiled version each)
+    obs = np.ascontiguousarray(obs, dtype=obs.dtype if obs.dtype == np.float32 else np.float64)
     lights = np.asarray(light_directions, dtype=np.float64)
     n = obs.shape[0]
     if lights.shape != (n, 3):
@@ -125,7 +127,7 @@ def _check_inputs(observations, light_directions, valid):
             raise SolverInputError(f"valid must have the observations' shape {obs.shape}, "
                                f"got {valid.shape}")
         usable &= valid
-    return obs, lights, usable
+    return obs, lights, np.ascontiguousarray(usable)
 
 
 def _method_params(method: str, given: dict) -> dict:
@@ -176,7 +178,8 @@ def estimate_noise(observations, light_directions, valid=None, *,
 
 def estimate_noise_model(observations, light_directions, valid=None, *,
                          max_pixels: int = NOISE_SAMPLE_PIXELS,
-                         light_noise: np.ndarray | None = None) -> tuple[float, float]:
+                         light_noise: np.ndarray | None = None, mapper=map,
+                         workers: int = 1) -> tuple[float, float]:
     """Both noise terms of SBL's default lambda, from one L1 fit (see :func:`sbl_lambda`).
 
     Parameters are those of :func:`estimate_noise`, and ``light_noise`` (n,), the relative noise
@@ -193,9 +196,12 @@ def estimate_noise_model(observations, light_directions, valid=None, *,
         variance (25 % quantile) is fitted by ``sigma_abs^2 x + sigma_rel^2`` (both >= 0, relative
         least squares), and ``noise_floor = sigma_abs``. Zero for float renders and when dark
         pixels are no noisier (relative to their scale) than bright ones.
+
+    The sample is fitted in up to ``workers`` pieces through ``mapper`` (as
+    :func:`_noise_residuals`); the result does not depend on them.
     """
     obs, lights, usable = _check_inputs(observations, light_directions, valid)
-    residuals = _noise_residuals(obs, lights, usable, max_pixels)
+    residuals = _noise_residuals(obs, lights, usable, max_pixels, mapper=mapper, workers=workers)
     return _noise_level(*residuals), _noise_floor(*residuals, light_noise)
 
 
@@ -607,7 +613,7 @@ def _solve_tiles(obs, lights, usable, method, params, used, starts, tile, mapper
 
     def run_tile(a: int) -> int:
         b = min(a + tile, p)
-        y, w, scale, ok = _prepare_tile(obs, usable, lights, a, b)
+        y, w, scale, ok = _prepare_tile(obs, usable, lights, a, b, robust=method != "ls")
         tile_params = kernel_params
         if per_pixel_lam:
             floor, factors = params["noise_floor"], params["light_noise"]

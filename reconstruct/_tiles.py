@@ -1,14 +1,23 @@
 """Tiles of the per-pixel solvers: scaled observations in, unit normals and albedo out.
 
-Shared by :mod:`._solve` and the default's two passes (:mod:`._auto`).
+Shared by :mod:`._solve` and the default's two passes (:mod:`._auto`). Both ends are numba
+kernels that release the GIL (:func:`_prepare_kernel`, :func:`_store_kernel`): the tile threads
+run them in parallel, at the speed of one pass over the tile's observations, where the same
+algebra as whole-tile numpy operations held the GIL for as long as the SBL kernel itself took
+(docs/results.md, issue 37). ``_prepare_tile`` is :func:`._linalg.pixel_scale`,
+:func:`._linalg.inverse6` and the scaling in one pass; ``_store_tile`` the normalisation and
+:func:`._solution._albedo_rows` (rounding-level differences: sums in another order).
 """
 
 from __future__ import annotations
 
-import numpy as np
+import math
 
-from ._linalg import SOLVABLE_REL_DET, inverse6, outer6, pixel_scale
-from ._solution import ALBEDO_DEFINITION, Solution, _albedo_rows
+import numpy as np
+from numba import njit
+
+from ._linalg import SOLVABLE_REL_DET
+from ._solution import ALBEDO_DEFINITION, Solution
 
 # Noise level floor (relative to the pixel scale): the paper's lambda for noise-free data.
 LAMBDA_FLOOR = 1e-6
@@ -45,34 +54,153 @@ def sbl_lambda(scale: np.ndarray, noise_sigma: float, noise_floor: float,
                       LAMBDA_FLOOR)
 
 
-def _prepare_tile(obs, usable, lights, a, b):
-    """Pixel-major scaled observations of pixels a:b and the solvable-pixel mask."""
-    y = np.array(obs[:, a:b].T, dtype=np.float64, order="C")  # a copy: scaled in place below
-    w = np.ascontiguousarray(usable[:, a:b].T)
-    scale = pixel_scale(y, w)
-    _, ok = inverse6(w.astype(np.float64) @ outer6(lights), SOLVABLE_REL_DET)
-    ok &= (scale > 0) & (w.sum(axis=1) >= 3)
-    w &= ok[:, None]
-    y /= np.where(ok, scale, 1.0)[:, None]
-    y[~w] = 0.0  # dropped observations may hold NaN or garbage: weight 0 must not see it
-    return y, w.astype(np.float64), scale, ok
+def _prepare_tile(obs, usable, lights, a, b, robust=True):
+    """Pixel-major scaled observations of pixels a:b and the solvable-pixel mask.
+
+    ``robust`` False: the scale is the mean magnitude (for least squares, whose normals do not
+    depend on it), not the median.
+
+    Returns ``y`` (m, n) float64 (each pixel divided by its robust scale, 0 where not usable),
+    ``w`` (m, n) float64 1/0 (usable, and the pixel solvable), ``scale`` (m,) and ``ok`` (m,):
+    the pixel has a positive scale, at least 3 usable observations and a well-conditioned
+    normal matrix (``det >= SOLVABLE_REL_DET (trace / 3)^3``).
+    """
+    m = b - a
+    n = obs.shape[0]
+    y = np.empty((m, n))
+    w = np.empty((m, n))
+    scale = np.empty(m)
+    ok = np.empty(m, np.bool_)
+    lights = np.ascontiguousarray(lights, dtype=np.float64)
+    obs, usable = np.ascontiguousarray(obs), np.ascontiguousarray(usable)  # no copy when C
+    if m:
+        _prepare_kernel(obs, usable, lights, a, SOLVABLE_REL_DET, bool(robust), y, w, scale, ok)
+    return y, w, scale, ok
+
+
+@njit(inline="always")
+def _median(buf, k):
+    """Median of ``buf[:k]`` (k > 0; reordered in place): Wirth's selection, O(k)."""
+    lo = (k - 1) // 2
+    left, right = 0, k - 1
+    while left < right:
+        pivot = buf[lo]
+        i, j = left, right
+        while i <= j:
+            while buf[i] < pivot:
+                i += 1
+            while pivot < buf[j]:
+                j -= 1
+            if i <= j:
+                buf[i], buf[j] = buf[j], buf[i]
+                i += 1
+                j -= 1
+        if j < lo:
+            left = i
+        if lo < i:
+            right = j
+    low = buf[lo]
+    if k % 2:
+        return low
+    high = buf[lo + 1]
+    for j in range(lo + 2, k):
+        if buf[j] < high:
+            high = buf[j]
+    return 0.5 * (low + high)
+
+
+@njit(nogil=True, cache=True, error_model="numpy")
+def _prepare_kernel(obs, usable, lights, a, rel_eps, robust, y, w, scale, ok):
+    m, n = y.shape
+    for i in range(n):  # the tile, transposed (light-major reads, one pass)
+        for p in range(m):
+            y[p, i] = obs[i, a + p]
+            w[p, i] = 1.0 if usable[i, a + p] else 0.0
+    buf = np.empty(n)
+    for p in range(m):
+        k = 0
+        total = 0.0
+        xx = yy = zz = xy = xz = yz = 0.0
+        for i in range(n):
+            wi = w[p, i]
+            l0, l1, l2 = lights[i, 0], lights[i, 1], lights[i, 2]
+            xx += wi * l0 * l0
+            yy += wi * l1 * l1
+            zz += wi * l2 * l2
+            xy += wi * l0 * l1
+            xz += wi * l0 * l2
+            yz += wi * l1 * l2
+            if wi > 0.0:
+                v = abs(y[p, i])
+                buf[k] = v
+                total += v
+                k += 1
+        s = 0.0
+        if k > 0:
+            s = _median(buf, k) if robust else 0.0
+            if not s > 0.0:  # dark under most lights (or no robust scale asked): the mean
+                s = total / k
+        c00 = yy * zz - yz * yz
+        c01 = xz * yz - xy * zz
+        c02 = xy * yz - xz * yy
+        det = xx * c00 + xy * c01 + xz * c02
+        tr = (xx + yy + zz) / 3.0
+        good = (det > rel_eps * tr * tr * tr) and tr > 0.0 and s > 0.0 and k >= 3
+        scale[p] = s
+        ok[p] = good
+        inv = 1.0 / s if good else 0.0
+        for i in range(n):
+            keep = good and w[p, i] > 0.0
+            y[p, i] = y[p, i] * inv if keep else 0.0
+            w[p, i] = 1.0 if keep else 0.0
 
 
 def _store_tile(a, b, y, w, scale, ok, res, lights, normals, albedo, outliers, iterations,
                 segments):
     """Unit normals, the Lambertian-equivalent albedo and flags of pixels a:b into the outputs."""
-    x = res.x.astype(np.float64) * scale[:, None]
-    length = np.linalg.norm(x, axis=1)
-    good = ok & (length > 0) & np.isfinite(length)
-    unit = np.where(good[:, None], x / np.where(good, length, 1.0)[:, None], 0.0)
-    normals[a:b] = unit
-    # one albedo for every method: the Lambertian-equivalent reflectance on the inliers
-    rho = _albedo_rows(unit @ lights.T, (w > 0) & ~res.outliers, y) * scale
-    albedo[a:b] = np.where(good, np.where(np.isnan(rho), length, rho), 0.0)
-    outliers[:, a:b] = (res.outliers & good[:, None]).T
-    iterations[a:b] = np.where(ok, res.iterations, 0)
-    if segments is not None:
-        segments[a:b] = np.where(ok, res.segments, 0)
+    has_segments = segments is not None
+    _store_kernel(a, y, w, scale, ok, np.ascontiguousarray(res.x, dtype=np.float64),
+                  np.ascontiguousarray(res.outliers), np.ascontiguousarray(res.iterations),
+                  np.ascontiguousarray(res.segments) if has_segments else res.iterations,
+                  np.ascontiguousarray(lights, dtype=np.float64), normals, albedo, outliers,
+                  iterations, segments if has_segments else iterations, has_segments)
+
+
+@njit(nogil=True, cache=True, error_model="numpy")
+def _store_kernel(a, y, w, scale, ok, x, flags, iters, segs, lights, normals, albedo, outliers,
+                  iterations, segments, has_segments):
+    m, n = y.shape
+    for p in range(m):
+        q = a + p
+        s = scale[p]
+        x0, x1, x2 = x[p, 0] * s, x[p, 1] * s, x[p, 2] * s
+        length = math.sqrt(x0 * x0 + x1 * x1 + x2 * x2)
+        good = ok[p] and length > 0.0 and math.isfinite(length)
+        if good:
+            u0, u1, u2 = x0 / length, x1 / length, x2 / length
+        else:
+            u0 = u1 = u2 = 0.0
+        normals[q, 0], normals[q, 1], normals[q, 2] = u0, u1, u2
+        # one albedo for every method: the Lambertian-equivalent reflectance on the inliers
+        num = 0.0
+        den = 0.0
+        for i in range(n):
+            sh = u0 * lights[i, 0] + u1 * lights[i, 1] + u2 * lights[i, 2]
+            if w[p, i] > 0.0 and not flags[p, i] and sh > 0.0:
+                num += sh * y[p, i]
+                den += sh * sh
+        if not good:
+            albedo[q] = 0.0
+        elif den > 0.0:
+            rho = num / den
+            albedo[q] = (rho if rho > 0.0 else 0.0) * s
+        else:
+            albedo[q] = length
+        for i in range(n):
+            outliers[i, q] = flags[p, i] and good
+        iterations[q] = iters[p] if ok[p] else 0
+        if has_segments:
+            segments[q] = segs[p] if ok[p] else 0
 
 
 def _finish_solution(used, normals, albedo, outliers, iterations, segments):

@@ -31,9 +31,12 @@ from dataclasses import dataclass
 import numpy as np
 from numba.core import event
 
-from ._kernels import l1_tile, sbl_tile
+from ps_lab.io.coding import Coding, float_coding, observe_block, observe_rule
+
+from ._kernels import TileResult, l1_tile, sbl_tile
 from ._near_kernels import l1_tile_pp, sbl_tile_pp
 from ._pl_kernels import pl_tile
+from ._tiles import _prepare_tile, _store_tile
 
 log = logging.getLogger(__name__)
 
@@ -46,6 +49,9 @@ COMPILE_SECONDS = {
     "_l1_kernel_pp": 1.5,
     "_sbl_kernel_pp": 1.6,
     "_march_point_lights": 1.0,
+    "_observe": 1.5,
+    "_prepare_kernel": 1.0,
+    "_store_kernel": 0.5,
 }
 
 
@@ -88,6 +94,26 @@ def _render() -> None:
                         one, one + 1.0, 0.0, 0.0, np.zeros((1, 2, 2), bool))
 
 
+def _tiles() -> None:
+    # the tile ends of every solver, on the store's float32 observations and on float64 ones
+    for dtype in (np.float32, np.float64):
+        obs = np.ones((3, 1), dtype)
+        y, w, scale, ok = _prepare_tile(obs, np.ones((3, 1), bool), np.eye(3), 0, 1)
+    res = TileResult(np.ones((1, 3)), np.zeros((1, 3), bool), np.ones(1, np.int64))
+    _store_tile(0, 1, y, w, scale, ok, res, np.eye(3), np.zeros((1, 3)), np.zeros(1),
+                np.zeros((3, 1), bool), np.zeros(1, np.int64), None)
+
+
+def _store() -> None:
+    # the observation store's read of 8- and 16-bit codes and of float values
+    rule = observe_rule(np.ones((1, 3)))
+    for dtype in (np.uint8, np.uint16):
+        coding = Coding(np.dtype(dtype), 3, np.zeros((2, 3), np.float32), 1)
+        observe_block(np.zeros((1, 1, 3), dtype), None, coding, rule, np.zeros(1, np.int64), True)
+    observe_block(np.zeros((1, 1, 3), np.float32), np.zeros((1, 1), bool), float_coding(3), rule,
+                  np.zeros(1, np.int64), True)
+
+
 @dataclass(frozen=True)
 class Group:
     """Kernels warmed together: a label for the progress lines and the call that warms them."""
@@ -98,6 +124,8 @@ class Group:
 
 #: Every cached kernel of the package, by the solver methods that use it.
 GROUPS = {
+    "store": Group("observation store", _store),
+    "tiles": Group("tile kernels", _tiles),
     "l1": Group("L1 kernel", _l1),
     "sbl": Group("SBL kernel", _sbl),
     "pl": Group("piecewise-linear kernel", _pl(choose=True)),
@@ -106,11 +134,13 @@ GROUPS = {
 }
 #: The groups ``ps-lab reconstruct --method M`` needs (L1's: the noise estimate uses it).
 METHOD_GROUPS = {
-    "l1": ("l1",),
-    "sbl": ("l1", "sbl"),
-    "plls": ("pl",),
-    "plsbl": ("l1", "pl"),
-    "auto": ("l1", "pl"),
+    "ls": ("store", "tiles"),
+    "l1": ("store", "tiles", "l1"),
+    "sbl": ("store", "tiles", "l1", "sbl"),
+    "plls": ("store", "tiles", "pl"),
+    "plsbl": ("store", "tiles", "l1", "pl"),
+    "auto": ("store", "tiles", "l1", "pl"),
+    "rpca": ("store", "tiles"),
 }
 
 

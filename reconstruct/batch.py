@@ -26,6 +26,7 @@ from ps_lab.io.frames import FolderOfDatasetsError
 from ps_lab.io.result import read_result_metrics
 from ps_lab.reconstruct import distributed
 from ps_lab.reconstruct.pipeline import SOLVER_OPTIONS, ReconstructOptions, reconstruct_to_folder
+from ps_lab.reconstruct.options import MIN_AUTO_BUDGET, auto_memory_budget
 
 log = logging.getLogger(__name__)
 
@@ -172,7 +173,8 @@ def reconstruct_batch(
         Result folders are ``out_root / <dataset folder name>``.
     options : ReconstructOptions
         Used for every dataset (its ``scheduler`` and ``threads`` are replaced: each task solves
-        in its worker with one thread).
+        in its worker with one thread; ``memory_budget`` None: the automatic budget shared by the
+        cluster's workers).
     client : distributed.Client
         From :func:`ps_lab.reconstruct.distributed.connect` or ``local_cluster``.
     progress : callable or None
@@ -189,6 +191,11 @@ def reconstruct_batch(
     """
     outs = result_folders(datasets, out_root)
     task_options = options.replace(scheduler=None, threads=1)
+    if options.memory_budget is None:
+        # --memory-budget auto: the workers share the memory (each task would take half of it)
+        workers = max(len(client.scheduler_info().get("workers", {})), 1)
+        task_options = task_options.replace(
+            memory_budget=max(auto_memory_budget() // workers, MIN_AUTO_BUDGET))
     rows: dict[int, BatchRow] = {}
     futures = {}
     for index, (dataset, out) in enumerate(zip(datasets, outs, strict=True)):

@@ -34,7 +34,8 @@ import numpy as np
 
 from ps_lab.errors import ClusterError
 from ps_lab.io.bands import Band, ObservationStore, stage_lights
-from ps_lab.io.dataset import DatasetHeader, reference_exposure
+from ps_lab.io.coding import float_coding, observe_rule
+from ps_lab.io.dataset import DatasetHeader, frame_coding, reference_exposure
 from ps_lab.io.truth import open_normal_gt
 from ps_lab.reconstruct._bands import BandResult, band_truth, solve_band
 
@@ -309,14 +310,18 @@ class DaskBands:
         sample_pixels: int,
         progress: Callable[[int], None],
         colours: int = 0,
+        coding=None,
     ) -> ObservationStore:
         """Pass 1 as tasks: workers stage groups of lights into a file in ``folder``.
 
-        ``in_memory`` is ignored: the workers need a file.
+        ``in_memory`` is ignored: the workers need a file; the workers store linear float32
+        (``coding`` gives the frames' channels).
         """
         n = len(header.names)
         store = ObservationStore(
-            bands, n, mask, folder=folder, sample_pixels=sample_pixels, colours=colours
+            bands, n, mask, folder=folder, sample_pixels=sample_pixels, colours=colours,
+            coding=float_coding((coding or frame_coding(header.plan)).channels),
+            rule=observe_rule(header.light_intensities, channel, shadow_threshold),
         )
         try:
             per_task = 1
@@ -379,6 +384,8 @@ class DaskBands:
                 with_truth=truth is not None,
                 black=black,
                 colours=store.colours,
+                coding=store.coding,
+                rule=store.rule,
                 key=f"ps-lab-band-{self.token}-{self.passes}-{band.index}",
             )
             for band in store.bands
@@ -418,15 +425,15 @@ def _stage_task(header, bands, lights, path, **kwargs) -> tuple[list[int], np.nd
 
 def _solve_task(
     header, path, bands, index, vectors, *, method, parameters, final, with_truth, black=None,
-    colours=0,
+    colours=0, coding=None, rule=None,
 ) -> BandResult:
     band = bands[index]
     mask = worker_mask(header)
     with ObservationStore(
-        bands, len(header.names), mask, sample_pixels=0, path=Path(path), colours=colours
+        bands, len(header.names), mask, sample_pixels=0, path=Path(path), colours=colours,
+        coding=coding, rule=rule, threads=1,
     ) as store:
-        observations, valid = store.read(band)
-        colour = store.read_colour(band) if final else None
+        observations, valid, colour = store.observe(band, colour=final)
     truth = open_normal_gt(header.root, mask.shape) if with_truth else None
     return solve_band(
         observations,

@@ -17,6 +17,7 @@ from typing import Any
 from ps_lab.errors import OutputError
 from ps_lab.io.appearance import APPEARANCE_MODELS
 from ps_lab.io.encoding import ENCODINGS
+from ps_lab.io.images import available_memory
 from ps_lab.io.normal_maps import CONVENTIONS
 from ps_lab.reconstruct._solution import SolverInputError
 from ps_lab.reconstruct.depth import DepthOptions
@@ -26,17 +27,30 @@ __all__ = [
     "BYTES_PER_PIXEL",
     "COLOUR_BYTES_PER_OBSERVATION",
     "DEFAULT_MEMORY_BUDGET",
+    "DEFAULT_MEMORY_SHARE",
     "IN_MEMORY_SHARE",
+    "MAX_BAND_PIXELS",
     "LIGHT_MODELS",
     "NEAR_BYTES_PER_OBSERVATION",
     "SOLVER_OPTIONS",
     "STAGING",
     "ReconstructOptions",
+    "auto_memory_budget",
     "band_pixels",
+    "parse_memory_budget",
     "parse_memory_size",
 ]
 
+#: The default memory budget (``--memory-budget auto``): this share of the memory available when
+#: the reconstruction starts (``MemAvailable``), within the bounds below.
+DEFAULT_MEMORY_SHARE = 0.5
+MIN_AUTO_BUDGET = 256 << 20
+MAX_AUTO_BUDGET = 64 << 30
+#: The budget of an explicit ``--memory-budget`` when none is given to the library (tests).
 DEFAULT_MEMORY_BUDGET = 1 << 30
+#: A band holds at most this many mask pixels whatever the budget: a band's solve is cut into
+#: tiles anyway, so larger bands only hold more memory (R-PCA, fitted per band, is not capped).
+MAX_BAND_PIXELS = 1 << 18
 # Bytes held per observation of a band while it is solved: the float32 observations, their
 # validity, the solver's usable and outlier masks, and headroom for the refinement sums.
 BYTES_PER_OBSERVATION = 12
@@ -45,8 +59,8 @@ BYTES_PER_OBSERVATION = 12
 COLOUR_BYTES_PER_OBSERVATION = 12
 # Bytes per pixel of a band: the solver's per-pixel results and the band's output images.
 BYTES_PER_PIXEL = 200
-# A store at most this share of the budget stays in memory; larger ones go to a temporary file.
-IN_MEMORY_SHARE = 0.25
+# The store stays in memory when it and one band's work fit the budget; else a temporary file.
+IN_MEMORY_SHARE = 1.0
 _SIZE_UNITS = {"": 1 << 20, "k": 1 << 10, "m": 1 << 20, "g": 1 << 30, "t": 1 << 40}
 STAGING = ("auto", "memory", "file")
 LIGHT_MODELS = ("auto", "near", "directional")
@@ -110,6 +124,26 @@ def _check_solver_options(options: ReconstructOptions) -> None:
             )
 
 
+def auto_memory_budget(available: int | None = None) -> int:
+    """``--memory-budget auto``: :data:`DEFAULT_MEMORY_SHARE` of the available memory, bounded.
+
+    Parameters
+    ----------
+    available : int or None
+        Bytes available (default: ``MemAvailable`` now, :func:`ps_lab.io.images.available_memory`).
+    """
+    have = available_memory() if available is None else int(available)
+    return int(min(max(DEFAULT_MEMORY_SHARE * have, MIN_AUTO_BUDGET), MAX_AUTO_BUDGET))
+
+
+def parse_memory_budget(text: str) -> int | None:
+    """``--memory-budget``: ``auto`` (None: :func:`auto_memory_budget` when the run starts) or a
+    size (:func:`parse_memory_size`)."""
+    if str(text).strip().lower() == "auto":
+        return None
+    return parse_memory_size(text)
+
+
 def band_pixels(memory_budget: int, n_lights: int) -> int:
     """Most mask pixels per band that keep one band's solve within ``memory_budget`` bytes."""
     per_pixel = n_lights * BYTES_PER_OBSERVATION + BYTES_PER_PIXEL
@@ -137,9 +171,11 @@ class ReconstructOptions:
         ``light_directions.txt`` / ``light_intensities.txt``.
     fixed_intensities : bool
         Refine directions only.
-    memory_budget : int or str
-        Bytes, or a size such as ``"1GB"`` (:func:`parse_memory_size`; stored as bytes), that one
-        band's solve may use; sets the band height.
+    memory_budget : int or str or None
+        Bytes, or a size such as ``"1GB"`` (:func:`parse_memory_size`; stored as bytes), for the
+        staged observations (kept in memory when they fit with one band's work, else in a
+        temporary file) and one band's solve (sets the band height). None:
+        :func:`auto_memory_budget` when the run starts (half the available memory).
     staging : {"auto", "memory", "file"}
         Backing of the observation store: in memory when small (``auto``), or forced.
     lights : {"auto", "near", "directional"}
@@ -189,7 +225,7 @@ class ReconstructOptions:
     threads: int | None = None
     refine_lights: int = 0
     fixed_intensities: bool = False
-    memory_budget: int = DEFAULT_MEMORY_BUDGET
+    memory_budget: int | None = None
     staging: str = "auto"
     lights: str = "auto"
     scheduler: str | None = None
@@ -235,7 +271,9 @@ class ReconstructOptions:
         if self.lights not in LIGHT_MODELS:
             raise OutputError(f"lights must be auto, near or directional, got {self.lights!r}")
         budget = self.memory_budget
-        if not isinstance(budget, int):
+        if budget is None:
+            pass
+        elif not isinstance(budget, int):
             object.__setattr__(self, "memory_budget", parse_memory_size(budget))
         elif budget <= 0:
             raise OutputError(f"memory budget must be positive, got {budget}")

@@ -36,13 +36,13 @@ from ps_lab.errors import DatasetError, OutputError
 from ps_lab.geometry import Camera
 from ps_lab.io.bands import ObservationStore, plan_bands
 from ps_lab.io.camera import camera_record
-from ps_lab.io.dataset import DatasetHeader, open_dataset
+from ps_lab.io.dataset import DatasetHeader, frame_coding, open_dataset
 from ps_lab.io.encoding import frames_encoding
 from ps_lab.io.files import json_safe, staged_folder
 from ps_lab.io.result import METRICS, RESULT_FORMAT, is_result_folder
 from ps_lab.io.truth import open_normal_gt
 from ps_lab.reconstruct._bands import LocalBands
-from ps_lab.reconstruct._colour import frame_channels, grey_albedo
+from ps_lab.reconstruct._colour import grey_albedo
 from ps_lab.reconstruct._warm_up import start_warm_up
 from ps_lab.reconstruct.appearance import fit_appearance_bands, solved_lights as _solved_lights
 from ps_lab.reconstruct._outputs import (
@@ -79,10 +79,13 @@ from ps_lab.reconstruct.options import (
     COLOUR_BYTES_PER_OBSERVATION,
     DEFAULT_MEMORY_BUDGET,
     IN_MEMORY_SHARE,
+    MAX_BAND_PIXELS,
     NEAR_BYTES_PER_OBSERVATION,
     SOLVER_OPTIONS,
     ReconstructOptions,
+    auto_memory_budget,
     band_pixels,
+    parse_memory_budget,
     parse_memory_size,
 )
 
@@ -102,6 +105,7 @@ __all__ = [
     "check_output_folder",
     "corruption_picture",
     "normal_picture",
+    "parse_memory_budget",
     "parse_memory_size",
     "reconstruct_to_folder",
     "write_png",
@@ -209,38 +213,90 @@ def reconstruct_to_folder(
     check_output_folder(out)
     started = time.perf_counter()
     timings: dict[str, float] = {}
+    clock = _StageClock()
     # The solver kernels load while the images are read (see _warm_up.warm_up).
     warm_up = start_warm_up(options.method)
-    source = _read(dataset, options)
+    with clock("open"):
+        source = _read(dataset, options)
     with _band_executor(options) as executor, staged_folder(
         out, check=check_output_folder, error=OutputError
     ) as stage:
-        store = _stage(source, options, stage, bars, executor)
+        with clock("decode and stage"):
+            store = _stage(source, options, stage, bars, executor)
         timings["read_seconds"] = time.perf_counter() - started
         warm_up.join()
         with store:
             writer = _OutputWriter(
                 stage, store.mask, source.truth, store.n_lights, colours=store.colours
             )
-            black = black_level(store, source.header, options)
-            if source.near is None:
-                solved = solve_bands(store, source, options, writer, bars, executor, black)
-            else:
-                solved = solve_near_bands(store, source, options, writer, bars, stage, black)
-            check_solved_share(source.header.root, writer.solved_count, store.pixels)
+            with clock("solve"):
+                black = black_level(store, source.header, options)
+                if source.near is None:
+                    solved = solve_bands(store, source, options, writer, bars, executor, black)
+                else:
+                    solved = solve_near_bands(store, source, options, writer, bars, stage,
+                                              black)
+                check_solved_share(source.header.root, writer.solved_count, store.pixels)
             timings["solve_seconds"] = solved.seconds
             written = time.perf_counter()
-            metrics = _write_results(writer, stage, source, options, store, solved, timings)
-            metrics["appearance"] = fit_appearance_bands(
-                store, stage, options.appearance, *_solved_lights(source, solved),
-                progress_bars=bars,
-            )
+            with clock("outputs"):
+                metrics = _write_results(writer, stage, source, options, store, solved, timings)
+            with clock("appearance"):
+                metrics["appearance"] = fit_appearance_bands(
+                    store, stage, options.appearance, *_solved_lights(source, solved),
+                    progress_bars=bars,
+                )
             timings["write_seconds"] = time.perf_counter() - written
             metrics["timings"] = dict(timings)
-            _write_surface(stage, options, metrics, bars)
+            with clock("surface"):
+                _write_surface(stage, options, metrics, bars)
+            metrics["timings"]["stages"] = clock.summary(store)
+            metrics["timings"]["files"] = _file_sizes(stage)
+            metrics["timings"]["total_seconds"] = time.perf_counter() - started
             _write_metrics(stage, metrics)
     metrics["out"] = str(out)
     return ReconstructResult(out=out, metrics=metrics)
+
+
+class _StageClock:
+    """Wall and CPU seconds (all threads) of the flow's stages, for ``metrics.json``."""
+
+    def __init__(self) -> None:
+        self.stages: dict[str, dict[str, float]] = {}
+
+    @contextmanager
+    def __call__(self, name: str) -> Iterator[None]:
+        wall, cpu = time.perf_counter(), time.process_time()
+        try:
+            yield
+        finally:
+            entry = self.stages.setdefault(name, {"wall_seconds": 0.0, "cpu_seconds": 0.0})
+            entry["wall_seconds"] += time.perf_counter() - wall
+            entry["cpu_seconds"] += time.process_time() - cpu
+
+    def summary(self, store: ObservationStore) -> dict[str, dict[str, float]]:
+        """The stages in order, with what the store measured inside them.
+
+        ``decode and stage``: the bytes of the frame files, ``decode_thread_seconds`` (the
+        decoders' time summed over threads) and the bytes staged; ``observe`` (inside ``solve``
+        and ``appearance``): turning staged values into observations when a band is read, with
+        the bytes of values read.
+        """
+        stages = {name: dict(entry) for name, entry in self.stages.items()}
+        staged = stages.get("decode and stage")
+        if staged is not None:
+            staged["bytes"] = store.stats["file_bytes"]
+            staged["decode_thread_seconds"] = store.stats["decode_seconds"]
+            staged["staged_bytes"] = store.nbytes
+        stages["observe"] = {"wall_seconds": store.stats["observe_seconds"],
+                             "bytes": store.stats["observed_bytes"]}
+        return stages
+
+
+def _file_sizes(folder: Path) -> dict[str, dict[str, int]]:
+    """Bytes of each result file written (the staged folder, before it is published)."""
+    return {entry.name: {"bytes": entry.stat().st_size} for entry in sorted(folder.iterdir())
+            if entry.is_file() and not entry.name.startswith(".")}
 
 
 def _read(dataset: Path, options: ReconstructOptions) -> SolveInput:
@@ -327,22 +383,34 @@ def _band_executor(options: ReconstructOptions) -> Iterator[Any]:
 def _stage(
     source: SolveInput, options: ReconstructOptions, stage: Path, bars, executor
 ) -> ObservationStore:
-    """Stage 2: decode every frame once into a row-band store (in memory or a file in ``stage``)."""
+    """Stage 2: decode every frame once into a row-band store (in memory or a file in ``stage``).
+
+    The budget (``options.memory_budget``, or :func:`auto_memory_budget` now) holds the store
+    when it fits beside one band's work, else the store goes to a temporary file; bands hold at
+    most :data:`MAX_BAND_PIXELS` mask pixels (fewer when the budget says so).
+    """
     started = time.perf_counter()
     header, mask = source.header, source.mask
     n = len(header.names)
-    budget = options.memory_budget
+    budget = options.memory_budget if options.memory_budget is not None else auto_memory_budget()
+    coding = frame_coding(header.plan)
     extra = 0 if source.near is None else NEAR_BYTES_PER_OBSERVATION // BYTES_PER_OBSERVATION
-    # colour frames: the three channels are staged beside the solve channel (colour albedo)
-    colours = 3 if frame_channels(header) == 3 else 0
+    # colour frames: the three channels are read beside the solve channel (colour albedo)
+    colours = 3 if coding.channels == 3 else 0
     extra += COLOUR_BYTES_PER_OBSERVATION // BYTES_PER_OBSERVATION if colours else 0
     per_light = n * (1 + extra)
     pixels = int(mask.sum())
     keep_plan = options.method == "rpca" or options.refine_lights > 0
-    limit = executor.band_pixels(band_pixels(budget, per_light), pixels, keep_plan)
+    limit = band_pixels(budget, per_light)
+    if options.method != "rpca":
+        limit = min(limit, MAX_BAND_PIXELS)
+    limit = executor.band_pixels(limit, pixels, keep_plan)
     bands = plan_bands(mask, limit)
-    store_bytes = n * ((4 + 4 * colours) * pixels + (pixels + 7 * len(bands)) // 8)
-    small = store_bytes <= IN_MEMORY_SHARE * budget
+    bits = 0 if coding.coded else 1
+    store_bytes = n * (coding.channels * coding.itemsize * pixels + (bits * pixels + 7 * len(bands)) // 8)
+    band_bytes = max(band.pixel_count for band in bands) * (
+        per_light * BYTES_PER_OBSERVATION + BYTES_PER_PIXEL)
+    small = store_bytes + band_bytes <= IN_MEMORY_SHARE * budget
     in_memory = options.staging == "memory" or (options.staging == "auto" and small)
     with bars(n, "reading images") as advance:
         store = executor.stage(
@@ -356,10 +424,12 @@ def _stage(
             sample_pixels=_default(estimate_noise, "max_pixels", 20000),
             progress=advance,
             colours=colours,
+            coding=coding,
         )
+    store.budget = budget
     log.info(
         "read %d images (%dx%d, %d mask pixels) in %.1f s: %d bands of at most %d pixels, "
-        "%.2f GB staged in %s",
+        "%.2f GB staged in %s (%s), memory budget %.2f GB%s",
         n,
         mask.shape[1],
         mask.shape[0],
@@ -369,6 +439,9 @@ def _stage(
         max(band.pixel_count for band in bands),
         store.nbytes / 1e9,
         "memory" if store.path is None else "a file",
+        np.dtype(store.coding.dtype).name,
+        budget / 1e9,
+        "" if options.memory_budget is not None else " (auto)",
     )
     return store
 
@@ -422,9 +495,12 @@ def _write_results(
     metrics["streaming"] = {
         "bands": len(store.bands),
         "max_band_pixels": max(band.pixel_count for band in store.bands),
-        "memory_budget_bytes": options.memory_budget,
+        "memory_budget_bytes": store.budget,
+        "memory_budget": ("auto: half the available memory" if options.memory_budget is None
+                          else "given"),
         "staging": "file" if store.path is not None else "memory",
         "staging_bytes": store.nbytes,
+        "staged_values": np.dtype(store.coding.dtype).name,
     }
     if options.refine_lights:
         metrics["refinement"] = {"iterations": options.refine_lights, "history": solved.history}

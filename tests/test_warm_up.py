@@ -6,11 +6,14 @@ import numpy as np
 from numba import njit
 from numba.core import event
 
-from ps_lab.reconstruct import _kernels, _near_kernels, _pl_kernels
+from ps_lab.io import coding
+from ps_lab.io.bands import ObservationStore, plan_bands
+from ps_lab.reconstruct import _kernels, _near_kernels, _pl_kernels, _tiles, solve
 from ps_lab.reconstruct._warm_up import METHOD_GROUPS, CompileNotice, warm_all
 
 KERNELS = (_kernels._l1_kernel, _kernels._sbl_kernel, _pl_kernels._pl_kernel,
-           _near_kernels._l1_kernel_pp, _near_kernels._sbl_kernel_pp)
+           _near_kernels._l1_kernel_pp, _near_kernels._sbl_kernel_pp, coding._observe,
+           _tiles._prepare_kernel, _tiles._store_kernel)
 
 
 def _signatures() -> dict[str, set]:
@@ -37,6 +40,24 @@ def test_the_warm_up_compiles_every_type_the_wrappers_pass(rng):
                             max_iter=2)
     _kernels.l1_tile(np.ascontiguousarray(y, np.float64), np.ascontiguousarray(w, np.float64),
                      lights, max_iter=2, tol=1e-6, delta=1e-6, outlier_threshold=np.inf)
+    # the solvers' tile ends on observations of any dtype and layout, with a validity mask
+    for obs in (y.T, y.T.astype(np.float64), np.asfortranarray(y.T), (y.T * 100).astype(int)):
+        for method in ("ls", "sbl"):
+            solve(obs, lights, method=method, valid=np.asfortranarray(obs > 0), threads=1)
+    # the store's read of codes (8 and 16 bits, grey and colour) and of float values
+    mask = np.ones((2, 3), bool)
+    for dtype, channels in ((np.uint8, 3), (np.uint16, 1)):
+        table = coding.code_table(8 * np.dtype(dtype).itemsize, channels, lambda v: v)
+        store_coding = coding.Coding(np.dtype(dtype), channels, table, 250)
+        with ObservationStore(plan_bands(mask, 4), n, mask, coding=store_coding,
+                              in_memory=True, colours=3) as store:
+            for i in range(n):
+                store.write_frame(i, np.full((2, 3, channels), i, dtype))
+            store.read(store.bands[0])
+            store.read_colour(store.bands[0])
+    with ObservationStore(plan_bands(mask, 4), n, mask, in_memory=True) as store:
+        store.write_frame(0, np.ones((2, 3), np.float32), np.ones((2, 3), bool))
+        store.read(store.bands[0])
     per_pixel = np.ascontiguousarray(np.broadcast_to(lights, (m, n, 3)))
     _near_kernels.l1_tile_pp(np.ascontiguousarray(y, np.float64),
                              np.ascontiguousarray(w, np.float64), per_pixel, max_iter=2,
@@ -46,8 +67,13 @@ def test_the_warm_up_compiles_every_type_the_wrappers_pass(rng):
 
 
 def test_every_method_with_kernels_is_warmed():
-    assert set(METHOD_GROUPS) == {"l1", "sbl", "plls", "plsbl", "auto"}
-    assert all("l1" in groups for method, groups in METHOD_GROUPS.items() if method != "plls")
+    from ps_lab.reconstruct import METHODS
+
+    assert set(METHOD_GROUPS) == set(METHODS)
+    # the store's read and the tile ends serve every method; L1 the noise estimate of the robust
+    assert all({"store", "tiles"} <= set(groups) for groups in METHOD_GROUPS.values())
+    robust = {"l1", "sbl", "plsbl", "auto"}
+    assert all("l1" in METHOD_GROUPS[method] for method in robust)
 
 
 def test_a_compile_says_what_it_is_doing_and_a_cached_call_says_nothing():

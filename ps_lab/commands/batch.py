@@ -27,7 +27,7 @@ from ps_lab.commands.reconstruct import (
     _terminal_bars,
 )
 from ps_lab.reconstruct.batch import failure_line, run_batch, summary_table
-from ps_lab.reconstruct.pipeline import ReconstructOptions, parse_memory_size
+from ps_lab.reconstruct.pipeline import ReconstructOptions, parse_memory_budget
 
 
 @lab_command
@@ -63,7 +63,7 @@ def batch(
     channel: ChannelOption = Channel.mean,
     refine_lights: RefineLightsOption = 0,
     fixed_intensities: FixedIntensitiesOption = False,
-    memory_budget: MemoryBudgetOption = "1GB",
+    memory_budget: MemoryBudgetOption = "auto",
     lights: LightsOption = Lights.auto,
     lam: LambdaOption = None,
     sigma_x2: SigmaX2Option = None,
@@ -90,7 +90,7 @@ def batch(
         shadow_threshold=shadow_threshold,
         refine_lights=refine_lights,
         fixed_intensities=fixed_intensities,
-        memory_budget=parse_memory_size(memory_budget),
+        memory_budget=parse_memory_budget(memory_budget),
         lights=lights.value,
         lam=lam,
         sigma_x2=sigma_x2,

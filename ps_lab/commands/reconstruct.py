@@ -14,7 +14,7 @@ from ps_lab.errors import DatasetError
 from ps_lab.io.frames import FolderOfDatasetsError
 from ps_lab.reconstruct.pipeline import (
     ReconstructOptions,
-    parse_memory_size,
+    parse_memory_budget,
     reconstruct_to_folder,
 )
 
@@ -199,7 +199,9 @@ MemoryBudgetOption = Annotated[
     str,
     typer.Option(
         metavar="<size>",
-        help="Memory for one row band's solve, e.g. 800MB or 2GB (sets the band height).",
+        help="Memory for the staged images and one row band's solve, e.g. 800MB or 2GB: "
+        "the images stay in memory when they fit, else go to a temporary file; auto (the "
+        "default): half the memory available when the run starts.",
     ),
 ]
 
@@ -223,7 +225,7 @@ def reconstruct(
     ] = None,
     refine_lights: RefineLightsOption = 0,
     fixed_intensities: FixedIntensitiesOption = False,
-    memory_budget: MemoryBudgetOption = "1GB",
+    memory_budget: MemoryBudgetOption = "auto",
     lights: LightsOption = Lights.auto,
     led_model: Annotated[
         LedModel,
@@ -270,7 +272,7 @@ def reconstruct(
         threads=threads,
         refine_lights=refine_lights,
         fixed_intensities=fixed_intensities,
-        memory_budget=parse_memory_size(memory_budget),
+        memory_budget=parse_memory_budget(memory_budget),
         lights=lights.value,
         led_model=led_model.value,
         scheduler=scheduler,

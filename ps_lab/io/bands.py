@@ -1,28 +1,37 @@
 """Streamed loading: captures of any size in bounded memory (``docs/scale.md``).
 
 :func:`plan_bands` cuts the image into row bands, and :func:`stage_observations` reads each frame
-once and stores its mask pixels band by band in an :class:`ObservationStore` (same scaling as
-:func:`ps_lab.io.dataset.load_dataset`, bit for bit); :class:`ps_lab.io.truth.NormalTruth` reads
-ground truth band by band.
+once (decoding the next frames in other threads) and stores its mask pixels band by band in an
+:class:`ObservationStore`, as compact as the source allows: an 8- or 16-bit capture as its codes
+(one or two bytes per sample), anything else as linear float32 with a saturation bit. Reading a
+band turns it into the solvers' observations (:func:`ps_lab.io.coding.observe_block`: the same
+scaling as :func:`ps_lab.io.dataset.load_dataset`, bit for bit);
+:class:`ps_lab.io.truth.NormalTruth` reads ground truth band by band.
 """
 
 from __future__ import annotations
 
-import io
 import logging
 import os
 import tempfile
-from collections.abc import Callable
+import time
+from collections import deque
+from collections.abc import Callable, Iterator
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
 from ps_lab.errors import DatasetError
+from ps_lab.io.coding import Coding, ObserveRule, float_coding, observe_block, observe_rule
 from ps_lab.io.dataset import (
     DatasetHeader,
+    NotCodedError,
+    check_coded_geometry,
+    frame_coding,
     iter_frames,
-    observe,
+    read_coded_light,
 )
 from ps_lab.io.files import preallocate
 
@@ -87,15 +96,16 @@ def plan_bands(mask: np.ndarray, max_pixels: int) -> list[Band]:
 
 
 class ObservationStore:
-    """Masked observations (float32) and their validity (packed bits), stored band by band.
+    """A capture's mask pixels, band by band, as stored values; observations when read.
 
-    Layout: for each band, the ``(n, P_band)`` float32 observations light after light, then the
-    packed validity bits of each light (``ceil(P_band / 8)`` bytes per light) and, with
-    ``colours`` = C > 0, the ``(n, P_band, C)`` float32 colour observations (each channel divided
-    by the light's intensity for it; :meth:`read_colour`), so that one band's block is read
-    contiguously. The backing is a temporary file, or a bytes buffer in memory when
-    the store is small: the code is the same. Use as a context manager or call :meth:`close`,
-    which deletes the file.
+    Layout: for each band, the ``(n, P_band, C)`` values of its pixels light after light (codes
+    of ``coding``, or linear float32), then, for float values only, the packed saturation bits of
+    each light (``ceil(P_band / 8)`` bytes per light), so that one band's block is read
+    contiguously and each light's part of it is written by one process. :meth:`read` applies
+    the observe rule (``rule``: each channel divided by the light's intensity, the channels
+    combined, validity), :meth:`read_colour` gives the colour observations. The backing is a
+    temporary file, or numpy arrays in memory: the code is the same. Use as a context manager or
+    call :meth:`close`, which deletes the file.
 
     Attributes
     ----------
@@ -103,15 +113,21 @@ class ObservationStore:
     n_lights : int
     shape : (H, W)
     mask : ndarray of shape (H, W), bool
+    coding : Coding
+        What the values are (default: linear float32, one channel).
+    rule : ObserveRule
+        The colour and validity rules (default: intensities 1, channel mean, no threshold).
     path : Path or None
         The backing file (None in memory).
     colours : int
-        Colour channels staged beside the solve channel (0: none).
+        Colour channels :meth:`read_colour` gives (0: none; 3 needs three-channel values).
     sample_observations : ndarray of shape (n, m), float32
         Observations of ``m`` evenly spaced mask pixels (for the solvers' noise estimate).
     sample_valid : ndarray of shape (n, m), bool
     sample_colour : ndarray of shape (n, m, colours), float32
         The sample's colour observations (no channels without colour).
+    nbytes : int
+        Bytes the values take (memory or file).
 
     """
 
@@ -121,31 +137,44 @@ class ObservationStore:
         n_lights: int,
         mask: np.ndarray,
         *,
+        coding: Coding | None = None,
+        rule: ObserveRule | None = None,
         folder: Path | None = None,
         in_memory: bool = False,
         sample_pixels: int = 20000,
         path: Path | None = None,
         colours: int = 0,
+        threads: int | None = None,
     ) -> None:
         self.bands = bands
-        self.colours = int(colours)
-        self._colour_offsets: list[int] = []
         self.n_lights = n_lights
         self.mask = mask
         self.shape = mask.shape
+        self.coding = coding if coding is not None else float_coding(1)
+        self.rule = rule if rule is not None else observe_rule(np.ones((n_lights, 3)))
+        self.colours = int(colours) if self.coding.channels == 3 else 0
+        self.threads = max(1, int(threads) if threads else min(os.cpu_count() or 1, 4))
         self.pixels = sum(band.pixel_count for band in bands)
+        self._lights = np.arange(n_lights, dtype=np.int64)
+        channels, itemsize = self.coding.channels, self.coding.itemsize
+        self._bits = not self.coding.coded
         self._offsets: list[tuple[int, int]] = []
         offset = 0
         for band in bands:
             values = offset
-            offset += n_lights * band.pixel_count * 4
+            offset += n_lights * band.pixel_count * channels * itemsize
             self._offsets.append((values, offset))
-            offset += n_lights * _packed_size(band.pixel_count)
-            self._colour_offsets.append(offset)
-            offset += n_lights * band.pixel_count * self.colours * 4
+            if self._bits:
+                offset += n_lights * _packed_size(band.pixel_count)
         self.nbytes = offset
         self.path: Path | None = None
         self._owned = path is None
+        self._arrays: list[tuple[np.ndarray, np.ndarray | None]] | None = None
+        self._stream = None
+        self._last: tuple[int, np.ndarray, np.ndarray | None] | None = None
+        # what staging and reading cost (metrics.json's timings)
+        self.stats = {"file_bytes": 0, "decode_seconds": 0.0, "observe_seconds": 0.0,
+                      "observed_bytes": 0}
         if path is not None:
             # Another process's store (a worker of ps-lab reconstruct --scheduler): opened for
             # update, never created, so a late task cannot recreate a store already removed.
@@ -158,7 +187,12 @@ class ObservationStore:
                     "workers need the output folder on a filesystem they share"
                 ) from None
         elif in_memory:
-            self._stream = io.BytesIO()
+            self._arrays = [
+                (np.zeros((n_lights, band.pixel_count, channels), self.coding.dtype),
+                 np.zeros((n_lights, _packed_size(band.pixel_count)), np.uint8)
+                 if self._bits else None)
+                for band in bands
+            ]
         else:
             handle, name = tempfile.mkstemp(
                 prefix="ps-lab-observations-", suffix=".bin", dir=folder
@@ -188,77 +222,144 @@ class ObservationStore:
         self.close()
 
     def close(self) -> None:
-        """Release the backing buffer and delete the backing file (when this store made it)."""
-        self._stream.close()
+        """Release the backing buffers and delete the backing file (when this store made it)."""
+        self._arrays = None
+        self._last = None
+        if self._stream is not None:
+            self._stream.close()
         if self.path is not None and self._owned:
             self.path.unlink(missing_ok=True)
 
-    def write(
-        self,
-        light: int,
-        band: Band,
-        observations: np.ndarray,
-        valid: np.ndarray,
-        colour: np.ndarray | None = None,
-    ) -> None:
-        """Store one light's observations (P_band,) float32 and validity (P_band,) of a band.
+    def write(self, light: int, band: Band, values: np.ndarray,
+              valid: np.ndarray | None = None) -> None:
+        """Store one light's values (P_band, C) (or (P_band,)) of a band, and their validity.
 
-        ``colour`` (P_band, C): its colour observations, when the store keeps colour.
+        ``valid`` (P_band,) bool: False where saturated (float values only; codes carry their
+        saturation). The sample's observations of these pixels are observed here.
         """
-        values, bits = self._offsets[band.index]
         count = band.pixel_count
-        if self.colours and colour is not None:
-            self._stream.seek(self._colour_offsets[band.index] + light * count * self.colours * 4)
-            self._stream.write(np.ascontiguousarray(colour, dtype=np.float32).data)
-        self._stream.seek(values + light * count * 4)
-        self._stream.write(np.ascontiguousarray(observations, dtype=np.float32).data)
-        self._stream.seek(bits + light * _packed_size(count))
-        self._stream.write(np.packbits(valid).data)
-        lo, hi = np.searchsorted(self.sample_index, [band.pixel_start, band.pixel_start + count])
-        local = self.sample_index[lo:hi] - band.pixel_start
-        self.sample_observations[light, lo:hi] = observations[local]
-        self.sample_valid[light, lo:hi] = valid[local]
-        if self.colours and colour is not None:
-            self.sample_colour[light, lo:hi] = colour[local]
+        values = np.asarray(values).reshape(count, self.coding.channels)
+        saturated = None
+        if self._bits:
+            saturated = (np.zeros(count, bool) if valid is None
+                         else np.logical_not(np.asarray(valid, bool).reshape(count)))
+        self._put(light, band, values, saturated)
+        self._observe_sample(light, band, values, saturated)
 
-    def write_frame(
-        self,
-        light: int,
-        observations: np.ndarray,
-        valid: np.ndarray,
-        colour: np.ndarray | None = None,
-    ) -> None:
-        """Store one light's observations and validity, both (H, W), band by band (mask pixels).
-
-        ``colour`` (H, W, C): the colour observations, when the store keeps colour.
-        """
+    def write_frame(self, light: int, values: np.ndarray, valid: np.ndarray | None = None) -> None:
+        """Store one light's frame: values (H, W, C) (or (H, W)) and validity (H, W), by band."""
+        channels = self.coding.channels
+        values = np.asarray(values)
+        if values.ndim == 2:
+            values = values[:, :, None]
         for band in self.bands:
             rows = slice(band.row_start, band.row_stop)
             inside = self.mask[rows]
-            part = None if colour is None else colour[rows][inside]
-            self.write(light, band, observations[rows][inside], valid[rows][inside], part)
+            whole = band.pixel_count == inside.size
+            part = (values[rows].reshape(-1, channels) if whole
+                    else values[rows][inside])
+            ok = None
+            if valid is not None:
+                ok = valid[rows].reshape(-1) if whole else valid[rows][inside]
+            self.write(light, band, part, ok)
+
+    def _put(self, light, band, values, saturated) -> None:
+        self._last = None
+        if self._arrays is not None:
+            stored, bits = self._arrays[band.index]
+            stored[light] = values
+            if bits is not None:
+                bits[light] = np.packbits(saturated)
+            return
+        start, bits_at = self._offsets[band.index]
+        count = band.pixel_count
+        row = count * self.coding.channels * self.coding.itemsize
+        self._stream.seek(start + light * row)
+        self._stream.write(np.ascontiguousarray(values, dtype=self.coding.dtype).data)
+        if self._bits:
+            self._stream.seek(bits_at + light * _packed_size(count))
+            self._stream.write(np.packbits(saturated).data)
+
+    def _observe_sample(self, light, band, values, saturated) -> None:
+        lo, hi = np.searchsorted(self.sample_index, [band.pixel_start,
+                                                      band.pixel_start + band.pixel_count])
+        if hi <= lo:
+            return
+        local = self.sample_index[lo:hi] - band.pixel_start
+        obs, valid, colour = observe_block(
+            values[local][None], None if saturated is None else saturated[local][None],
+            self.coding, self.rule, np.array([light]), bool(self.colours))
+        self.sample_observations[light, lo:hi] = obs[0]
+        self.sample_valid[light, lo:hi] = valid[0]
+        if colour is not None:
+            self.sample_colour[light, lo:hi] = colour[0]
+
+    def values(self, band: Band) -> tuple[np.ndarray, np.ndarray | None]:
+        """One band's stored values (n, P_band, C) and saturation (n, P_band) (None: codes)."""
+        if self._last is not None and self._last[0] == band.index:
+            return self._last[1], self._last[2]
+        count = band.pixel_count
+        if self._arrays is not None:
+            stored, bits = self._arrays[band.index]
+        else:
+            start, bits_at = self._offsets[band.index]
+            stored = np.empty((self.n_lights, count, self.coding.channels), self.coding.dtype)
+            self._stream.seek(start)
+            self._read_exactly(stored)
+            bits = None
+            if self._bits:
+                bits = np.empty((self.n_lights, _packed_size(count)), np.uint8)
+                self._stream.seek(bits_at)
+                self._read_exactly(bits)
+        saturated = (None if bits is None
+                     else np.unpackbits(bits, axis=1, count=count).view(bool))
+        self._last = (band.index, stored, saturated)
+        return stored, saturated
+
+    def observe(self, band: Band, colour: bool = False
+                ) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+        """One band's observations (n, P), validity (n, P) and, with ``colour``, (n, P, 3)."""
+        started = time.perf_counter()
+        try:
+            return self._observe(band, colour)
+        finally:
+            self.stats["observe_seconds"] += time.perf_counter() - started
+            start, stop = self._offsets[band.index]
+            self.stats["observed_bytes"] += stop - start
+
+    def _observe(self, band, colour):
+        stored, saturated = self.values(band)
+        want = bool(colour) and bool(self.colours)
+        n = self.n_lights
+        pieces = np.array_split(np.arange(n), min(self.threads, n)) if n else []
+        if len(pieces) <= 1 or band.pixel_count < 4096:
+            return observe_block(stored, saturated, self.coding, self.rule, self._lights, want)
+        obs = np.empty((n, band.pixel_count), np.float32)
+        valid = np.empty((n, band.pixel_count), bool)
+        out = np.empty((n, band.pixel_count, 3), np.float32) if want else None
+
+        def one(lights):
+            a, b = lights[0], lights[-1] + 1
+            part = observe_block(stored[a:b], None if saturated is None else saturated[a:b],
+                                 self.coding, self.rule, lights, want)
+            obs[a:b], valid[a:b] = part[0], part[1]
+            if out is not None:
+                out[a:b] = part[2]
+
+        with ThreadPoolExecutor(len(pieces)) as pool:
+            list(pool.map(one, pieces))
+        return obs, valid, out
+
+    def read(self, band: Band) -> tuple[np.ndarray, np.ndarray]:
+        """One band's observations (n, P_band) float32 and validity (n, P_band) bool."""
+        obs, valid, _ = self.observe(band)
+        return obs, valid
 
     def read_colour(self, band: Band) -> np.ndarray | None:
         """One band's colour observations (n, P_band, C) float32 (None: no colour staged)."""
         if not self.colours:
             return None
-        colour = np.empty((self.n_lights, band.pixel_count, self.colours), np.float32)
-        self._stream.seek(self._colour_offsets[band.index])
-        self._read_exactly(colour)
-        return colour
-
-    def read(self, band: Band) -> tuple[np.ndarray, np.ndarray]:
-        """One band's observations (n, P_band) float32 and validity (n, P_band) bool."""
-        values, bits = self._offsets[band.index]
-        count = band.pixel_count
-        observations = np.empty((self.n_lights, count), np.float32)
-        packed = np.empty((self.n_lights, _packed_size(count)), np.uint8)
-        self._stream.seek(values)
-        self._read_exactly(observations)
-        self._stream.seek(bits)
-        self._read_exactly(packed)
-        valid = np.unpackbits(packed, axis=1, count=count).view(bool)
-        return observations, valid
+        return self.observe(band, colour=True)[2]
 
     def _read_exactly(self, array: np.ndarray) -> None:
         if array.size == 0:
@@ -288,6 +389,8 @@ def stage_observations(
     sample_pixels: int = 20000,
     progress: Callable[[int], None] | None = None,
     colours: int = 0,
+    coding: Coding | None = None,
+    threads: int | None = None,
 ) -> ObservationStore:
     """Read every frame once, one at a time, and store its mask pixels band by band.
 
@@ -307,14 +410,18 @@ def stage_observations(
     folder : Path or None
         Where the temporary file goes (default: the system's temporary folder).
     in_memory : bool
-        Keep the store in a memory buffer instead of a file.
+        Keep the store in memory instead of a file.
     sample_pixels : int
         Size of the noise-estimation sample (see :class:`ObservationStore`).
     progress : callable or None
         ``progress(1)`` after each light.
     colours : int
-        Also stage this many colour channels (3 for colour frames, 0: none; see
+        Also give colour observations (3 for colour frames, 0: none; see
         :class:`ObservationStore`).
+    coding : Coding or None
+        :func:`ps_lab.io.dataset.frame_coding` of the header's plan (found here when None).
+    threads : int or None
+        Frames decoded at once (default: the cores, at most 4).
 
     Returns
     -------
@@ -322,21 +429,81 @@ def stage_observations(
         The caller closes it (it is closed here if reading fails).
 
     """
+    coding = coding if coding is not None else frame_coding(header.plan)
+    try:
+        return _stage(header, mask, bands, coding, channel, shadow_threshold, folder, in_memory,
+                      sample_pixels, progress, colours, threads)
+    except NotCodedError as exc:
+        # a frame unlike light 1's (another bit depth or transfer curve): stage as decoded
+        log.info("staging as linear float32: %s", exc)
+        return _stage(header, mask, bands, float_coding(coding.channels), channel,
+                      shadow_threshold, folder, in_memory, sample_pixels, progress, colours,
+                      threads)
+
+
+def _stage(header, mask, bands, coding, channel, shadow_threshold, folder, in_memory,
+           sample_pixels, progress, colours, threads) -> ObservationStore:
     store = ObservationStore(
         bands,
         len(header.names),
         mask,
+        coding=coding,
+        rule=observe_rule(header.light_intensities, channel, shadow_threshold),
         folder=folder,
         in_memory=in_memory,
         sample_pixels=sample_pixels,
         colours=colours,
+        threads=threads,
     )
     try:
-        _stage_frames(store, header, iter_frames(header.plan), channel, shadow_threshold, progress)
+        if coding.coded:
+            frames = _prefetched(header, store.threads, store.stats)
+        else:
+            store.stats["file_bytes"] = sum(f.stat().st_size for files in header.plan.light_files
+                                            for f in files)
+            frames = ((frame, ~clipped) for frame, clipped in iter_frames(header.plan))
+        _stage_frames(store, header, frames, progress)
     except BaseException:
         store.close()
         raise
     return store
+
+
+def _timed_read(plan, light: int):
+    started = time.perf_counter()
+    coded = read_coded_light(plan, light)
+    return coded, time.perf_counter() - started, coded.file.stat().st_size
+
+
+def _prefetched(header: DatasetHeader, workers: int, stats: dict
+                ) -> Iterator[tuple[np.ndarray, None]]:
+    """Each light's codes, in light order, decoded up to ``workers`` frames ahead in threads."""
+    n = len(header.names)
+    reference: list = []
+    with ThreadPoolExecutor(max(1, workers)) as pool:
+        pending: deque = deque()
+        following = iter(range(n))
+        for i in following:
+            pending.append(pool.submit(_timed_read, header.plan, i))
+            if len(pending) > workers:
+                break
+        while pending:
+            coded, seconds, size = pending.popleft().result()
+            stats["decode_seconds"] += seconds
+            stats["file_bytes"] += size
+            nxt = next(following, None)
+            if nxt is not None:
+                pending.append(pool.submit(_timed_read, header.plan, nxt))
+            yield _checked_codes(header, coded, reference), None
+
+
+def _checked_codes(header, coded, reference: list) -> np.ndarray:
+    """The codes of ``coded`` (light ``coded.light``) after checking them against the first."""
+    if not reference:
+        reference.append(coded)
+    else:
+        check_coded_geometry(coded, reference[0])
+    return coded.frame.codes
 
 
 def stage_lights(
@@ -354,10 +521,11 @@ def stage_lights(
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Stage some lights into an existing store file (one task of a distributed pass 1).
 
-    The frames are read as :func:`stage_observations` reads them (same bits) and written into
-    the file another process created with :class:`ObservationStore` (``path``); lights go to
-    disjoint parts of the file, so several processes can stage at once, and staging a light twice
-    writes the same bytes.
+    The frames are read as :func:`stage_observations` reads them in float (same bits) and
+    written into the file another process created with :class:`ObservationStore` (``path``, with
+    :func:`ps_lab.io.coding.float_coding` of the frames' channels); lights go to disjoint parts
+    of the file, so several processes can stage at once, and staging a light twice writes the
+    same bytes.
 
     Parameters
     ----------
@@ -381,9 +549,11 @@ def stage_lights(
     """
     frames = iter_frames(header.plan, lights, common_exposure=common_exposure)
     with ObservationStore(
-        bands, len(header.names), mask, sample_pixels=sample_pixels, path=path, colours=colours
+        bands, len(header.names), mask, sample_pixels=sample_pixels, path=path, colours=colours,
+        coding=float_coding(_channels(header)),
+        rule=observe_rule(header.light_intensities, channel, shadow_threshold),
     ) as store:
-        _stage_frames(store, header, frames, channel, shadow_threshold, None, lights)
+        _stage_frames(store, header, ((f, ~c) for f, c in frames), None, lights)
         return (
             store.sample_observations[lights],
             store.sample_valid[lights],
@@ -391,27 +561,23 @@ def stage_lights(
         )
 
 
-def _stage_frames(store, header, frames, channel, shadow_threshold, progress, lights=None) -> None:
-    """Observe each frame of ``frames`` (lights ``lights``, default all) and store it."""
+def _stage_frames(store, header, frames, progress, lights=None) -> None:
+    """Store each frame of ``frames`` ((values, valid or None) of lights ``lights``, default all)."""
     height, width = store.shape
     indices = range(store.n_lights) if lights is None else lights
-    for i, (frame, clipped) in zip(indices, frames, strict=True):
+    for i, (frame, valid) in zip(indices, frames, strict=True):
         if frame.shape[:2] != (height, width):
             file = header.plan.light_files[i][0]
             raise DatasetError(
                 f"{file}: image size {frame.shape[1]}x{frame.shape[0]} differs from the "
                 f"first image ({width}x{height})"
             )
-        observations, valid = observe(
-            frame, clipped, header.light_intensities[i], channel, shadow_threshold
-        )
-        colour = None
-        if store.colours and frame.ndim == 3 and frame.shape[-1] >= store.colours:
-            # each channel divided by the light's intensity for it (the rule of observe)
-            scale = np.asarray(header.light_intensities[i], np.float32)[: store.colours]
-            colour = frame[..., : store.colours] / scale
-        del frame, clipped
-        store.write_frame(i, observations, valid, colour)
-        del observations, valid, colour
+        store.write_frame(i, frame, valid)
+        del frame, valid
         if progress is not None:
             progress(1)
+
+
+def _channels(header: DatasetHeader) -> int:
+    """Channels of the dataset's frames (light 1's file)."""
+    return frame_coding(header.plan).channels

@@ -38,12 +38,15 @@ import OpenEXR
 import tifffile
 
 from ps_lab.errors import DatasetError, PsLabError
+from ps_lab.io.coding import Coding, code_table
 from ps_lab.io.codecs import decode_image, decoder_said, imread, native_stderr_captured
 from ps_lab.io.encoding import ENCODINGS, JPEG_SUFFIXES, image_encoding
 from ps_lab.io.exr import exr_layout
 from ps_lab.io.raw import load_raw
 
-__all__ = ["ENCODINGS", "JPEG_SUFFIXES", "Image", "read_image", "read_image_size"]
+__all__ = [
+    "ENCODINGS", "JPEG_SUFFIXES", "Coded", "Image", "read_frame", "read_image", "read_image_size"
+]
 
 # OpenCV logs decoder failures on stderr; we report them ourselves as one DatasetError line.
 cv2.utils.logging.setLogLevel(cv2.utils.logging.LOG_LEVEL_SILENT)
@@ -57,6 +60,9 @@ _PNG_CHANNELS = {0: 1, 2: 3, 3: 1, 4: 2, 6: 4}
 # Deflate (PNG) cannot compress better than 1032:1; a header claiming more pixels than its data can
 # hold is forged or corrupt, and is refused before the decoder allocates what it claims.
 MAX_COMPRESSION_RATIO = 1100
+#: A JPEG's clipped highlights decode up to this many levels below 255 (its 8 x 8 blocks smear the
+#: clipped edge; measured up to 4 at quality 95-100): such pixels are saturated too.
+JPEG_CLIP_LEVELS = 4
 
 
 @dataclass(frozen=True)
@@ -113,6 +119,58 @@ def read_image(path: Path, encoding: str = "auto") -> Image:
         The file is missing, of an unsupported type, unreadable or corrupt (message names the file).
 
     """
+    frame = read_frame(path, encoding)
+    return frame.image() if isinstance(frame, Coded) else frame
+
+
+@dataclass(frozen=True)
+class Coded:
+    """An 8- or 16-bit file as stored: its codes and how they map to light.
+
+    Attributes
+    ----------
+    codes : ndarray of shape (H, W, C), uint8 or uint16
+        C = 1 or 3, colour in RGB order.
+    coding : Coding
+        The code table (per channel) of the file's transfer curve and the saturation level.
+    bit_depth : int
+    encoding : str
+        The transfer curve's name (``image_encoding``'s answer).
+    """
+
+    codes: np.ndarray
+    coding: Coding
+    bit_depth: int
+    encoding: str = "linear"
+    exposure_s: float | None = None
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        """``(H, W)`` of the image."""
+        return self.codes.shape[:2]
+
+    @property
+    def channels(self) -> int:
+        """Channels per pixel (1 or 3)."""
+        return self.codes.shape[2]
+
+    def image(self) -> Image:
+        """The linear :class:`Image` of these codes (table lookup; saturation at ``clip``)."""
+        codes, table = self.codes, self.coding.table
+        assert table is not None
+        data = np.empty(codes.shape, np.float32)
+        saturated = np.zeros(codes.shape[:2], bool)
+        for c in range(codes.shape[2]):
+            np.take(table[:, c], codes[:, :, c], out=data[:, :, c])
+            saturated |= codes[:, :, c] >= self.coding.clip
+        return Image(data, saturated, None, self.bit_depth, self.encoding)
+
+
+def read_frame(path: Path, encoding: str = "auto") -> Image | Coded:
+    """Read an image file: an 8/16-bit file as its :class:`Coded` codes, any other as an Image.
+
+    Parameters and errors as :func:`read_image` (which is ``read_frame(...)`` made linear).
+    """
     path = Path(path)
     suffix = path.suffix.lower()
     check_is_file(path, "image file")
@@ -134,12 +192,38 @@ def read_image(path: Path, encoding: str = "auto") -> Image:
         raise DatasetError(
             f"{path}: unsupported image type {suffix!r} (supported: {' '.join(SUPPORTED_SUFFIXES)})"
         )
+    array = _checked_layout(array, path)
+    if array.dtype in (np.uint8, np.uint16):
+        top = np.iinfo(array.dtype).max
+        clip = top - JPEG_CLIP_LEVELS if suffix in JPEG_SUFFIXES and top == 255 else top
+        curve = image_encoding(path, encoding)
+        bits = array.dtype.itemsize * 8
+        table = _code_table(bits, array.shape[2], curve)
+        return Coded(array, Coding(array.dtype, array.shape[2], table, clip), bits, curve.name)
     image = _to_linear(array, path)
-    if suffix in JPEG_SUFFIXES:
-        image = _jpeg_clipping(image, array)
     if image.bit_depth is None:
         return image
     return decoded(image, image_encoding(path, encoding))
+
+
+_TABLES: dict[tuple, np.ndarray] = {}
+
+
+def _code_table(bits: int, channels: int, curve) -> np.ndarray:
+    """:func:`ps_lab.io.coding.code_table` of ``curve``, kept for the next file of a capture."""
+    table = None if curve.table is None else np.asarray(curve.table, np.float64)
+    key = (bits, channels, curve.name, curve.gamma,
+           None if table is None else (table.shape, table.tobytes()))
+    found = _TABLES.get(key)
+    if found is None:
+        if curve.name == "linear":
+            found = code_table(bits, channels, lambda v: v)
+        else:
+            found = code_table(bits, channels, curve.decode)
+        if len(_TABLES) > 16:
+            _TABLES.clear()
+        _TABLES[key] = found
+    return found
 
 
 def decoded(image: Image, encoding) -> Image:
@@ -606,17 +690,8 @@ def _bgr_to_rgb(array: np.ndarray) -> np.ndarray:
 JPEG_CLIP_LEVELS = 4
 
 
-def _jpeg_clipping(image: Image, array: np.ndarray) -> Image:
-    """Mark a JPEG's pixels within :data:`JPEG_CLIP_LEVELS` of 255 in any channel as saturated."""
-    if array.dtype != np.uint8:
-        return image
-    near = np.any(np.atleast_3d(array) >= 255 - JPEG_CLIP_LEVELS, axis=2)
-    return Image(image.data, image.saturated | near, image.exposure_s, image.bit_depth,
-                 image.encoding)
-
-
-def _to_linear(array: np.ndarray, path: Path) -> Image:
-    """Scale an integer or float array of shape (H, W[, C]) to an :class:`Image`."""
+def _checked_layout(array: np.ndarray, path: Path) -> np.ndarray:
+    """``array`` as (H, W, C) with C = 1 or 3 (alpha dropped), or a DatasetError naming ``path``."""
     if array.ndim == 3 and array.shape[2] in (2, 4):
         array = array[:, :, : array.shape[2] - 1]  # drop alpha
     if array.ndim == 2:
@@ -625,6 +700,12 @@ def _to_linear(array: np.ndarray, path: Path) -> Image:
         raise DatasetError(
             f"{path}: expected a grey or RGB image, got an array of shape {array.shape}"
         )
+    return array
+
+
+def _to_linear(array: np.ndarray, path: Path) -> Image:
+    """Scale an integer or float array of shape (H, W[, C]) to an :class:`Image`."""
+    array = _checked_layout(array, path)
     if array.dtype == np.bool_:
         array = array.astype(np.uint8)
     bit_depth = None
