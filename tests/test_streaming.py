@@ -97,6 +97,76 @@ def test_store_equals_load_dataset_bit_for_bit(tmp_path, colour, in_memory, max_
         assert not list(tmp_path.glob("ps-lab-observations-*"))  # closed: file deleted
 
 
+def _without_dark(folder: Path, target: Path, suffix: str, colour: bool) -> None:
+    """The capture as 8-bit sRGB JPEG or 16-bit PNG files, no dark frame (staged as codes)."""
+    target.mkdir()
+    for name in ("light_directions.txt", "light_intensities.txt", "mask.png"):
+        (target / name).write_bytes((folder / name).read_bytes())
+    for i in range(N_LIGHTS):
+        counts = cv2.imread(str(folder / f"{i:03d}.png"), cv2.IMREAD_UNCHANGED)
+        if suffix == ".jpg":  # bright enough to clip: the highlights are saturated
+            counts = np.clip(counts.astype(np.float64) / 65535 * 1.6, 0, 1) ** (1 / 2.2)
+            counts = np.rint(counts * 255).astype(np.uint8)
+            cv2.imwrite(str(target / f"{i:03d}.jpg"), counts, [cv2.IMWRITE_JPEG_QUALITY, 92])
+        else:
+            cv2.imwrite(str(target / f"{i:03d}.png"), counts)
+
+
+@pytest.mark.parametrize(("suffix", "colour", "dtype"), [
+    (".jpg", True, np.uint8), (".jpg", False, np.uint8), (".png", True, np.uint16)])
+@pytest.mark.parametrize("in_memory", [False, True])
+def test_store_of_codes_equals_load_dataset_bit_for_bit(tmp_path, suffix, colour, dtype,
+                                                        in_memory):
+    # 8- and 16-bit frames with no dark frame are staged as their codes (one or two bytes a
+    # sample) and observed when read: the same bits as decoding each frame to float.
+    source = tmp_path / "source"
+    write_capture(source, colour=colour, seed=5)
+    folder = tmp_path / "coded"
+    _without_dark(source, folder, suffix, colour)
+    for channel in ("mean", "r") if colour else ("mean",):
+        data = load_dataset(folder, channel=channel, shadow_threshold=0.01)
+        header = open_dataset(folder, channel=channel)
+        mask = header.read_mask()
+        bands = plan_bands(mask, 97)
+        with stage_observations(header, mask, bands, channel=channel, shadow_threshold=0.01,
+                                folder=tmp_path, in_memory=in_memory, sample_pixels=50,
+                                colours=3 if colour else 0) as store:
+            assert store.coding.dtype == dtype
+            channels = 3 if colour else 1
+            assert store.nbytes == N_LIGHTS * int(mask.sum()) * channels * np.dtype(dtype).itemsize
+            for band in bands:
+                observations, valid = store.read(band)
+                rows = slice(band.row_start, band.row_stop)
+                inside = mask[rows]
+                np.testing.assert_array_equal(observations, data.images[:, rows][:, inside])
+                np.testing.assert_array_equal(valid, data.valid[:, rows][:, inside])
+            np.testing.assert_array_equal(store.sample_observations,
+                                          data.images[:, mask][:, store.sample_index])
+        if suffix == ".jpg":
+            assert not data.valid[:, mask].all()  # the clipped highlights are dropped
+
+
+def test_a_capture_with_a_dark_frame_is_staged_in_float(capture):
+    header = open_dataset(capture)
+    mask = header.read_mask()
+    with stage_observations(header, mask, plan_bands(mask, 10_000), in_memory=True) as store:
+        assert store.coding.dtype == np.float32 and not store.coding.coded
+
+
+def test_a_frame_of_another_bit_depth_is_named(tmp_path):
+    source = tmp_path / "source"
+    write_capture(source, seed=6)
+    folder = tmp_path / "coded"
+    _without_dark(source, folder, ".png", False)
+    counts = cv2.imread(str(folder / "004.png"), cv2.IMREAD_UNCHANGED)
+    cv2.imwrite(str(folder / "004.png"), (counts >> 8).astype(np.uint8))
+    header = open_dataset(folder)
+    mask = header.read_mask()
+    with pytest.raises(DatasetError, match="004.png: 8-bit image among 16-bit"):
+        stage_observations(header, mask, plan_bands(mask, 50), folder=tmp_path)
+    assert not list(tmp_path.glob("ps-lab-observations-*"))
+
+
 def test_store_file_is_removed_when_reading_fails(tmp_path):
     folder = tmp_path / "d"
     write_capture(folder)
@@ -404,3 +474,33 @@ def test_writer_takes_a_solution_or_its_band_result(capture, tmp_path):
         written[name] = (np.load(folder / "normals.npy"), writer.iterations, writer.outlier_count)
     a, b = written["solution"], written["result"]
     assert np.array_equal(a[0], b[0]) and np.array_equal(a[1], b[1]) and a[2] == b[2]
+
+
+def test_the_default_budget_follows_the_machine_and_the_stages_are_timed(capture, tmp_path):
+    from ps_lab.io.images import available_memory
+    from ps_lab.reconstruct.options import DEFAULT_MEMORY_SHARE, auto_memory_budget
+
+    before = available_memory()
+    metrics = run(capture, tmp_path / "out", method="ls")
+    streaming = metrics["streaming"]
+    assert streaming["memory_budget"].startswith("auto")
+    share = streaming["memory_budget_bytes"] / DEFAULT_MEMORY_SHARE
+    assert auto_memory_budget(0) <= streaming["memory_budget_bytes"]
+    assert 0.5 * before <= share <= 1.5 * before  # the memory available at the start
+    assert streaming["staging"] == "memory"  # a small capture fits: nothing goes to disk
+    stages = metrics["timings"]["stages"]
+    assert list(stages)[:3] == ["open", "decode and stage", "solve"]
+    for name in ("open", "decode and stage", "solve", "outputs", "appearance", "surface"):
+        assert stages[name]["wall_seconds"] >= 0 and stages[name]["cpu_seconds"] >= 0, name
+    assert stages["decode and stage"]["bytes"] == sum(
+        f.stat().st_size for f in capture.glob("0*.png")) + (capture / "dark.png").stat().st_size
+    assert stages["observe"]["bytes"] >= streaming["staging_bytes"]
+    files = metrics["timings"]["files"]
+    assert files["normals.npy"]["bytes"] == (tmp_path / "out" / "normals.npy").stat().st_size
+    assert "metrics.json" not in files
+
+
+def test_an_explicit_budget_too_small_for_the_store_stages_to_a_file(capture, tmp_path):
+    metrics = run(capture, tmp_path / "out", method="ls", memory_budget=budget_for(40))
+    assert metrics["streaming"]["staging"] == "file"
+    assert metrics["streaming"]["memory_budget"] == "given"

@@ -459,8 +459,10 @@ def _stage(header, mask, bands, coding, channel, shadow_threshold, folder, in_me
         if coding.coded:
             frames = _prefetched(header, store.threads, store.stats)
         else:
-            store.stats["file_bytes"] = sum(f.stat().st_size for files in header.plan.light_files
-                                            for f in files)
+            plan = header.plan
+            store.stats["file_bytes"] = sum(
+                f.stat().st_size for f in [*plan.dark_files, *(f for fs in plan.light_files
+                                                                 for f in fs)])
             frames = ((frame, ~clipped) for frame, clipped in iter_frames(header.plan))
         _stage_frames(store, header, frames, progress)
     except BaseException:
