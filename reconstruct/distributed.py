@@ -35,7 +35,8 @@ import numpy as np
 from ps_lab.errors import ClusterError
 from ps_lab.io.bands import Band, ObservationStore, stage_lights
 from ps_lab.io.coding import float_coding, observe_rule
-from ps_lab.io.dataset import DatasetHeader, frame_coding, reference_exposure
+from ps_lab.io.coded_frames import frame_coding
+from ps_lab.io.dataset import DatasetHeader, reference_exposure
 from ps_lab.io.truth import open_normal_gt
 from ps_lab.reconstruct._bands import BandResult, band_truth, solve_band
 

@@ -36,7 +36,8 @@ from ps_lab.errors import DatasetError, OutputError
 from ps_lab.geometry import Camera
 from ps_lab.io.bands import ObservationStore, plan_bands
 from ps_lab.io.camera import camera_record
-from ps_lab.io.dataset import DatasetHeader, frame_coding, open_dataset
+from ps_lab.io.coded_frames import frame_coding
+from ps_lab.io.dataset import DatasetHeader, open_dataset
 from ps_lab.io.encoding import frames_encoding
 from ps_lab.io.files import json_safe, staged_folder
 from ps_lab.io.result import METRICS, RESULT_FORMAT, is_result_folder

@@ -25,14 +25,13 @@ import numpy as np
 
 from ps_lab.errors import DatasetError
 from ps_lab.io.coding import Coding, ObserveRule, float_coding, observe_block, observe_rule
-from ps_lab.io.dataset import (
-    DatasetHeader,
+from ps_lab.io.coded_frames import (
     NotCodedError,
     check_coded_geometry,
     frame_coding,
-    iter_frames,
     read_coded_light,
 )
+from ps_lab.io.dataset import DatasetHeader, iter_frames
 from ps_lab.io.files import preallocate
 
 log = logging.getLogger(__name__)
@@ -419,7 +418,7 @@ def stage_observations(
         Also give colour observations (3 for colour frames, 0: none; see
         :class:`ObservationStore`).
     coding : Coding or None
-        :func:`ps_lab.io.dataset.frame_coding` of the header's plan (found here when None).
+        :func:`ps_lab.io.coded_frames.frame_coding` of the header's plan (found here when None).
     threads : int or None
         Frames decoded at once (default: the cores, at most 4).
 

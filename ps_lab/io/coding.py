@@ -20,7 +20,7 @@ from dataclasses import dataclass
 import numpy as np
 from numba import njit
 
-__all__ = ["CHANNEL_MODES", "Coding", "code_table", "combine", "observe_block", "observe_rule"]
+__all__ = ["CHANNEL_MODES", "Coded", "Coding", "code_table", "combine", "observe_block", "observe_rule"]
 
 #: ``channel`` values: average the divided channels, or keep one.
 CHANNEL_MODES = {"mean": -1, "r": 0, "g": 1, "b": 2}
@@ -57,6 +57,38 @@ class Coding:
     def coded(self) -> bool:
         """Values are integer codes (decoded by ``table``)."""
         return self.table is not None
+
+
+@dataclass(frozen=True)
+class Coded:
+    """An 8- or 16-bit file as stored: its codes and how they map to light.
+
+    Attributes
+    ----------
+    codes : ndarray of shape (H, W, C), uint8 or uint16
+        C = 1 or 3, colour in RGB order.
+    coding : Coding
+        The code table (per channel) of the file's transfer curve and the saturation level.
+    bit_depth : int
+    encoding : str
+        The transfer curve's name (``image_encoding``'s answer).
+    """
+
+    codes: np.ndarray
+    coding: Coding
+    bit_depth: int
+    encoding: str = "linear"
+    exposure_s: float | None = None
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        """``(H, W)`` of the image."""
+        return self.codes.shape[:2]
+
+    @property
+    def channels(self) -> int:
+        """Channels per pixel (1 or 3)."""
+        return self.codes.shape[2]
 
 
 def float_coding(channels: int) -> Coding:

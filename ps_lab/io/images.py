@@ -38,14 +38,15 @@ import OpenEXR
 import tifffile
 
 from ps_lab.errors import DatasetError, PsLabError
-from ps_lab.io.coding import Coding, code_table
+from ps_lab.io.coding import Coded, Coding, code_table
 from ps_lab.io.codecs import decode_image, decoder_said, imread, native_stderr_captured
 from ps_lab.io.encoding import ENCODINGS, JPEG_SUFFIXES, image_encoding
 from ps_lab.io.exr import exr_layout
 from ps_lab.io.raw import load_raw
 
 __all__ = [
-    "ENCODINGS", "JPEG_SUFFIXES", "Coded", "Image", "read_frame", "read_image", "read_image_size"
+    "ENCODINGS", "JPEG_SUFFIXES", "Coded", "Image", "linear_image", "read_frame", "read_image",
+    "read_image_size",
 ]
 
 # OpenCV logs decoder failures on stderr; we report them ourselves as one DatasetError line.
@@ -120,50 +121,19 @@ def read_image(path: Path, encoding: str = "auto") -> Image:
 
     """
     frame = read_frame(path, encoding)
-    return frame.image() if isinstance(frame, Coded) else frame
+    return linear_image(frame) if isinstance(frame, Coded) else frame
 
 
-@dataclass(frozen=True)
-class Coded:
-    """An 8- or 16-bit file as stored: its codes and how they map to light.
-
-    Attributes
-    ----------
-    codes : ndarray of shape (H, W, C), uint8 or uint16
-        C = 1 or 3, colour in RGB order.
-    coding : Coding
-        The code table (per channel) of the file's transfer curve and the saturation level.
-    bit_depth : int
-    encoding : str
-        The transfer curve's name (``image_encoding``'s answer).
-    """
-
-    codes: np.ndarray
-    coding: Coding
-    bit_depth: int
-    encoding: str = "linear"
-    exposure_s: float | None = None
-
-    @property
-    def shape(self) -> tuple[int, int]:
-        """``(H, W)`` of the image."""
-        return self.codes.shape[:2]
-
-    @property
-    def channels(self) -> int:
-        """Channels per pixel (1 or 3)."""
-        return self.codes.shape[2]
-
-    def image(self) -> Image:
-        """The linear :class:`Image` of these codes (table lookup; saturation at ``clip``)."""
-        codes, table = self.codes, self.coding.table
-        assert table is not None
-        data = np.empty(codes.shape, np.float32)
-        saturated = np.zeros(codes.shape[:2], bool)
-        for c in range(codes.shape[2]):
-            np.take(table[:, c], codes[:, :, c], out=data[:, :, c])
-            saturated |= codes[:, :, c] >= self.coding.clip
-        return Image(data, saturated, None, self.bit_depth, self.encoding)
+def linear_image(coded: Coded) -> Image:
+    """The linear :class:`Image` of a file's codes (table lookup; saturated at the clip level)."""
+    codes, table = coded.codes, coded.coding.table
+    assert table is not None
+    data = np.empty(codes.shape, np.float32)
+    saturated = np.zeros(codes.shape[:2], bool)
+    for c in range(codes.shape[2]):
+        np.take(table[:, c], codes[:, :, c], out=data[:, :, c])
+        saturated |= codes[:, :, c] >= coded.coding.clip
+    return Image(data, saturated, None, coded.bit_depth, coded.encoding)
 
 
 def read_frame(path: Path, encoding: str = "auto") -> Image | Coded:
