@@ -87,6 +87,69 @@ def test_colour_albedo_is_exact_on_lambertian_data():
     )
 
 
+def _reference_albedo(normals, inliers, observations, lights, intensities, pixels):
+    """The definition, one pixel and channel at a time in float64 (docs/colour.md)."""
+    n, _, c = observations.shape
+    out = np.zeros((len(pixels), c))
+    for row, p in enumerate(pixels):
+        normal = np.asarray(normals[p], np.float64)
+        for ch in range(c):
+            num = den = 0.0
+            for i in range(n):
+                y = float(observations[i, p, ch])
+                if not (inliers[i, p] and np.isfinite(y)):
+                    continue
+                light = lights[i] if lights.ndim == 2 else lights[i, p]
+                s = max(float(np.dot(np.asarray(light, np.float64), normal)), 0.0)
+                s *= 1.0 if intensities is None else float(intensities[i, ch])
+                num += y * s
+                den += s * s
+            out[row, ch] = num / den if den > 0 else 0.0
+    return out
+
+
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+@pytest.mark.parametrize("channels", [3, 2])
+@pytest.mark.parametrize("light_model", ["directional", "per-pixel", "per-pixel view"])
+@pytest.mark.parametrize("with_intensities", [False, True])
+def test_colour_albedo_equals_the_per_pixel_definition(dtype, channels, light_model,
+                                                       with_intensities):
+    """The compiled kernel is the definition up to float64 rounding, then float32's.
+
+    Awkward inputs: missing (NaN, inf) observations, zero normals, pixels with no inlier, lights
+    below the horizon of some pixels, 7 lights (not a multiple of the kernel's group of 4) and
+    more pixels than one of its blocks (2048 directional, 512 near).
+    """
+    rng = np.random.default_rng(7)
+    n, p = 7, 2600
+    normals = rng.normal(size=(p, 3))
+    normals[:, 2] = np.abs(normals[:, 2])
+    normals = (normals / np.linalg.norm(normals, axis=1, keepdims=True)).astype(np.float32)
+    normals[::53] = 0.0  # unsolved pixels
+    lights = rng.normal(size=(n, 3))
+    lights[:, 2] = np.abs(lights[:, 2]) + 0.2
+    lights /= np.linalg.norm(lights, axis=1, keepdims=True)
+    if light_model == "per-pixel":  # (n, P, 3) C-contiguous
+        lights = lights[:, None, :] * rng.uniform(0.8, 1.2, size=(n, p, 1))
+    elif light_model == "per-pixel view":  # the pipeline's: a view of the solver's (P, n, 3)
+        lights = (lights[None] * rng.uniform(0.8, 1.2, size=(p, n, 1))).transpose(1, 0, 2)
+    observations = rng.uniform(0.0, 2.0, size=(n, p, channels)).astype(dtype)
+    missing = rng.random(observations.shape) < 0.05
+    observations[missing] = rng.choice([np.nan, np.inf, -np.inf], size=int(missing.sum()))
+    inliers = rng.random((n, p)) > 0.25
+    inliers[:, 11::97] = False  # no inlier at all
+    intensities = rng.uniform(0.5, 1.5, size=(n, channels)) if with_intensities else None
+    got = colour_albedo(normals, inliers, observations, lights, intensities)
+    assert got.shape == (p, channels) and got.dtype == np.float32
+    pixels = np.unique(np.concatenate([rng.choice(p, 120, replace=False), [0, 11, 53, 2047,
+                                                                            2048, 2599]]))
+    want = _reference_albedo(normals, inliers, observations, lights, intensities, pixels)
+    # float32 rounding of the float64 value (2^-24) plus float64 rounding of the sums
+    np.testing.assert_allclose(got[pixels], want, rtol=2.0**-24 * (1 + 1e-6), atol=0)
+    assert not got[::53].any() and not got[11::97].any()
+    assert want.any()
+
+
 def test_colour_picture_is_srgb_with_one_scale():
     mask = np.ones((2, 2), bool)
     albedo = np.zeros((2, 2, 3), np.float32)
