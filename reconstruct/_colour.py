@@ -10,6 +10,7 @@ is its sRGB picture (:func:`colour_albedo_picture`) and ``albedo.exr`` the float
 
 from __future__ import annotations
 
+import functools
 from pathlib import Path
 
 import numpy as np
@@ -28,6 +29,10 @@ NEAR_COLOUR_BLOCK = 512
 _GROUP = 4
 # Helpers inlined into the kernels (as in _kernels.py).
 INLINE = {"inline": "always"}
+# Image rows per block of colour_albedo_picture's work arrays.
+PICTURE_ROWS = 256
+# sRGB table buckets: float32 bit patterns shifted right by this (see _srgb_table).
+_SRGB_SHIFT = 12
 
 __all__ = [
     "colour_albedo",
@@ -305,7 +310,9 @@ def colour_albedo_picture(
     """An 8-bit sRGB picture of a linear colour albedo (H, W, 3).
 
     One scale for the three channels (so the hue is kept): ``top`` (default the 99th percentile
-    of the brightest channel inside the mask) maps to 1, then the sRGB transfer curve.
+    of the brightest channel inside the mask) maps to 1, then the sRGB transfer curve
+    (:func:`srgb_codes`, NaN black). The codes come from a table (:func:`_srgb_table`) that
+    gives each float32 value the code of :func:`srgb_codes`.
 
     Returns
     -------
@@ -319,13 +326,77 @@ def colour_albedo_picture(
     picture = np.zeros((*mask.shape, 3), np.uint8)
     if not np.isfinite(top) or top <= 0:
         return picture
-    for start in range(0, mask.shape[0], 256):  # bounded float64 copies on large images
-        rows = slice(start, start + 256)
-        encoded = linear_to_srgb(np.nan_to_num(albedo[rows]) / top)
-        block = np.clip(np.rint(encoded * 255.0), 0, 255).astype(np.uint8)
+    codes, thresholds = _srgb_table()
+    for start in range(0, mask.shape[0], PICTURE_ROWS):  # bounded work arrays on large images
+        rows = slice(start, start + PICTURE_ROWS)
+        with np.errstate(over="ignore", invalid="ignore"):
+            scaled = albedo[rows] / top  # float32 for a Python float top, as before
+        if scaled.dtype == np.float32:  # a division's NaN is quiet: never in the inf bucket
+            bucket = scaled.view(np.uint32) >> _SRGB_SHIFT
+            block = codes.take(bucket)
+            block += scaled >= thresholds.take(bucket)
+        else:  # a numpy float64 top: float64 values, the curve itself
+            block = srgb_codes(np.where(np.isnan(scaled), 0.0, scaled))
         block[~mask[rows]] = 0
         picture[rows] = block
     return picture
+
+
+def srgb_codes(scaled: np.ndarray) -> np.ndarray:
+    """8-bit sRGB codes of linear values scaled so that 1 is white (clipped to 0..255).
+
+    ``rint(255 · linear_to_srgb(v))``, the float64 curve of :func:`ps_lab.io.encoding
+    .linear_to_srgb` (NaN gives an undefined code: callers zero it first).
+
+    Returns
+    -------
+    ndarray of the shape of ``scaled``, uint8
+
+    """
+    with np.errstate(invalid="ignore"):
+        return np.clip(np.rint(linear_to_srgb(scaled) * 255.0), 0, 255).astype(np.uint8)
+
+
+@functools.cache
+def _srgb_table() -> tuple[np.ndarray, np.ndarray]:
+    """:func:`srgb_codes` of every float32 value, as a table over its bit pattern.
+
+    The code is a non-decreasing function of a float32 value ``v`` (the float64 curve's
+    rounding errors, ~1e-16, are far below the 6e-8 relative gap between neighbouring float32
+    values). Its 255 steps, the smallest float32 values with code k = 1..255, are found by
+    bisection over the bit patterns of [0, 1] with :func:`srgb_codes` itself. The table has one
+    entry per bucket of 2^12 consecutive bit patterns (relative width 2^-11, finer than the
+    steps, so a bucket holds at most one): its code at the bucket's start and the step inside
+    it (NaN: none). ``code(v) = codes[b] + (v >= thresholds[b])`` with ``b = bits(v) >> 12``.
+    Negative values, -inf and NaN give 0, +inf 255 (its bucket also holds signalling NaNs,
+    which no division returns).
+
+    Returns
+    -------
+    codes : ndarray of shape (2^20,), uint8
+    thresholds : ndarray of shape (2^20,), float32
+
+    """
+    level = np.arange(1, 256)
+    below = np.zeros(255, np.int64)  # bit patterns with code < k ...
+    above = np.full(255, int(np.float32(1.0).view(np.int32)), np.int64)  # ... and >= k
+    while np.any(above - below > 1):
+        middle = (below + above) // 2
+        up = srgb_codes(middle.astype(np.int32).view(np.float32)) >= level
+        above = np.where(up, middle, above)
+        below = np.where(up, below, middle)
+    steps = above.astype(np.int32).view(np.float32)
+    if np.unique(steps.view(np.uint32) >> _SRGB_SHIFT).size != steps.size:
+        raise AssertionError("two sRGB steps in one table bucket")  # not with 2^12 patterns
+    first = np.arange(1 << (32 - _SRGB_SHIFT), dtype=np.uint32) << _SRGB_SHIFT
+    last = (first | np.uint32((1 << _SRGB_SHIFT) - 1)).view(np.float32)
+    first = first.view(np.float32)
+    codes = np.searchsorted(steps, first, side="right")
+    codes[np.isnan(first)] = 0
+    following = np.append(steps, np.float32(np.nan))[codes]
+    with np.errstate(invalid="ignore"):
+        thresholds = np.where(following <= last, following, np.float32(np.nan))
+    return codes.astype(np.uint8), thresholds.astype(np.float32)
 
 
 def write_albedo_exr(path: Path, albedo: np.ndarray) -> None:

@@ -12,7 +12,12 @@ import pytest
 from ps_lab import render
 from ps_lab.io.encoding import linear_to_srgb
 from ps_lab.io.images import read_image
-from ps_lab.reconstruct._colour import colour_albedo, colour_albedo_picture
+from ps_lab.reconstruct._colour import (
+    _srgb_table,
+    colour_albedo,
+    colour_albedo_picture,
+    srgb_codes,
+)
 from ps_lab.reconstruct.pipeline import ReconstructOptions, reconstruct_to_folder
 
 SHAPE = (72, 88)
@@ -157,6 +162,45 @@ def test_colour_picture_is_srgb_with_one_scale():
     picture = colour_albedo_picture(albedo, mask, top=0.5)
     expected = np.rint(linear_to_srgb(np.array([1.0, 0.5, 0.0])) * 255)
     np.testing.assert_array_equal(picture[0, 0], expected)
+
+
+def _picture_by_the_curve(albedo, mask, top):
+    """colour_albedo_picture as it was: the float64 sRGB curve on every value."""
+    picture = np.zeros((*mask.shape, 3), np.uint8)
+    if not np.isfinite(top) or top <= 0:
+        return picture
+    with np.errstate(over="ignore", invalid="ignore"):
+        encoded = linear_to_srgb(np.nan_to_num(np.asarray(albedo, np.float32)) / top)
+        picture[:] = np.clip(np.rint(encoded * 255.0), 0, 255).astype(np.uint8)
+    picture[~mask] = 0
+    return picture
+
+
+def test_colour_picture_table_gives_the_curve_s_codes():
+    """The sRGB table is the float64 curve on every kind of float32 value, bit for bit.
+
+    Random bit patterns (NaN of every payload, inf, negatives, subnormals), values around every
+    one of the 255 steps, a dense sweep of [0, 1.5], and scales of every kind.
+    """
+    rng = np.random.default_rng(11)
+    bits = rng.integers(0, 2**32, size=(300, 400, 3), dtype=np.uint64).astype(np.uint32)
+    albedo = bits.view(np.float32).copy()
+    albedo[::2] = rng.uniform(-0.1, 1.3, size=albedo[::2].shape)
+    mask = rng.random((300, 400)) > 0.1
+    for top in (0.8, float(rng.uniform(0.01, 3.0)), 1e-30, 3e38, np.float64(0.7), 0.0, np.inf):
+        np.testing.assert_array_equal(colour_albedo_picture(albedo, mask, top),
+                                      _picture_by_the_curve(albedo, mask, top))
+    codes, thresholds = _srgb_table()
+    steps = np.sort(thresholds[np.isfinite(thresholds)])
+    assert steps.size == 255
+    near = np.concatenate([(steps.view(np.int32) + d).view(np.float32) for d in range(-3, 4)])
+    sweep = np.arange(0, np.float32(1.5).view(np.int32), 997, dtype=np.int32).view(np.float32)
+    for values in (near, sweep):
+        rows = values[: values.size // 3 * 3].reshape(1, -1, 3)
+        np.testing.assert_array_equal(
+            colour_albedo_picture(rows, np.ones(rows.shape[:2], bool), 1.0),
+            srgb_codes(rows),
+        )
 
 
 @pytest.mark.parametrize(
