@@ -164,14 +164,19 @@ def run_jobs(jobs: list[Callable[[], None]], threads: int | None = None) -> None
     ``jobs``, is raised.
     """
     workers = min(len(jobs), int(threads) if threads else (os.cpu_count() or 1))
+    failures: list[BaseException] = []
     if workers <= 1:
         for job in jobs:
-            job()
-        return
-    with ThreadPoolExecutor(max_workers=workers, thread_name_prefix="ps-lab-write") as pool:
-        futures = [pool.submit(job) for job in jobs]
-    for future in futures:
-        future.result()
+            try:
+                job()
+            except Exception as exc:  # noqa: BLE001 - raised below, after the other jobs
+                failures.append(exc)
+    else:
+        with ThreadPoolExecutor(max_workers=workers, thread_name_prefix="ps-lab-write") as pool:
+            futures = [pool.submit(job) for job in jobs]
+        failures = [f.exception() for f in futures if f.exception() is not None]
+    if failures:
+        raise failures[0]
 
 
 class _Histogram:
