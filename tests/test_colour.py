@@ -12,7 +12,12 @@ import pytest
 from ps_lab import render
 from ps_lab.io.encoding import linear_to_srgb
 from ps_lab.io.images import read_image
-from ps_lab.reconstruct._colour import colour_albedo, colour_albedo_picture
+from ps_lab.reconstruct._colour import (
+    _srgb_table,
+    colour_albedo,
+    colour_albedo_picture,
+    srgb_codes,
+)
 from ps_lab.reconstruct.pipeline import ReconstructOptions, reconstruct_to_folder
 
 SHAPE = (72, 88)
@@ -87,6 +92,69 @@ def test_colour_albedo_is_exact_on_lambertian_data():
     )
 
 
+def _reference_albedo(normals, inliers, observations, lights, intensities, pixels):
+    """The definition, one pixel and channel at a time in float64 (docs/colour.md)."""
+    n, _, c = observations.shape
+    out = np.zeros((len(pixels), c))
+    for row, p in enumerate(pixels):
+        normal = np.asarray(normals[p], np.float64)
+        for ch in range(c):
+            num = den = 0.0
+            for i in range(n):
+                y = float(observations[i, p, ch])
+                if not (inliers[i, p] and np.isfinite(y)):
+                    continue
+                light = lights[i] if lights.ndim == 2 else lights[i, p]
+                s = max(float(np.dot(np.asarray(light, np.float64), normal)), 0.0)
+                s *= 1.0 if intensities is None else float(intensities[i, ch])
+                num += y * s
+                den += s * s
+            out[row, ch] = num / den if den > 0 else 0.0
+    return out
+
+
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+@pytest.mark.parametrize("channels", [3, 2])
+@pytest.mark.parametrize("light_model", ["directional", "per-pixel", "per-pixel view"])
+@pytest.mark.parametrize("with_intensities", [False, True])
+def test_colour_albedo_equals_the_per_pixel_definition(dtype, channels, light_model,
+                                                       with_intensities):
+    """The compiled kernel is the definition up to float64 rounding, then float32's.
+
+    Awkward inputs: missing (NaN, inf) observations, zero normals, pixels with no inlier, lights
+    below the horizon of some pixels, 7 lights (not a multiple of the kernel's group of 4) and
+    more pixels than one of its blocks (2048 directional, 512 near).
+    """
+    rng = np.random.default_rng(7)
+    n, p = 7, 2600
+    normals = rng.normal(size=(p, 3))
+    normals[:, 2] = np.abs(normals[:, 2])
+    normals = (normals / np.linalg.norm(normals, axis=1, keepdims=True)).astype(np.float32)
+    normals[::53] = 0.0  # unsolved pixels
+    lights = rng.normal(size=(n, 3))
+    lights[:, 2] = np.abs(lights[:, 2]) + 0.2
+    lights /= np.linalg.norm(lights, axis=1, keepdims=True)
+    if light_model == "per-pixel":  # (n, P, 3) C-contiguous
+        lights = lights[:, None, :] * rng.uniform(0.8, 1.2, size=(n, p, 1))
+    elif light_model == "per-pixel view":  # the pipeline's: a view of the solver's (P, n, 3)
+        lights = (lights[None] * rng.uniform(0.8, 1.2, size=(p, n, 1))).transpose(1, 0, 2)
+    observations = rng.uniform(0.0, 2.0, size=(n, p, channels)).astype(dtype)
+    missing = rng.random(observations.shape) < 0.05
+    observations[missing] = rng.choice([np.nan, np.inf, -np.inf], size=int(missing.sum()))
+    inliers = rng.random((n, p)) > 0.25
+    inliers[:, 11::97] = False  # no inlier at all
+    intensities = rng.uniform(0.5, 1.5, size=(n, channels)) if with_intensities else None
+    got = colour_albedo(normals, inliers, observations, lights, intensities)
+    assert got.shape == (p, channels) and got.dtype == np.float32
+    pixels = np.unique(np.concatenate([rng.choice(p, 120, replace=False), [0, 11, 53, 2047,
+                                                                            2048, 2599]]))
+    want = _reference_albedo(normals, inliers, observations, lights, intensities, pixels)
+    # float32 rounding of the float64 value (2^-24) plus float64 rounding of the sums
+    np.testing.assert_allclose(got[pixels], want, rtol=2.0**-24 * (1 + 1e-6), atol=0)
+    assert not got[::53].any() and not got[11::97].any()
+    assert want.any()
+
+
 def test_colour_picture_is_srgb_with_one_scale():
     mask = np.ones((2, 2), bool)
     albedo = np.zeros((2, 2, 3), np.float32)
@@ -94,6 +162,45 @@ def test_colour_picture_is_srgb_with_one_scale():
     picture = colour_albedo_picture(albedo, mask, top=0.5)
     expected = np.rint(linear_to_srgb(np.array([1.0, 0.5, 0.0])) * 255)
     np.testing.assert_array_equal(picture[0, 0], expected)
+
+
+def _picture_by_the_curve(albedo, mask, top):
+    """colour_albedo_picture as it was: the float64 sRGB curve on every value."""
+    picture = np.zeros((*mask.shape, 3), np.uint8)
+    if not np.isfinite(top) or top <= 0:
+        return picture
+    with np.errstate(over="ignore", invalid="ignore"):
+        encoded = linear_to_srgb(np.nan_to_num(np.asarray(albedo, np.float32)) / top)
+        picture[:] = np.clip(np.rint(encoded * 255.0), 0, 255).astype(np.uint8)
+    picture[~mask] = 0
+    return picture
+
+
+def test_colour_picture_table_gives_the_curve_s_codes():
+    """The sRGB table is the float64 curve on every kind of float32 value, bit for bit.
+
+    Random bit patterns (NaN of every payload, inf, negatives, subnormals), values around every
+    one of the 255 steps, a dense sweep of [0, 1.5], and scales of every kind.
+    """
+    rng = np.random.default_rng(11)
+    bits = rng.integers(0, 2**32, size=(300, 400, 3), dtype=np.uint64).astype(np.uint32)
+    albedo = bits.view(np.float32).copy()
+    albedo[::2] = rng.uniform(-0.1, 1.3, size=albedo[::2].shape)
+    mask = rng.random((300, 400)) > 0.1
+    for top in (0.8, float(rng.uniform(0.01, 3.0)), 1e-30, 3e38, np.float64(0.7), 0.0, np.inf):
+        np.testing.assert_array_equal(colour_albedo_picture(albedo, mask, top),
+                                      _picture_by_the_curve(albedo, mask, top))
+    codes, thresholds = _srgb_table()
+    steps = np.sort(thresholds[np.isfinite(thresholds)])
+    assert steps.size == 255
+    near = np.concatenate([(steps.view(np.int32) + d).view(np.float32) for d in range(-3, 4)])
+    sweep = np.arange(0, np.float32(1.5).view(np.int32), 997, dtype=np.int32).view(np.float32)
+    for values in (near, sweep):
+        rows = values[: values.size // 3 * 3].reshape(1, -1, 3)
+        np.testing.assert_array_equal(
+            colour_albedo_picture(rows, np.ones(rows.shape[:2], bool), 1.0),
+            srgb_codes(rows),
+        )
 
 
 @pytest.mark.parametrize(
