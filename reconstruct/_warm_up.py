@@ -35,6 +35,7 @@ from ps_lab.io.coding import Coding, float_coding, observe_block, observe_rule
 
 from ._kernels import TileResult, l1_tile, sbl_tile
 from ._near_kernels import l1_tile_pp, sbl_tile_pp
+from ._colour import colour_albedo
 from ._pl_kernels import pl_tile
 from ._tiles import _prepare_tile, _store_tile
 
@@ -52,6 +53,8 @@ COMPILE_SECONDS = {
     "_observe": 1.5,
     "_prepare_kernel": 1.0,
     "_store_kernel": 0.5,
+    "_far_kernel": 2.5,
+    "_near_kernel": 2.5,
 }
 
 
@@ -114,6 +117,15 @@ def _store() -> None:
                   np.zeros(1, np.int64), True)
 
 
+def _colour() -> None:
+    # the colour albedo of colour frames: directional lights and per-pixel light vectors
+    normals, inliers = np.array([[0.0, 0.0, 1.0]]), np.ones((3, 1), bool)
+    observations = np.ones((3, 1, 3), np.float32)
+    colour_albedo(normals, inliers, observations, np.eye(3))
+    per_pixel = np.ascontiguousarray(np.broadcast_to(np.eye(3)[None], (1, 3, 3)))
+    colour_albedo(normals, inliers, observations, per_pixel.transpose(1, 0, 2))
+
+
 @dataclass(frozen=True)
 class Group:
     """Kernels warmed together: a label for the progress lines and the call that warms them."""
@@ -126,6 +138,7 @@ class Group:
 GROUPS = {
     "store": Group("observation store", _store),
     "tiles": Group("tile kernels", _tiles),
+    "colour": Group("colour albedo", _colour),
     "l1": Group("L1 kernel", _l1),
     "sbl": Group("SBL kernel", _sbl),
     "pl": Group("piecewise-linear kernel", _pl(choose=True)),
@@ -134,13 +147,13 @@ GROUPS = {
 }
 #: The groups ``ps-lab reconstruct --method M`` needs (L1's: the noise estimate uses it).
 METHOD_GROUPS = {
-    "ls": ("store", "tiles"),
-    "l1": ("store", "tiles", "l1"),
-    "sbl": ("store", "tiles", "l1", "sbl"),
-    "plls": ("store", "tiles", "pl"),
-    "plsbl": ("store", "tiles", "l1", "pl"),
-    "auto": ("store", "tiles", "l1", "pl"),
-    "rpca": ("store", "tiles"),
+    "ls": ("store", "tiles", "colour"),
+    "l1": ("store", "tiles", "colour", "l1"),
+    "sbl": ("store", "tiles", "colour", "l1", "sbl"),
+    "plls": ("store", "tiles", "colour", "pl"),
+    "plsbl": ("store", "tiles", "colour", "l1", "pl"),
+    "auto": ("store", "tiles", "colour", "l1", "pl"),
+    "rpca": ("store", "tiles", "colour"),
 }
 
 

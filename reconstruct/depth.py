@@ -37,6 +37,7 @@ from ps_lab.io.images import read_npy_header
 from ps_lab.io.mesh import depth_mesh, write_ply
 from ps_lab.io.normal_maps import write_normal16, write_normals_exr
 from ps_lab.io.result import RESULT_FORMAT
+from ps_lab.reconstruct._outputs import run_jobs
 from ps_lab.reconstruct.integrate import (
     BILATERAL_MAX_ITERATIONS,
     INTEGRATION_METHODS,
@@ -180,14 +181,17 @@ def _check_range(depth: np.ndarray, shape: tuple[int, int], scale: float, option
 
 
 def write_normal_maps(
-    folder: Path, normals: np.ndarray, mask: np.ndarray, convention: str = "opengl"
+    folder: Path, normals: np.ndarray, mask: np.ndarray, convention: str = "opengl",
+    threads: int | None = None,
 ) -> None:
     """Write ``normal16.png`` and ``normals.exr`` (``ps_lab.io.normal_maps``) into ``folder``.
 
-    ``convention``: ``opengl`` (y up, the camera frame) or ``directx`` (y down).
+    ``convention``: ``opengl`` (y up, the camera frame) or ``directx`` (y down). The two are
+    encoded side by side on up to ``threads`` threads (None: all cores; the encoders release
+    the GIL).
     """
-    write_normal16(folder / "normal16.png", normals, mask, convention)
-    write_normals_exr(folder / "normals.exr", normals, convention)
+    run_jobs([lambda: write_normal16(folder / "normal16.png", normals, mask, convention),
+              lambda: write_normals_exr(folder / "normals.exr", normals, convention)], threads)
 
 
 def write_depth(

@@ -228,7 +228,8 @@ def reconstruct_to_folder(
         warm_up.join()
         with store:
             writer = _OutputWriter(
-                stage, store.mask, source.truth, store.n_lights, colours=store.colours
+                stage, store.mask, source.truth, store.n_lights, colours=store.colours,
+                threads=options.threads,
             )
             with clock("solve"):
                 black = black_level(store, source.header, options)
@@ -408,7 +409,8 @@ def _stage(
     limit = executor.band_pixels(limit, pixels, keep_plan)
     bands = plan_bands(mask, limit)
     bits = 0 if coding.coded else 1
-    store_bytes = n * (coding.channels * coding.itemsize * pixels + (bits * pixels + 7 * len(bands)) // 8)
+    values = coding.channels * coding.itemsize * pixels
+    store_bytes = n * (values + (bits * pixels + 7 * len(bands)) // 8)
     band_bytes = max(band.pixel_count for band in bands) * (
         per_light * BYTES_PER_OBSERVATION + BYTES_PER_PIXEL)
     small = store_bytes + band_bytes <= IN_MEMORY_SHARE * budget
@@ -514,10 +516,10 @@ def _write_surface(
 ) -> None:
     """Stage 5: normal maps for other tools and, with ``options.depth``, depth and mesh."""
     started = time.perf_counter()
-    normals = np.load(stage / "normals.npy")
+    normals = np.load(stage / "normals.npy", mmap_mode="r")  # the written file, paged in once
     try:
         mask = np.linalg.norm(normals, axis=-1) > 0.5
-        write_normal_maps(stage, normals, mask, options.normal_map)
+        write_normal_maps(stage, normals, mask, options.normal_map, options.threads)
         metrics["normal_maps"] = {"convention": options.normal_map}
         if options.depth is not None:
             albedo = grey_albedo(np.load(stage / "albedo.npy"), options.channel)

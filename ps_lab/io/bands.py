@@ -563,7 +563,7 @@ def stage_lights(
 
 
 def _stage_frames(store, header, frames, progress, lights=None) -> None:
-    """Store each frame of ``frames`` ((values, valid or None) of lights ``lights``, default all)."""
+    """Store each frame of ``frames``: (values, valid or None) of ``lights`` (default all)."""
     height, width = store.shape
     indices = range(store.n_lights) if lights is None else lights
     for i, (frame, valid) in zip(indices, frames, strict=True):

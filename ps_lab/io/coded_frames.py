@@ -30,8 +30,8 @@ def frame_coding(plan: FramePlan) -> Coding:
 
     Their codes (:class:`ps_lab.io.coding.Coded`) when every light is one 8- or 16-bit file read
     as it is: no dark frame to subtract, no exposure to scale to, no repeats to average and no
-    lens distortion to undo (what :func:`ps_lab.io.dataset.read_light_frame` would compute is then the code table's
-    value, bit for bit); else linear float32 of the frames' channels.
+    lens distortion to undo (what :func:`ps_lab.io.dataset.read_light_frame` would compute is
+    then the code table's value, bit for bit); else linear float32 of the frames' channels.
     """
     first = read_frame(plan.light_files[0][0], plan.encoding)
     if isinstance(first, Coded):

@@ -20,7 +20,8 @@ from dataclasses import dataclass
 import numpy as np
 from numba import njit
 
-__all__ = ["CHANNEL_MODES", "Coded", "Coding", "code_table", "combine", "observe_block", "observe_rule"]
+__all__ = ["CHANNEL_MODES", "Coded", "Coding", "code_table", "combine", "observe_block",
+           "observe_rule"]
 
 #: ``channel`` values: average the divided channels, or keep one.
 CHANNEL_MODES = {"mean": -1, "r": 0, "g": 1, "b": 2}
