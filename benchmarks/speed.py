@@ -5,7 +5,7 @@ Usage (from the repository root)::
     .venv/bin/python benchmarks/speed.py [--captures jpeg4,png16-12mp] [--quick] [--check]
         [--runs default,sbl,ls,hsh3,relightlab] [--megapixels MP] [--lights N] [--repeats 3]
         [--memory-budget 1GB] [--timeout S] [--work DIR] [--synthetic] [--png16-format png]
-        [--relightlab DIR] [--keep] [--json FILE] [--markdown FILE]
+        [--relightlab DIR] [--keep] [--no-warm-up] [--json FILE] [--markdown FILE]
 
 Captures (made in ``--work``, default ``$TMPDIR/ps-lab-speed``, and reused while their parameters
 are the same: the folder name carries a hash of them):
@@ -182,7 +182,8 @@ def capture_plan(name: str, megapixels: float | None, lights: int | None, synthe
     height, width = max(8, round(base_h * factor)), max(8, round(base_w * factor))
     available = None
     if real:
-        available = len(_lp_rows(source)) if spec["kind"] == "jpeg" else len(_diligent_files(source))
+        listed = _lp_rows(source) if spec["kind"] == "jpeg" else _diligent_files(source)
+        available = len(listed)
     wanted = lights if lights is not None else spec["lights"]
     notes = []
     if available is not None and wanted > available:
@@ -475,7 +476,7 @@ def relightlab_command(tool: Path, capture: Path, out: Path) -> list[str] | None
 
 
 def prepare_relightlab(tool: Path) -> str | None:
-    """Install the tool's runtime libraries once (its ``run`` wrapper); None, or why it can't run."""
+    """Install the tool's libraries once (its ``run`` wrapper); None, or why it cannot run."""
     wrapper = tool / "run"
     if not (tool / "relight-cli").is_file() or not wrapper.is_file():
         return f"not found ({tool})"
@@ -698,7 +699,7 @@ def capture_line(capture: dict) -> str:
                    f"{capture['scale']:.2f}x")
     notes = "".join(f"; {n}" for n in capture["notes"] if n != "synthetic render")
     return (f"**{capture['name']}**: {capture['width']} x {capture['height']} "
-            f"({capture['width'] * capture['height'] / 1e6:.2f} MP) x {capture['lights']} lights, "
+            f"({capture['width'] * capture['height'] / 1e6:.3g} MP) x {capture['lights']} lights, "
             f"{kind}, {origin} ({_bytes(capture['bytes'])} on disk, {made}){notes}.")
 
 
@@ -741,7 +742,7 @@ def stages_table(entry: dict, run_name: str = "default") -> list[str]:
     accounted = sum(r["wall_seconds"] or 0.0 for r in rows if not r["stage"].startswith(" "))
     rest = run["wall_seconds"] - accounted
     if rows and rest >= 0:
-        lines.append(f"| rest of the process (start, imports; wall - stages) | {rest:.2f} | | | | |")
+        lines.append(f"| rest (process start, imports: wall - stages) | {rest:.2f} | | | | |")
     lines += ["", "| output file | bytes | wall s |", "|---|---:|---:|"]
     for row in file_rows(run["metrics"], run.get("files")):
         lines.append(f"| {row['file']} | {_bytes(row['bytes'])} | {_num(row['wall_seconds'], 2)} |")
@@ -801,8 +802,9 @@ def run_benchmark(args) -> dict:
         k: (str(v) if isinstance(v, Path) else v) for k, v in vars(args).items()}}
     runs = [r for r in args.runs.split(",") if r]
     problem = prepare_relightlab(args.relightlab) if "relightlab" in runs else None
-    warm = measure([sys.executable, "-m", "ps_lab.reconstruct._warm_up"], env=child_env())
-    results["warm_up_seconds"] = warm["wall_seconds"]
+    if args.warm_up:  # with an empty numba cache the first run would compile its kernels
+        warm = measure([sys.executable, "-m", "ps_lab.reconstruct._warm_up"], env=child_env())
+        results["warm_up_seconds"] = warm["wall_seconds"]
     results["captures"] = []
     for name in args.captures.split(","):
         plan = capture_plan(name, args.megapixels, args.lights, args.synthetic, args.png16_format)
@@ -865,6 +867,8 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     parser.add_argument("--relightlab", type=Path, default=RELIGHTLAB,
                         help="folder of RelightLab's relight-cli")
     parser.add_argument("--keep", action="store_true", help="keep each run's output folder")
+    parser.add_argument("--no-warm-up", dest="warm_up", action="store_false",
+                        help="skip compiling (or loading) the numba kernels before the runs")
     parser.add_argument("--check", action="store_true", help="exit 1 if a target fails")
     parser.add_argument("--json", type=Path, default=None, help="write everything here")
     parser.add_argument("--markdown", type=Path, default=None, help="also write the report here")
