@@ -606,7 +606,7 @@ def check_targets(captures: list[dict]) -> list[dict]:
         # a run that failed fails its targets; one not run (or skipped) is "not measured"
         passed = False if failed else None if value is None else value <= limit
         checks.append({"target": target, "measured": value, "limit": limit, "unit": unit,
-                       "passed": passed})
+                       "passed": passed, "run_failed": failed})
 
     for entry in captures:
         name = entry["capture"]["name"]
@@ -773,7 +773,9 @@ def report(results: dict) -> str:
         lines += ["| target | measured | result |", "|---|---:|---|"]
         for c in results["checks"]:
             verdict = {True: "pass", False: "FAIL", None: "not measured"}[c["passed"]]
-            lines.append(f"| {c['target']} | {_num(c['measured'], 2)} {c['unit']} | {verdict} |")
+            verdict += " (the run failed)" if c["run_failed"] else ""
+            measured = "-" if c["measured"] is None else f"{c['measured']:.2f} {c['unit']}"
+            lines.append(f"| {c['target']} | {measured} | {verdict} |")
         lines.append("")
     lines.append(
         f"Machine: {m['cpu']}, {m['cores']} cores ({m['usable_cores']} usable), "
