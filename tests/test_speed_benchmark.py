@@ -47,11 +47,11 @@ def test_capture_is_made_as_planned_and_reused(tmp_path):
     assert (plan["height"], plan["width"]) == (61, 63) and plan["source"] == "synthetic"
     record = speed.make_capture(tmp_path, plan)
     folder = Path(record["folder"])
-    assert len(record["files"]) == 12 and record["generate_seconds"] > 0
+    assert len(record["files"]) == 12 and record["generate_seconds"] > 0 and not record["reused"]
     image = cv2.imread(str(folder / record["files"][0]), cv2.IMREAD_UNCHANGED)
     assert image.shape == (61, 63, 3) and image.dtype == np.uint8
     assert (folder / "dirs.lp").read_text().splitlines()[0] == "12"
-    assert speed.make_capture(tmp_path, plan)["generate_seconds"] is None  # cached
+    assert speed.make_capture(tmp_path, plan)["reused"]  # cached
     other = speed.capture_plan("jpeg4", 0.00384, 10, synthetic=True)
     assert speed.capture_folder(tmp_path, other) != folder
 
