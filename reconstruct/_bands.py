@@ -292,7 +292,8 @@ class LocalBands:
             if band.pixel_count == 0:
                 continue
             advance(0, description=f"{label}: band {band.index + 1}/{count}")
-            observations, valid, colour = store.observe(band, colour=final)
+            # the store's buffers: this band's arrays are done with before the next is read
+            observations, valid, colour = store.observe(band, colour=final, reuse=True)
             yield solve_band(
                 observations,
                 valid,

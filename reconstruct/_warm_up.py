@@ -33,7 +33,7 @@ from numba.core import event
 
 from ps_lab.io.coding import Coding, float_coding, observe_block, observe_rule
 
-from ._kernels import TileResult, l1_tile, sbl_tile
+from ._kernels import TileResult, l1_tile, ls_tile, sbl_tile
 from ._near_kernels import l1_tile_pp, sbl_tile_pp
 from ._colour import colour_albedo
 from ._pl_kernels import pl_tile
@@ -44,6 +44,7 @@ log = logging.getLogger(__name__)
 #: CPU seconds to compile each kernel (thread CPU time on a Xeon, Emerald Rapids, numba 0.68;
 #: benchmarks/first_run.py measures them), for the "~N s" of the compile line.
 COMPILE_SECONDS = {
+    "_ls_kernel": 0.5,
     "_l1_kernel": 2.0,
     "_sbl_kernel": 2.0,
     "_pl_kernel": 34.0,
@@ -60,6 +61,11 @@ COMPILE_SECONDS = {
 
 def _one_pixel() -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     return np.ones((1, 3)), np.ones((1, 3)), np.eye(3)
+
+
+def _ls() -> None:
+    y, w, lights = _one_pixel()
+    ls_tile(y, w, lights, outlier_threshold=np.inf)
 
 
 def _l1() -> None:
@@ -139,6 +145,7 @@ GROUPS = {
     "store": Group("observation store", _store),
     "tiles": Group("tile kernels", _tiles),
     "colour": Group("colour albedo", _colour),
+    "ls": Group("least-squares kernel", _ls),
     "l1": Group("L1 kernel", _l1),
     "sbl": Group("SBL kernel", _sbl),
     "pl": Group("piecewise-linear kernel", _pl(choose=True)),
@@ -147,7 +154,7 @@ GROUPS = {
 }
 #: The groups ``ps-lab reconstruct --method M`` needs (L1's: the noise estimate uses it).
 METHOD_GROUPS = {
-    "ls": ("store", "tiles", "colour"),
+    "ls": ("store", "tiles", "colour", "ls"),
     "l1": ("store", "tiles", "colour", "l1"),
     "sbl": ("store", "tiles", "colour", "l1", "sbl"),
     "plls": ("store", "tiles", "colour", "pl"),

@@ -185,7 +185,7 @@ def combine(image: np.ndarray, intensity: np.ndarray, channel: str = "mean") -> 
 
 
 def observe_block(values: np.ndarray, saturated: np.ndarray | None, coding: Coding,
-                  rule: ObserveRule, lights: np.ndarray, colour: bool
+                  rule: ObserveRule, lights: np.ndarray, colour: bool, out=None,
                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
     """Observations, validity and colour observations of a block of stored values.
 
@@ -203,6 +203,8 @@ def observe_block(values: np.ndarray, saturated: np.ndarray | None, coding: Codi
         Which of the rule's lights the rows of ``values`` are.
     colour : bool
         Also return the colour observations (C = 3 only).
+    out : tuple of ndarray or None
+        ``(observations, valid, colour or None)`` to fill (C-ordered, of the shapes returned).
 
     Returns
     -------
@@ -211,10 +213,13 @@ def observe_block(values: np.ndarray, saturated: np.ndarray | None, coding: Codi
     colour : ndarray of shape (n, P, 3), float32, or None
     """
     n, p, c = values.shape
-    obs = np.empty((n, p), np.float32)
-    valid = np.empty((n, p), np.bool_)
     want = bool(colour) and c == 3
-    out = np.empty((n, p, 3) if want else (0, 0, 3), np.float32)
+    if out is None:
+        obs, valid = np.empty((n, p), np.float32), np.empty((n, p), np.bool_)
+        out = np.empty((n, p, 3) if want else (0, 0, 3), np.float32)
+    else:
+        obs, valid, out = out
+        out = out if want else np.empty((0, 0, 3), np.float32)
     table = coding.table if coding.table is not None else np.zeros((1, c), np.float32)
     sat = saturated if saturated is not None else np.zeros((0, 0), np.bool_)
     if n and p:
@@ -225,15 +230,62 @@ def observe_block(values: np.ndarray, saturated: np.ndarray | None, coding: Codi
     return obs, valid, (out if want else None)
 
 
+#: Codes per table up to which each light's products and quotients are tabulated first (8-bit):
+#: a band's samples are then three lookups and two additions each.
+SMALL_TABLE = 4096
+
+
 @njit(nogil=True, cache=True, error_model="numpy")
 def _observe(values, saturated, coded, table, clip, divisors, weights, grey, mode, threshold,
              use_threshold, lights, obs, valid, want_colour, colour):
     n, p, c = values.shape
+    size = table.shape[0]
+    small = coded and size <= SMALL_TABLE
+    # per light, the float32 operations of the rule on every code (the same bits as on a pixel)
+    quot = np.empty((3, size if small else 1), np.float32)  # v_c / d_c (colour; one channel)
+    prod = np.empty((3, size if small else 1), np.float32)  # v_c * w_c (mean of three)
     for a in range(n):
         light = lights[a]
         g = grey[light]
         d0, d1, d2 = divisors[light, 0], divisors[light, 1], divisors[light, 2]
         w0, w1, w2 = weights[light, 0], weights[light, 1], weights[light, 2]
+        if small:
+            for k in range(size):
+                if c == 3:
+                    quot[0, k] = table[k, 0] / d0
+                    quot[1, k] = table[k, 1] / d1
+                    quot[2, k] = table[k, 2] / d2
+                    prod[0, k] = table[k, 0] * w0
+                    prod[1, k] = table[k, 1] * w1
+                    prod[2, k] = table[k, 2] * w2
+                else:
+                    quot[0, k] = table[k, 0] / g
+            for q in range(p):
+                k0 = int(values[a, q, 0])
+                if c == 3:
+                    k1 = int(values[a, q, 1])
+                    k2 = int(values[a, q, 2])
+                    if mode < 0:
+                        o = (prod[0, k0] + prod[1, k1]) + prod[2, k2]
+                    elif mode == 0:
+                        o = quot[0, k0]
+                    elif mode == 1:
+                        o = quot[1, k1]
+                    else:
+                        o = quot[2, k2]
+                    ok = k0 < clip and k1 < clip and k2 < clip
+                    if want_colour:
+                        colour[a, q, 0] = quot[0, k0]
+                        colour[a, q, 1] = quot[1, k1]
+                        colour[a, q, 2] = quot[2, k2]
+                else:
+                    o = quot[0, k0]
+                    ok = k0 < clip
+                obs[a, q] = o
+                if use_threshold:
+                    ok = ok and o > threshold
+                valid[a, q] = ok
+            continue
         for q in range(p):
             bad = False
             if coded:

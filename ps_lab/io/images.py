@@ -648,8 +648,11 @@ def _read_raw(path: Path) -> Image:
 
 
 def _bgr_to_rgb(array: np.ndarray) -> np.ndarray:
+    """OpenCV's BGR(A) as RGB: a contiguous copy (the stores copy it without strides)."""
     if array.ndim == 3 and array.shape[2] == 3:
-        return array[:, :, ::-1]
+        if array.dtype in (np.uint8, np.uint16, np.float32) and array.flags.c_contiguous:
+            return cv2.cvtColor(array, cv2.COLOR_BGR2RGB)
+        return np.ascontiguousarray(array[:, :, ::-1])
     if array.ndim == 3 and array.shape[2] == 4:
         return array[:, :, [2, 1, 0, 3]]
     return array
