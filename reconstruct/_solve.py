@@ -16,7 +16,8 @@ from ._auto import auto_tiles
 from ._pl_algebra import gate_variance
 from ._rpca import solve_rpca
 from ._solution import ALBEDO_DEFINITION, METHODS, Solution, SolverInputError, _albedo_rows
-from ._tiles import LAMBDA_FLOOR, _finish_solution, _prepare_tile, _store_tile, sbl_lambda
+from ._tiles import (LAMBDA_FLOOR, _finish_solution, _prepare_tile, _store_tile, ls_tiles,
+                     sbl_lambda)
 
 # Defaults of each method's parameters (in units of the pixel's robust scale, see `pixel_scale`).
 DEFAULTS: dict[str, dict] = {
@@ -613,7 +614,10 @@ def _solve_tiles(obs, lights, usable, method, params, used, starts, tile, mapper
 
     def run_tile(a: int) -> int:
         b = min(a + tile, p)
-        y, w, scale, ok = _prepare_tile(obs, usable, lights, a, b, robust=method != "ls")
+        if method == "ls":  # a few sums per pixel: straight from the observations
+            ls_tiles(obs, usable, lights, a, b, normals, albedo, iterations)
+            return b - a
+        y, w, scale, ok = _prepare_tile(obs, usable, lights, a, b)
         tile_params = kernel_params
         if per_pixel_lam:
             floor, factors = params["noise_floor"], params["light_noise"]

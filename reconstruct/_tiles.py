@@ -16,6 +16,7 @@ import math
 import numpy as np
 from numba import njit
 
+from ._kernels import _solve3
 from ._linalg import SOLVABLE_REL_DET
 from ._solution import ALBEDO_DEFINITION, Solution
 
@@ -54,11 +55,8 @@ def sbl_lambda(scale: np.ndarray, noise_sigma: float, noise_floor: float,
                       LAMBDA_FLOOR)
 
 
-def _prepare_tile(obs, usable, lights, a, b, robust=True):
+def _prepare_tile(obs, usable, lights, a, b):
     """Pixel-major scaled observations of pixels a:b and the solvable-pixel mask.
-
-    ``robust`` False: the scale is the mean magnitude (for least squares, whose normals do not
-    depend on it), not the median.
 
     Returns ``y`` (m, n) float64 (each pixel divided by its robust scale, 0 where not usable),
     ``w`` (m, n) float64 1/0 (usable, and the pixel solvable), ``scale`` (m,) and ``ok`` (m,):
@@ -74,7 +72,7 @@ def _prepare_tile(obs, usable, lights, a, b, robust=True):
     lights = np.ascontiguousarray(lights, dtype=np.float64)
     obs, usable = np.ascontiguousarray(obs), np.ascontiguousarray(usable)  # no copy when C
     if m:
-        _prepare_kernel(obs, usable, lights, a, SOLVABLE_REL_DET, bool(robust), y, w, scale, ok)
+        _prepare_kernel(obs, usable, lights, a, SOLVABLE_REL_DET, y, w, scale, ok)
     return y, w, scale, ok
 
 
@@ -109,8 +107,19 @@ def _median(buf, k):
     return 0.5 * (low + high)
 
 
+@njit(inline="always")
+def _solvable(xx, yy, zz, xy, xz, yz, rel_eps):
+    """The normal matrix is well conditioned: ``det > rel_eps (trace / 3)^3``, trace > 0."""
+    c00 = yy * zz - yz * yz
+    c01 = xz * yz - xy * zz
+    c02 = xy * yz - xz * yy
+    det = xx * c00 + xy * c01 + xz * c02
+    tr = (xx + yy + zz) / 3.0
+    return det > rel_eps * tr * tr * tr and tr > 0.0
+
+
 @njit(nogil=True, cache=True, error_model="numpy")
-def _prepare_kernel(obs, usable, lights, a, rel_eps, robust, y, w, scale, ok):
+def _prepare_kernel(obs, usable, lights, a, rel_eps, y, w, scale, ok):
     m, n = y.shape
     for i in range(n):  # the tile, transposed (light-major reads, one pass)
         for p in range(m):
@@ -137,15 +146,10 @@ def _prepare_kernel(obs, usable, lights, a, rel_eps, robust, y, w, scale, ok):
                 k += 1
         s = 0.0
         if k > 0:
-            s = _median(buf, k) if robust else 0.0
-            if not s > 0.0:  # dark under most lights (or no robust scale asked): the mean
+            s = _median(buf, k)
+            if not s > 0.0:  # dark under most lights: the mean magnitude
                 s = total / k
-        c00 = yy * zz - yz * yz
-        c01 = xz * yz - xy * zz
-        c02 = xy * yz - xz * yy
-        det = xx * c00 + xy * c01 + xz * c02
-        tr = (xx + yy + zz) / 3.0
-        good = (det > rel_eps * tr * tr * tr) and tr > 0.0 and s > 0.0 and k >= 3
+        good = _solvable(xx, yy, zz, xy, xz, yz, rel_eps) and s > 0.0 and k >= 3
         scale[p] = s
         ok[p] = good
         inv = 1.0 / s if good else 0.0
@@ -201,6 +205,67 @@ def _store_kernel(a, y, w, scale, ok, x, flags, iters, segs, lights, normals, al
         iterations[q] = iters[p] if ok[p] else 0
         if has_segments:
             segments[q] = segs[p] if ok[p] else 0
+
+
+def ls_tiles(obs, usable, lights, a, b, normals, albedo, iterations):
+    """Least squares of pixels a:b straight from the observations into the outputs.
+
+    What :func:`_prepare_tile`, :func:`._kernels.ls_tile` and :func:`_store_tile` give (the
+    normals do not depend on the pixel's scale, so none is taken; the mean magnitude decides
+    solvability, as there), in one pass per pixel: least squares is a few sums, and the three
+    passes over a float64 copy of the tile cost ten times its arithmetic. No outliers.
+    """
+    obs, usable = np.ascontiguousarray(obs), np.ascontiguousarray(usable)
+    if b > a:
+        _ls_direct(obs, usable, np.ascontiguousarray(lights, dtype=np.float64), a, b,
+                   SOLVABLE_REL_DET, normals, albedo, iterations)
+
+
+@njit(nogil=True, cache=True, error_model="numpy")
+def _ls_direct(obs, usable, lights, a, b, rel_eps, normals, albedo, iterations):
+    n = obs.shape[0]
+    for q in range(a, b):
+        k = 0
+        total = 0.0
+        xx = yy = zz = xy = xz = yz = 0.0
+        t0 = t1 = t2 = 0.0
+        for i in range(n):
+            if usable[i, q]:
+                v = np.float64(obs[i, q])
+                l0, l1, l2 = lights[i, 0], lights[i, 1], lights[i, 2]
+                xx += l0 * l0
+                yy += l1 * l1
+                zz += l2 * l2
+                xy += l0 * l1
+                xz += l0 * l2
+                yz += l1 * l2
+                t0 += v * l0
+                t1 += v * l1
+                t2 += v * l2
+                total += abs(v)
+                k += 1
+        good = k >= 3 and total > 0.0 and _solvable(xx, yy, zz, xy, xz, yz, rel_eps)
+        length = 0.0
+        u0 = u1 = u2 = 0.0
+        if good:
+            r = _solve3(xx, yy, zz, xy, xz, yz, t0, t1, t2)
+            length = math.sqrt(r[0] * r[0] + r[1] * r[1] + r[2] * r[2])
+            good = length > 0.0 and math.isfinite(length)
+            if good:
+                u0, u1, u2 = r[0] / length, r[1] / length, r[2] / length
+        normals[q, 0], normals[q, 1], normals[q, 2] = u0, u1, u2
+        iterations[q] = 1 if good else 0
+        # the Lambertian-equivalent reflectance on the usable observations (no outliers)
+        num = 0.0
+        den = 0.0
+        if good:
+            for i in range(n):
+                sh = u0 * lights[i, 0] + u1 * lights[i, 1] + u2 * lights[i, 2]
+                if usable[i, q] and sh > 0.0:
+                    num += sh * np.float64(obs[i, q])
+                    den += sh * sh
+        rho = num / den if den > 0.0 else length
+        albedo[q] = (rho if rho > 0.0 else 0.0) if good else 0.0
 
 
 def _finish_solution(used, normals, albedo, outliers, iterations, segments):
