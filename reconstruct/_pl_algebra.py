@@ -223,11 +223,12 @@ def _loo_pl(target, fw, sw, slope_of, tab, n, u, prior, prior_rhs, mat, inv, low
 
 
 @njit(**INLINE)
-def _bend_score(y, w, lights, p, n, k_max, x_out, lam_row, q_table, vals, mat, inv, low, g,
-                col):
+def _bend_score(y, w, tab, p, n, k_max, x_out, lam_row, q_table, vals, mat, inv, low, g, col):
     """Robust score test at pixel p of the Lambertian fit against ``k`` segments; its excess.
 
-    ``k = min(k_max, usable // 4)`` as the PL fit's; ``g``, ``col``: scratch of ``k + 2``.
+    ``tab`` (9, n): the pixel's light table (``a a^T`` on rows 0-5, the lights ``a`` on 6-8, as
+    :func:`._kernels._light_table`). ``k = min(k_max, usable // 4)`` as the PL fit's; ``g``,
+    ``col``: scratch of ``k + 2``.
 
     SBL's fit ``x`` (posterior mean) is the restricted model. On the pixel's usable
     observations, fitted values ``v_i = l_i . x``, residuals ``r_i = y_i - v_i`` clipped to
@@ -243,15 +244,20 @@ def _bend_score(y, w, lights, p, n, k_max, x_out, lam_row, q_table, vals, mat, i
     model; ``q_table[k - 1]`` is its quantile. Returns the statistic less the quantile (> 0: the
     Lambertian model fails towards the bent one), or -inf with fewer than four observations per
     unknown of the ``k``-segment model or a singular design (no power: the smaller model is kept).
+
+    The statistic is computed as the hinges' part of the regression after the lights' (the Schur
+    complement ``S = G_HH - G_HL G_LL^-1 G_LH``, ``s = g_H - G_HL G_LL^-1 g_L``: ``s^T S^-1 s``,
+    the same number as the difference above without its cancellation), ``G_LL^-1`` by cofactors;
+    for ``k = 3`` (the default) the sums are one vectorised pass over the lights and ``S`` is 2x2.
     """
     x0 = x_out[p, 0]
     x1 = x_out[p, 1]
     x2 = x_out[p, 2]
     cnt = 0
     for i in range(n):
-        if w[p, i] > 0.0:
-            vals[cnt] = lights[i, 0] * x0 + lights[i, 1] * x1 + lights[i, 2] * x2
-            cnt += 1
+        # the usable fitted values, packed without a branch (a dropped one is overwritten)
+        vals[cnt] = tab[6, i] * x0 + tab[7, i] * x1 + tab[8, i] * x2
+        cnt += w[p, i] > 0.0
     k = k_max if k_max < cnt // 4 else cnt // 4
     u = k + 2
     if k < 2 or cnt < 4 * u:
@@ -260,49 +266,142 @@ def _bend_score(y, w, lights, p, n, k_max, x_out, lam_row, q_table, vals, mat, i
     lo = 0
     for j in range(1, k):
         kth = (j * cnt) // k
-        inv[0, j] = _select(vals, lo, cnt, kth)
+        col[j] = _select(vals, lo, cnt, kth)
         lo = kth
-    for j in range(1, k):
-        low[0, j] = inv[0, j]  # keep the breaks (inv and low are overwritten below)
-    for r in range(u):
-        for c in range(u):
-            mat[r, c] = 0.0
-    for r in range(u):
-        g[r] = 0.0
-    for i in range(n):
-        if not w[p, i] > 0.0:
-            continue
-        fit = lights[i, 0] * x0 + lights[i, 1] * x1 + lights[i, 2] * x2
-        wi = 1.0 / lam_row[i]
-        res = y[p, i] - fit
-        cap = GATE_CLIP * math.sqrt(lam_row[i])
-        res = cap if res > cap else (-cap if res < -cap else res)
-        col[0], col[1], col[2] = lights[i, 0], lights[i, 1], lights[i, 2]
-        for j in range(1, k):
-            h = fit - low[0, j]
-            col[2 + j] = h if h > 0.0 else 0.0
-        for r in range(u):
-            g[r] += wi * col[r] * res
-            for c in range(r, u):
-                mat[r, c] += wi * col[r] * col[c]
-    for r in range(u):
+    nh = k - 1
+    # weighted sums: G_LL (6), g_L (3) and, per hinge, G_LH (3 each), G_HH, g_H
+    a00 = a11 = a22 = a01 = a02 = a12 = 0.0
+    gl0 = gl1 = gl2 = 0.0
+    if k == 3:
+        b1 = col[1]
+        b2 = col[2]
+        p10 = p11 = p12 = p20 = p21 = p22 = 0.0
+        c11 = c12 = c22 = 0.0
+        gh1 = gh2 = 0.0
+        for i in range(n):
+            lam = lam_row[i]
+            wt = w[p, i] / lam
+            l0 = tab[6, i]
+            l1 = tab[7, i]
+            l2 = tab[8, i]
+            fit = l0 * x0 + l1 * x1 + l2 * x2
+            cap = GATE_CLIP * math.sqrt(lam)
+            res = y[p, i] - fit
+            res = res if res < cap else cap
+            res = res if res > -cap else -cap
+            h1 = fit - b1
+            h1 = h1 if h1 > 0.0 else 0.0
+            h2 = fit - b2
+            h2 = h2 if h2 > 0.0 else 0.0
+            a00 += wt * tab[0, i]
+            a11 += wt * tab[1, i]
+            a22 += wt * tab[2, i]
+            a01 += wt * tab[3, i]
+            a02 += wt * tab[4, i]
+            a12 += wt * tab[5, i]
+            wr = wt * res
+            gl0 += wr * l0
+            gl1 += wr * l1
+            gl2 += wr * l2
+            gh1 += wr * h1
+            gh2 += wr * h2
+            wh1 = wt * h1
+            wh2 = wt * h2
+            p10 += wh1 * l0
+            p11 += wh1 * l1
+            p12 += wh1 * l2
+            p20 += wh2 * l0
+            p21 += wh2 * l1
+            p22 += wh2 * l2
+            c11 += wh1 * h1
+            c12 += wh1 * h2
+            c22 += wh2 * h2
+        mat[0, 0], mat[0, 1], mat[1, 1] = c11, c12, c22
+        low[0, 0], low[0, 1], low[0, 2] = p10, p11, p12
+        low[1, 0], low[1, 1], low[1, 2] = p20, p21, p22
+        g[0], g[1] = gh1, gh2
+    else:
+        for r in range(nh):
+            g[r] = 0.0
+            low[r, 0] = low[r, 1] = low[r, 2] = 0.0
+            for c in range(nh):
+                mat[r, c] = 0.0
+        for i in range(n):
+            if not w[p, i] > 0.0:
+                continue
+            lam = lam_row[i]
+            wt = 1.0 / lam
+            l0 = tab[6, i]
+            l1 = tab[7, i]
+            l2 = tab[8, i]
+            fit = l0 * x0 + l1 * x1 + l2 * x2
+            cap = GATE_CLIP * math.sqrt(lam)
+            res = y[p, i] - fit
+            res = cap if res > cap else (-cap if res < -cap else res)
+            a00 += wt * tab[0, i]
+            a11 += wt * tab[1, i]
+            a22 += wt * tab[2, i]
+            a01 += wt * tab[3, i]
+            a02 += wt * tab[4, i]
+            a12 += wt * tab[5, i]
+            wr = wt * res
+            gl0 += wr * l0
+            gl1 += wr * l1
+            gl2 += wr * l2
+            for j in range(nh):
+                h = fit - col[j + 1]
+                vals[j] = h if h > 0.0 else 0.0  # (vals is free again: the breaks are in col)
+            for j in range(nh):
+                h = vals[j]
+                g[j] += wr * h
+                low[j, 0] += wt * h * l0
+                low[j, 1] += wt * h * l1
+                low[j, 2] += wt * h * l2
+                for c in range(j, nh):
+                    mat[j, c] += wt * h * vals[c]
+    # G_LL^-1 by cofactors
+    c00 = a11 * a22 - a12 * a12
+    c01 = a02 * a12 - a01 * a22
+    c02 = a01 * a12 - a02 * a11
+    det = a00 * c00 + a01 * c01 + a02 * c02
+    if not det > 0.0:
+        return -math.inf
+    d = 1.0 / det
+    c00 *= d
+    c01 *= d
+    c02 *= d
+    c11 = (a00 * a22 - a02 * a02) * d
+    c12 = (a01 * a02 - a00 * a12) * d
+    c22 = (a00 * a11 - a01 * a01) * d
+    # s = g_H - G_HL G_LL^-1 g_L; S = G_HH - G_HL G_LL^-1 G_LH (upper triangle, in mat)
+    e0 = c00 * gl0 + c01 * gl1 + c02 * gl2
+    e1 = c01 * gl0 + c11 * gl1 + c12 * gl2
+    e2 = c02 * gl0 + c12 * gl1 + c22 * gl2
+    for r in range(nh):
+        q0 = c00 * low[r, 0] + c01 * low[r, 1] + c02 * low[r, 2]
+        q1 = c01 * low[r, 0] + c11 * low[r, 1] + c12 * low[r, 2]
+        q2 = c02 * low[r, 0] + c12 * low[r, 1] + c22 * low[r, 2]
+        g[r] -= low[r, 0] * e0 + low[r, 1] * e1 + low[r, 2] * e2
+        for c in range(r, nh):
+            mat[r, c] -= low[c, 0] * q0 + low[c, 1] * q1 + low[c, 2] * q2
+    if nh == 2:
+        s11, s12, s22 = mat[0, 0], mat[0, 1], mat[1, 1]
+        det = s11 * s22 - s12 * s12
+        if not (s11 > 0.0 and det > 0.0):
+            return -math.inf
+        stat = (s22 * g[0] * g[0] - 2.0 * s12 * g[0] * g[1] + s11 * g[1] * g[1]) / det
+        return stat - q_table[k - 1]
+    for r in range(nh):
         for c in range(r):
             mat[r, c] = mat[c, r]
-    logdet = _cholesky_inverse(mat, inv, low, u)
+    logdet = _cholesky_inverse(mat, inv, low, nh)  # (G_HL in low is used up)
     if not logdet == logdet:
         return -math.inf
-    full = 0.0
-    for r in range(u):
-        for c in range(u):
-            full += g[r] * inv[r, c] * g[c]
-    logdet = _cholesky_inverse(mat, inv, low, 3)
-    if not logdet == logdet:
-        return -math.inf
-    part = 0.0
-    for r in range(3):
-        for c in range(3):
-            part += g[r] * inv[r, c] * g[c]
-    return (full - part) - q_table[k - 1]
+    stat = 0.0
+    for r in range(nh):
+        for c in range(nh):
+            stat += g[r] * inv[r, c] * g[c]
+    return stat - q_table[k - 1]
 
 
 # The score test's noise level is never below the smallest corruption SBL resolves: an inlier may

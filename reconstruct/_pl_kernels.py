@@ -520,7 +520,7 @@ def _pl_kernel(y, w, lights, per_pixel, lam, lam_pl, k_max, choose, sbl, ridge, 
                 continue
             if gate:
                 # the Lambertian model's score test towards K segments: PL only where it fails
-                stat_out[p] = _bend_score(y, w, lp, p, n, k_max, x_out, lam_test[p], q_table,
+                stat_out[p] = _bend_score(y, w, sbl_tab, p, n, k_max, x_out, lam_test[p], q_table,
                                           vals, mat, inv, low, x, rhs)
                 if not stat_out[p] > 0.0:
                     continue
