@@ -17,39 +17,44 @@ from ._kernels import INLINE
 
 @njit(**INLINE)
 def _select(a, lo, hi, kth):
-    """The value of rank ``kth`` of ``a[lo:hi]`` (Hoare's selection, in place, O(n) expected).
+    """The value of rank ``kth`` of ``a[lo:hi]`` (a selection, in place, O(n) expected).
 
     Afterwards ``a[lo:kth] <= a[kth] <= a[kth + 1:hi]``, so a larger rank can be selected in
     ``a[kth:hi]``. The pivot is the median of three (deterministic); the value equals a sort's.
+    Each partition is Lomuto's without a branch on the data (a swap and a count per element:
+    a mispredicted branch per element cost more than the rest of the selection), in two passes:
+    the values below the pivot, then, if the rank lies right of them, those equal to it (ties:
+    8-bit data).
     """
-    left = lo
-    right = hi - 1
-    while right > left:
-        mid = (left + right) // 2
-        p0, p1, p2 = a[left], a[mid], a[right]
-        if p0 > p1:
-            p0, p1 = p1, p0
-        if p1 > p2:
-            p1 = p2
-            if p0 > p1:
-                p1 = p0
-        i = left
-        j = right
-        while i <= j:
-            while a[i] < p1:
-                i += 1
-            while a[j] > p1:
-                j -= 1
-            if i <= j:
-                a[i], a[j] = a[j], a[i]
-                i += 1
-                j -= 1
-        if kth <= j:
-            right = j
-        elif kth >= i:
-            left = i
-        else:
-            break
+    while hi - lo > 2:
+        mid = (lo + hi) // 2
+        p0, p1, p2 = a[lo], a[mid], a[hi - 1]
+        small = p0 if p0 < p1 else p1
+        large = p1 if p0 < p1 else p0
+        large = large if large < p2 else p2
+        pivot = small if small > large else large  # the median of the three
+        # a[lo:store] < pivot <= a[store:i]
+        store = lo
+        for i in range(lo, hi):
+            t = a[i]
+            a[i] = a[store]
+            a[store] = t
+            store += t < pivot
+        if kth < store:
+            hi = store
+            continue
+        # a[store:equal] == pivot < a[equal:i]
+        equal = store
+        for i in range(store, hi):
+            t = a[i]
+            a[i] = a[equal]
+            a[equal] = t
+            equal += t <= pivot
+        if kth < equal or equal == store:  # (equal == store: only with a NaN pivot)
+            return pivot
+        lo = equal
+    if hi - lo == 2 and a[lo] > a[lo + 1]:
+        a[lo], a[lo + 1] = a[lo + 1], a[lo]
     return a[kth]
 
 
@@ -89,6 +94,70 @@ def _cholesky_inverse(mat, inv, low, u):
             inv[r, c] = low[r, c]
             inv[c, r] = low[r, c]
     return logdet
+
+
+@njit(**INLINE)
+def _inverse5(m00, m01, m02, m03, m04, m11, m12, m13, m14, m22, m23, m24, m33, m34, m44):
+    """``M^-1`` of a symmetric 5x5 ``M`` (upper triangle given) and ``det M``, in scalars.
+
+    The three-segment iteration's (slopes 0-1, normal 2-4) by blocks: ``N`` (rows 2-4) by
+    cofactors, then the slopes' 2x2 Schur complement ``S = M_ss - C N^-1 C^T``; ``M^-1`` is
+    ``S^-1`` on the slopes, ``-S^-1 C N^-1`` beside and ``N^-1 + (N^-1 C^T) S^-1 (C N^-1)``
+    on the normal. ``M`` is positive definite exactly where ``N`` and ``S`` are (what
+    :func:`_cholesky_inverse` tests by its pivots); else NaN (and zeros). Two divisions, no
+    square root and no log (the caller takes ``log det`` once): held in registers, it costs a
+    fifth of the generic Cholesky over arrays.
+
+    Returns
+    -------
+    det : float
+        ``det M = det N det S``; NaN where ``M`` is not positive definite.
+    inverse : tuple of 15 floats
+        The upper triangle of ``M^-1``, row-major.
+    """
+    z = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
+    c22 = m33 * m44 - m34 * m34
+    c33 = m22 * m44 - m24 * m24
+    c44 = m22 * m33 - m23 * m23
+    c23 = m24 * m34 - m23 * m44
+    c24 = m23 * m34 - m24 * m33
+    c34 = m23 * m24 - m22 * m34
+    det_n = m22 * c22 + m23 * c23 + m24 * c24
+    if not det_n > 0.0:
+        return math.nan, z
+    r = 1.0 / det_n
+    n22, n33, n44, n23, n24, n34 = c22 * r, c33 * r, c44 * r, c23 * r, c24 * r, c34 * r
+    # P = C N^-1 (2x3; C = M[0:2, 2:5])
+    p02 = m02 * n22 + m03 * n23 + m04 * n24
+    p03 = m02 * n23 + m03 * n33 + m04 * n34
+    p04 = m02 * n24 + m03 * n34 + m04 * n44
+    p12 = m12 * n22 + m13 * n23 + m14 * n24
+    p13 = m12 * n23 + m13 * n33 + m14 * n34
+    p14 = m12 * n24 + m13 * n34 + m14 * n44
+    s00 = m00 - (p02 * m02 + p03 * m03 + p04 * m04)
+    s01 = m01 - (p02 * m12 + p03 * m13 + p04 * m14)
+    s11 = m11 - (p12 * m12 + p13 * m13 + p14 * m14)
+    det_s = s00 * s11 - s01 * s01
+    if not (s00 > 0.0 and det_s > 0.0):
+        return math.nan, z
+    r = 1.0 / det_s
+    i00 = s11 * r
+    i11 = s00 * r
+    i01 = -s01 * r
+    i02 = -(i00 * p02 + i01 * p12)
+    i03 = -(i00 * p03 + i01 * p13)
+    i04 = -(i00 * p04 + i01 * p14)
+    i12 = -(i01 * p02 + i11 * p12)
+    i13 = -(i01 * p03 + i11 * p13)
+    i14 = -(i01 * p04 + i11 * p14)
+    i22 = n22 - (p02 * i02 + p12 * i12)
+    i23 = n23 - (p02 * i03 + p12 * i13)
+    i24 = n24 - (p02 * i04 + p12 * i14)
+    i33 = n33 - (p03 * i03 + p13 * i13)
+    i34 = n34 - (p03 * i04 + p13 * i14)
+    i44 = n44 - (p04 * i04 + p14 * i14)
+    return det_n * det_s, (i00, i01, i02, i03, i04, i11, i12, i13, i14, i22, i23, i24, i33, i34,
+                           i44)
 
 
 @njit(**INLINE)
