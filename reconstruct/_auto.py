@@ -74,7 +74,8 @@ def auto_tiles(obs, lights, usable, params, used, starts, tile, mapper, progress
         if rows.size:
             part = _pl_kernels.PLTileResult(res.x[rows], res.outliers[rows],
                                             res.iterations[rows], res.segments[rows],
-                                            sbl_weights=res.sbl_weights[rows])
+                                            sbl_weights=res.sbl_weights[rows],
+                                            gate_breaks=res.gate_breaks[rows])
             lam = noise(scale[rows], used.get("noise_sigma", 0.0))
             lam_pl = noise(scale[rows], sigma_pl) if per_pixel else None
             out = _pl_kernels.pl_tile(y[rows], w[rows], lights, choose=True,

@@ -6,6 +6,7 @@ sum of logs by running products.
 
 from __future__ import annotations
 
+import functools
 import math
 
 import numpy as np
@@ -292,12 +293,15 @@ def _loo_pl(target, fw, sw, slope_of, tab, n, u, prior, prior_rhs, mat, inv, low
 
 
 @njit(**INLINE)
-def _bend_score(y, w, tab, p, n, k_max, x_out, lam_row, q_table, vals, mat, inv, low, g, col):
+def _bend_score(y, w, tab, p, n, k_max, x_out, lam_row, q_table, vals, mat, inv, low, g, col,
+                breaks, known):
     """Robust score test at pixel p of the Lambertian fit against ``k`` segments; its excess.
 
     ``tab`` (9, n): the pixel's light table (``a a^T`` on rows 0-5, the lights ``a`` on 6-8, as
     :func:`._kernels._light_table`). ``k = min(k_max, usable // 4)`` as the PL fit's; ``g``,
-    ``col``: scratch of ``k + 2``.
+    ``col``: scratch of ``k + 2``. ``breaks`` (``k_max - 1``,): the break points, written, or
+    read where ``known`` (a second test of the same fit at another noise level: they depend
+    on the fit alone, and their selection is half the test's cost).
 
     SBL's fit ``x`` (posterior mean) is the restricted model. On the pixel's usable
     observations, fitted values ``v_i = l_i . x``, residuals ``r_i = y_i - v_i`` clipped to
@@ -323,10 +327,14 @@ def _bend_score(y, w, tab, p, n, k_max, x_out, lam_row, q_table, vals, mat, inv,
     x1 = x_out[p, 1]
     x2 = x_out[p, 2]
     cnt = 0
-    for i in range(n):
-        # the usable fitted values, packed without a branch (a dropped one is overwritten)
-        vals[cnt] = tab[6, i] * x0 + tab[7, i] * x1 + tab[8, i] * x2
-        cnt += w[p, i] > 0.0
+    if known:
+        for i in range(n):
+            cnt += w[p, i] > 0.0
+    else:
+        for i in range(n):
+            # the usable fitted values, packed without a branch (a dropped one is overwritten)
+            vals[cnt] = tab[6, i] * x0 + tab[7, i] * x1 + tab[8, i] * x2
+            cnt += w[p, i] > 0.0
     k = k_max if k_max < cnt // 4 else cnt // 4
     u = k + 2
     if k < 2 or cnt < 4 * u:
@@ -334,9 +342,13 @@ def _bend_score(y, w, tab, p, n, k_max, x_out, lam_row, q_table, vals, mat, inv,
     # breaks: order statistics of the fitted values, as _design's of the observations
     lo = 0
     for j in range(1, k):
-        kth = (j * cnt) // k
-        col[j] = _select(vals, lo, cnt, kth)
-        lo = kth
+        if known:
+            col[j] = breaks[j - 1]
+        else:
+            kth = (j * cnt) // k
+            col[j] = _select(vals, lo, cnt, kth)
+            breaks[j - 1] = col[j]
+            lo = kth
     nh = k - 1
     # weighted sums: G_LL (6), g_L (3) and, per hinge, G_LH (3 each), G_HH, g_H
     a00 = a11 = a22 = a01 = a02 = a12 = 0.0
@@ -489,6 +501,10 @@ def gate_variance(lam):
 
 def chi2_quantiles(n: int, false_alarm: float) -> np.ndarray:
     """(n + 1,) the chi^2 quantiles of ``1 - false_alarm`` for 0 .. n degrees of freedom."""
-    q = np.full(n + 1, np.inf)
-    q[1:] = chi2.ppf(1.0 - false_alarm, np.arange(1, n + 1))
-    return q
+    return np.array(_chi2_quantiles(int(n), float(false_alarm)))
+
+
+@functools.lru_cache(maxsize=64)
+def _chi2_quantiles(n: int, false_alarm: float) -> tuple:
+    # each tile asks again (scipy's ppf: ~0.5 ms, a tenth of a small tile's solve)
+    return (math.inf, *chi2.ppf(1.0 - false_alarm, np.arange(1, n + 1)).tolist())

@@ -542,7 +542,7 @@ def _pl_kernel(y, w, lights, per_pixel, lam, lam_pl, k_max, choose, sbl, ridge, 
                max_iter,
                sbl_max_iter, tol, floor, start, threshold, x_out, outliers, iters, segments_out,
                evidence_out, want_residuals, resid_out, choice_z, gate, lam_test, q_table,
-               run_sbl, run_pl, v_io, stat_out):
+               run_sbl, run_pl, v_io, stat_out, breaks_io, breaks_known):
     m, n = y.shape
     umax = k_max + 2
     st = np.zeros((STATE_ROWS, n))
@@ -591,7 +591,7 @@ def _pl_kernel(y, w, lights, per_pixel, lam, lam_pl, k_max, choose, sbl, ridge, 
             if gate:
                 # the Lambertian model's score test towards K segments: PL only where it fails
                 stat_out[p] = _bend_score(y, w, sbl_tab, p, n, k_max, x_out, lam_test[p], q_table,
-                                          vals, mat, inv, low, x, rhs)
+                                          vals, mat, inv, low, x, rhs, breaks_io[p], breaks_known)
                 if not stat_out[p] > 0.0:
                     continue
             if not run_pl:
@@ -713,6 +713,7 @@ class PLTileResult(TileResult):
     residuals: np.ndarray | None = None  # (m, n): (f(y) - n.l) / slope, with ``residuals``
     gate: np.ndarray | None = None  # (m,): the score test's statistic over its quantile
     sbl_weights: np.ndarray | None = None  # (m, n): SBL's final d, from stage "sbl"
+    gate_breaks: np.ndarray | None = None  # (m, K - 1): the score test's breaks, stage "sbl"
 
 
 def pl_tile(y, w, lights, *, segments: int, lam, sigma_x2: float = 1e6, max_iter: int = 100,
@@ -765,8 +766,9 @@ def pl_tile(y, w, lights, *, segments: int, lam, sigma_x2: float = 1e6, max_iter
         where the score statistic of SBL's fit exceeds the chi^2 quantile of
         ``1 - false_alarm`` (``gate`` of the result: that excess). None: no test.
     stage : {"both", "sbl", "pl"}
-        With ``choose``: "sbl" fits SBL and runs the test only (``sbl_weights``, ``gate`` kept
-        for a later "pl" pass on the same rows, which takes SBL's fit from ``sbl_fit``).
+        With ``choose``: "sbl" fits SBL and runs the test only (``sbl_weights``, ``gate`` and
+        ``gate_breaks`` kept for a later "pl" pass on the same rows, which takes SBL's fit from
+        ``sbl_fit``, and the test's break points from it where it has them).
     """
     y = np.ascontiguousarray(y, dtype=np.float64)
     w = np.ascontiguousarray(w, dtype=np.float64)
@@ -786,12 +788,16 @@ def pl_tile(y, w, lights, *, segments: int, lam, sigma_x2: float = 1e6, max_iter
         x, outliers, iters, segs = (np.array(sbl_fit.x), np.array(sbl_fit.outliers),
                                     np.array(sbl_fit.iterations), np.array(sbl_fit.segments))
         v_io = np.require(sbl_fit.sbl_weights, np.float64, "CW")
+        known = gate and sbl_fit.gate_breaks is not None
     else:
         x = np.zeros((m, 3))
         outliers = np.zeros((m, n), np.bool_)
         iters = np.zeros(m, np.int64)
         segs = np.zeros(m, np.int64)
         v_io = np.zeros((m, n) if choose else (1, 1))
+        known = False
+    breaks = (np.require(sbl_fit.gate_breaks, np.float64, "CW") if known else
+              np.zeros((m, max(int(segments) - 1, 1)) if gate else (m, 1)))
     evidence = np.full(m, -np.inf)
     stat = np.full(m, -np.inf)
     resid = np.zeros((m, n) if residuals else (1, 1))
@@ -801,7 +807,8 @@ def pl_tile(y, w, lights, *, segments: int, lam, sigma_x2: float = 1e6, max_iter
                    float(tol),
                    float(gamma_floor), float(gamma_start), float(outlier_threshold), x, outliers,
                    iters, segs, evidence, bool(residuals), resid, float(choice_z), gate, lam_t,
-                   q_table, stage != "pl", stage != "sbl", v_io, stat)
+                   q_table, stage != "pl", stage != "sbl", v_io, stat, breaks, known)
     return PLTileResult(x, outliers, iters, segs, evidence, resid if residuals else None,
-                        stat if gate else None, v_io if stage == "sbl" else None)
+                        stat if gate else None, v_io if stage == "sbl" else None,
+                        breaks if gate and stage == "sbl" else None)
 
