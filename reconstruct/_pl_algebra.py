@@ -225,18 +225,18 @@ def _loo_lambertian(y, fw, sw, tab, n, ridge, out):
     x1 = (c01 * t0 + c11 * t1 + c12 * t2) * d
     x2 = (c02 * t0 + c12 * t1 + c22 * t2) * d
     score = 0.0
-    for i in range(n):
-        out[i] = 0.0
-        if sw[i] > 0.0:
-            r = y[i] - (x0 * tab[6, i] + x1 * tab[7, i] + x2 * tab[8, i])
-            h = fw[i] * (i00 * tab[0, i] + i11 * tab[1, i] + i22 * tab[2, i]
-                         + j01 * tab[3, i] + j02 * tab[4, i] + j12 * tab[5, i])
-            if not h < 1.0:
-                return math.inf
-            e = r / (1.0 - h)
-            out[i] = sw[i] * e * e
-            score += out[i]
-    return score
+    bad = 0
+    for i in range(n):  # (one vectorised pass: no branch, a failed leverage is counted)
+        r = y[i] - (x0 * tab[6, i] + x1 * tab[7, i] + x2 * tab[8, i])
+        h = fw[i] * (i00 * tab[0, i] + i11 * tab[1, i] + i22 * tab[2, i]
+                     + j01 * tab[3, i] + j02 * tab[4, i] + j12 * tab[5, i])
+        scored = sw[i] > 0.0
+        bad += scored and not h < 1.0
+        e = r / (1.0 - h)
+        term = sw[i] * e * e if scored else 0.0
+        out[i] = term
+        score += term
+    return math.inf if bad else score
 
 
 @njit(**INLINE)

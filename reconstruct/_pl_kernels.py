@@ -639,12 +639,21 @@ def _choose(y, p, n, k, threshold, lam_row, outliers, st, tab, sbl_st, sbl_tab, 
     """
     u = k + 2
     kept = 0
+    fl = SLOPE_FLOOR / k
+    s0 = slopes[0] if slopes[0] > fl else fl
+    s1 = slopes[1 % k] if slopes[1 % k] > fl else fl
+    s2 = slopes[2 % k] if slopes[2 % k] > fl else fl
     for i in range(n):
-        sl = slopes[int(st[_SEG, i])]
-        sl = sl if sl > SLOPE_FLOOR / k else SLOPE_FLOOR / k
+        if k == 3:  # (one vectorised pass: the slope by selects, not by an index)
+            seg = st[_SEG, i]
+            sl = s2 if seg > 1.5 else (s1 if seg > 0.5 else s0)
+        else:
+            sl = slopes[int(st[_SEG, i])]
+            sl = sl if sl > fl else fl
         slope_of[i] = sl
         e = st[_G, i] * st[_D, i] * st[_R, i] / sl
-        ok = st[_W, i] > 0.0 and not (outliers[p, i] and abs(e) > threshold)
+        flagged = outliers[p, i] and abs(e) > threshold
+        ok = st[_W, i] > 0.0 and not flagged
         sw[i] = 1.0 / lam_row[i] if ok else 0.0
         kept += ok
     if kept < CHOICE_PER_UNKNOWN * u:
@@ -663,9 +672,8 @@ def _choose(y, p, n, k, threshold, lam_row, outliers, st, tab, sbl_st, sbl_tab, 
     mean = (score_sbl - score_pl) / kept
     var = 0.0
     for i in range(n):
-        if sw[i] > 0.0:
-            d = loo[0, i] - loo[1, i] - mean
-            var += d * d
+        d = loo[0, i] - loo[1, i] - mean
+        var += d * d if sw[i] > 0.0 else 0.0
     return (score_sbl - score_pl) - z * math.sqrt(kept * var / (kept - 1))
 
 
