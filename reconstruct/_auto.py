@@ -23,6 +23,7 @@ from . import _pl_kernels
 from ._pl_algebra import GATE_NOISE, gate_variance
 from ._tiles import _finish_solution, _prepare_tile, _store_tile, sbl_lambda
 
+
 def auto_tiles(obs, lights, usable, params, used, starts, tile, mapper, progress, pl_noise_of):
     """Solve the tiles starting at ``starts`` with ``auto`` (module docstring); the Solution.
 

@@ -45,8 +45,16 @@ from numba import njit
 
 from . import _kernels
 from ._kernels import INLINE, VECTOR, TileResult, _light_table, _sbl_pixel
-from ._pl_algebra import (_bend_score, _cholesky_inverse, _inverse5, _loo_lambertian,
-                          _loo_pl, _select, _sum_log, chi2_quantiles)
+from ._pl_algebra import (
+    _bend_score,
+    _cholesky_inverse,
+    _inverse5,
+    _loo_lambertian,
+    _loo_pl,
+    _select,
+    _sum_log,
+    chi2_quantiles,
+)
 
 # Rows of the per-pixel state: usable (1/0), observation noise in y units, in f units, gamma,
 # d = w / (gamma + lambda), corruption estimate of the last iteration, residual, a^T M^-1 a,
@@ -229,21 +237,21 @@ def _slopes(x, k, slopes):
 
 
 @njit(**INLINE)
-def _iterate3(st, tab, n, ridge, learn_tau, max_iter, ftol, floor, sbl, mat, inv, low, x,
-              slopes, tau2):
+def _iterate3(st, tab, n, ridge, learn_tau, max_iter, ftol, floor, sbl, inv, x, slopes, tau2):
     """The iteration of :func:`_pl_pixel` for three segments (the default), written out.
 
     The five unknowns' normal equations (15 products, 5 right-hand sides) are summed in one
     loop and the residual, ``a^T M^-1 a``, the gamma, lambda and d updates in a second one, so
-    each loop runs over the lights once, vectorised (the generic path makes ~40 passes).
+    each loop runs over the lights once, vectorised (the generic path makes ~40 passes); ``M``
+    is inverted by :func:`._pl_algebra._inverse5` (blocks, in registers, no log per step).
     Same algebra as the generic path (rounding-level differences). Returns (iterations,
-    log det M, tau2); log det is NaN when ``M`` is not positive definite.
+    log det M, tau2); log det is NaN when ``M`` is not positive definite. Leaves the final
+    ``M^-1`` in ``inv`` (for :func:`_loo_pl3`).
     """
     iters = max_iter if sbl else 1
     it = 0
     done = not sbl
     fl = SLOPE_FLOOR / 3.0
-    logdet = math.nan
     while True:
         m00 = m01 = m02 = m03 = m04 = m11 = m12 = m13 = m14 = 0.0
         m22 = m23 = m24 = m33 = m34 = m44 = 0.0
@@ -399,7 +407,7 @@ def _pl_pixel(y, w, lights, p, k_max, lam_row, ridge, learn_tau, max_iter, tol, 
     done = not sbl
     if k == 3:
         iters, logdet, tau2 = _iterate3(st, tab, n, ridge, learn_tau, max_iter, ftol, floor, sbl,
-                                        mat, inv, low, x, slopes, tau2)
+                                        inv, x, slopes, tau2)
         if not logdet == logdet:
             for r in range(u):
                 x[r] = 0.0
@@ -773,10 +781,14 @@ def pl_tile(y, w, lights, *, segments: int, lam, sigma_x2: float = 1e6, max_iter
         (:func:`._pl_algebra._bend_score`); the ``K``-segment model is fitted and compared only
         where the score statistic of SBL's fit exceeds the chi^2 quantile of
         ``1 - false_alarm`` (``gate`` of the result: that excess). None: no test.
+    false_alarm : float
+        The score test's false-alarm rate.
     stage : {"both", "sbl", "pl"}
         With ``choose``: "sbl" fits SBL and runs the test only (``sbl_weights``, ``gate`` and
         ``gate_breaks`` kept for a later "pl" pass on the same rows, which takes SBL's fit from
         ``sbl_fit``, and the test's break points from it where it has them).
+    sbl_fit : PLTileResult, optional
+        Stage "pl": the "sbl" stage's result on the same rows.
     """
     y = np.ascontiguousarray(y, dtype=np.float64)
     w = np.ascontiguousarray(w, dtype=np.float64)
