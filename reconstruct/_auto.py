@@ -12,7 +12,8 @@ Two passes (docs/solvers.md, "The default `auto`", rule 0):
 2. only if some pixels fail, the PL model's noise is measured on a sample of *them*
    (:func:`._solve.pl_noise_level`), and those pixels are tested again at that noise and,
    where they still fail, fitted by PL-SBL and compared with SBL by their left-out residuals
-   (:func:`._pl_kernels._choose`). SBL's fit of the first pass is reused, not repeated.
+   (:func:`._pl_kernels._choose`). SBL's fit of the first pass is reused, not repeated, and so
+   are the test's break points (order statistics of SBL's fitted values: ``gate_breaks``).
 """
 
 from __future__ import annotations
