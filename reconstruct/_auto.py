@@ -12,7 +12,8 @@ Two passes (docs/solvers.md, "The default `auto`", rule 0):
 2. only if some pixels fail, the PL model's noise is measured on a sample of *them*
    (:func:`._solve.pl_noise_level`), and those pixels are tested again at that noise and,
    where they still fail, fitted by PL-SBL and compared with SBL by their left-out residuals
-   (:func:`._pl_kernels._choose`). SBL's fit of the first pass is reused, not repeated.
+   (:func:`._pl_kernels._choose`). SBL's fit of the first pass is reused, not repeated, and so
+   are the test's break points (order statistics of SBL's fitted values: ``gate_breaks``).
 """
 
 from __future__ import annotations
@@ -22,6 +23,7 @@ import numpy as np
 from . import _pl_kernels
 from ._pl_algebra import GATE_NOISE, gate_variance
 from ._tiles import _finish_solution, _prepare_tile, _store_tile, sbl_lambda
+
 
 def auto_tiles(obs, lights, usable, params, used, starts, tile, mapper, progress, pl_noise_of):
     """Solve the tiles starting at ``starts`` with ``auto`` (module docstring); the Solution.
@@ -74,7 +76,8 @@ def auto_tiles(obs, lights, usable, params, used, starts, tile, mapper, progress
         if rows.size:
             part = _pl_kernels.PLTileResult(res.x[rows], res.outliers[rows],
                                             res.iterations[rows], res.segments[rows],
-                                            sbl_weights=res.sbl_weights[rows])
+                                            sbl_weights=res.sbl_weights[rows],
+                                            gate_breaks=res.gate_breaks[rows])
             lam = noise(scale[rows], used.get("noise_sigma", 0.0))
             lam_pl = noise(scale[rows], sigma_pl) if per_pixel else None
             out = _pl_kernels.pl_tile(y[rows], w[rows], lights, choose=True,

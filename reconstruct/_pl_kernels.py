@@ -45,8 +45,16 @@ from numba import njit
 
 from . import _kernels
 from ._kernels import INLINE, VECTOR, TileResult, _light_table, _sbl_pixel
-from ._pl_algebra import (_bend_score, _cholesky_inverse, _loo_lambertian, _loo_pl, _select,
-                          _sum_log, chi2_quantiles)
+from ._pl_algebra import (
+    _bend_score,
+    _cholesky_inverse,
+    _inverse5,
+    _loo_lambertian,
+    _loo_pl,
+    _select,
+    _sum_log,
+    chi2_quantiles,
+)
 
 # Rows of the per-pixel state: usable (1/0), observation noise in y units, in f units, gamma,
 # d = w / (gamma + lambda), corruption estimate of the last iteration, residual, a^T M^-1 a,
@@ -71,14 +79,22 @@ GATE_FALSE_ALARM = 0.01
 
 
 @njit(**INLINE)
-def _design(y, w, lights, p, k, st, tab, breaks, vals):
-    """Break points, design rows and products of pixel p for ``k`` segments; usable count."""
-    n = y.shape[1]
+def _usable(y, w, p, n, vals):
+    """Pack pixel p's usable observations into ``vals[:count]`` (no branch); their count."""
     cnt = 0
     for i in range(n):
-        if w[p, i] > 0.0:
-            vals[cnt] = y[p, i]
-            cnt += 1
+        vals[cnt] = y[p, i]  # a dropped one is overwritten by the next
+        cnt += w[p, i] > 0.0
+    return cnt
+
+
+@njit(**INLINE)
+def _breaks(vals, cnt, k, breaks):
+    """Break points of ``k`` segments from the ``cnt`` usable observations in ``vals``.
+
+    ``b_0 = 0``, ``b_j`` the ``(j cnt) // k``-th smallest (a selection: ``vals`` is reordered),
+    ``b_k`` the largest.
+    """
     breaks[0] = 0.0
     top = vals[0]
     for i in range(1, cnt):
@@ -90,6 +106,57 @@ def _design(y, w, lights, p, k, st, tab, breaks, vals):
         kth = (j * cnt) // k
         breaks[j] = _select(vals, lo, cnt, kth)
         lo = kth
+
+
+@njit(**INLINE)
+def _design3(y, w, lights, p, lam_row, scale2, gamma, sbl, st, tab, breaks):
+    """:func:`_design` and the start of the state for three segments, one vectorised pass.
+
+    The same numbers as the generic path: design rows (0-4), target, segment, and each
+    observation's noise (``lam_row``; times ``scale2`` in ``f``'s units), variance ``gamma`` and
+    weight ``d`` (``gamma`` left out of ``d`` without ``sbl``).
+    """
+    n = y.shape[1]
+    b1 = breaks[1]
+    b2 = breaks[2]
+    w0 = b1 - breaks[0]
+    w1 = b2 - b1
+    w2 = breaks[3] - b2
+    lo0 = breaks[0]
+    g_d = gamma if sbl else 0.0
+    for i in range(n):
+        yi = y[p, i]
+        wi = w[p, i]
+        ph = yi - b2
+        ph = ph if ph > 0.0 else 0.0
+        ph = ph if ph < w2 else w2
+        t = -ph * wi
+        st[_T, i] = t
+        st[_W, i] = wi
+        st[_SEG, i] = (1.0 if yi > b1 else 0.0) + (1.0 if yi > b2 else 0.0)
+        ph = yi - lo0
+        ph = ph if ph > 0.0 else 0.0
+        ph = ph if ph < w0 else w0
+        tab[0, i] = ph * wi + t
+        ph = yi - b1
+        ph = ph if ph > 0.0 else 0.0
+        ph = ph if ph < w1 else w1
+        tab[1, i] = ph * wi + t
+        tab[2, i] = -lights[i, 0] * wi
+        tab[3, i] = -lights[i, 1] * wi
+        tab[4, i] = -lights[i, 2] * wi
+        lam = lam_row[i]
+        st[_LAM0, i] = lam
+        st[_LAM, i] = lam * scale2
+        st[_G, i] = gamma
+        st[_D, i] = wi / (g_d + lam * scale2)
+        st[_Z, i] = 0.0
+
+
+@njit(**INLINE)
+def _design(y, w, lights, p, k, st, tab, breaks):
+    """Design rows and products of pixel p for ``k`` segments (``breaks``: :func:`_breaks`)."""
+    n = y.shape[1]
     u = k + 2
     ns = k - 1
     # phi_j(y) = clip(y - b_j, 0, b_{j+1} - b_j), one vectorised loop per segment; the last
@@ -118,8 +185,6 @@ def _design(y, w, lights, p, k, st, tab, breaks, vals):
         tab[ns, i] = -lights[i, 0] * wi
         tab[ns + 1, i] = -lights[i, 1] * wi
         tab[ns + 2, i] = -lights[i, 2] * wi
-    if k == 3:
-        return cnt  # the three-segment iteration forms its products in its loops
     # products a_a^T (upper triangle, row-major) on rows u .. u + u(u+1)/2
     e = u
     for r in range(u):
@@ -127,7 +192,6 @@ def _design(y, w, lights, p, k, st, tab, breaks, vals):
             for i in range(n):
                 tab[e, i] = tab[r, i] * tab[c, i]
             e += 1
-    return cnt
 
 
 @njit(**INLINE)
@@ -173,21 +237,21 @@ def _slopes(x, k, slopes):
 
 
 @njit(**INLINE)
-def _iterate3(st, tab, n, ridge, learn_tau, max_iter, ftol, floor, sbl, mat, inv, low, x,
-              slopes, tau2):
+def _iterate3(st, tab, n, ridge, learn_tau, max_iter, ftol, floor, sbl, inv, x, slopes, tau2):
     """The iteration of :func:`_pl_pixel` for three segments (the default), written out.
 
     The five unknowns' normal equations (15 products, 5 right-hand sides) are summed in one
     loop and the residual, ``a^T M^-1 a``, the gamma, lambda and d updates in a second one, so
-    each loop runs over the lights once, vectorised (the generic path makes ~40 passes).
+    each loop runs over the lights once, vectorised (the generic path makes ~40 passes); ``M``
+    is inverted by :func:`._pl_algebra._inverse5` (blocks, in registers, no log per step).
     Same algebra as the generic path (rounding-level differences). Returns (iterations,
-    log det M, tau2); log det is NaN when ``M`` is not positive definite.
+    log det M, tau2); log det is NaN when ``M`` is not positive definite. Leaves the final
+    ``M^-1`` in ``inv`` (for :func:`_loo_pl3`).
     """
     iters = max_iter if sbl else 1
     it = 0
     done = not sbl
     fl = SLOPE_FLOOR / 3.0
-    logdet = math.nan
     while True:
         m00 = m01 = m02 = m03 = m04 = m11 = m12 = m13 = m14 = 0.0
         m22 = m23 = m24 = m33 = m34 = m44 = 0.0
@@ -225,42 +289,40 @@ def _iterate3(st, tab, n, ridge, learn_tau, max_iter, ftol, floor, sbl, mat, inv
             m34 += da3 * a4
             m44 += d * a4 * a4
         it2 = 1.0 / tau2
-        mat[0, 0] = m00 + 2.0 * it2
-        mat[0, 1] = mat[1, 0] = m01 + it2
-        mat[1, 1] = m11 + 2.0 * it2
-        mat[0, 2] = mat[2, 0] = m02
-        mat[0, 3] = mat[3, 0] = m03
-        mat[0, 4] = mat[4, 0] = m04
-        mat[1, 2] = mat[2, 1] = m12
-        mat[1, 3] = mat[3, 1] = m13
-        mat[1, 4] = mat[4, 1] = m14
-        mat[2, 2] = m22 + ridge
-        mat[2, 3] = mat[3, 2] = m23
-        mat[2, 4] = mat[4, 2] = m24
-        mat[3, 3] = m33 + ridge
-        mat[3, 4] = mat[4, 3] = m34
-        mat[4, 4] = m44 + ridge
-        logdet = _cholesky_inverse(mat, inv, low, 5)
-        if not logdet == logdet:
-            return iters, logdet, tau2
+        det, iv = _inverse5(m00 + 2.0 * it2, m01 + it2, m02, m03, m04, m11 + 2.0 * it2, m12,
+                            m13, m14, m22 + ridge, m23, m24, m33 + ridge, m34, m44 + ridge)
+        if not det == det:
+            return iters, det, tau2
+        i00, i01, i02, i03, i04, i11, i12, i13, i14, i22, i23, i24, i33, i34, i44 = iv
         r0 += it2
         r1 += it2
-        x0 = inv[0, 0] * r0 + inv[0, 1] * r1 + inv[0, 2] * r2 + inv[0, 3] * r3 + inv[0, 4] * r4
-        x1 = inv[1, 0] * r0 + inv[1, 1] * r1 + inv[1, 2] * r2 + inv[1, 3] * r3 + inv[1, 4] * r4
-        x2 = inv[2, 0] * r0 + inv[2, 1] * r1 + inv[2, 2] * r2 + inv[2, 3] * r3 + inv[2, 4] * r4
-        x3 = inv[3, 0] * r0 + inv[3, 1] * r1 + inv[3, 2] * r2 + inv[3, 3] * r3 + inv[3, 4] * r4
-        x4 = inv[4, 0] * r0 + inv[4, 1] * r1 + inv[4, 2] * r2 + inv[4, 3] * r3 + inv[4, 4] * r4
+        x0 = i00 * r0 + i01 * r1 + i02 * r2 + i03 * r3 + i04 * r4
+        x1 = i01 * r0 + i11 * r1 + i12 * r2 + i13 * r3 + i14 * r4
+        x2 = i02 * r0 + i12 * r1 + i22 * r2 + i23 * r3 + i24 * r4
+        x3 = i03 * r0 + i13 * r1 + i23 * r2 + i33 * r3 + i34 * r4
+        x4 = i04 * r0 + i14 * r1 + i24 * r2 + i34 * r3 + i44 * r4
         x[0], x[1], x[2], x[3], x[4] = x0, x1, x2, x3, x4
         slopes[0], slopes[1], slopes[2] = x0, x1, 1.0 - x0 - x1
         if done or it == max_iter:
             for i in range(n):
                 st[_R, i] = st[_T, i] - (x0 * tab[0, i] + x1 * tab[1, i] + x2 * tab[2, i]
                                          + x3 * tab[3, i] + x4 * tab[4, i])
-            return iters, logdet, tau2
-        i00, i11, i22, i33, i44 = inv[0, 0], inv[1, 1], inv[2, 2], inv[3, 3], inv[4, 4]
-        j01, j02, j03, j04 = 2.0 * inv[0, 1], 2.0 * inv[0, 2], 2.0 * inv[0, 3], 2.0 * inv[0, 4]
-        j12, j13, j14 = 2.0 * inv[1, 2], 2.0 * inv[1, 3], 2.0 * inv[1, 4]
-        j23, j24, j34 = 2.0 * inv[2, 3], 2.0 * inv[2, 4], 2.0 * inv[3, 4]
+            # the final M^-1 for the choice (_loo_pl3)
+            inv[0, 0], inv[1, 1], inv[2, 2], inv[3, 3], inv[4, 4] = i00, i11, i22, i33, i44
+            inv[0, 1] = inv[1, 0] = i01
+            inv[0, 2] = inv[2, 0] = i02
+            inv[0, 3] = inv[3, 0] = i03
+            inv[0, 4] = inv[4, 0] = i04
+            inv[1, 2] = inv[2, 1] = i12
+            inv[1, 3] = inv[3, 1] = i13
+            inv[1, 4] = inv[4, 1] = i14
+            inv[2, 3] = inv[3, 2] = i23
+            inv[2, 4] = inv[4, 2] = i24
+            inv[3, 4] = inv[4, 3] = i34
+            return iters, math.log(det), tau2
+        j01, j02, j03, j04 = 2.0 * i01, 2.0 * i02, 2.0 * i03, 2.0 * i04
+        j12, j13, j14 = 2.0 * i12, 2.0 * i13, 2.0 * i14
+        j23, j24, j34 = 2.0 * i23, 2.0 * i24, 2.0 * i34
         sl0 = x0 if x0 > fl else fl
         sl1 = x1 if x1 > fl else fl
         sl2 = 1.0 - x0 - x1
@@ -294,7 +356,7 @@ def _iterate3(st, tab, n, ridge, learn_tau, max_iter, ftol, floor, sbl, mat, inv
         if learn_tau:
             dv0 = x0 - 1.0 / 3.0
             dv1 = x1 - 1.0 / 3.0
-            tr = 2.0 * (inv[0, 0] + inv[1, 1] + inv[0, 1])
+            tr = 2.0 * (i00 + i11 + i01)
             tau2 = (dv0 * dv0 + dv1 * dv1 + (dv0 + dv1) ** 2 + tr) / 2.0
             tau2 = tau2 if tau2 > TAU_FLOOR else TAU_FLOOR
         it += 1
@@ -305,31 +367,37 @@ def _iterate3(st, tab, n, ridge, learn_tau, max_iter, ftol, floor, sbl, mat, inv
 
 @njit(**INLINE)
 def _pl_pixel(y, w, lights, p, k_max, lam_row, ridge, learn_tau, max_iter, tol, floor, start,
-              sbl, st, tab, mat, inv, low, x, rhs, prior, prior_rhs, breaks, vals, slopes):
+              sbl, st, tab, mat, inv, low, x, rhs, prior, prior_rhs, breaks, vals, slopes,
+              evidence):
     """One pixel with up to ``k_max`` segments (fewer when it has few observations).
 
-    Leaves ``x`` (U), ``slopes`` (K) and the state rows of the final iteration; returns
-    (segments used, iterations, log evidence, the slopes' prior variance). ``sbl`` False: one
-    weighted least-squares solve (PL-LS: every observation weight 1, no noise model).
+    Leaves ``x`` (U), ``slopes`` (K) and the state rows of the final iteration (and, for three
+    segments, ``inv`` = the final ``M^-1``: :func:`_loo_pl3`); returns (segments used,
+    iterations, log evidence, the slopes' prior variance). ``sbl`` False: one weighted
+    least-squares solve (PL-LS: every observation weight 1, no noise model). ``evidence``
+    False (the choice, which does not use it): the log evidence is only its ``-inf`` cases (a
+    failed solve, a segment holding observations with a slope <= 0), else 0.
     """
     n = y.shape[1]
-    cnt = 0
-    for i in range(n):
-        cnt += w[p, i] > 0.0
+    cnt = _usable(y, w, p, n, vals)
     # at least MIN_PER_SEGMENT observations per segment (a segment's slope is fitted on its own
     # observations: with fewer, it can bend to fit a corrupted one)
     k = k_max if k_max < cnt // MIN_PER_SEGMENT else cnt // MIN_PER_SEGMENT
     k = k if k > 1 else 1
     u = k + 2
-    _design(y, w, lights, p, k, st, tab, breaks, vals)
+    _breaks(vals, cnt, k, breaks)
     tau2 = 1.0
     scale2 = 1.0 / (k * k)
-    for i in range(n):
-        st[_LAM0, i] = lam_row[i]
-        st[_LAM, i] = lam_row[i] * scale2
-        st[_G, i] = start * scale2
-        st[_D, i] = st[_W, i] / ((st[_G, i] if sbl else 0.0) + st[_LAM, i])
-        st[_Z, i] = 0.0
+    if k == 3:
+        _design3(y, w, lights, p, lam_row, scale2, start * scale2, sbl, st, tab, breaks)
+    else:
+        _design(y, w, lights, p, k, st, tab, breaks)
+        for i in range(n):
+            st[_LAM0, i] = lam_row[i]
+            st[_LAM, i] = lam_row[i] * scale2
+            st[_G, i] = start * scale2
+            st[_D, i] = st[_W, i] / ((st[_G, i] if sbl else 0.0) + st[_LAM, i])
+            st[_Z, i] = 0.0
     for j in range(k):
         slopes[j] = 1.0 / k
     ftol = tol / k
@@ -339,7 +407,7 @@ def _pl_pixel(y, w, lights, p, k_max, lam_row, ridge, learn_tau, max_iter, tol, 
     done = not sbl
     if k == 3:
         iters, logdet, tau2 = _iterate3(st, tab, n, ridge, learn_tau, max_iter, ftol, floor, sbl,
-                                        mat, inv, low, x, slopes, tau2)
+                                        inv, x, slopes, tau2)
         if not logdet == logdet:
             for r in range(u):
                 x[r] = 0.0
@@ -415,6 +483,16 @@ def _pl_pixel(y, w, lights, p, k_max, lam_row, ridge, learn_tau, max_iter, tol, 
             done = True
     if not sbl:
         return k, 1, 0.0, tau2
+    if not evidence:
+        # only what makes the evidence -inf: the log Jacobian of a populated segment's slope <= 0
+        for j in range(k):
+            vals[j] = 0.0
+        for i in range(n):
+            vals[int(st[_SEG, i])] += st[_W, i]
+        for j in range(k):
+            if vals[j] > 0.0 and not slopes[j] > 0.0:
+                return k, iters, -math.inf, tau2
+        return k, iters, 0.0, tau2
     # log evidence of y: -1/2 [sum log c + log|M| - log|P| + sum d r^2 + dx^T P dx] + log Jacobian
     quad = 0.0
     for i in range(n):
@@ -472,7 +550,7 @@ def _pl_kernel(y, w, lights, per_pixel, lam, lam_pl, k_max, choose, sbl, ridge, 
                max_iter,
                sbl_max_iter, tol, floor, start, threshold, x_out, outliers, iters, segments_out,
                evidence_out, want_residuals, resid_out, choice_z, gate, lam_test, q_table,
-               run_sbl, run_pl, v_io, stat_out):
+               run_sbl, run_pl, v_io, stat_out, breaks_io, breaks_known):
     m, n = y.shape
     umax = k_max + 2
     st = np.zeros((STATE_ROWS, n))
@@ -520,15 +598,15 @@ def _pl_kernel(y, w, lights, per_pixel, lam, lam_pl, k_max, choose, sbl, ridge, 
                 continue
             if gate:
                 # the Lambertian model's score test towards K segments: PL only where it fails
-                stat_out[p] = _bend_score(y, w, lp, p, n, k_max, x_out, lam_test[p], q_table,
-                                          vals, mat, inv, low, x, rhs)
+                stat_out[p] = _bend_score(y, w, sbl_tab, p, n, k_max, x_out, lam_test[p], q_table,
+                                          vals, mat, inv, low, x, rhs, breaks_io[p], breaks_known)
                 if not stat_out[p] > 0.0:
                     continue
             if not run_pl:
                 continue
         k, it, ev, tau2 = _pl_pixel(y, w, lp, p, k_max, lam_pl[p], ridge, learn_tau, max_iter,
                                     tol, floor, start, sbl, st, tab, mat, inv, low, x, rhs, prior,
-                                    prior_rhs, breaks, vals, slopes)
+                                    prior_rhs, breaks, vals, slopes, not choose)
         if choose:
             if k == 1 or not ev > -math.inf:
                 continue  # one segment is the Lambertian model; a failed PL fit
@@ -564,23 +642,37 @@ def _choose(y, p, n, k, threshold, lam_row, outliers, st, tab, sbl_st, sbl_tab, 
     (Lambertian minus PL) less ``z`` standard errors of that sum (``z sqrt(N) sd(d)``): positive
     when PL predicts better by more than chance gives a model with more unknowns; -inf when
     fewer than ``CHOICE_PER_UNKNOWN`` observations per PL unknown are scored or a fit fails.
+    Three segments: PL's fit is :func:`_pl_pixel`'s final one (its ``M^-1`` in ``inv``, its
+    residuals in the state), not formed again (:func:`_loo_pl3`).
     """
     u = k + 2
     kept = 0
+    fl = SLOPE_FLOOR / k
+    s0 = slopes[0] if slopes[0] > fl else fl
+    s1 = slopes[1 % k] if slopes[1 % k] > fl else fl
+    s2 = slopes[2 % k] if slopes[2 % k] > fl else fl
     for i in range(n):
-        sl = slopes[int(st[_SEG, i])]
-        sl = sl if sl > SLOPE_FLOOR / k else SLOPE_FLOOR / k
+        if k == 3:  # (one vectorised pass: the slope by selects, not by an index)
+            seg = st[_SEG, i]
+            sl = s2 if seg > 1.5 else (s1 if seg > 0.5 else s0)
+        else:
+            sl = slopes[int(st[_SEG, i])]
+            sl = sl if sl > fl else fl
         slope_of[i] = sl
         e = st[_G, i] * st[_D, i] * st[_R, i] / sl
-        ok = st[_W, i] > 0.0 and not (outliers[p, i] and abs(e) > threshold)
+        flagged = outliers[p, i] and abs(e) > threshold
+        ok = st[_W, i] > 0.0 and not flagged
         sw[i] = 1.0 / lam_row[i] if ok else 0.0
         kept += ok
     if kept < CHOICE_PER_UNKNOWN * u:
         return -math.inf
     score_sbl = _loo_lambertian(y[p], sbl_st[_kernels._V], sw, sbl_tab, n, ridge, loo[0])
-    _prior(k, tau2, ridge, prior, prior_rhs)
-    score_pl = _loo_pl(st[_T], st[_D], sw, slope_of, tab, n, u, prior, prior_rhs, mat, inv, low,
-                       scratch, loo[1])
+    if k == 3:
+        score_pl = _loo_pl3(st, tab, n, inv, sw, slope_of, loo[1])
+    else:
+        _prior(k, tau2, ridge, prior, prior_rhs)
+        score_pl = _loo_pl(st[_T], st[_D], sw, slope_of, tab, n, u, prior, prior_rhs, mat, inv,
+                           low, scratch, loo[1])
     if not (score_pl < math.inf and score_sbl == score_sbl):
         return -math.inf
     if not score_sbl < math.inf:
@@ -588,10 +680,44 @@ def _choose(y, p, n, k, threshold, lam_row, outliers, st, tab, sbl_st, sbl_tab, 
     mean = (score_sbl - score_pl) / kept
     var = 0.0
     for i in range(n):
-        if sw[i] > 0.0:
-            d = loo[0, i] - loo[1, i] - mean
-            var += d * d
+        d = loo[0, i] - loo[1, i] - mean
+        var += d * d if sw[i] > 0.0 else 0.0
     return (score_sbl - score_pl) - z * math.sqrt(kept * var / (kept - 1))
+
+
+@njit(**INLINE)
+def _loo_pl3(st, tab, n, inv, sw, slope_of, out):
+    """:func:`._pl_algebra._loo_pl` of the three-segment fit that :func:`_iterate3` left.
+
+    Its final solve is the fit that ``_loo_pl`` would form again from the same weights ``d``,
+    prior (the ``tau2`` it used) and targets: ``inv`` holds its ``M^-1`` and the state row
+    ``_R`` its residuals ``t - a.x``, so only the leverages ``h_i = d_i a_i^T M^-1 a_i`` are
+    left, one vectorised pass. Same measure and returns (infinity when a scored ``h_i`` is 1).
+    """
+    i00, i11, i22, i33, i44 = inv[0, 0], inv[1, 1], inv[2, 2], inv[3, 3], inv[4, 4]
+    j01, j02, j03, j04 = 2.0 * inv[0, 1], 2.0 * inv[0, 2], 2.0 * inv[0, 3], 2.0 * inv[0, 4]
+    j12, j13, j14 = 2.0 * inv[1, 2], 2.0 * inv[1, 3], 2.0 * inv[1, 4]
+    j23, j24, j34 = 2.0 * inv[2, 3], 2.0 * inv[2, 4], 2.0 * inv[3, 4]
+    score = 0.0
+    bad = 0
+    for i in range(n):
+        a0 = tab[0, i]
+        a1 = tab[1, i]
+        a2 = tab[2, i]
+        a3 = tab[3, i]
+        a4 = tab[4, i]
+        q = (a0 * (i00 * a0 + j01 * a1 + j02 * a2 + j03 * a3 + j04 * a4)
+             + a1 * (i11 * a1 + j12 * a2 + j13 * a3 + j14 * a4)
+             + a2 * (i22 * a2 + j23 * a3 + j24 * a4)
+             + a3 * (i33 * a3 + j34 * a4) + a4 * i44 * a4)
+        h = st[_D, i] * q
+        scored = sw[i] > 0.0
+        bad += scored and not h < 1.0
+        e = st[_R, i] / ((1.0 - h) * slope_of[i])
+        term = sw[i] * e * e if scored else 0.0
+        out[i] = term
+        score += term
+    return math.inf if bad else score
 
 
 @dataclass
@@ -603,6 +729,7 @@ class PLTileResult(TileResult):
     residuals: np.ndarray | None = None  # (m, n): (f(y) - n.l) / slope, with ``residuals``
     gate: np.ndarray | None = None  # (m,): the score test's statistic over its quantile
     sbl_weights: np.ndarray | None = None  # (m, n): SBL's final d, from stage "sbl"
+    gate_breaks: np.ndarray | None = None  # (m, K - 1): the score test's breaks, stage "sbl"
 
 
 def pl_tile(y, w, lights, *, segments: int, lam, sigma_x2: float = 1e6, max_iter: int = 100,
@@ -654,9 +781,14 @@ def pl_tile(y, w, lights, *, segments: int, lam, sigma_x2: float = 1e6, max_iter
         (:func:`._pl_algebra._bend_score`); the ``K``-segment model is fitted and compared only
         where the score statistic of SBL's fit exceeds the chi^2 quantile of
         ``1 - false_alarm`` (``gate`` of the result: that excess). None: no test.
+    false_alarm : float
+        The score test's false-alarm rate.
     stage : {"both", "sbl", "pl"}
-        With ``choose``: "sbl" fits SBL and runs the test only (``sbl_weights``, ``gate`` kept
-        for a later "pl" pass on the same rows, which takes SBL's fit from ``sbl_fit``).
+        With ``choose``: "sbl" fits SBL and runs the test only (``sbl_weights``, ``gate`` and
+        ``gate_breaks`` kept for a later "pl" pass on the same rows, which takes SBL's fit from
+        ``sbl_fit``, and the test's break points from it where it has them).
+    sbl_fit : PLTileResult, optional
+        Stage "pl": the "sbl" stage's result on the same rows.
     """
     y = np.ascontiguousarray(y, dtype=np.float64)
     w = np.ascontiguousarray(w, dtype=np.float64)
@@ -676,12 +808,16 @@ def pl_tile(y, w, lights, *, segments: int, lam, sigma_x2: float = 1e6, max_iter
         x, outliers, iters, segs = (np.array(sbl_fit.x), np.array(sbl_fit.outliers),
                                     np.array(sbl_fit.iterations), np.array(sbl_fit.segments))
         v_io = np.require(sbl_fit.sbl_weights, np.float64, "CW")
+        known = gate and sbl_fit.gate_breaks is not None
     else:
         x = np.zeros((m, 3))
         outliers = np.zeros((m, n), np.bool_)
         iters = np.zeros(m, np.int64)
         segs = np.zeros(m, np.int64)
         v_io = np.zeros((m, n) if choose else (1, 1))
+        known = False
+    breaks = (np.require(sbl_fit.gate_breaks, np.float64, "CW") if known else
+              np.zeros((m, max(int(segments) - 1, 1)) if gate else (m, 1)))
     evidence = np.full(m, -np.inf)
     stat = np.full(m, -np.inf)
     resid = np.zeros((m, n) if residuals else (1, 1))
@@ -691,7 +827,8 @@ def pl_tile(y, w, lights, *, segments: int, lam, sigma_x2: float = 1e6, max_iter
                    float(tol),
                    float(gamma_floor), float(gamma_start), float(outlier_threshold), x, outliers,
                    iters, segs, evidence, bool(residuals), resid, float(choice_z), gate, lam_t,
-                   q_table, stage != "pl", stage != "sbl", v_io, stat)
+                   q_table, stage != "pl", stage != "sbl", v_io, stat, breaks, known)
     return PLTileResult(x, outliers, iters, segs, evidence, resid if residuals else None,
-                        stat if gate else None, v_io if stage == "sbl" else None)
+                        stat if gate else None, v_io if stage == "sbl" else None,
+                        breaks if gate and stage == "sbl" else None)
 
