@@ -19,13 +19,14 @@ per-light divisor ``scale``, so that no divided copy is made), and returns coeff
   shrinks toward the Lambertian model, which is what extrapolation falls back on).
 
 The ``ps`` fit is one numba kernel (:func:`_ps_kernel`, ``nogil``: blocks may run on threads)
-that takes each pixel through the whole fit while its observations are in cache: it reads the
-float32 (or float64) observations once, accumulates in float64, builds the pixel's terms as
-rows of a small ``(K, n)`` table (loops over the lights that the compiler vectorises), forms the
-``K × K`` normal equations as dot products over the lights and solves them by a written-out
-Cholesky factorisation for all channels at once (one factorisation per channel for a pixel with
-missing observations). The visibility's four rounds of ``4 × 4`` normal equations run in the same
-pass. See docs/appearance.md (Large captures) for the measurements.
+that takes the pixels through the whole fit in groups of :data:`LANES`: it copies a tile of the
+float32 (or float64) observations pixel-major as float64 (each light's run read once), fits the
+visibility (four rounds of ``4 × 4`` normal equations; exactly ``w = (0, 0, 0, 1)`` where no
+facing light is labelled shadowed), builds each pixel's terms as rows of a ``(K, n)`` table
+(loops over the lights that the compiler vectorises), forms the ``K × K`` normal equations as
+dot products over the lights, and solves the group's systems by Cholesky side by side (a pixel
+with missing observations: one system per channel). The results are those of the per-pixel
+formulas up to float64 rounding. See docs/appearance.md (Large captures) for the measurements.
 """
 
 from __future__ import annotations
@@ -80,7 +81,8 @@ def _scale(scale: np.ndarray | None, lights: int) -> np.ndarray:
     """Per-light divisors (n,) float64 (ones when None)."""
     if scale is None:
         return np.ones(lights)
-    return np.ascontiguousarray(np.broadcast_to(np.asarray(scale, np.float64), (lights,)))
+    # a writable copy: numba compiles another version for a read-only array
+    return np.array(np.broadcast_to(np.asarray(scale, np.float64), (lights,)))
 
 
 def _pixel_finite(obs: np.ndarray) -> np.ndarray | None:
@@ -263,6 +265,7 @@ LANES = 8
 # Pixels whose observations are copied (as float64, pixel-major) at a time: (TILE, C, n) stays in
 # the L2 cache.
 TILE = 8 * LANES
+PART = {"nogil": True, "cache": True, **VECTOR}
 # Integer lobe exponents up to this are powers by repeated squaring (exact up to rounding).
 _MAX_INT_POWER = 1 << 12
 
@@ -303,7 +306,7 @@ def _term_code(term: str) -> tuple[int, float]:
     raise ValueError(f"unknown ps term {term!r}")
 
 
-@njit(**INLINE)
+@njit(**PART)
 def _fill_table(dirs, col, tab, need_hsh):
     """``tab`` (TABLE_ROWS, n) from the light vectors ``dirs[:, col]`` ((n, ·, 3)).
 
@@ -340,7 +343,7 @@ def _fill_table(dirs, col, tab, need_hsh):
             tab[_H0 + 8, i] = k * math.sin(2.0 * phi) * (c * c - c)
 
 
-@njit(**INLINE)
+@njit(**PART)
 def _load_tile(flat, first, count, channels, inv, y, n):
     """Observations of pixels ``first .. first + count`` (columns of ``flat`` (n, P·C)) times
     ``inv`` into ``y`` (TILE, C, n) as float64.
@@ -493,7 +496,7 @@ def _visibility_settle(tab, work, weight, t, n, w0, w1, w2, w3):
     return changed
 
 
-@njit(**INLINE)
+@njit(**PART)
 def _visibility_group(tabs, per_pixel, work, weight, lanes, n, fit, sums, vis_w, moved):
     """The visibility of the pixels of a group (lanes with ``fit[t]``): ``VIS_ROUNDS`` rounds of
     least squares, the lanes' 4 x 4 solves side by side; ``vis_w`` (4, LANES) written.
@@ -559,7 +562,7 @@ def _power_row(work, t, n, exponent, out, k):
             work[t, _P, i] *= work[t, _P, i]
 
 
-@njit(**INLINE)
+@njit(**PART)
 def _terms_pixel(tab, work, t, n, nx, ny, nz, v0, v1, v2, v3, use_vis, kinds, params, direct,
                  b):
     """Lane t's terms ``b`` (K, n) and its rows ``_U``, ``_NH``, ``_LIT``, ``_LV``, ``_V``,
@@ -646,7 +649,7 @@ def _normal_equations(b, res, weight, use_weight, n, k, c0, c1, ridge, g, r, t):
         g[a, a, t] += shift
 
 
-@njit(**INLINE)
+@njit(**PART)
 def _cholesky_lanes(g, r, k, channels, valid, d, scratch):
     """Solve ``g[:, :, t] x = r[:, :, t]`` for every lane t (SIMD across the lanes) in place.
 
@@ -859,9 +862,10 @@ def _fit_ps_block(
     nrm = np.require(np.asarray(normals, np.float64).reshape(-1, 3), None, "CW")
     q = len(nrm)
     rho_in = np.asarray(albedo, np.float64)
-    rho = np.ascontiguousarray(np.broadcast_to(rho_in[:, None] if rho_in.ndim == 1 else rho_in,
-                                               (q, channels)))
-    rho_vis = np.ascontiguousarray(rho_in.mean(axis=1) if rho_in.ndim == 2 else rho_in)
+    # writable copies (numba compiles another version for a read-only array)
+    rho = np.array(np.broadcast_to(rho_in[:, None] if rho_in.ndim == 1 else rho_in,
+                                   (q, channels)))
+    rho_vis = np.array(rho_in.mean(axis=1) if rho_in.ndim == 2 else rho_in)
     d = np.asarray(directions, np.float64)
     per_pixel = d.ndim == 3
     dirs = np.require(d if per_pixel else d[:, None, :], None, "CW")

@@ -46,6 +46,7 @@ COMPILE_SECONDS = {
     "_l1_kernel_pp": 1.5,
     "_sbl_kernel_pp": 1.6,
     "_march_point_lights": 1.0,
+    "_ps_kernel": 8.0,  # per dtype (float32, float64); 10 and 6 s on the AMD EPYC (Zen 4)
 }
 
 
@@ -88,6 +89,16 @@ def _render() -> None:
                         one, one + 1.0, 0.0, 0.0, np.zeros((1, 2, 2), bool))
 
 
+def _appearance() -> None:
+    # the ps appearance fit (ps-lab reconstruct --appearance ps): float32 from the observation
+    # store, float64 from whole arrays (fit_appearance: ps-lab bench relight)
+    from ._appearance_fit import fit_block
+
+    for dtype in (np.float32, np.float64):
+        fit_block("ps", np.ones((3, 1, 3), dtype), np.eye(3), normals=np.array([[0.0, 0.0, 1.0]]),
+                  albedo=np.ones(1))
+
+
 @dataclass(frozen=True)
 class Group:
     """Kernels warmed together: a label for the progress lines and the call that warms them."""
@@ -103,6 +114,7 @@ GROUPS = {
     "pl": Group("piecewise-linear kernel", _pl(choose=True)),
     "near": Group("near-light kernels", _near),
     "render": Group("renderer's shadow march", _render),
+    "appearance": Group("appearance kernel", _appearance),
 }
 #: The groups ``ps-lab reconstruct --method M`` needs (L1's: the noise estimate uses it).
 METHOD_GROUPS = {

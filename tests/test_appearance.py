@@ -687,3 +687,31 @@ def test_streamed_colour_fit_does_not_depend_on_the_threads(tmp_path, rng, monke
     assert np.allclose(one.coefficients, whole.coefficients,
                        atol=4 * EPS32 * np.abs(whole.coefficients).max())
     assert np.allclose(one.extra["visibility"], whole.extra["visibility"], atol=4 * EPS32)
+
+
+def test_the_warm_up_compiles_every_type_the_ps_fits_pass(rng):
+    # The install step's two versions of the kernel (float32 from the store, float64) are all
+    # that the fits ever call: grey or colour, C or sliced or read-only observations, other
+    # dtypes, per-pixel directions, a given visibility, missing values, a divisor.
+    from ps_lab.reconstruct import _appearance_fit
+    from ps_lab.reconstruct._appearance_fit import fit_block
+    from ps_lab.reconstruct._warm_up import GROUPS
+
+    GROUPS["appearance"].run()
+    kernels = [v for v in vars(_appearance_fit).values() if hasattr(v, "signatures")]
+    warmed = {k.py_func.__name__: set(k.signatures) for k in kernels}
+    obs, d, normals, albedo = _shadowed_block(rng, pixels=50)
+    per_pixel = np.ascontiguousarray(np.broadcast_to(d[:, None], (len(d), 50, 3)))
+    read_only = obs.astype(np.float32)
+    read_only.flags.writeable = False
+    for o in (obs, obs.astype(np.float32), obs[:, 2:], obs[..., 0], read_only,
+              obs.astype(np.float16)):
+        p = o.shape[1]
+        rho = (albedo if o.ndim == 3 else albedo.mean(axis=1))[-p:]
+        for lights in (d, per_pixel[:, -p:]):
+            fit_visibility(o, lights, normals[-p:], rho)
+            fit_ps(o, lights, normals[-p:], rho, visibility=np.ones((p, 4)))
+            fit_block("ps", o, lights, normals=normals[-p:][1:5], albedo=rho[1:5],
+                      pixels=slice(1, 5), scale=np.full(len(d), 2.0))
+    assert {k.py_func.__name__: set(k.signatures) for k in kernels} == warmed
+    assert len(warmed["_ps_kernel"]) == 2
