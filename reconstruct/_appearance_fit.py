@@ -166,7 +166,7 @@ def _project(weights: np.ndarray, obs: np.ndarray, out: np.ndarray) -> None:
     """
     n, p, c = obs.shape
     flat = obs.reshape(n, p * c)  # a view for a slice of whole pixels
-    out[...] = (weights @ flat).reshape(-1, p, c).transpose(1, 2, 0)
+    out[...] = (weights @ flat).reshape(len(weights), p, c).transpose(1, 2, 0)
 
 
 def rbf_setup(
@@ -925,6 +925,12 @@ def _fit_ps_block(
     d = np.asarray(directions, np.float64)
     per_pixel = d.ndim == 3
     dirs = np.require(d if per_pixel else d[:, None, :], None, "CW")
+    # the kernel does not check its indices
+    if not 0 <= start <= start + q <= obs.shape[1] or len(rho_in) != q:
+        raise ValueError(f"{q} normals and {len(rho_in)} albedos for pixels {start}.. of "
+                         f"{obs.shape[1]} observations")
+    if dirs.shape[0] != n or dirs.shape[2] != 3 or (per_pixel and dirs.shape[1] != obs.shape[1]):
+        raise ValueError(f"light directions {d.shape} for observations {obs.shape}")
     kinds, params, direct = _term_codes(tuple(terms))
     if visibility is not None and not fit_vis:
         vis = np.require(np.asarray(visibility, np.float64).reshape(q, 4), None, "CWO")
@@ -1039,7 +1045,8 @@ def fit_block(
     terms : tuple of str
         The ps terms.
     pixels : slice or None
-        The block: pixels ``pixels`` of the observations (None: all, ``q = P``).
+        The block: the consecutive pixels ``pixels`` of the observations (None: all,
+        ``q = P``).
     scale : ndarray of shape (n,) or None
         Each light's divisor of the observations (None: 1).
 
@@ -1052,6 +1059,8 @@ def fit_block(
     """
     obs = _as_block(observations)
     part = slice(0, obs.shape[1]) if pixels is None else slice(*pixels.indices(obs.shape[1]))
+    if part.step not in (None, 1):
+        raise ValueError(f"a block is a run of consecutive pixels, not {pixels}")
     if model in BASIS_TERMS:
         return fit_linear(model, obs[:, part], directions, scale), None
     if model == "rbf":
