@@ -57,6 +57,7 @@ COMPILE_SECONDS = {
     "_store_kernel": 0.5,
     "_far_kernel": 2.5,
     "_near_kernel": 2.5,
+    "_ps_kernel": 8.0,  # per dtype (float32, float64); 10 and 6 s on the AMD EPYC (Zen 4)
 }
 
 
@@ -136,6 +137,16 @@ def _colour() -> None:
     colour_albedo(normals, inliers, observations, per_pixel.transpose(1, 0, 2))
 
 
+def _appearance() -> None:
+    # the ps appearance fit (ps-lab reconstruct --appearance ps): float32 from the observation
+    # store, float64 from whole arrays (fit_appearance: ps-lab bench relight)
+    from ._appearance_fit import fit_block
+
+    for dtype in (np.float32, np.float64):
+        fit_block("ps", np.ones((3, 1, 3), dtype), np.eye(3), normals=np.array([[0.0, 0.0, 1.0]]),
+                  albedo=np.ones(1))
+
+
 @dataclass(frozen=True)
 class Group:
     """Kernels warmed together: a label for the progress lines and the call that warms them."""
@@ -155,6 +166,7 @@ GROUPS = {
     "pl": Group("piecewise-linear kernel", _pl(choose=True)),
     "near": Group("near-light kernels", _near),
     "render": Group("renderer's shadow march", _render),
+    "appearance": Group("appearance kernel", _appearance),
 }
 #: The groups ``ps-lab reconstruct --method M`` needs (L1's: the noise estimate uses it).
 METHOD_GROUPS = {

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import Any
 
@@ -33,13 +34,18 @@ from ps_lab.reconstruct._appearance_fit import RBF_TERMS, fit_block, rbf_setup
 __all__ = [
     "APPEARANCE_MODELS",
     "FIT_CHUNK",
+    "FIT_WORKERS",
     "fit_appearance",
     "fit_appearance_bands",
     "model_meta",
 ]
 
-# Pixels per block of the streamed fit: bounds its float64 copies to ~17 bytes x lights x block.
+# Pixels per block of the streamed fit (the unit of the progress bar and of the threads; the ps
+# kernel needs only a small tile, the linear models a float64 copy of a block's observations).
 FIT_CHUNK = 8192
+# Threads fitting the blocks of a band with the ps model (its numba kernel releases the GIL; the
+# linear models' products are BLAS's, threaded by BLAS itself).
+FIT_WORKERS = 2
 _TEMP = ".appearance-coefficients.npy"
 _TEMP_VIS = ".appearance-visibility.npy"
 
@@ -136,6 +142,7 @@ def fit_appearance_bands(
     scale: np.ndarray | None = None,
     *,
     progress_bars: Callable[[int, str], Any] | None = None,
+    workers: int = FIT_WORKERS,
 ) -> dict[str, Any]:
     """Fit ``model`` band by band on a staged store and write ``folder/appearance.npz``.
 
@@ -154,6 +161,9 @@ def fit_appearance_bands(
         Refined relative intensities (the observations are divided by them).
     progress_bars : callable or None
         As for :func:`ps_lab.reconstruct.pipeline.reconstruct_to_folder`.
+    workers : int
+        Threads fitting a band's blocks side by side with the ps model (its kernel releases the
+        GIL; the coefficients do not depend on the count).
 
     Returns
     -------
@@ -198,27 +208,16 @@ def fit_appearance_bands(
                 vis_block = np.zeros((*block.shape[:2], VISIBILITY_TERMS), np.float32)
                 vis_block[..., 3] = 1.0
                 if band.pixel_count:
-                    observations = store.read_colour(band) if colour else store.read(band)[0]
-                    obs = _as_colour(observations)
-                    band_normals = np.asarray(normals[rows])[inside]
-                    band_albedo = np.asarray(albedo[rows])[inside]
-                    coeffs = np.empty((band.pixel_count, *shape[2:]), np.float32)
-                    vis = np.empty((band.pixel_count, VISIBILITY_TERMS), np.float32)
-                    for start in range(0, band.pixel_count, FIT_CHUNK):
-                        part = slice(start, min(start + FIT_CHUNK, band.pixel_count))
-                        coeffs[part], part_vis = fit_block(
-                            model,
-                            obs[:, part] / factor[:, None, None],
-                            directions,
-                            normals=band_normals[part],
-                            albedo=band_albedo[part],
-                            rbf_basis=basis,
-                        )
-                        if part_vis is not None:
-                            vis[part] = part_vis
-                        advance(part.stop - part.start)
+                    # the store's buffers (this band's observations are used up before the next)
+                    read = store.observe(band, colour=bool(colour), reuse=True)
+                    observations = read[2] if colour else read[0]
+                    coeffs, vis = _fit_band(model, _as_colour(observations), directions, factor,
+                                            np.asarray(normals[rows])[inside],
+                                            np.asarray(albedo[rows])[inside], basis, workers,
+                                            advance)
                     block[inside] = coeffs
-                    vis_block[inside] = vis
+                    if vis is not None:
+                        vis_block[inside] = vis
                 write_npy_rows(temp, offset, band.row_start, block)
                 if vis_offset is not None:
                     write_npy_rows(temp_vis, vis_offset, band.row_start, vis_block)
@@ -238,6 +237,45 @@ def fit_appearance_bands(
         "timings": {"fit_seconds": time.perf_counter() - started},
         **({"sigma": sigma} if sigma is not None else {}),
     }
+
+
+def _fit_band(
+    model: str,
+    observations: np.ndarray,
+    directions: np.ndarray,
+    factor: np.ndarray,
+    normals: np.ndarray,
+    albedo: np.ndarray,
+    basis: np.ndarray | None,
+    workers: int,
+    advance: Callable[..., None],
+) -> tuple[np.ndarray, np.ndarray | None]:
+    """One band's coefficients (P, C, K) float32 and the ps visibility (P, 4) float32 (or None).
+
+    The band's blocks of :data:`FIT_CHUNK` pixels are fitted in place in the band's observations
+    (n, P, C) (no per-block copy), by ``workers`` threads for ``ps``; ``advance`` is called as
+    each block completes, in order.
+    """
+    pixels = observations.shape[1]
+    parts = [slice(s, min(s + FIT_CHUNK, pixels)) for s in range(0, pixels, FIT_CHUNK)]
+
+    def fit(part: slice) -> tuple[np.ndarray, np.ndarray | None]:
+        return fit_block(model, observations, directions, pixels=part, scale=factor,
+                         normals=normals[part], albedo=albedo[part], rbf_basis=basis)
+
+    results: list[tuple[np.ndarray, np.ndarray | None]] = []
+    if model == "ps" and workers > 1 and len(parts) > 1:
+        with ThreadPoolExecutor(min(workers, len(parts))) as pool:
+            for part, result in zip(parts, pool.map(fit, parts)):
+                results.append(result)
+                advance(part.stop - part.start)
+    else:
+        for part in parts:
+            results.append(fit(part))
+            advance(part.stop - part.start)
+    coeffs = np.concatenate([c for c, _ in results])
+    vis = None if results[0][1] is None else np.concatenate([v for _, v in results])
+    return coeffs, vis
 
 
 class _no_bar:

@@ -26,6 +26,7 @@ from ps_lab.io.appearance import (
     hsh_basis,
     is_direct,
     ps_basis,
+    ps_term,
     ps_visibility,
     ptm_basis,
     rbf_weights,
@@ -35,6 +36,7 @@ from ps_lab.io.appearance import (
 from ps_lab.io.images import read_exr
 from ps_lab.io.result import RESULT_FORMAT
 from ps_lab.reconstruct._appearance_fit import (
+    PS_RIDGE,
     fit_linear,
     fit_ps,
     fit_rbf,
@@ -478,3 +480,240 @@ def test_streamed_fit_equals_the_whole_array_fit(tmp_path, rng, model):
     if model == "ps":
         assert np.allclose(streamed.extra["visibility"], whole.extra["visibility"],
                            atol=4 * EPS32 * np.abs(whole.extra["visibility"]).max())
+
+
+# --- the fast fits against a per-pixel reference (issue 37) ------------------------------------
+
+
+def _reference_visibility(obs, directions, normals, albedo):
+    """fit_visibility's maths pixel by pixel with numpy's solve (the implementation before 37)."""
+    from ps_lab.reconstruct._appearance_fit import VIS_LABEL, VIS_MARGIN, VIS_RIDGE, VIS_ROUNDS
+
+    n, p, _ = obs.shape
+    rho = albedo.mean(axis=1) if albedo.ndim == 2 else albedo
+    ridge = np.diag([VIS_RIDGE] * 3 + [1e-6]) * n
+    prior = ridge @ np.array([0.0, 0.0, 0.0, 1.0])
+    out = np.zeros((p, 4))
+    for q in range(p):
+        d = directions if directions.ndim == 2 else directions[:, q]
+        good = np.isfinite(obs[:, q])
+        count = good.sum(axis=1)
+        mean = np.where(good, obs[:, q], 0.0).sum(axis=1) / np.maximum(count, 1)
+        shade = d @ normals[q]
+        facing = (shade > VIS_MARGIN) & (count > 0)
+        label = (mean >= VIS_LABEL * rho[q] * np.maximum(shade, 0.0)).astype(float)
+        features = np.column_stack([d, np.ones(n)])
+        weight = facing.astype(float)
+        for _ in range(VIS_ROUNDS):
+            gram = (features * weight[:, None]).T @ features
+            w = np.linalg.solve(gram + ridge, features.T @ (weight * label) + prior)
+            value = features @ w
+            settled = ((value >= 1) & (label == 1)) | ((value <= 0) & (label == 0))
+            weight = (facing & ~settled).astype(float)
+        out[q] = w
+    return out
+
+
+def _reference_ps(obs, directions, normals, albedo, visibility, terms, ridge):
+    """fit_ps's maths pixel by pixel and channel by channel: ps_term, numpy's solve."""
+    n, p, c = obs.shape
+    rho = np.broadcast_to(albedo[:, None] if albedo.ndim == 1 else albedo, (p, c))
+    direct = np.array([is_direct(t) for t in terms])
+    out = np.zeros((p, c, len(terms)))
+    for q in range(p):
+        if not np.linalg.norm(normals[q]) > 0.5:
+            continue
+        d = directions if directions.ndim == 2 else directions[:, q]
+        basis = np.stack([ps_term(t, d, normals[q]) for t in terms], axis=1)  # (n, K)
+        v = np.ones(n)
+        if visibility is not None:
+            v = np.clip(d @ visibility[q, :3] + visibility[q, 3], 0.0, 1.0)
+        basis[:, direct] *= v[:, None]
+        shade = np.maximum(d @ normals[q], 0.0) * v
+        for ch in range(c):
+            good = np.isfinite(obs[:, q, ch])
+            b = basis[good]
+            r = obs[good, q, ch] - rho[q, ch] * shade[good]
+            gram = b.T @ b
+            shift = ridge * np.trace(gram) / len(terms) + 1e-12
+            out[q, ch] = np.linalg.solve(gram + shift * np.eye(len(terms)), b.T @ r)
+    return out
+
+
+def _shadowed_block(rng, pixels=150, lights=40, per_pixel=False):
+    """Colour observations of a block with cast shadows, noise, missing values and unsolved
+    pixels; directions (n, 3) or per pixel (n, P, 3)."""
+    d = hemisphere(lights, rng, 70)
+    normals = hemisphere(pixels, rng, 50)
+    if per_pixel:  # lights at a finite distance: each pixel's own unit directions
+        points = np.concatenate([rng.uniform(-0.3, 0.3, (pixels, 2)), np.zeros((pixels, 1))], 1)
+        to_light = 3.0 * d[:, None, :] - points[None]
+        d = to_light / np.linalg.norm(to_light, axis=-1, keepdims=True)  # (n, P, 3)
+        shade = np.einsum("npk,pk->np", d, normals)
+    else:
+        shade = d @ normals.T
+    albedo = rng.uniform(0.2, 0.9, (pixels, 3))
+    wall = np.concatenate([rng.normal(scale=1.5, size=(pixels, 3)),
+                           rng.uniform(0.3, 1.5, (pixels, 1))], axis=1)
+    dd = d if d.ndim == 3 else np.broadcast_to(d[:, None], (lights, pixels, 3))
+    lit = (np.einsum("npk,pk->np", dd, wall[:, :3]) + wall[:, 3]) > 0.5  # a cast shadow
+    obs = albedo[None] * (np.maximum(shade, 0) * np.where(lit, 1.0, 0.15))[..., None]
+    obs += 0.05 * np.maximum(shade, 0)[..., None] ** 8 + rng.normal(scale=0.01, size=obs.shape)
+    obs[rng.random(obs.shape) < 0.03] = np.nan  # missing channels
+    obs[3, 5] = np.nan  # a light without any channel
+    obs[:, 7, 1] = np.inf
+    normals[[0, 9, 40]] = 0.0  # unsolved
+    normals[11] = np.nan
+    return obs, d, normals, albedo
+
+
+# cond of a ps normal matrix (ridge 1e-4 of its mean diagonal) is at most ~1e4 and that of the
+# visibility's (ridge 1e-6 n on the constant) ~1e6: float64 solves by Cholesky and by LU agree
+# to cond · n · eps < 1e-8 relative; 1e-9 of the largest value holds on these data with margin.
+REFERENCE_TOL = 1e-9
+
+
+@pytest.mark.parametrize("per_pixel", [False, True])
+def test_visibility_equals_the_per_pixel_reference(rng, per_pixel):
+    obs, d, normals, albedo = _shadowed_block(rng, per_pixel=per_pixel)
+    fast = fit_visibility(obs, d, normals, albedo)
+    ref = _reference_visibility(obs, d, normals, albedo)
+    assert fast.dtype == np.float64 and fast.shape == ref.shape
+    solved = np.linalg.norm(normals, axis=1) > 0.5
+    # shadows are fitted (not only the prior w = (0, 0, 0, 1)) on most of the pixels
+    assert np.mean(np.abs(ref[solved] - [0, 0, 0, 1]).max(axis=1) > 1e-3) > 0.5
+    scale = np.abs(ref).max(axis=1, keepdims=True)
+    assert np.all(np.abs(fast - ref) <= REFERENCE_TOL * np.maximum(scale, 1.0))
+
+
+@pytest.mark.parametrize("per_pixel", [False, True])
+@pytest.mark.parametrize("terms", [PS_TERMS, ("lambert", "ambient", "lobex:8", "lobey:8", "lobe:16",
+                                              "lobe:2.5", "hsh:1", "hsh:5")])
+def test_ps_fit_equals_the_per_pixel_reference(rng, per_pixel, terms):
+    obs, d, normals, albedo = _shadowed_block(rng, per_pixel=per_pixel)
+    vis = _reference_visibility(obs, d, normals, albedo)
+    for visibility in (vis, None):
+        fast = fit_ps(obs, d, normals, albedo, terms, visibility=visibility)
+        ref = _reference_ps(obs, d, normals, albedo, visibility, terms, PS_RIDGE)
+        assert fast.dtype == np.float32 and fast.shape == ref.shape
+        # the kernel's float64 result rounded once to float32: within half a float32 ulp of
+        # the reference plus the float64 difference
+        bound = 0.5 * EPS32 * np.abs(ref) + REFERENCE_TOL * np.abs(ref).max()
+        assert np.all(np.abs(fast - ref) <= bound)
+        solved = np.linalg.norm(normals, axis=1) > 0.5
+        observed = np.isfinite(obs).any(axis=0) & solved[:, None]  # (P, C): pixel 7's G is not
+        assert np.all(fast[~solved] == 0) and np.all(fast[~observed] == 0)
+        assert np.all(np.abs(fast[observed]).max(axis=1) > 0)
+
+
+def test_ps_block_from_float32_with_a_scale_equals_the_reference(rng):
+    # the reconstruction's path: the store's float32 observations, each light's divisor, the
+    # fused visibility and ps fit; unsolved pixels get V = 1 and no coefficients
+    from ps_lab.reconstruct._appearance_fit import fit_block
+
+    obs, d, normals, albedo = _shadowed_block(rng, pixels=200)
+    stored = obs.astype(np.float32)
+    factor = rng.uniform(0.5, 2.0, len(d))
+    part = slice(30, 170)
+    coeffs, vis = fit_block("ps", stored, d, normals=normals[part], albedo=albedo[part],
+                            pixels=part, scale=factor)
+    divided = stored[:, part].astype(np.float64) / factor[:, None, None]
+    ref_vis = _reference_visibility(divided, d, normals[part], albedo[part])
+    solved = np.linalg.norm(normals[part], axis=1) > 0.5
+    ref_vis[~solved] = (0.0, 0.0, 0.0, 1.0)
+    ref = _reference_ps(divided, d, normals[part], albedo[part], ref_vis, PS_TERMS, PS_RIDGE)
+    # x / s and x * (1 / s) differ by an ulp: the same bounds as above
+    assert vis.dtype == np.float32
+    assert np.allclose(vis, ref_vis, rtol=0.5 * EPS32, atol=REFERENCE_TOL * np.abs(ref_vis).max())
+    bound = 0.5 * EPS32 * np.abs(ref) + REFERENCE_TOL * np.abs(ref).max()
+    assert np.all(np.abs(coeffs - ref) <= bound)
+
+
+@pytest.mark.parametrize("model", ["ptm", "hsh3"])
+def test_linear_fit_equals_per_pixel_least_squares(rng, model):
+    obs, d, _, _ = _shadowed_block(rng, pixels=60)
+    obs[:, 20:] = np.nan_to_num(obs[:, 20:], nan=0.3, posinf=0.3)  # pixels 20.. all finite
+    basis = appearance_basis(model, d)
+    factor = rng.uniform(0.5, 2.0, len(d))
+    fast = fit_linear(model, obs.astype(np.float32), d, factor)
+    y = obs.astype(np.float32).astype(np.float64) / factor[:, None, None]
+    ref = np.zeros(fast.shape)
+    k = basis.shape[1]
+    for q in range(obs.shape[1]):
+        complete = np.isfinite(y[:, q]).all()  # a pixel with all its observations: lstsq
+        for ch in range(3):
+            good = np.isfinite(y[:, q, ch])
+            if complete:
+                ref[q, ch] = np.linalg.lstsq(basis, y[:, q, ch], rcond=None)[0]
+            else:  # normal equations on the finite ones, regularised by 1e-9 of the trace
+                b = basis[good]
+                gram = b.T @ b + 1e-9 * np.trace(basis.T @ basis) * np.eye(k)
+                ref[q, ch] = np.linalg.solve(gram, b.T @ y[good, q, ch])
+    cond = np.linalg.cond(basis)
+    bound = 0.5 * EPS32 * np.abs(ref) + 16 * len(d) * EPS * cond**2 * np.abs(ref).max()
+    assert np.all(np.abs(fast - ref) <= bound)
+
+
+def test_streamed_colour_fit_does_not_depend_on_the_threads(tmp_path, rng, monkeypatch):
+    from ps_lab.io.bands import ObservationStore, plan_bands
+    from ps_lab.io.coding import float_coding
+    from ps_lab.reconstruct import appearance as appearance_module
+
+    surface, lights, obs, mask = _glossy_scene(rng)
+    obs = obs.astype(np.float32)
+    obs[rng.random(obs.shape) < 0.01] = np.nan
+    monkeypatch.setattr(appearance_module, "FIT_CHUNK", 64)  # several blocks per band
+    bands = plan_bands(mask, 400)
+    store = ObservationStore(bands, len(lights), mask, in_memory=True, colours=3,
+                             coding=float_coding(3))
+    colour = np.zeros((len(lights), *mask.shape, 3), np.float32)
+    colour[:, mask] = obs
+    for i in range(len(lights)):
+        store.write_frame(i, colour[i], np.ones(mask.shape, bool))
+    np.save(tmp_path / "normals.npy", surface.normals.astype(np.float32))
+    np.save(tmp_path / "albedo.npy", surface.albedo.astype(np.float32))
+    scale = rng.uniform(0.8, 1.25, len(lights))
+    results = []
+    with store:
+        for workers in (1, 2):
+            appearance_module.fit_appearance_bands(store, tmp_path, "ps", lights, scale,
+                                                   workers=workers)
+            results.append(read_appearance(tmp_path))
+    one, two = results
+    assert np.array_equal(one.coefficients, two.coefficients)
+    assert np.array_equal(one.extra["visibility"], two.extra["visibility"])
+    # and the same numbers as the whole-array fit of the divided observations
+    whole = fit_appearance("ps", obs / scale[:, None, None], lights, mask,
+                           surface.normals[mask].astype(np.float32),
+                           surface.albedo[mask].astype(np.float32))
+    assert np.allclose(one.coefficients, whole.coefficients,
+                       atol=4 * EPS32 * np.abs(whole.coefficients).max())
+    assert np.allclose(one.extra["visibility"], whole.extra["visibility"], atol=4 * EPS32)
+
+
+def test_the_warm_up_compiles_every_type_the_ps_fits_pass(rng):
+    # The install step's two versions of the kernel (float32 from the store, float64) are all
+    # that the fits ever call: grey or colour, C or sliced or read-only observations, other
+    # dtypes, per-pixel directions, a given visibility, missing values, a divisor.
+    from ps_lab.reconstruct import _appearance_fit
+    from ps_lab.reconstruct._appearance_fit import fit_block
+    from ps_lab.reconstruct._warm_up import GROUPS
+
+    GROUPS["appearance"].run()
+    kernels = [v for v in vars(_appearance_fit).values() if hasattr(v, "signatures")]
+    warmed = {k.py_func.__name__: set(k.signatures) for k in kernels}
+    obs, d, normals, albedo = _shadowed_block(rng, pixels=50)
+    per_pixel = np.ascontiguousarray(np.broadcast_to(d[:, None], (len(d), 50, 3)))
+    read_only = obs.astype(np.float32)
+    read_only.flags.writeable = False
+    for o in (obs, obs.astype(np.float32), obs[:, 2:], obs[..., 0], read_only,
+              obs.astype(np.float16)):
+        p = o.shape[1]
+        rho = (albedo if o.ndim == 3 else albedo.mean(axis=1))[-p:]
+        for lights in (d, per_pixel[:, -p:]):
+            fit_visibility(o, lights, normals[-p:], rho)
+            fit_ps(o, lights, normals[-p:], rho, visibility=np.ones((p, 4)))
+            fit_block("ps", o, lights, normals=normals[-p:][1:5], albedo=rho[1:5],
+                      pixels=slice(1, 5), scale=np.full(len(d), 2.0))
+    assert {k.py_func.__name__: set(k.signatures) for k in kernels} == warmed
+    assert len(warmed["_ps_kernel"]) == 2
