@@ -255,8 +255,9 @@ class LocalBands:
         progress: Callable[[int], None],
         colours: int = 0,
         coding: Coding | None = None,
+        decoders: int | None = None,
     ) -> ObservationStore:
-        """Pass 1: :func:`ps_lab.io.bands.stage_observations` (frames decoded in threads)."""
+        """Pass 1: :func:`ps_lab.io.bands.stage_observations` (``decoders`` frames at once)."""
         return stage_observations(
             header,
             mask,
@@ -269,7 +270,7 @@ class LocalBands:
             progress=progress,
             colours=colours,
             coding=coding,
-            threads=self.threads,
+            threads=decoders or self.threads,
         )
 
     def solve(

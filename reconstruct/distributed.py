@@ -312,6 +312,7 @@ class DaskBands:
         progress: Callable[[int], None],
         colours: int = 0,
         coding=None,
+        decoders: int | None = None,
     ) -> ObservationStore:
         """Pass 1 as tasks: workers stage groups of lights into a file in ``folder``.
 

@@ -23,6 +23,7 @@ from __future__ import annotations
 import inspect
 import json
 import logging
+import os
 import time
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
@@ -415,6 +416,12 @@ def _stage(
         per_light * BYTES_PER_OBSERVATION + BYTES_PER_PIXEL)
     small = store_bytes + band_bytes <= IN_MEMORY_SHARE * budget
     in_memory = options.staging == "memory" or (options.staging == "auto" and small)
+    # frames decoded at once: each holds its codes (and a float copy when staged in float); as
+    # many as the cores while a quarter of the budget holds them and the one being stored
+    height, width = mask.shape
+    frame_bytes = height * width * coding.channels * (coding.itemsize + (0 if coding.coded else 8))
+    cores = int(options.threads) if options.threads else (os.cpu_count() or 1)
+    decoders = int(max(1, min(cores, budget // 4 // max(frame_bytes, 1) - 1)))
     with bars(n, "reading images") as advance:
         store = executor.stage(
             header,
@@ -428,6 +435,7 @@ def _stage(
             progress=advance,
             colours=colours,
             coding=coding,
+            decoders=decoders,
         )
     store.budget = budget
     log.info(
