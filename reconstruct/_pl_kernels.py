@@ -45,6 +45,30 @@ from numba import njit
 
 from . import _kernels
 from ._kernels import INLINE, VECTOR, TileResult, _light_table, _sbl_pixel
+from ._pl_design import (  # noqa: F401 (MAX_SEGMENTS and the rows are read from here too)
+    _W,
+    _LAM0,
+    _LAM,
+    _G,
+    _D,
+    _Z,
+    _R,
+    _Q,
+    _SEG,
+    _T,
+    STATE_ROWS,
+    MAX_SEGMENTS,
+    MIN_PER_SEGMENT,
+    SLOPE_FLOOR,
+    TAU_FLOOR,
+    _usable,
+    _breaks,
+    _design3,
+    _design,
+    _normal_equations,
+    _prior,
+    _slopes,
+)
 from ._pl_algebra import (
     _bend_score,
     _cholesky_inverse,
@@ -56,16 +80,6 @@ from ._pl_algebra import (
     chi2_quantiles,
 )
 
-# Rows of the per-pixel state: usable (1/0), observation noise in y units, in f units, gamma,
-# d = w / (gamma + lambda), corruption estimate of the last iteration, residual, a^T M^-1 a,
-# segment of the observation, target t.
-_W, _LAM0, _LAM, _G, _D, _Z, _R, _Q, _SEG, _T = range(10)
-STATE_ROWS = 10
-MAX_SEGMENTS = 8
-MIN_PER_SEGMENT = 4
-# Smallest slope (times 1/K) used for an observation's noise and the Jacobian.
-SLOPE_FLOOR = 1e-3
-TAU_FLOOR = 1e-10
 # The default's choice: PL-SBL replaces SBL where its leave-one-out gain exceeds this many standard
 # errors of the gain (the one-standard-error rule of model selection, docs/solvers.md).
 CHOICE_Z = 1.0
@@ -76,164 +90,6 @@ CHOICE_PER_UNKNOWN = 4
 # The Lambertian model's score test: PL-SBL (which nests it) is fitted and compared only
 # where the score statistic of SBL's fit exceeds its chi^2 quantile at this false-alarm rate.
 GATE_FALSE_ALARM = 0.01
-
-
-@njit(**INLINE)
-def _usable(y, w, p, n, vals):
-    """Pack pixel p's usable observations into ``vals[:count]`` (no branch); their count."""
-    cnt = 0
-    for i in range(n):
-        vals[cnt] = y[p, i]  # a dropped one is overwritten by the next
-        cnt += w[p, i] > 0.0
-    return cnt
-
-
-@njit(**INLINE)
-def _breaks(vals, cnt, k, breaks):
-    """Break points of ``k`` segments from the ``cnt`` usable observations in ``vals``.
-
-    ``b_0 = 0``, ``b_j`` the ``(j cnt) // k``-th smallest (a selection: ``vals`` is reordered),
-    ``b_k`` the largest.
-    """
-    breaks[0] = 0.0
-    top = vals[0]
-    for i in range(1, cnt):
-        top = vals[i] if vals[i] > top else top
-    breaks[k] = top
-    # the order statistics (j cnt) // K, increasing, each selected in the part right of the last
-    lo = 0
-    for j in range(1, k):
-        kth = (j * cnt) // k
-        breaks[j] = _select(vals, lo, cnt, kth)
-        lo = kth
-
-
-@njit(**INLINE)
-def _design3(y, w, lights, p, lam_row, scale2, gamma, sbl, st, tab, breaks):
-    """:func:`_design` and the start of the state for three segments, one vectorised pass.
-
-    The same numbers as the generic path: design rows (0-4), target, segment, and each
-    observation's noise (``lam_row``; times ``scale2`` in ``f``'s units), variance ``gamma`` and
-    weight ``d`` (``gamma`` left out of ``d`` without ``sbl``).
-    """
-    n = y.shape[1]
-    b1 = breaks[1]
-    b2 = breaks[2]
-    w0 = b1 - breaks[0]
-    w1 = b2 - b1
-    w2 = breaks[3] - b2
-    lo0 = breaks[0]
-    g_d = gamma if sbl else 0.0
-    for i in range(n):
-        yi = y[p, i]
-        wi = w[p, i]
-        ph = yi - b2
-        ph = ph if ph > 0.0 else 0.0
-        ph = ph if ph < w2 else w2
-        t = -ph * wi
-        st[_T, i] = t
-        st[_W, i] = wi
-        st[_SEG, i] = (1.0 if yi > b1 else 0.0) + (1.0 if yi > b2 else 0.0)
-        ph = yi - lo0
-        ph = ph if ph > 0.0 else 0.0
-        ph = ph if ph < w0 else w0
-        tab[0, i] = ph * wi + t
-        ph = yi - b1
-        ph = ph if ph > 0.0 else 0.0
-        ph = ph if ph < w1 else w1
-        tab[1, i] = ph * wi + t
-        tab[2, i] = -lights[i, 0] * wi
-        tab[3, i] = -lights[i, 1] * wi
-        tab[4, i] = -lights[i, 2] * wi
-        lam = lam_row[i]
-        st[_LAM0, i] = lam
-        st[_LAM, i] = lam * scale2
-        st[_G, i] = gamma
-        st[_D, i] = wi / (g_d + lam * scale2)
-        st[_Z, i] = 0.0
-
-
-@njit(**INLINE)
-def _design(y, w, lights, p, k, st, tab, breaks):
-    """Design rows and products of pixel p for ``k`` segments (``breaks``: :func:`_breaks`)."""
-    n = y.shape[1]
-    u = k + 2
-    ns = k - 1
-    # phi_j(y) = clip(y - b_j, 0, b_{j+1} - b_j), one vectorised loop per segment; the last
-    # segment's phi is the target (in row _T, negated), the others are differences to it
-    lo = breaks[ns]
-    width = breaks[k] - lo
-    for i in range(n):
-        ph = y[p, i] - lo
-        ph = ph if ph > 0.0 else 0.0
-        ph = ph if ph < width else width
-        st[_T, i] = -ph * w[p, i]
-        st[_W, i] = w[p, i]
-        st[_SEG, i] = 0.0
-    for j in range(ns):
-        lo = breaks[j]
-        width = breaks[j + 1] - lo
-        cut = breaks[j + 1]
-        for i in range(n):
-            ph = y[p, i] - lo
-            ph = ph if ph > 0.0 else 0.0
-            ph = ph if ph < width else width
-            tab[j, i] = ph * w[p, i] + st[_T, i]
-            st[_SEG, i] += 1.0 if y[p, i] > cut else 0.0
-    for i in range(n):
-        wi = w[p, i]
-        tab[ns, i] = -lights[i, 0] * wi
-        tab[ns + 1, i] = -lights[i, 1] * wi
-        tab[ns + 2, i] = -lights[i, 2] * wi
-    # products a_a^T (upper triangle, row-major) on rows u .. u + u(u+1)/2
-    e = u
-    for r in range(u):
-        for c in range(r, u):
-            for i in range(n):
-                tab[e, i] = tab[r, i] * tab[c, i]
-            e += 1
-
-
-@njit(**INLINE)
-def _normal_equations(st, tab, n, u, mat, rhs, prior, prior_rhs):
-    e = u
-    for r in range(u):
-        acc = 0.0
-        for i in range(n):
-            acc += st[_D, i] * st[_T, i] * tab[r, i]
-        rhs[r] = prior_rhs[r] + acc
-        for c in range(r, u):
-            acc = 0.0
-            for i in range(n):
-                acc += st[_D, i] * tab[e, i]
-            mat[r, c] = prior[r, c] + acc
-            mat[c, r] = mat[r, c]
-            e += 1
-
-
-@njit(**INLINE)
-def _prior(k, tau2, ridge, prior, prior_rhs):
-    """Prior precision of x: ``(I + 11^T) / tau2`` on the free slopes, ``ridge`` on the normal."""
-    u = k + 2
-    ns = k - 1
-    for r in range(u):
-        prior_rhs[r] = 1.0 / tau2 if r < ns else 0.0
-        for c in range(u):
-            if r < ns and c < ns:
-                prior[r, c] = (2.0 if r == c else 1.0) / tau2
-            elif r == c:
-                prior[r, c] = ridge
-            else:
-                prior[r, c] = 0.0
-
-
-@njit(**INLINE)
-def _slopes(x, k, slopes):
-    last = 1.0
-    for j in range(k - 1):
-        slopes[j] = x[j]
-        last -= x[j]
-    slopes[k - 1] = last
 
 
 @njit(**INLINE)

@@ -695,12 +695,13 @@ def test_the_warm_up_compiles_every_type_the_ps_fits_pass(rng):
     # The install step's two versions of the kernel (float32 from the store, float64) are all
     # that the fits ever call: grey or colour, C or sliced or read-only observations, other
     # dtypes, per-pixel directions, a given visibility, missing values, a divisor.
-    from ps_lab.reconstruct import _appearance_fit
+    from ps_lab.reconstruct import _ps_kernel, _ps_terms
     from ps_lab.reconstruct._appearance_fit import fit_block
     from ps_lab.reconstruct._warm_up import GROUPS
 
     GROUPS["appearance"].run()
-    kernels = [v for v in vars(_appearance_fit).values() if hasattr(v, "signatures")]
+    kernels = [v for module in (_ps_kernel, _ps_terms) for v in vars(module).values()
+               if hasattr(v, "signatures")]
     warmed = {k.py_func.__name__: set(k.signatures) for k in kernels}
     obs, d, normals, albedo = _shadowed_block(rng, pixels=50)
     per_pixel = np.ascontiguousarray(np.broadcast_to(d[:, None], (len(d), 50, 3)))

@@ -67,6 +67,18 @@ def test_bands_cover_the_image_within_the_pixel_limit(max_pixels):
     assert sum(b.pixel_count for b in bands) == mask.sum()
 
 
+def _assert_store_is(store, data, mask) -> None:
+    """Every band of ``store`` and its noise sample are ``data``'s (load_dataset) bit for bit."""
+    for band in store.bands:
+        observations, valid = store.read(band)
+        rows = slice(band.row_start, band.row_stop)
+        inside = mask[rows]
+        np.testing.assert_array_equal(observations, data.images[:, rows][:, inside])
+        np.testing.assert_array_equal(valid, data.valid[:, rows][:, inside])
+    np.testing.assert_array_equal(store.sample_observations,
+                                  data.images[:, mask][:, store.sample_index])
+
+
 @pytest.mark.parametrize("colour", [False, True])
 @pytest.mark.parametrize("in_memory", [False, True])
 @pytest.mark.parametrize("max_pixels", [5, 97, 100_000])
@@ -84,15 +96,7 @@ def test_store_equals_load_dataset_bit_for_bit(tmp_path, colour, in_memory, max_
             folder=tmp_path, in_memory=in_memory, sample_pixels=50,
         ) as store:  # fmt: skip
             assert (store.path is None) == in_memory
-            for band in bands:
-                observations, valid = store.read(band)
-                rows = slice(band.row_start, band.row_stop)
-                inside = mask[rows]
-                np.testing.assert_array_equal(observations, data.images[:, rows][:, inside])
-                np.testing.assert_array_equal(valid, data.valid[:, rows][:, inside])
-            everything = data.images[:, mask]
-            sample = everything[:, store.sample_index]
-            np.testing.assert_array_equal(store.sample_observations, sample)
+            _assert_store_is(store, data, mask)
             assert store.sample_index.size == 50
         assert not list(tmp_path.glob("ps-lab-observations-*"))  # closed: file deleted
 
@@ -134,14 +138,7 @@ def test_store_of_codes_equals_load_dataset_bit_for_bit(tmp_path, suffix, colour
             assert store.coding.dtype == dtype
             channels = 3 if colour else 1
             assert store.nbytes == N_LIGHTS * int(mask.sum()) * channels * np.dtype(dtype).itemsize
-            for band in bands:
-                observations, valid = store.read(band)
-                rows = slice(band.row_start, band.row_stop)
-                inside = mask[rows]
-                np.testing.assert_array_equal(observations, data.images[:, rows][:, inside])
-                np.testing.assert_array_equal(valid, data.valid[:, rows][:, inside])
-            np.testing.assert_array_equal(store.sample_observations,
-                                          data.images[:, mask][:, store.sample_index])
+            _assert_store_is(store, data, mask)
         if suffix == ".jpg":
             assert not data.valid[:, mask].all()  # the clipped highlights are dropped
 
