@@ -141,7 +141,10 @@ def parse_memory_budget(text: str) -> int | None:
     size (:func:`parse_memory_size`)."""
     if str(text).strip().lower() == "auto":
         return None
-    return parse_memory_size(text)
+    try:
+        return parse_memory_size(text)
+    except OutputError as exc:
+        raise OutputError(str(exc).replace("expected a size", "expected auto or a size")) from None
 
 
 def band_pixels(memory_budget: int, n_lights: int) -> int:
