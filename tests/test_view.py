@@ -278,9 +278,13 @@ def lambertian(browser) -> None:
 
 
 def settle(browser) -> None:
+    """Redraw, wait until the viewer is idle with a new frame drawn and that frame presented."""
     frames = browser.evaluate("psView.stats.frames")
     browser.evaluate("psView.redraw()")
     browser.wait_for(f"psView.idle() && psView.stats.frames > {frames}", timeout=20)
+    # the drawn frame on screen (two animation frames: composited)
+    browser.evaluate("new Promise(r => requestAnimationFrame(() => requestAnimationFrame(r)))")
+    browser.wait_for("psView.idle()", timeout=20)
 
 
 def check_relight(browser, result: Path, panel: int = 0) -> dict:

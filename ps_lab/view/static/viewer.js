@@ -662,15 +662,18 @@ window.psView = {
   setOrbit(orbit) { Object.assign(state.orbit, orbit); redraw(); },
   set(options) { Object.assign(state, options); drawLightWidget(); redraw(); },
   results: () => results.map(({ tiles, meshState, ...r }) => r),
-  panels: () => panels().map((p) => { const d = window.devicePixelRatio || 1; const box = canvas.getBoundingClientRect(); return { x: box.left + p.x / d, y: box.top + p.y / d, w: p.w / d, h: p.h / d }; }),
+  // Each reads the layout as it is now (resize() first): a control shown after the results load
+  // (the appearance switch) can wrap the toolbar and shrink the canvas before the next frame.
+  panels: () => { resize(); return panels().map((p) => { const d = window.devicePixelRatio || 1; const box = canvas.getBoundingClientRect(); return { x: box.left + p.x / d, y: box.top + p.y / d, w: p.w / d, h: p.h / d }; }); },
   // CSS position of level-0 image pixel (x, y)'s centre in panel i.
   imageToClient(i, x, y) {
+    resize();
     const d = window.devicePixelRatio || 1, box = canvas.getBoundingClientRect(), p = panels()[i];
     const [px, py] = imageToPanel(results[i], p, x + 0.5, y + 0.5);
     return [box.left + (p.x + px) / d, box.top + (p.y + py) / d];
   },
   // Zoom so that one image pixel is `s` device pixels in panel i.
-  pixelScale(i, s) { const p = panels()[i], r = results[i]; state.view.zoom = s / Math.min(p.w / r.width, p.h / r.height); redraw(); },
+  pixelScale(i, s) { resize(); const p = panels()[i], r = results[i]; state.view.zoom = s / Math.min(p.w / r.width, p.h / r.height); redraw(); },
   probe(i, x, y) { return probeAt(results[i], x, y); },
   idle() { return !dirty && stats.refined && stats.pending === 0 && results.every((r) => !r.mesh || state.mode !== "mesh" || (r.meshState && r.meshState.ready)); },
   ready: null,
