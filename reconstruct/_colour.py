@@ -16,9 +16,7 @@ from pathlib import Path
 import numpy as np
 from numba import njit
 
-from ps_lab.io.dataset import DatasetHeader
 from ps_lab.io.encoding import linear_to_srgb
-from ps_lab.io.images import read_image
 from ps_lab.io.normal_maps import write_rgb_exr
 
 # Pixels per block of the kernel (its float64 accumulators and shading rows stay in the L2 cache):
@@ -37,7 +35,6 @@ _SRGB_SHIFT = 12
 __all__ = [
     "colour_albedo",
     "colour_albedo_picture",
-    "frame_channels",
     "grey_albedo",
     "write_albedo_exr",
 ]
@@ -296,12 +293,6 @@ def grey_albedo(albedo: np.ndarray, channel: str) -> np.ndarray:
         return albedo[..., 0]
     pick = {"r": 0, "g": 1, "b": 2}
     return albedo.mean(axis=-1) if channel not in pick else albedo[..., pick[channel]]
-
-
-def frame_channels(header: DatasetHeader) -> int:
-    """Colour channels of the dataset's frames: 3 for colour, 1 for grey (reads light 1)."""
-    image = read_image(header.plan.light_files[0][0], header.plan.encoding)
-    return 3 if image.data.ndim == 3 and image.data.shape[-1] >= 3 else 1
 
 
 def colour_albedo_picture(

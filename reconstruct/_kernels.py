@@ -38,12 +38,9 @@ class TileResult:
 
 def ls_tile(y, w, lights, *, outlier_threshold: float) -> TileResult:
     """Woodham's least squares on the usable observations; it flags no outliers."""
-    m = y.shape[0]
-    x = np.zeros((m, 3))
-    y, w = np.require(y, np.float64, "CW"), np.require(w, np.float64, "CW")  # numba: one version
-    if m:
-        _ls_kernel(y, w, light_table(np.asarray(lights, np.float64)), x)
-    return TileResult(x, np.zeros(y.shape, bool), np.ones(m, np.int64))
+    inv, _ = inverse6(w @ outer6(lights), 0.0)
+    x = apply6(inv, (w * y) @ lights)
+    return TileResult(x, np.zeros(y.shape, bool), np.ones(y.shape[0], np.int64))
 
 
 @njit(nogil=True, cache=True)
@@ -199,19 +196,6 @@ def l1_tile(y, w, lights, *, max_iter: int, tol: float, delta: float,
     _l1_kernel(y, w, light_table(lights), int(max_iter), float(tol), float(delta),
                float(outlier_threshold), x, outliers, iters)
     return TileResult(x, outliers, iters)
-
-
-@njit(nogil=True, cache=True, **VECTOR)
-def _ls_kernel(y, w, tab, x_out):
-    """Per pixel ``x = (sum_i w_i a_i a_i^T)^-1 sum_i w_i y_i a_i`` (zeros when singular)."""
-    m, n = y.shape
-    st = np.zeros((STATE_ROWS, n))
-    for p in range(m):
-        for i in range(n):
-            st[_Y, i] = y[p, i]
-            st[_V, i] = w[p, i]
-        x0, x1, x2 = _weighted_fit(st, tab, n)
-        x_out[p, 0], x_out[p, 1], x_out[p, 2] = x0, x1, x2
 
 
 @njit(**INLINE)

@@ -210,7 +210,7 @@ def _store_kernel(a, y, w, scale, ok, x, flags, iters, segs, lights, normals, al
 def ls_tiles(obs, usable, lights, a, b, normals, albedo, iterations):
     """Least squares of pixels a:b straight from the observations into the outputs.
 
-    What :func:`_prepare_tile`, :func:`._kernels.ls_tile` and :func:`_store_tile` give (the
+    What :func:`_prepare_tile`, :func:`._kernels.ls_tile` and :func:`_store_tile` would give (the
     normals do not depend on the pixel's scale, so none is taken; the mean magnitude decides
     solvability, as there), in one pass per pixel: least squares is a few sums, and the three
     passes over a float64 copy of the tile cost ten times its arithmetic. No outliers.

@@ -342,6 +342,7 @@ class DaskBands:
                     shadow_threshold=shadow_threshold,
                     sample_pixels=sample_pixels,
                     colours=colours,
+                    channels=store.coding.channels,
                     key=f"ps-lab-stage-{self.token}-{lights[0]}",
                 )
                 for lights in (list(range(a, min(a + per_task, n))) for a in range(0, n, per_task))

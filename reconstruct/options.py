@@ -26,9 +26,7 @@ __all__ = [
     "BYTES_PER_OBSERVATION",
     "BYTES_PER_PIXEL",
     "COLOUR_BYTES_PER_OBSERVATION",
-    "DEFAULT_MEMORY_BUDGET",
     "DEFAULT_MEMORY_SHARE",
-    "IN_MEMORY_SHARE",
     "MAX_BAND_PIXELS",
     "LIGHT_MODELS",
     "NEAR_BYTES_PER_OBSERVATION",
@@ -46,8 +44,6 @@ __all__ = [
 DEFAULT_MEMORY_SHARE = 0.5
 MIN_AUTO_BUDGET = 256 << 20
 MAX_AUTO_BUDGET = 64 << 30
-#: The budget of an explicit ``--memory-budget`` when none is given to the library (tests).
-DEFAULT_MEMORY_BUDGET = 1 << 30
 #: A band holds at most this many mask pixels whatever the budget: a band's solve is cut into
 #: tiles anyway, so larger bands only hold more memory (R-PCA, fitted per band, is not capped).
 MAX_BAND_PIXELS = 1 << 18
@@ -59,8 +55,6 @@ BYTES_PER_OBSERVATION = 12
 COLOUR_BYTES_PER_OBSERVATION = 12
 # Bytes per pixel of a band: the solver's per-pixel results and the band's output images.
 BYTES_PER_PIXEL = 200
-# The store stays in memory when it and one band's work fit the budget; else a temporary file.
-IN_MEMORY_SHARE = 1.0
 _SIZE_UNITS = {"": 1 << 20, "k": 1 << 10, "m": 1 << 20, "g": 1 << 30, "t": 1 << 40}
 STAGING = ("auto", "memory", "file")
 LIGHT_MODELS = ("auto", "near", "directional")

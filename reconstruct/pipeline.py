@@ -79,8 +79,6 @@ from ps_lab.reconstruct.options import (
     BYTES_PER_OBSERVATION,
     BYTES_PER_PIXEL,
     COLOUR_BYTES_PER_OBSERVATION,
-    DEFAULT_MEMORY_BUDGET,
-    IN_MEMORY_SHARE,
     MAX_BAND_PIXELS,
     NEAR_BYTES_PER_OBSERVATION,
     SOLVER_OPTIONS,
@@ -94,7 +92,6 @@ from ps_lab.reconstruct.options import (
 __all__ = [
     "BYTES_PER_OBSERVATION",
     "BYTES_PER_PIXEL",
-    "DEFAULT_MEMORY_BUDGET",
     "ERROR_BIN_DEG",
     "METRICS",
     "RESULT_FORMAT",
@@ -223,8 +220,10 @@ def reconstruct_to_folder(
     with _band_executor(options) as executor, staged_folder(
         out, check=check_output_folder, error=OutputError
     ) as stage:
+        budget = (options.memory_budget if options.memory_budget is not None
+                  else auto_memory_budget())
         with clock("decode and stage"):
-            store = _stage(source, options, stage, bars, executor)
+            store = _stage(source, options, budget, stage, bars, executor)
         timings["read_seconds"] = time.perf_counter() - started
         warm_up.join()
         with store:
@@ -243,7 +242,8 @@ def reconstruct_to_folder(
             timings["solve_seconds"] = solved.seconds
             written = time.perf_counter()
             with clock("outputs"):
-                metrics = _write_results(writer, stage, source, options, store, solved, timings)
+                metrics = _write_results(writer, stage, source, options, store, solved, timings,
+                                         budget)
             with clock("appearance"):
                 metrics["appearance"] = fit_appearance_bands(
                     store, stage, options.appearance, *_solved_lights(source, solved),
@@ -384,18 +384,17 @@ def _band_executor(options: ReconstructOptions) -> Iterator[Any]:
 
 
 def _stage(
-    source: SolveInput, options: ReconstructOptions, stage: Path, bars, executor
+    source: SolveInput, options: ReconstructOptions, budget: int, stage: Path, bars, executor
 ) -> ObservationStore:
     """Stage 2: decode every frame once into a row-band store (in memory or a file in ``stage``).
 
-    The budget (``options.memory_budget``, or :func:`auto_memory_budget` now) holds the store
-    when it fits beside one band's work, else the store goes to a temporary file; bands hold at
-    most :data:`MAX_BAND_PIXELS` mask pixels (fewer when the budget says so).
+    The budget (``options.memory_budget``, or :func:`auto_memory_budget` at the start) holds the
+    store when it fits beside one band's work, else the store goes to a temporary file; bands
+    hold at most :data:`MAX_BAND_PIXELS` mask pixels (fewer when the budget says so).
     """
     started = time.perf_counter()
     header, mask = source.header, source.mask
     n = len(header.names)
-    budget = options.memory_budget if options.memory_budget is not None else auto_memory_budget()
     coding = frame_coding(header.plan)
     extra = 0 if source.near is None else NEAR_BYTES_PER_OBSERVATION // BYTES_PER_OBSERVATION
     # colour frames: the three channels are read beside the solve channel (colour albedo)
@@ -414,7 +413,7 @@ def _stage(
     store_bytes = n * (values + (bits * pixels + 7 * len(bands)) // 8)
     band_bytes = max(band.pixel_count for band in bands) * (
         per_light * BYTES_PER_OBSERVATION + BYTES_PER_PIXEL)
-    small = store_bytes + band_bytes <= IN_MEMORY_SHARE * budget
+    small = store_bytes + band_bytes <= budget
     in_memory = options.staging == "memory" or (options.staging == "auto" and small)
     # frames decoded at once: each holds its codes (and a float copy when staged in float); as
     # many as the cores while a quarter of the budget holds them and the one being stored
@@ -437,7 +436,6 @@ def _stage(
             coding=coding,
             decoders=decoders,
         )
-    store.budget = budget
     log.info(
         "read %d images (%dx%d, %d mask pixels) in %.1f s: %d bands of at most %d pixels, "
         "%.2f GB staged in %s (%s), memory budget %.2f GB%s",
@@ -472,6 +470,7 @@ def _write_results(
     store: ObservationStore,
     solved: Solved,
     timings: dict[str, float],
+    budget: int,
 ) -> dict:
     """Stage 4: pictures and light tables; return the metrics (``metrics.json`` comes after)."""
     try:
@@ -506,7 +505,7 @@ def _write_results(
     metrics["streaming"] = {
         "bands": len(store.bands),
         "max_band_pixels": max(band.pixel_count for band in store.bands),
-        "memory_budget_bytes": store.budget,
+        "memory_budget_bytes": budget,
         "memory_budget": ("auto: half the available memory" if options.memory_budget is None
                           else "given"),
         "staging": "file" if store.path is not None else "memory",

@@ -13,7 +13,7 @@ from ps_lab.reconstruct._warm_up import METHOD_GROUPS, CompileNotice, warm_all
 
 KERNELS = (_kernels._l1_kernel, _kernels._sbl_kernel, _pl_kernels._pl_kernel,
            _near_kernels._l1_kernel_pp, _near_kernels._sbl_kernel_pp, coding._observe,
-           _tiles._prepare_kernel, _tiles._store_kernel, _tiles._ls_direct, _kernels._ls_kernel)
+           _tiles._prepare_kernel, _tiles._store_kernel, _tiles._ls_direct)
 
 
 def _signatures() -> dict[str, set]:

@@ -364,10 +364,10 @@ class ObservationStore:
         size = int(np.prod(shape))
         if not reuse:
             return np.empty(shape, dtype)
-        largest = max((band.pixel_count for band in self.bands), default=0)
         found = self._buffers.get(name)
-        if found is None:
-            found = np.empty(size // max(shape[1], 1) * largest if len(shape) > 1 else size, dtype)
+        if found is None:  # sized for the largest band: shape[1] is the band's pixels
+            largest = max((band.pixel_count for band in self.bands), default=0)
+            found = np.empty(int(np.prod((shape[0], largest, *shape[2:]))), dtype)
             self._buffers[name] = found
         return found[:size].reshape(shape)
 
@@ -541,6 +541,7 @@ def stage_lights(
     shadow_threshold: float | None = None,
     sample_pixels: int = 20000,
     colours: int = 0,
+    channels: int = 1,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Stage some lights into an existing store file (one task of a distributed pass 1).
 
@@ -554,6 +555,8 @@ def stage_lights(
     ----------
     header, mask, bands, channel, shadow_threshold, sample_pixels, colours
         As for :func:`stage_observations` (the same values as the process that made the store).
+    channels : int
+        Channels of the frames (the store's :class:`ps_lab.io.coding.Coding`).
     lights : list of int
         Light indices to stage.
     path : Path
@@ -573,7 +576,7 @@ def stage_lights(
     frames = iter_frames(header.plan, lights, common_exposure=common_exposure)
     with ObservationStore(
         bands, len(header.names), mask, sample_pixels=sample_pixels, path=path, colours=colours,
-        coding=float_coding(_channels(header)),
+        coding=float_coding(channels),
         rule=observe_rule(header.light_intensities, channel, shadow_threshold),
     ) as store:
         _stage_frames(store, header, ((f, ~c) for f, c in frames), None, lights)
@@ -600,7 +603,3 @@ def _stage_frames(store, header, frames, progress, lights=None) -> None:
         if progress is not None:
             progress(1)
 
-
-def _channels(header: DatasetHeader) -> int:
-    """Channels of the dataset's frames (light 1's file)."""
-    return frame_coding(header.plan).channels

@@ -30,8 +30,8 @@ from pathlib import Path
 import numpy as np
 
 from ps_lab.errors import DatasetError
-from ps_lab.io.coding import combine
 from ps_lab.io.camera import CameraModel, undistort_frame
+from ps_lab.io.coding import combine
 from ps_lab.io.frames import (
     FramePlan,
     check_dataset_folder,
@@ -404,7 +404,7 @@ def observe(
         Not saturated, and above the shadow threshold when one is given.
 
     """
-    observations = combine_channels(frame, intensity, channel)
+    observations = combine(frame, intensity, channel)
     valid = np.logical_not(saturated)
     if shadow_threshold is not None:
         valid &= observations > np.float32(shadow_threshold)
@@ -574,27 +574,6 @@ def _common_image_size(plan: FramePlan) -> tuple[int, int]:
                     f"({common[1]}x{common[0]})"
                 )
     return common
-
-
-def combine_channels(image: np.ndarray, intensity: np.ndarray, channel: str = "mean") -> np.ndarray:
-    """Divide each channel by the light's intensity, then reduce to one value per pixel.
-
-    Parameters
-    ----------
-    image : ndarray of shape (H, W, C)
-        C = 1 or 3.
-    intensity : ndarray of shape (3,)
-        The light's RGB intensity.
-    channel : {"mean", "r", "g", "b"}
-        Average the divided channels, or keep one.
-
-    Returns
-    -------
-    ndarray of shape (H, W), float32
-        :func:`ps_lab.io.coding.combine` (the observation store's rule, bit for bit).
-
-    """
-    return combine(image, intensity, channel)
 
 
 def _ratio(numerator: float | None, denominator: float | None) -> float:
