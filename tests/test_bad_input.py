@@ -34,97 +34,21 @@ import numpy as np
 import pytest
 import tifffile
 
-PS_LAB = os.environ.get("PS_LAB_EXE") or str(Path(sys.executable).with_name("ps-lab"))
-IS_ROOT = hasattr(os, "geteuid") and os.geteuid() == 0
-ANSI = re.compile(r"\x1b\[[0-9;?]*[A-Za-z]")
+from helpers.hostile import (  # noqa: E402 - the sweeps' runner
+    IS_ROOT,
+    PS_LAB,
+    Result,
+    _alive,
+    assert_one_error_line,
+    environment,
+    finish,
+    run,
+    snapshot,
+    start,
+    wait_until,
+)
+
 MiB = 1 << 20
-
-
-# --- running the CLI -------------------------------------------------------------------------
-
-
-@dataclass
-class Result:
-    code: int
-    stdout: str
-    stderr: str
-    max_rss: int  # bytes
-
-    @property
-    def lines(self) -> list[str]:
-        return [line for line in ANSI.sub("", self.stderr).splitlines() if line.strip()]
-
-
-def _env(home: Path) -> dict[str, str]:
-    env = {k: v for k, v in os.environ.items() if k not in ("FORCE_COLOR", "PY_COLORS")}
-    env.update(XDG_CACHE_HOME=str(home / "cache"), COLUMNS="100", NO_COLOR="1")
-    return env
-
-
-def start(args: list[str], cwd: Path, home: Path) -> tuple[subprocess.Popen, Path, Path]:
-    """Start ``ps-lab args`` with stdout/stderr to files (so that wait4 gives its rusage)."""
-    out, err = home / "stdout.txt", home / "stderr.txt"
-    with out.open("wb") as o, err.open("wb") as e:
-        proc = subprocess.Popen(
-            [PS_LAB, *args],
-            cwd=cwd,
-            stdout=o,
-            stderr=e,
-            stdin=subprocess.DEVNULL,
-            env=_env(home),
-        )
-    return proc, out, err
-
-
-def finish(proc: subprocess.Popen, out: Path, err: Path, timeout: float = 120) -> Result:
-    deadline = time.monotonic() + timeout
-    while True:
-        pid, status, usage = os.wait4(proc.pid, os.WNOHANG)
-        if pid:
-            break
-        if time.monotonic() > deadline:
-            proc.kill()
-            pid, status, usage = os.wait4(proc.pid, 0)
-            break
-        time.sleep(0.02)
-    code = os.waitstatus_to_exitcode(status)
-    proc.returncode = code
-    return Result(
-        code,
-        out.read_text(errors="replace"),
-        err.read_text(errors="replace"),
-        usage.ru_maxrss * 1024,
-    )
-
-
-def run(args: list[str], cwd: Path, home: Path, timeout: float = 120) -> Result:
-    proc, out, err = start(args, cwd, home)
-    return finish(proc, out, err, timeout)
-
-
-def snapshot(folder: Path) -> dict[str, tuple]:
-    """Names, kinds, sizes and mtimes of everything under ``folder`` (links not followed)."""
-    entries: dict[str, tuple] = {}
-    for dirpath, dirnames, filenames in os.walk(folder, followlinks=False):
-        for name in dirnames + filenames:
-            path = Path(dirpath, name)
-            st = path.lstat()
-            kind = "d" if path.is_dir() and not path.is_symlink() else "f"
-            entries[str(path.relative_to(folder))] = (
-                (kind,) if kind == "d" else (kind, st.st_size, st.st_mtime_ns)
-            )
-    return entries
-
-
-def assert_one_error_line(result: Result, names: tuple[str, ...], code: int = 2) -> str:
-    text = ANSI.sub("", result.stderr)
-    assert "Traceback" not in text, text
-    assert result.code == code, f"exit {result.code}, stderr:\n{text}"
-    assert len(result.lines) == 1, f"expected one line on stderr, got:\n{text}"
-    line = result.lines[0]
-    assert line.startswith("error:"), line
-    assert any(name in line for name in names), f"{line!r} names none of {names}"
-    return line
 
 
 # --- making datasets ---------------------------------------------------------------------------
@@ -1331,22 +1255,6 @@ def test_bad_input(case: Case, table: dict[str, Outcome]) -> None:
 # --- signals -------------------------------------------------------------------------------------
 
 
-def _alive(pid: int) -> bool:
-    try:
-        state = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0]
-    except OSError:
-        return False
-    return state != "Z"
-
-
-def wait_until(predicate: Callable[[], bool], proc: subprocess.Popen, timeout: float = 90) -> None:
-    deadline = time.monotonic() + timeout
-    while not predicate():
-        assert _alive(proc.pid), "the command ended before the signal could be sent"
-        assert time.monotonic() < deadline, "timed out waiting for the command to get going"
-        time.sleep(0.005)
-
-
 def staging_folders(folder: Path) -> list[Path]:
     return [
         p for p in folder.rglob(".*") if ".partial-" in p.name or p.name.startswith(".calibrate-")
@@ -1559,7 +1467,7 @@ def test_a_bug_is_one_line_naming_the_log(verbose, workspace) -> None:
         cwd=workspace.root,
         capture_output=True,
         text=True,
-        env=_env(workspace.home),
+        env=environment(workspace.home),
         timeout=120,
     )
     assert result.returncode == 2, result.stderr

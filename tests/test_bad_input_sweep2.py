@@ -34,47 +34,22 @@ import numpy as np
 import pytest
 
 sys.path.insert(0, str(Path(__file__).parent))
-from test_bad_input import (  # noqa: E402 - the runner of the first sweep
+from helpers.hostile import (  # noqa: E402 - the sweeps' runner
     IS_ROOT,
     PS_LAB,
-    SMALL_RIG,
     Result,
     assert_one_error_line,
+    environment,
     finish,
-    png_chunk,
+    run,
     snapshot,
+    start,
+    temporary_leftovers,
     wait_until,
 )
+from test_bad_input import SMALL_RIG, png_chunk  # noqa: E402 - the first sweep's rig
 
 NOT_UTF8 = os.fsdecode(b"caf\xe9")  # Latin-1 "café": not UTF-8
-
-
-def _env(home: Path) -> dict[str, str]:
-    env = {k: v for k, v in os.environ.items() if k not in ("FORCE_COLOR", "PY_COLORS")}
-    (home / "tmp").mkdir(exist_ok=True)
-    env.update(
-        XDG_CACHE_HOME=str(home / "cache"), COLUMNS="100", NO_COLOR="1", TMPDIR=str(home / "tmp")
-    )
-    return env
-
-
-def start(args: list[str], cwd: Path, home: Path, prefix: tuple[str, ...] = ()):
-    out, err = home / "stdout.txt", home / "stderr.txt"
-    with out.open("wb") as o, err.open("wb") as e:
-        proc = subprocess.Popen(
-            [*prefix, PS_LAB, *args], cwd=cwd, stdout=o, stderr=e, stdin=subprocess.DEVNULL,
-            env=_env(home),
-        )
-    return proc, out, err
-
-
-def run(args: list[str], cwd: Path, home: Path, timeout: float = 120) -> Result:
-    proc, out, err = start(args, cwd, home)
-    return finish(proc, out, err, timeout)
-
-
-def temporary_leftovers(home: Path) -> list[str]:
-    return sorted(p.name for p in (home / "tmp").iterdir()) if (home / "tmp").is_dir() else []
 
 
 # --- templates --------------------------------------------------------------------------------
@@ -656,7 +631,7 @@ def test_full_disk_is_one_line_and_leaves_nothing(command, made, big, tmp_path) 
         f" 'stderr': second.stderr.decode('utf-8', 'replace')}}, open({str(listing)!r}, 'w'))\n"
     )
     finished = subprocess.run(
-        [*prefix, sys.executable, "-c", script], env=_env(w.home), capture_output=True,
+        [*prefix, sys.executable, "-c", script], env=environment(w.home), capture_output=True,
         timeout=240, check=False,
     )
     assert finished.returncode == 0, finished.stderr.decode(errors="replace")

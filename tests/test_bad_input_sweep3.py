@@ -34,14 +34,14 @@ import OpenEXR
 import pytest
 
 sys.path.insert(0, str(Path(__file__).parent))
-from test_bad_input import (  # noqa: E402 - the runner of the first sweep
-    SMALL_RIG,
+from helpers.hostile import (  # noqa: E402 - the sweeps' runner
     Result,
     assert_one_error_line,
-    png_chunk,
+    run,
     snapshot,
+    temporary_leftovers,
 )
-from test_bad_input_sweep2 import run, temporary_leftovers  # noqa: E402
+from test_bad_input import SMALL_RIG, png_chunk  # noqa: E402 - the first sweep's rig
 
 from ps_lab.errors import DatasetError  # noqa: E402
 from ps_lab.io import encoding as encoding_module  # noqa: E402

@@ -1,0 +1,135 @@
+"""The hostile sweeps' runner: ``ps-lab`` as a user runs it, and the README's failure promise.
+
+Every case runs a real subprocess of the ``ps-lab`` entry point next to the running interpreter
+(or ``$PS_LAB_EXE``) with ``TMPDIR`` and the cache inside the case's home, so that a temporary
+file left behind is seen (:func:`temporary_leftovers`). The promise (README, "Failure
+behaviour"): exit code 2, exactly one line on stderr, starting with ``error:``, naming the
+user's file or option, no traceback and no numpy warning (:func:`assert_one_error_line`),
+nothing created or changed in the case's folder (:func:`snapshot`).
+"""
+
+from __future__ import annotations
+
+import os
+import re
+import subprocess
+import sys
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+
+PS_LAB = os.environ.get("PS_LAB_EXE") or str(Path(sys.executable).with_name("ps-lab"))
+IS_ROOT = hasattr(os, "geteuid") and os.geteuid() == 0
+ANSI = re.compile(r"\x1b\[[0-9;?]*[A-Za-z]")
+#: What must never reach a user's terminal, on success or failure.
+NOISE = ("Traceback", "RuntimeWarning", "DeprecationWarning", "UserWarning", "internal error")
+
+
+@dataclass
+class Result:
+    code: int
+    stdout: str
+    stderr: str
+    max_rss: int  # bytes
+
+    @property
+    def lines(self) -> list[str]:
+        return [line for line in ANSI.sub("", self.stderr).splitlines() if line.strip()]
+
+
+def environment(home: Path) -> dict[str, str]:
+    """The caller's environment with colour off, 100 columns, cache and ``TMPDIR`` in ``home``."""
+    env = {k: v for k, v in os.environ.items() if k not in ("FORCE_COLOR", "PY_COLORS")}
+    (home / "tmp").mkdir(parents=True, exist_ok=True)
+    env.update(
+        XDG_CACHE_HOME=str(home / "cache"), COLUMNS="100", NO_COLOR="1", TMPDIR=str(home / "tmp")
+    )
+    return env
+
+
+def start(args: list[str], cwd: Path, home: Path, prefix: tuple[str, ...] = ()):
+    """Start ``ps-lab args`` with stdout/stderr to files (so that wait4 gives its rusage)."""
+    out, err = home / "stdout.txt", home / "stderr.txt"
+    with out.open("wb") as o, err.open("wb") as e:
+        proc = subprocess.Popen(
+            [*prefix, PS_LAB, *args], cwd=cwd, stdout=o, stderr=e, stdin=subprocess.DEVNULL,
+            env=environment(home),
+        )  # fmt: skip
+    return proc, out, err
+
+
+def finish(proc: subprocess.Popen, out: Path, err: Path, timeout: float = 120) -> Result:
+    deadline = time.monotonic() + timeout
+    while True:
+        pid, status, usage = os.wait4(proc.pid, os.WNOHANG)
+        if pid:
+            break
+        if time.monotonic() > deadline:
+            proc.kill()
+            pid, status, usage = os.wait4(proc.pid, 0)
+            break
+        time.sleep(0.02)
+    code = os.waitstatus_to_exitcode(status)
+    proc.returncode = code
+    return Result(
+        code, out.read_text(errors="replace"), err.read_text(errors="replace"),
+        usage.ru_maxrss * 1024,
+    )  # fmt: skip
+
+
+def run(args: list[str], cwd: Path, home: Path, timeout: float = 120) -> Result:
+    proc, out, err = start(args, cwd, home)
+    return finish(proc, out, err, timeout)
+
+
+def temporary_leftovers(home: Path) -> list[str]:
+    return sorted(p.name for p in (home / "tmp").iterdir()) if (home / "tmp").is_dir() else []
+
+
+def snapshot(folder: Path) -> dict[str, tuple]:
+    """Names, kinds, sizes and mtimes of everything under ``folder`` (links not followed)."""
+    entries: dict[str, tuple] = {}
+    for dirpath, dirnames, filenames in os.walk(folder, followlinks=False):
+        for name in dirnames + filenames:
+            path = Path(dirpath, name)
+            st = path.lstat()
+            kind = "d" if path.is_dir() and not path.is_symlink() else "f"
+            entries[str(path.relative_to(folder))] = (
+                (kind,) if kind == "d" else (kind, st.st_size, st.st_mtime_ns)
+            )
+    return entries
+
+
+def assert_quiet(result: Result) -> None:
+    """No traceback, internal error or Python warning on stderr, whatever the exit code."""
+    text = ANSI.sub("", result.stderr)
+    for word in NOISE:
+        assert word not in text, f"{word!r} reached the terminal:\n{text}"
+
+
+def assert_one_error_line(result: Result, names: tuple[str, ...], code: int = 2) -> str:
+    text = ANSI.sub("", result.stderr)
+    assert "Traceback" not in text, text
+    assert result.code == code, f"exit {result.code}, stderr:\n{text}"
+    assert len(result.lines) == 1, f"expected one line on stderr, got:\n{text}"
+    line = result.lines[0]
+    assert line.startswith("error:"), line
+    assert any(name in line for name in names), f"{line!r} names none of {names}"
+    return line
+
+
+def _alive(pid: int) -> bool:
+    try:
+        state = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0]
+    except OSError:
+        return False
+    return state != "Z"
+
+
+def wait_until(predicate: Callable[[], bool], proc: subprocess.Popen, timeout: float = 90) -> None:
+    deadline = time.monotonic() + timeout
+    while not predicate():
+        assert _alive(proc.pid), "the command ended before the signal could be sent"
+        assert time.monotonic() < deadline, "timed out waiting for the command to get going"
+        time.sleep(0.005)
