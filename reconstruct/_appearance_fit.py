@@ -44,6 +44,7 @@ from ps_lab.io.appearance import (
     is_direct,
 )
 
+from .appearance_choice import fit_encoded
 from ._ps_kernel import (  # noqa: F401 (the constants are read from here too)
     PS_FLOOR,
     PS_RIDGE,
@@ -310,6 +311,7 @@ def fit_block(
     terms: tuple[str, ...] = PS_TERMS,
     pixels: slice | None = None,
     scale: np.ndarray | None = None,
+    space: str = "linear",
 ) -> tuple[np.ndarray, np.ndarray | None]:
     """Fit ``model`` on one block of pixels.
 
@@ -331,6 +333,8 @@ def fit_block(
         ``q = P``).
     scale : ndarray of shape (n,) or None
         Each light's divisor of the observations (None: 1).
+    space : {"linear", "srgb"}
+        The fit space (``bln``, ``gp`` and sRGB fits: :func:`.appearance_choice.fit_encoded`).
 
     Returns
     -------
@@ -343,6 +347,8 @@ def fit_block(
     part = slice(0, obs.shape[1]) if pixels is None else slice(*pixels.indices(obs.shape[1]))
     if part.step not in (None, 1):
         raise ValueError(f"a block is a run of consecutive pixels, not {pixels}")
+    if space != "linear" or model in ("bln", "gp"):
+        return fit_encoded(model, obs[:, part], directions, rbf_basis, scale, space), None
     if model in BASIS_TERMS:
         return fit_linear(model, obs[:, part], directions, scale), None
     if model == "rbf":
