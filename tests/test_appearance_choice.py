@@ -31,7 +31,7 @@ def rng():
 
 
 def _lights(rng, n, min_z=0.25):
-    d = rng.normal(size=(4 * n, 3))
+    d = rng.normal(size=(8 * n, 3))
     d /= np.linalg.norm(d, axis=1, keepdims=True)
     d = d[d[:, 2] > min_z][:n]
     assert len(d) == n
@@ -101,7 +101,7 @@ def _obs_from(model, rng, lights, pixels=300, noise=2e-3):
 @pytest.mark.parametrize("truth", ["ptm", "hsh3"])
 def test_the_choice_picks_the_generating_model_and_space(rng, truth):
     lights = _lights(rng, 48)
-    encoded = np.clip(_obs_from(truth, rng, lights), 0.0, 1.0)
+    encoded = np.clip(_obs_from(truth, rng, lights, pixels=100), 0.0, 1.0)
     linear = choose_model(encoded, lights)
     assert (linear.model, linear.space) == (truth, "linear"), linear.table[:3]
     srgb = choose_model(srgb_to_linear(encoded).astype(np.float64), lights)
@@ -113,7 +113,7 @@ def test_the_choice_prefers_interpolation_for_a_sharp_highlight(rng):
     lights = _lights(rng, 60)
     axis = np.array([0.3, -0.2, 0.93]) / np.linalg.norm([0.3, -0.2, 0.93])
     lobe = np.exp(-np.sum((lights - axis) ** 2, axis=1) / 0.2**2)  # narrower than PTM's terms
-    obs = 0.2 + 0.6 * lobe[:, None, None] * rng.uniform(0.5, 1.0, (1, 200, 3))
+    obs = 0.2 + 0.6 * lobe[:, None, None] * rng.uniform(0.5, 1.0, (1, 80, 3))
     choice = choose_model(obs, lights)
     assert choice.model in ("rbf", "bln", "gp"), choice.model
     best_poly = max(r["loo_psnr"] for r in choice.table if r["model"] in ("ptm", "hsh3"))
@@ -162,3 +162,43 @@ def test_file_with_an_unknown_fit_space_is_refused(rng, tmp_path):
     write_appearance(tmp_path, fitted)
     with pytest.raises(DatasetError, match="fit space"):
         read_appearance(tmp_path)
+
+
+def test_reconstruct_default_is_the_chosen_model_and_relights_as_recorded(tmp_path, rng):
+    import cv2
+    from typer.testing import CliRunner
+
+    from ps_lab import render
+    from ps_lab.cli import app
+    from ps_lab.io.images import read_exr
+
+    data = tmp_path / "data"
+    data.mkdir()
+    surface = render.sphere_surface((20, 20), albedo=0.6)
+    lights = _lights(rng, 24, min_z=0.5)
+    images = render.render(surface, lights, specular=0.3, cast_shadows=False)
+    for i, image in enumerate(images):
+        counts = np.clip(np.rint(image / images.max() * 0.9 * 65535), 0, 65535)
+        assert cv2.imwrite(str(data / f"{i:03d}.png"), counts.astype(np.uint16))
+    np.savetxt(data / "light_directions.txt", lights)
+    cv2.imwrite(str(data / "mask.png"), surface.mask.astype(np.uint8) * 255)
+    runner = CliRunner()
+    out = tmp_path / "result"
+    done = runner.invoke(app, ["reconstruct", str(data), "--method", "ls", "--out", str(out)])
+    assert done.exit_code == 0, done.output
+    recorded = json.loads((out / "metrics.json").read_text())["appearance"]
+    fitted = read_appearance(out)
+    assert recorded["model"] == fitted.model == recorded["choice"]["model"]
+    assert recorded["choice"]["requested"] == "auto"
+    assert "ps/linear" in recorded["choice"]["best_per_model"]  # ps was a candidate
+    assert recorded["choice"]["loo_psnr"] == max(recorded["choice"]["best_per_model"].values())
+    light = np.array([0.2, 0.3, 0.9]) / np.linalg.norm([0.2, 0.3, 0.9])
+    relit = runner.invoke(app, ["relight", str(out), "--light", "0.2,0.3,0.9",
+                                "--out", str(tmp_path / "pic.exr")])
+    assert relit.exit_code == 0, relit.output
+    expected = evaluate_appearance(fitted, light, np.load(out / "normals.npy"),
+                                   np.load(out / "albedo.npy"))
+    picture = read_exr(tmp_path / "pic.exr")
+    inside = surface.mask
+    assert np.allclose(picture[inside], np.broadcast_to(expected, picture.shape)[inside],
+                       atol=1e-6)

@@ -184,10 +184,11 @@ def evaluate_capture(
              for m in models}
     for train, test in splits:
         started = time.perf_counter()
-        if {"ps", "lambertian"} & set(models):
+        solved = bool({"ps", "lambertian"} & set(models))
+        if solved:
             normals, valid = _solver_normals(base, mask, train)
             albedo = _colour_albedo(obs[train], valid, directions[train], normals)
-        else:  # the interpolating models need neither
+        else:  # the interpolating models need neither (auto then does not consider ps)
             normals, albedo = np.zeros((obs.shape[1], 3)), np.zeros((obs.shape[1], 3))
         solve_seconds = time.perf_counter() - started
         normal_image = np.zeros((height, width, 3), np.float32)
@@ -201,7 +202,8 @@ def evaluate_capture(
             count = 2 + 3  # lambertian: the normal and the albedo
             if model != "lambertian":
                 appearance = fit_appearance(model, obs[train], directions[train], mask,
-                                            normals=normals, albedo=albedo)
+                                            normals=normals if solved else None,
+                                            albedo=albedo if solved else None)
                 count = coefficients_per_pixel(appearance) + (5 if model == "ps" else 0)
                 if model == "auto":
                     row.choices.append(f"{appearance.model}/{appearance.meta.get('space')}")
