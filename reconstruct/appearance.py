@@ -30,6 +30,7 @@ from ps_lab.io.appearance import (
 from ps_lab.io.bands import ObservationStore
 from ps_lab.io.files import allocate_npy, write_npy_rows
 from ps_lab.reconstruct._appearance_fit import RBF_TERMS, fit_block, rbf_setup
+from ps_lab.reconstruct._ps_cv import ps_cv_score
 from ps_lab.reconstruct.appearance_choice import CHOSEN_MODELS, resolve_model
 
 __all__ = [
@@ -118,7 +119,8 @@ def fit_appearance(
         pick = _sample_index(p)
         choice, chosen, extra = resolve_model(
             model, obs[:, pick], directions, *(() if normals is None or albedo is None else
-                                              (np.asarray(normals)[pick], np.asarray(albedo)[pick])))
+                                              (np.asarray(normals)[pick], np.asarray(albedo)[pick])),
+            ps_scorer=ps_cv_score)
         model, basis = choice.model, extra.get("basis")
     elif model == "rbf":
         sigma, basis = rbf_setup(obs[:, _sample_index(p)], directions)
@@ -201,7 +203,8 @@ def fit_appearance_bands(
     chosen: dict[str, Any] = {}
     if model in CHOSEN_MODELS:
         choice, chosen, extra = resolve_model(
-            model, sample, directions, *_sample_solution(store, normals, albedo))
+            model, sample, directions, *_sample_solution(store, normals, albedo),
+            ps_scorer=ps_cv_score)
         model, basis = choice.model, extra.get("basis")
     elif model == "rbf":
         sigma, basis = rbf_setup(sample, directions)

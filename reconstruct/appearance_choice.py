@@ -27,6 +27,7 @@ ever sees the lights it is given (the training lights of a fold when benchmarkin
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -50,10 +51,11 @@ __all__ = [
     "candidates",
     "choose_model",
     "encode",
+    "grey_srgb",
+    "psnr_per_light",
     "fit_encoded",
     "loo_weights",
     "predict_weights",
-    "ps_cv_score",
     "resolve_model",
     "smoother_setup",
 ]
@@ -168,11 +170,13 @@ def _bln_loo(lights: np.ndarray, sigma: float, resolution: int) -> np.ndarray:
     return out
 
 
-def _grey_srgb(linear: np.ndarray) -> np.ndarray:
+def grey_srgb(linear: np.ndarray) -> np.ndarray:
+    """(..., C) linear -> (...) grey (channel mean), sRGB-encoded, at peak 255."""
     return linear_to_srgb(linear.mean(axis=-1)) * 255.0
 
 
-def _psnr_per_light(prediction: np.ndarray, truth: np.ndarray) -> np.ndarray:
+def psnr_per_light(prediction: np.ndarray, truth: np.ndarray) -> np.ndarray:
+    """PSNR (dB, peak 255) of each row of (n, m) arrays."""
     mse = np.mean((prediction - truth) ** 2, axis=1)
     return 10.0 * np.log10(255.0**2 / np.maximum(mse, 1e-12))
 
@@ -202,7 +206,7 @@ def choose_model(
     if obs.ndim == 2:
         obs = obs[..., None]
     n, m, c = obs.shape
-    truth = _grey_srgb(np.clip(obs, 0.0, 1.0))  # (n, m)
+    truth = grey_srgb(np.clip(obs, 0.0, 1.0))  # (n, m)
     table: list[dict[str, Any]] = []
     best: Choice | None = None
     for space in spaces:
@@ -211,7 +215,7 @@ def choose_model(
             for params in candidates(model):
                 w = loo_weights(model, params, lights)
                 predicted = _decode((w @ y).reshape(n, m, c), space)
-                score = float(np.mean(_psnr_per_light(_grey_srgb(predicted), truth)))
+                score = float(np.mean(psnr_per_light(grey_srgb(predicted), truth)))
                 table.append({"model": model, "space": space, **params, "loo_psnr": score})
                 if best is None or score > best.score:
                     best = Choice(model, space, dict(params), score)
@@ -228,6 +232,7 @@ CHOSEN_MODELS = ("auto", "bln", "gp")
 def resolve_model(
     model: str, sample: np.ndarray, lights: np.ndarray,
     normals: np.ndarray | None = None, albedo: np.ndarray | None = None,
+    ps_scorer: Callable[..., float] | None = None,
 ) -> tuple[Choice, dict[str, Any], dict[str, np.ndarray]]:
     """Choose (``auto``: among :data:`AUTO_MODELS`; ``bln``/``gp``: its parameters and space)
     and set up the model: the :class:`Choice`, the ``meta`` entries (space, parameters, K, terms,
@@ -240,8 +245,10 @@ def resolve_model(
         Linear observations of a pixel sample (the solver's units).
     lights : ndarray of shape (n, 3)
     normals, albedo : ndarray of shape (m, 3) and (m,) or (m, C), or None
-        The sample pixels' solved normals and albedo: ``auto`` then also scores ``ps``
-        (:func:`ps_cv_score`; chosen: no ``extra``, the caller fits ``ps`` as usual).
+        The sample pixels' solved normals and albedo: ``auto`` then also scores ``ps`` with
+        ``ps_scorer(sample, lights, normals, albedo)`` (:func:`._ps_cv.ps_cv_score`; chosen: no
+        ``extra``, the caller fits ``ps`` as usual).
+    ps_scorer : callable or None
 
     """
     obs = np.asarray(sample, np.float64)
@@ -249,8 +256,8 @@ def resolve_model(
     m = obs.shape[1]
     scored = np.unique(np.linspace(0, m - 1, min(m, CHOICE_PIXELS)).round().astype(np.int64))
     choice = choose_model(obs[:, scored], lights, AUTO_MODELS if model == "auto" else (model,))
-    if model == "auto" and normals is not None and albedo is not None:
-        ps_score = ps_cv_score(obs[:, scored], lights, np.asarray(normals)[scored],
+    if model == "auto" and normals is not None and albedo is not None and ps_scorer:
+        ps_score = ps_scorer(obs[:, scored], lights, np.asarray(normals)[scored],
                                np.asarray(albedo)[scored])
         choice.table.append({"model": "ps", "space": "linear", "loo_psnr": ps_score})
         if ps_score > choice.score:
@@ -272,53 +279,6 @@ def _summary(requested: str, choice: Choice) -> dict[str, Any]:
     return {"rule": "leave-one-light-out grey sRGB PSNR (ps: 8-fold)", "requested": requested,
             "model": choice.model, "space": choice.space,
             "loo_psnr": round(float(choice.score), 3), "best_per_model": best}
-
-
-#: Folds of the ps model's cross-validation over the lights.
-PS_FOLDS = 8
-
-
-def ps_cv_score(
-    sample: np.ndarray, lights: np.ndarray, normals: np.ndarray, albedo: np.ndarray
-) -> float:
-    """The ``ps`` model's cross-validated score on a pixel sample (module docstring).
-
-    Parameters
-    ----------
-    sample : ndarray of shape (n, m, C)
-    lights : ndarray of shape (n, 3)
-    normals : ndarray of shape (m, 3)
-    albedo : ndarray of shape (m,) or (m, C)
-
-    Returns
-    -------
-    float
-        Mean over the lights of the grey sRGB PSNR (dB) of their held-out predictions.
-
-    """
-    from ps_lab.io.appearance import Appearance, evaluate_appearance  # noqa: PLC0415
-    from ps_lab.reconstruct._appearance_fit import fit_block  # noqa: PLC0415 (imports this)
-
-    obs = np.ascontiguousarray(sample, np.float64)
-    n, m, c = obs.shape
-    lights = np.asarray(lights, np.float64)
-    normals = np.nan_to_num(np.asarray(normals, np.float64))
-    albedo = np.asarray(albedo, np.float64)
-    albedo = albedo[:, None] if albedo.ndim == 1 else albedo
-    predicted = np.zeros_like(obs)
-    index = np.arange(n)
-    from ps_lab.reconstruct.appearance import model_meta  # noqa: PLC0415
-    for fold in range(PS_FOLDS):
-        held, kept = index[index % PS_FOLDS == fold], index[index % PS_FOLDS != fold]
-        coeffs, vis = fit_block("ps", np.ascontiguousarray(obs[kept]), lights[kept],
-                                normals=normals, albedo=albedo)
-        app = Appearance("ps", coeffs[None], model_meta("ps", c, len(kept)),
-                         {"visibility": vis[None]})
-        for i in held:
-            predicted[i] = evaluate_appearance(app, lights[i], normals[None],
-                                               albedo[None])[0]
-    truth = _grey_srgb(np.clip(obs, 0.0, 1.0))
-    return float(np.mean(_psnr_per_light(_grey_srgb(np.clip(predicted, 0.0, 1.0)), truth)))
 
 
 def smoother_setup(
