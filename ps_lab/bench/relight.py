@@ -36,7 +36,7 @@ from ps_lab.reconstruct._solve import NOISE_SAMPLE_PIXELS
 from ps_lab.reconstruct.appearance import fit_appearance
 
 DEFAULT_FOLDER = Path(__file__).resolve().parents[2].parent / "shared" / "data" / "diligent-8bit"
-MODELS = ("auto", "ps", "lambertian", "ptm", "hsh3", "rbf", "bln", "gp")
+MODELS = ("auto", "ps", "lambertian", "ptm", "hsh2", "hsh3", "rbf", "bln", "gp")
 HOLD_OUT_EVERY = 8
 
 
