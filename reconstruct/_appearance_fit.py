@@ -44,6 +44,8 @@ from ps_lab.io.appearance import (
     is_direct,
 )
 
+from ._appearance_design import determined_terms, distinct_lights
+
 from ._ps_kernel import (  # noqa: F401 (the constants are read from here too)
     PS_FLOOR,
     PS_RIDGE,
@@ -116,7 +118,18 @@ def fit_linear(
     """
     obs = _as_block(observations)
     n, p, c = obs.shape
-    basis = appearance_basis(model, directions)  # (n, K)
+    full = appearance_basis(model, directions)  # (n, K)
+    keep, _ = determined_terms(model, directions, tuple(range(full.shape[1])))
+    if len(keep) < full.shape[1]:  # the terms the lights do not determine are 0
+        out = np.zeros((p, c, full.shape[1]), np.float32)
+        out[..., keep] = _fit_columns(full[:, keep], obs, scale)
+        return out
+    return _fit_columns(full, obs, scale)
+
+
+def _fit_columns(basis: np.ndarray, obs: np.ndarray, scale: np.ndarray | None) -> np.ndarray:
+    """Least squares of (n, P, C) observations on a basis (n, K) of full column rank."""
+    n, p, c = obs.shape
     k = basis.shape[1]
     factor = _scale(scale, n)
     weights = np.linalg.pinv(basis) / factor  # (K, n): the divisor folded into the product
@@ -128,14 +141,30 @@ def fit_linear(
     _project(weights, np.where(np.isfinite(obs), obs, 0.0), out)
     # Missing observations: per-pixel normal equations on the finite ones.
     bad = ~finite
-    sub = obs[:, bad] / factor[:, None, None]
+    out[bad] = _masked_solve(basis, obs[:, bad] / factor[:, None, None])
+    return out
+
+
+def _masked_solve(basis: np.ndarray, sub: np.ndarray) -> np.ndarray:
+    """Per pixel and channel, least squares on the finite observations (ridge ``1e-9`` of the
+    basis' trace: a pixel with too few finite ones gets its least-norm solution).
+
+    Parameters
+    ----------
+    basis : ndarray of shape (n, K)
+    sub : ndarray of shape (n, q, C), NaN where missing
+
+    Returns
+    -------
+    ndarray of shape (q, C, K), float64
+
+    """
+    k = basis.shape[1]
     good = np.isfinite(sub)
-    w = good.astype(np.float64)
-    gram = np.einsum("nk,nj,npc->pckj", basis, basis, w)
+    gram = np.einsum("nk,nj,npc->pckj", basis, basis, good.astype(np.float64))
     gram += 1e-9 * np.trace(basis.T @ basis) * np.eye(k)
     rhs = np.einsum("nk,npc->pck", basis, np.where(good, sub, 0.0))
-    out[bad] = np.linalg.solve(gram, rhs[..., None])[..., 0]
-    return out
+    return np.linalg.solve(gram, rhs[..., None])[..., 0]
 
 
 def _project(weights: np.ndarray, obs: np.ndarray, out: np.ndarray) -> None:
@@ -176,9 +205,11 @@ def rbf_setup(
 
     """
     obs = np.asarray(_as_block(sample), np.float64)
-    obs = np.where(np.isfinite(obs), obs, 0.0)
+    complete = np.isfinite(obs).all(axis=(0, 2))
     n = obs.shape[0]
-    k = min(terms, n)
+    k = min(terms, len(distinct_lights(directions)))
+    # the basis from the sample's pixels with every observation (saturated ones are NaN)
+    obs = obs[:, complete] if complete.sum() >= k else np.where(np.isfinite(obs), obs, 0.0)
     basis = np.stack(
         [np.linalg.svd(obs[:, :, c].T, full_matrices=False)[2][:k].T for c in range(obs.shape[2])]
     )
@@ -217,12 +248,20 @@ def fit_rbf(
     """
     obs = _as_block(observations)
     n, p, c = obs.shape
-    if _pixel_finite(obs) is not None:
+    finite = _pixel_finite(obs)
+    if finite is not None:
         obs = np.where(np.isfinite(obs), obs, 0.0)
     weights = np.asarray(basis, np.float64) / _scale(scale, n)[:, None]  # (C, n, K)
     out = np.empty((p, c, weights.shape[2]), np.float32)
     for ch in range(c):
         out[:, ch] = obs[:, :, ch].T @ weights[ch]
+    if finite is not None:  # missing (saturated) observations: least squares on the others
+        bad = np.flatnonzero(~finite)
+        sub = np.asarray(observations)[:, bad] if np.asarray(observations).ndim == 3 else \
+            np.asarray(observations)[:, bad, None]
+        sub = sub / _scale(scale, n)[:, None, None]
+        for ch in range(c):
+            out[bad, ch] = _masked_solve(np.asarray(basis[ch], np.float64), sub[..., ch:ch + 1])[:, 0]
     return out
 
 
