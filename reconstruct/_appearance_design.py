@@ -17,6 +17,7 @@ from ps_lab.io.appearance import BASIS_TERMS, appearance_basis, ps_basis
 __all__ = [
     "RANK_RTOL",
     "SAME_LIGHT",
+    "TERM_NAMES",
     "determined_columns",
     "determined_terms",
     "distinct_lights",
@@ -29,6 +30,12 @@ SAME_LIGHT = 1e-3
 #: Singular values of a design (unit columns, one row per distinct light) below this share of
 #: the largest do not count toward its numerical rank.
 RANK_RTOL = 1e-6
+#: How the warning names the terms of the fixed bases (docs/appearance.md).
+TERM_NAMES = {
+    "ptm": ("1", "lx", "ly", "lx²", "lx·ly", "ly²"),
+    "hsh2": tuple(f"h{i}" for i in range(4)),
+    "hsh3": tuple(f"h{i}" for i in range(9)),
+}
 
 
 def saturated_observations(

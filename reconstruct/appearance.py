@@ -31,6 +31,7 @@ from ps_lab.io.appearance import (
 from ps_lab.io.bands import ObservationStore
 from ps_lab.io.files import allocate_npy, write_npy_rows
 from ps_lab.reconstruct._appearance_design import (
+    TERM_NAMES,
     determined_terms,
     distinct_lights,
     saturated_observations,
@@ -92,10 +93,10 @@ def check_lights(model: str, directions: np.ndarray) -> tuple[int, list[str] | N
     stored as 0; ``ps``: left out of its terms; ``rbf``: one basis vector per distinct light).
     """
     distinct = len(distinct_lights(directions))
-    if model in ("none",):
+    if model == "none":
         return distinct, None
-    names = _terms(model, 1, distinct)
-    keep, warning = determined_terms(model, directions, tuple(names))
+    names = _terms(model, 1, len(directions))
+    keep, warning = determined_terms(model, directions, TERM_NAMES.get(model, tuple(names)))
     if warning is not None:
         log.warning(warning)
     if model == "ps":

@@ -123,6 +123,9 @@ _VIEW = np.array([0.0, 0.0, 1.0])
 DIRECT_KINDS = ("lambert", "lx", "ly", "lz", "lobe", "lobex", "lobey")
 #: Numbers per pixel of the ps model's visibility.
 VISIBILITY_TERMS = 4
+#: Largest magnitude of a stored coefficient or model array (the solver's units are of order 1;
+#: beyond this a picture would overflow float32).
+MAX_STORED = 1e12
 #: Largest exponent of a ps lobe term read from a file (a lobe narrower than 0.1° is a spike).
 MAX_LOBE_POWER = 1e6
 #: rbf widths read from a file (unit directions are at most 2 apart; the fit picks in
@@ -556,11 +559,15 @@ def _validate(path: Path, model: str, coeffs: np.ndarray, meta: Any, extra: dict
         fail(f"coefficients must be float32 (H, W, 1|3, K), not {coeffs.dtype} {coeffs.shape}")
     if not np.all(np.isfinite(coeffs)):
         fail("coefficients are not all finite")
+    if coeffs.size and float(np.max(np.abs(coeffs))) > MAX_STORED:
+        fail(f"coefficients beyond ±{MAX_STORED:.0e} (the solver's units are of order 1)")
     if not isinstance(meta, dict):
         fail("meta is not a JSON object")
     for name, value in extra.items():
         if value.dtype.kind != "f" or not np.all(np.isfinite(value)):
             fail(f"extra_{name} must hold finite floats, not {value.dtype} {value.shape}")
+        if value.size and float(np.max(np.abs(value))) > MAX_STORED:
+            fail(f"extra_{name} holds values beyond ±{MAX_STORED:.0e}")
     k = coeffs.shape[3]
     if model in BASIS_TERMS and k != BASIS_TERMS[model]:
         fail(f"{model} has {BASIS_TERMS[model]} terms, the file {k}")

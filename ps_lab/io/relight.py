@@ -30,7 +30,13 @@ import OpenEXR
 
 from ps_lab.errors import DatasetError, OutputError
 from ps_lab.geometry import Camera, near_light_vectors, scene_points
-from ps_lab.io.appearance import Appearance, evaluate_appearance, lambertian, read_appearance
+from ps_lab.io.appearance import (
+    MAX_STORED,
+    Appearance,
+    evaluate_appearance,
+    lambertian,
+    read_appearance,
+)
 from ps_lab.io.encoding import linear_to_srgb
 from ps_lab.io.files import is_no_space, remove_stale_staging, remove_tree
 from ps_lab.io.normal_maps import EXR_COMPRESSION
@@ -95,8 +101,8 @@ def parse_light(text: str, position: bool = False) -> np.ndarray:
                           f"length between {MIN_LENGTH:.0e} and {MAX_LENGTH:.0e} (it is normalised)")
     unit = (values / largest) / (norm / largest)
     if not unit[2] > 0:
-        raise OutputError(f"--light {text!r}: below the object's horizon (z must be > 0: the "
-                          "light on the camera's side of the object's plane)")
+        raise OutputError(f"--light {text!r}: not above the object's horizon (z must be > 0: "
+                          "the light on the camera's side of the object's plane)")
     return unit
 
 
@@ -178,8 +184,9 @@ def read_relight_source(folder: Path, mode: str = "fitted") -> RelightSource:
     if np.any(finite & (length > 0) & (np.abs(length - 1) > UNIT_TOLERANCE)):
         raise DatasetError(f"{folder / 'normals.npy'}: normals must be unit vectors (or zero "
                            "where unsolved)")
-    if not np.isfinite(albedo[solved]).all():
-        raise DatasetError(f"{folder / 'albedo.npy'}: not finite where the normals are solved")
+    if not np.isfinite(albedo[solved]).all() or np.any(np.abs(albedo[solved]) > MAX_STORED):
+        raise DatasetError(f"{folder / 'albedo.npy'}: not finite (or beyond ±{MAX_STORED:.0e}) "
+                           "where the normals are solved")
     appearance = None
     if mode == "fitted":
         appearance = read_appearance(folder)
@@ -353,9 +360,9 @@ def _check_above(text: str, position: np.ndarray, points: np.ndarray, normals: n
     """Refuse an LED that is not above every solved surface point (scene frame z)."""
     solved = np.isfinite(points[..., 2]) & (np.linalg.norm(normals, axis=2) > 0.5)
     top = float(np.max(points[..., 2][solved])) if solved.any() else 0.0
-    if not position[2] > top:
-        raise OutputError(f"--light {text!r}: the LED must be above the object (z > {top:.4g}, "
-                          "the highest surface point, scene frame in pixels)")
+    if not position[2] >= top + 1.0:
+        raise OutputError(f"--light {text!r}: the LED must be above the object, at least a "
+                          f"pixel above its highest point (z >= {top + 1.0:.4g}, scene frame)")
 
 
 def _near_points(source: RelightSource) -> np.ndarray:
