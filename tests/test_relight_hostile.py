@@ -168,7 +168,13 @@ def _nested_metrics(folder: Path) -> None:
 
 
 def _npy(name: str, value: np.ndarray) -> Callable[[Path], None]:
-    return lambda folder: np.save(folder / name, value)
+    """Save ``value`` as ``name``; ``X.npz.npy`` replaces ``X.npz`` by a single array."""
+    def damage(folder: Path) -> None:
+        np.save(folder / name, value)
+        if name.endswith(".npz.npy"):
+            (folder / name).replace(folder / name[:-4])
+
+    return damage
 
 
 def _unit_normals_times(factor: float) -> np.ndarray:
@@ -213,6 +219,7 @@ CASES = [
     Case("coefficients-huge", "ptm", rewrite=_map("coefficients",
                                                   lambda a: (a * 0 + 1e30).astype(np.float32))),
     Case("truncated", "hsh3", damage=_truncate),
+    Case("npy-not-npz", "ptm", damage=_npy(APPEARANCE_FILE + ".npy", np.ones(3))),
     Case("normals-long", "ps", damage=_npy("normals.npy", _unit_normals_times(2.0)),
          names=("normals.npy",)),
     Case("albedo-inf", "ps", damage=_npy("albedo.npy", np.full((SIZE, SIZE), np.inf,

@@ -527,12 +527,17 @@ def read_appearance(folder: Path) -> Appearance | None:
     path = Path(folder) / APPEARANCE_FILE
     if not path.is_file():
         return None
-    try:
-        with np.load(path, allow_pickle=False) as data:
-            model = str(data["model"])
-            coefficients = np.asarray(data["coefficients"])
-            meta = json.loads(str(data["meta"]))
-            extra = {k[6:]: np.asarray(data[k]) for k in data.files if k.startswith("extra_")}
+    try:  # the file opened here: numpy leaves it open when the archive is damaged
+        with open(path, "rb") as handle:
+            data = np.load(handle, allow_pickle=False)
+            if not isinstance(data, np.lib.npyio.NpzFile):
+                raise ValueError("a single array, not an .npz archive")
+            with data:
+                model = str(data["model"])
+                coefficients = np.asarray(data["coefficients"])
+                meta = json.loads(str(data["meta"]))
+                extra = {k[6:]: np.asarray(data[k]) for k in data.files
+                         if k.startswith("extra_")}
     except RecursionError:
         raise DatasetError(f"{path}: not a readable appearance file (its meta is nested too "
                            "deeply)") from None

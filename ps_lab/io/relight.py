@@ -210,7 +210,10 @@ def _load(path: Path) -> np.ndarray:
         raise DatasetError(f"{path}: too large to read") from None
     except (OSError, ValueError, EOFError) as exc:
         raise DatasetError(f"{path}: not a readable .npy file ({exc})") from None
-    if not isinstance(array, np.ndarray) or array.dtype.kind not in "iuf":
+    if isinstance(array, np.lib.npyio.NpzFile):
+        array.close()
+        raise DatasetError(f"{path}: an .npz archive, not a .npy array")
+    if array.dtype.kind not in "iuf":
         raise DatasetError(f"{path}: expected real numbers, not {getattr(array, 'dtype', '?')}")
     return array
 
