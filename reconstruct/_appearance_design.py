@@ -39,10 +39,14 @@ TERM_NAMES = {
 
 
 def saturated_observations(
-    observations: np.ndarray, valid: np.ndarray, threshold: float | None = None
+    observations: np.ndarray, valid: np.ndarray, threshold: float | None = None, terms: int = 0
 ) -> np.ndarray:
-    """Which observations are saturated: not valid, and not for being at or below the shadow
-    threshold (the solver's validity drops both; the appearance fits drop only saturation).
+    """The observations every appearance fit drops: the saturated ones.
+
+    Saturated: not valid, and not for being at or below the shadow threshold (the solver's
+    validity drops both; the appearance fits keep shadows). A pixel that would be left with
+    fewer than ``terms`` observations keeps all of its own (clipped values, a lower bound, are
+    a better guess than none: a pixel saturated under every light stays bright).
 
     Parameters
     ----------
@@ -52,16 +56,20 @@ def saturated_observations(
         The store's validity (False: saturated in any channel, or ``<= threshold``).
     threshold : float or None
         The shadow threshold in use (None: none).
+    terms : int
+        Terms per channel of the model fitted.
 
     Returns
     -------
     ndarray of shape (n, P), bool
 
     """
-    invalid = ~np.asarray(valid, bool)
-    if threshold is None:
-        return invalid
-    return invalid & (np.asarray(observations) > threshold)
+    saturated = ~np.asarray(valid, bool)
+    if threshold is not None:
+        saturated &= np.asarray(observations) > threshold
+    if terms:
+        saturated[:, saturated.shape[0] - saturated.sum(axis=0) < terms] = False
+    return saturated
 
 
 def distinct_lights(directions: np.ndarray, tolerance: float = SAME_LIGHT) -> np.ndarray:

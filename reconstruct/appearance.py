@@ -222,7 +222,9 @@ def fit_appearance_bands(
     threshold = rule.threshold if rule is not None and rule.use_threshold else None
     sample = (store.sample_colour if colour else _as_colour(store.sample_observations))
     sample = sample / factor[:, None, None]
-    sample[saturated_observations(store.sample_observations, store.sample_valid, threshold)] = np.nan
+    fitted_terms = len(terms) if terms is not None else len(_terms(model, 1, distinct))
+    sample[saturated_observations(store.sample_observations, store.sample_valid, threshold,
+                                  fitted_terms)] = np.nan
     channels = sample.shape[2]
     sigma, basis = None, None
     extra: dict[str, np.ndarray] = {}
@@ -250,7 +252,8 @@ def fit_appearance_bands(
                     read = store.observe(band, colour=bool(colour), reuse=True)
                     observations = read[2] if colour else read[0]
                     # saturated observations are dropped (NaN: missing) by every model
-                    observations[saturated_observations(read[0], read[1], threshold)] = np.nan
+                    observations[saturated_observations(read[0], read[1], threshold,
+                                                        fitted_terms)] = np.nan
                     coeffs, vis = _fit_band(model, _as_colour(observations), directions, factor,
                                             np.asarray(normals[rows])[inside],
                                             np.asarray(albedo[rows])[inside], basis, workers,

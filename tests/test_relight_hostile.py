@@ -402,6 +402,11 @@ def test_saturated_observations_are_those_not_dropped_as_shadows(rng) -> None:
     assert np.array_equal(saturated_observations(obs, valid), ~valid)
     both = saturated_observations(obs, valid, 0.2)
     assert np.array_equal(both, ~valid & (obs > 0.2))
+    # a pixel left with fewer observations than the model's terms keeps all of its own
+    kept = saturated_observations(obs, valid, None, 6)
+    few = valid.sum(axis=0) < 6
+    assert few.any() and not few.all()
+    assert not kept[:, few].any() and np.array_equal(kept[:, ~few], ~valid[:, ~few])
 
 
 def test_rbf_fit_of_missing_observations_is_least_squares_on_the_others(rng) -> None:
@@ -468,8 +473,10 @@ def test_reconstruct_fits_every_model_without_the_saturated_observations(rng, tm
     counts = images[:, mask].astype(np.float64)
     saturated = counts >= 65535
     assert 0.1 < saturated.mean() < 0.9
-    dropped = np.where(saturated, np.nan, counts / 65535)[..., None]
-    for model in ("ptm", "rbf"):
+    for model, terms in (("ptm", 6), ("rbf", 9)):
+        # dropped, except where a pixel would keep fewer observations than the model's terms
+        few = (~saturated).sum(axis=0) < terms
+        dropped = np.where(saturated & ~few, np.nan, counts / 65535)[..., None]
         out = tmp_path / model
         done = runner.invoke(app, ["reconstruct", str(tmp_path / "data"), "--method", "ls",
                                    "--out", str(out), "--appearance", model])

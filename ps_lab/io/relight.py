@@ -384,10 +384,11 @@ def _near_points(source: RelightSource) -> np.ndarray:
     if isinstance(record, dict) and all(k in record for k in ("fx", "fy", "cx", "cy")):
         values = [record[k] for k in ("fx", "fy", "cx", "cy")]
         if not (all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in values)
-                and np.all(np.isfinite(values)) and values[0] > 0 and values[1] > 0
+                and np.all(np.isfinite(values)) and values[0] >= 1 and values[1] >= 1
                 and max(abs(v) for v in values) < MAX_LENGTH):
             raise DatasetError(f"{source.folder / 'metrics.json'}: camera fx, fy, cx, cy must "
-                               "be finite numbers (focal lengths > 0)")
+                               f"be finite numbers below {MAX_LENGTH:.0e} (focal lengths >= 1 "
+                               "pixel)")
         camera = Camera.from_intrinsics(*(float(v) for v in values))
     rows, cols = np.indices(shape)
     heights = np.nan_to_num(depth)
