@@ -177,6 +177,20 @@ def _npy(name: str, value: np.ndarray) -> Callable[[Path], None]:
     return damage
 
 
+def _forged_header(folder: Path) -> None:
+    """``normals.npy`` whose header claims 120 GB and holds 1 KB."""
+    with open(folder / "normals.npy", "wb") as handle:
+        np.lib.format.write_array_header_1_0(
+            handle, {"descr": "<f4", "fortran_order": False, "shape": (100000, 100000, 3)})
+        handle.write(bytes(1024))
+
+
+def _tiny_focal(folder: Path) -> None:
+    metrics = json.loads((folder / "metrics.json").read_text())
+    metrics["camera"] = {"fx": 1e-300, "fy": 1e-300, "cx": 8.0, "cy": 8.0}
+    (folder / "metrics.json").write_text(json.dumps(metrics))
+
+
 def _unit_normals_times(factor: float) -> np.ndarray:
     normals, _ = _sphere()
     return normals * factor
@@ -203,6 +217,7 @@ CASES = [
     Case("led-origin", "near", ("0,0,0",), names=("--light",)),
     Case("led-far", "near", ("1e308,0,1e308",), names=("--light",)),
     Case("led-inside", "near", ("0,0,2.5",), names=("--light",)),
+    # damaged result and appearance files (the file named)
     Case("meta-nested", "ps", rewrite=_set("meta", np.array("[" * 100000 + "]" * 100000))),
     Case("metrics-nested", "ptm", damage=_nested_metrics, names=("ptm",)),
     Case("lobe-nan", "ps", rewrite=_meta("terms", ["lx", "ly", "lz", "ambient", "lobe:nan",
@@ -225,6 +240,9 @@ CASES = [
     Case("albedo-inf", "ps", damage=_npy("albedo.npy", np.full((SIZE, SIZE), np.inf,
                                                                 np.float32)),
          names=("albedo.npy",)),
+    Case("normals-forged-header", "ps", damage=_forged_header, names=("normals.npy",)),
+    Case("camera-focal-tiny", "near", ("0,0,40",), damage=_tiny_focal, names=("metrics.json",)),
+    # outputs (the option's file named)
     Case("out-folder", "ps", out="shots", names=("shots",)),
     Case("out-second-is-folder", "ps", ("0,0,1", "0.3,0,1"), out="shots.png",
          names=("shots_light02.png",)),

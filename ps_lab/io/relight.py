@@ -202,8 +202,10 @@ def read_relight_source(folder: Path, mode: str = "fitted") -> RelightSource:
 
 def _load(path: Path) -> np.ndarray:
     """A real-valued ``.npy`` (integers or floats), or :class:`DatasetError` naming it."""
-    try:
-        array = np.load(path, allow_pickle=False)
+    try:  # mapped first: a header claiming more than the file holds is refused unread
+        array = np.load(path, mmap_mode="r", allow_pickle=False)
+        if isinstance(array, np.ndarray):
+            array = np.array(array)
     except FileNotFoundError:
         raise DatasetError(f"{path}: missing") from None
     except MemoryError:
