@@ -119,12 +119,20 @@ def fit_linear(
     obs = _as_block(observations)
     n, p, c = obs.shape
     full = appearance_basis(model, directions)  # (n, K)
-    keep, _ = determined_terms(model, directions, tuple(range(full.shape[1])))
+    keep = _determined(model, np.ascontiguousarray(directions, np.float64).tobytes())
     if len(keep) < full.shape[1]:  # the terms the lights do not determine are 0
         out = np.zeros((p, c, full.shape[1]), np.float32)
         out[..., keep] = _fit_columns(full[:, keep], obs, scale)
         return out
     return _fit_columns(full, obs, scale)
+
+
+@lru_cache(maxsize=16)
+def _determined(model: str, directions: bytes) -> np.ndarray:
+    """:func:`determined_terms`' columns of a linear model, once per set of lights (the fit
+    runs block by block on the same lights)."""
+    d = np.frombuffer(directions, np.float64).reshape(-1, 3)
+    return determined_terms(model, d, tuple(range(BASIS_TERMS[model])))[0]
 
 
 def _fit_columns(basis: np.ndarray, obs: np.ndarray, scale: np.ndarray | None) -> np.ndarray:
