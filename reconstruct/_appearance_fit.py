@@ -8,10 +8,11 @@ per-light divisor ``scale``, so that no divided copy is made), and returns coeff
 
 - ``ptm``, ``hsh2``, ``hsh3``: as the RTI tools fit them, linear least squares of every finite
   observation on the light-only basis (one pseudo-inverse shared by all pixels whose
-  observations are all finite: one matrix product; per-pixel normal equations for the others);
+  observations are all finite: one matrix product; per-pixel normal equations for the others),
+  on the terms the lights determine (:mod:`._appearance_design`; the others 0);
 - ``rbf``: the observations projected on a per-channel basis of the training lights
-  (:func:`rbf_setup`: an uncentred PCA of a pixel sample and the Gaussian width chosen by
-  leave-one-light-out prediction on that sample);
+  (:func:`rbf_setup`: an uncentred PCA of a pixel sample, one vector per distinct light at
+  most, and the Gaussian width chosen by leave-one-light-out prediction on that sample);
 - ``ps``: first the visibility ``V(l) = clamp(w·[l, 1], 0, 1)`` (:func:`fit_visibility`:
   least squares of a 0/1 label, "the pixel is lit", on the training lights that face it), then
   the residual of the visible Lambertian term, ``y − V·ρ·max(n·l, 0)``, fitted on the model's
@@ -45,7 +46,6 @@ from ps_lab.io.appearance import (
 )
 
 from ._appearance_design import determined_terms, distinct_lights
-
 from ._ps_kernel import (  # noqa: F401 (the constants are read from here too)
     PS_FLOOR,
     PS_RIDGE,
@@ -96,6 +96,9 @@ def fit_linear(
     scale: np.ndarray | None = None,
 ) -> np.ndarray:
     """PTM / HSH coefficients by least squares on every finite observation.
+
+    Only the terms the lights determine are fitted (:func:`._appearance_design.determined_terms`);
+    the others are 0.
 
     A pixel whose observations are all finite gets ``pinv(B) y`` (one matrix product for all
     such pixels and channels); a pixel with missing observations the solution of its normal
@@ -240,7 +243,8 @@ def rbf_setup(
 def fit_rbf(
     observations: np.ndarray, basis: np.ndarray, scale: np.ndarray | None = None
 ) -> np.ndarray:
-    """Coefficients of the observations on the rbf basis (non-finite observations count 0).
+    """Coefficients of the observations on the rbf basis (its orthonormal columns: a projection;
+    a pixel with missing (NaN) observations: least squares on its finite ones).
 
     Parameters
     ----------
@@ -254,22 +258,21 @@ def fit_rbf(
     ndarray of shape (P, C, K), float32
 
     """
-    obs = _as_block(observations)
-    n, p, c = obs.shape
-    finite = _pixel_finite(obs)
-    if finite is not None:
-        obs = np.where(np.isfinite(obs), obs, 0.0)
-    weights = np.asarray(basis, np.float64) / _scale(scale, n)[:, None]  # (C, n, K)
+    raw = _as_block(observations)
+    n, p, c = raw.shape
+    finite = _pixel_finite(raw)
+    obs = raw if finite is None else np.where(np.isfinite(raw), raw, 0.0)
+    factor = _scale(scale, n)
+    weights = np.asarray(basis, np.float64) / factor[:, None]  # (C, n, K)
     out = np.empty((p, c, weights.shape[2]), np.float32)
     for ch in range(c):
         out[:, ch] = obs[:, :, ch].T @ weights[ch]
     if finite is not None:  # missing (saturated) observations: least squares on the others
         bad = np.flatnonzero(~finite)
-        sub = np.asarray(observations)[:, bad] if np.asarray(observations).ndim == 3 else \
-            np.asarray(observations)[:, bad, None]
-        sub = sub / _scale(scale, n)[:, None, None]
+        sub = raw[:, bad] / factor[:, None, None]
         for ch in range(c):
-            out[bad, ch] = _masked_solve(np.asarray(basis[ch], np.float64), sub[..., ch:ch + 1])[:, 0]
+            solved = _masked_solve(np.asarray(basis[ch], np.float64), sub[..., ch:ch + 1])
+            out[bad, ch] = solved[:, 0]
     return out
 
 
