@@ -507,3 +507,27 @@ def test_reconstruct_fits_every_model_without_the_saturated_observations(rng, tm
         stored = fitted.coefficients[mask]
         scale = np.abs(coeffs).max()
         assert np.abs(stored - coeffs).max() < 1e-5 * scale, model
+
+
+def test_a_failed_move_puts_the_earlier_pictures_back(made, tmp_path, monkeypatch) -> None:
+    from ps_lab.errors import OutputError
+    from ps_lab.io import relight as relight_module
+
+    (tmp_path / "pic_light01.png").write_bytes(b"old one")
+    real = relight_module.os.replace
+    moves: list[str] = []
+
+    def replace(src, dst):  # the second picture's move fails (a disk gone read-only)
+        moves.append(Path(dst).name)
+        if Path(dst).name == "pic_light02.png":
+            raise OSError(30, "Read-only file system")
+        return real(src, dst)
+
+    monkeypatch.setattr(relight_module.os, "replace", replace)
+    with pytest.raises(OutputError) as caught:
+        relight_module.relight_result(made["ptm"], ["0,0,1", "0.3,0,1", "0,0.3,1"],
+                                      tmp_path / "pic.png")
+    assert "pic_light02.png" in str(caught.value) and "read-only" in str(caught.value)
+    assert "pic_light02.png" in moves
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["pic_light01.png"]
+    assert (tmp_path / "pic_light01.png").read_bytes() == b"old one"

@@ -308,10 +308,13 @@ def relight_result(
                     picture = _near_picture(source, points, light)
                 staged.append(stage / f"{k:04d}{path.suffix}")
                 _write_picture(staged[-1], picture)
-            current = paths[0]
+            for path, final in zip(staged, paths, strict=True):
+                current = final
+                _fsync(path)
             _publish(stage, staged, paths)
         except OSError as exc:
-            raise OutputError(_write_line(out, current, exc)) from None
+            failed = Path(exc.filename) if exc.filename in {str(p) for p in paths} else current
+            raise OutputError(_write_line(out, failed, exc)) from None
     except BaseException:
         remove_tree(stage)
         for path in created:
@@ -332,14 +335,20 @@ def _write_line(out: Path, path: Path, exc: OSError) -> str:
     return f"--out {path}: cannot write, {reason}; no picture written{remedy}"
 
 
-def _publish(stage: Path, staged: list[Path], paths: list[Path]) -> None:
-    """Move every staged picture to its name, or none: an earlier file is put back on failure."""
-    for path in staged:
-        fd = os.open(path, os.O_RDONLY)
-        try:
-            os.fsync(fd)
-        finally:
-            os.close(fd)
+def _fsync(path: Path) -> None:
+    fd = os.open(path, os.O_RDONLY)
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
+
+
+def _publish(stage: Path, staged: list[Path], paths: list[Path]) -> Path:
+    """Move every staged picture to its name, or none: an earlier file is put back on failure.
+
+    Returns the last name (the one a failure concerns: the exception carries it as
+    ``filename``); raises the ``OSError`` of a failed move after the rollback.
+    """
     moved: list[Path] = []
     kept: list[tuple[Path, Path]] = []
     try:
@@ -350,15 +359,25 @@ def _publish(stage: Path, staged: list[Path], paths: list[Path]) -> None:
                 kept.append((old, final))
             os.replace(path, final)
             moved.append(final)
-    except BaseException:
-        for final in moved:
-            final.unlink(missing_ok=True)
-        for old, final in kept:
-            try:
-                os.replace(old, final)
-            except OSError:
-                pass
+    except OSError as exc:
+        _roll_back(moved, kept)
+        exc.filename = str(final)
         raise
+    except BaseException:
+        _roll_back(moved, kept)
+        raise
+    return final
+
+
+def _roll_back(moved: list[Path], kept: list[tuple[Path, Path]]) -> None:
+    """Remove the pictures moved so far and put the earlier files back (best effort)."""
+    for final in moved:
+        final.unlink(missing_ok=True)
+    for old, final in kept:
+        try:
+            os.replace(old, final)
+        except OSError:
+            pass
 
 
 def _check_above(text: str, position: np.ndarray, points: np.ndarray, normals: np.ndarray) -> None:
