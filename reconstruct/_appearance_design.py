@@ -15,6 +15,7 @@ import numpy as np
 from ps_lab.io.appearance import BASIS_TERMS, appearance_basis, ps_basis
 
 __all__ = [
+    "PS_PROBE",
     "RANK_RTOL",
     "SAME_LIGHT",
     "TERM_NAMES",
@@ -30,6 +31,8 @@ SAME_LIGHT = 1e-3
 #: Singular values of a design (unit columns, one row per distinct light) below this share of
 #: the largest do not count toward its numerical rank.
 RANK_RTOL = 1e-6
+#: The normal at which the ps model's design is evaluated (a generic tilt, no symmetry).
+PS_PROBE = np.array([0.3, 0.2, 0.93]) / np.linalg.norm([0.3, 0.2, 0.93])
 #: How the warning names the terms of the fixed bases (docs/appearance.md).
 TERM_NAMES = {
     "ptm": ("1", "lx", "ly", "lx²", "lx·ly", "ly²"),
@@ -128,8 +131,10 @@ def determined_columns(design: np.ndarray, rtol: float = RANK_RTOL) -> np.ndarra
 def model_design(model: str, directions: np.ndarray, terms: tuple) -> np.ndarray:
     """A model's terms at the distinct training lights (m, K).
 
-    ``ptm``/``hsh*``: their basis; ``ps``: its terms (names) for the view's normal
-    ``(0, 0, 1)`` (a level pixel); ``rbf``: one basis vector per distinct light at most (the
+    ``ptm``/``hsh*``: their basis; ``ps``: its terms (names) at the normal
+    :data:`PS_PROBE` (a generic normal, about 21° from the view: at the view's own normal a
+    ring of lights makes every half-vector lobe a constant, which it is not for the tilted
+    pixels that hold the gloss); ``rbf``: one basis vector per distinct light at most (the
     identity's first ``len(terms)`` columns).
     """
     d = np.asarray(directions, np.float64).reshape(-1, 3)
@@ -137,7 +142,7 @@ def model_design(model: str, directions: np.ndarray, terms: tuple) -> np.ndarray
     if model in BASIS_TERMS:
         return appearance_basis(model, d)
     if model == "ps":
-        return ps_basis(d, np.array([[0.0, 0.0, 1.0]]), tuple(terms))[:, 0, :]
+        return ps_basis(d, PS_PROBE[None], tuple(terms))[:, 0, :]
     if model == "rbf":
         return np.eye(len(d), len(terms))
     raise ValueError(f"no design for appearance model {model!r}")
