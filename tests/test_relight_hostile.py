@@ -531,3 +531,14 @@ def test_a_failed_move_puts_the_earlier_pictures_back(made, tmp_path, monkeypatc
     assert "pic_light02.png" in moves
     assert sorted(p.name for p in tmp_path.iterdir()) == ["pic_light01.png"]
     assert (tmp_path / "pic_light01.png").read_bytes() == b"old one"
+
+
+def test_a_ring_leaves_the_ps_model_without_ambient_only(rng) -> None:
+    from ps_lab.io.appearance import PS_TERMS
+
+    keep, warning = determined_terms("ps", ring(12), PS_TERMS)
+    # on one ring lz is the same for every light: ambient (1) is lz up to a factor
+    assert [PS_TERMS[k] for k in keep] == ["lx", "ly", "lz", "lobe:4", "lobe:32"]
+    assert warning is not None and warning.endswith("not fitted: ambient")
+    keep, warning = determined_terms("ps", hemisphere(40, rng), PS_TERMS)
+    assert len(keep) == len(PS_TERMS) and warning is None
