@@ -135,6 +135,9 @@ def parse_board(text: str) -> BoardSpec:
     cols, rows = int(size.group(1)), int(size.group(2))
     if cols < 3 or rows < 3:
         raise CalibrationError(f"--board {text}: a board needs at least 3x3 squares")
+    if kind == "chessboard" and (cols < 4 or rows < 4):  # OpenCV's detector: 3x3 inner corners
+        raise CalibrationError(f"--board {text}: a chessboard needs at least 4x4 squares "
+                               "(3x3 inner corners)")
     if cols > MAX_SQUARES or rows > MAX_SQUARES:
         raise CalibrationError(
             f"--board {text}: at most {MAX_SQUARES} squares a side (got {cols}x{rows})"

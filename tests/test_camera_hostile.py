@@ -282,7 +282,8 @@ def test_camera_files_that_are_not_json_objects(text, words, tmp_path) -> None:
      ("charuco:9x6:-20:15", "positive"), ("charuco:9x6:20:1e-300", "printed board"),
      ("charuco:9x6:20:1", "at least 0.1"), ("chessboard:100000x7:20", "at most 200"),
      ("charuco:30x30:20:15", "markers"), ("charuco:40x40:20:15:APRILTAG_36H11", "587 markers"),
-     ("chessboard:10x7:20000", "printed board"), ("chessboard:10x7:0.001", "printed board")],
+     ("chessboard:10x7:20000", "printed board"), ("chessboard:10x7:0.001", "printed board"),
+     ("chessboard:3x3:5", "at least 4x4"), ("chessboard:12x3:5", "at least 4x4")],
 )
 def test_board_specs_no_printed_board_has(spec, words) -> None:
     with pytest.raises(CalibrationError, match=words) as caught:

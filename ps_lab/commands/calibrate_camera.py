@@ -28,7 +28,7 @@ def calibrate_camera(
             help="charuco:COLSxROWS:SQUARE:MARKER[:DICT] (squares across x down, 3 to 200 a "
             "side; square and marker side in mm, 0.01 to 10000, the marker 0.1 to 1 x the "
             "square; ArUco dictionary, default DICT_5X5_100) or chessboard:COLSxROWS:SQUARE "
-            "(squares, not inner corners).",
+            "(squares, not inner corners, at least 4x4).",
             show_default=False,
         ),
     ],
@@ -45,10 +45,10 @@ def calibrate_camera(
     into a dataset folder: calibrate, reconstruct and integrate then undistort the frames.
 
     Refused: a reprojection RMS above 2 px (a wrong --board or bent board), fewer than 3
-    distinct views, views whose board planes are all parallel (tilt spread under 5 deg) or
-    whose focal length's standard deviation exceeds 5 %; weak views (tilt spread under 15 deg,
-    sigma f over 1 %) get a warning. The 1-sigma uncertainties of fx, fy, cx, cy are printed and
-    written to camera.json.
+    distinct views, views whose board planes are all parallel (tilt spread under 5 deg), a
+    standard deviation of f or of the principal point above 5 % (of f, of the frame); weak views
+    (tilt spread under 15 deg, sigma f over 1 %, sigma c over 2 %) get one warning line. The
+    1-sigma uncertainties of fx, fy, cx, cy are printed and written to camera.json.
     """
     spec = parse_board(board)
     with progress_bar(len(frames), "board corners") as advance:
