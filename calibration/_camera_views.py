@@ -178,7 +178,8 @@ def judge_views(
     """
     n = len(names)
     distinct = n - len(repeats)
-    pairs = ", ".join(f"{names[j]} repeats {names[i]}" for j, i in sorted(repeats.items()))
+    listed = [f"{names[j]} repeats {names[i]}" for j, i in sorted(repeats.items())]
+    pairs = ", ".join(listed[:3]) + (f" and {len(listed) - 3} more" if len(listed) > 3 else "")
     advice = "move and tilt the board 20-40 deg in different directions between shots"
 
     def verdict(refused: str | None, warning: str | None) -> ViewVerdict:
