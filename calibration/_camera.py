@@ -230,6 +230,14 @@ def _refused(reason: str) -> Detection:
     return Detection(empty, np.zeros((0, 2), np.float32), reason)
 
 
+def _collinear(objects: np.ndarray) -> bool:
+    """Whether board corners (m, 3) lie on one line (no homography, no calibration)."""
+    xy = objects[:, :2].astype(np.float64)
+    centred = xy - xy.mean(axis=0)
+    singular = np.linalg.svd(centred, compute_uv=False)
+    return len(xy) < 4 or singular[-1] <= 1e-6 * max(singular[0], 1e-300)
+
+
 def detect_corners(grey: np.ndarray, board: BoardSpec, legacy: bool = False) -> Detection:
     """Find the board's corners in one 8-bit grey frame.
 
@@ -253,8 +261,11 @@ def detect_corners(grey: np.ndarray, board: BoardSpec, legacy: bool = False) -> 
         if len(ids) < MIN_CORNERS:
             return _refused(f"only {len(ids)} corners seen (at least {MIN_CORNERS})")
         objects, images = board.charuco_board(legacy).matchImagePoints(corners, ids)
-        return Detection(objects.reshape(-1, 3).astype(np.float32),
-                         images.reshape(-1, 2).astype(np.float32))
+        objects = objects.reshape(-1, 3).astype(np.float32)
+        if _collinear(objects):
+            return _refused(f"the {len(ids)} corners seen lie on one line of the board (a "
+                            "plane needs corners off it)")
+        return Detection(objects, images.reshape(-1, 2).astype(np.float32))
     pattern = (board.cols - 1, board.rows - 1)
     found, corners = cv2.findChessboardCornersSB(grey, pattern, flags=cv2.CALIB_CB_ACCURACY)
     if not found:
@@ -379,6 +390,9 @@ def calibrate_from_corners(
     n = len(detections)
     names = list(names) if names is not None else [f"frame {k + 1}" for k in range(n)]
     refused = {k: d.refused for k, d in enumerate(detections) if d.refused is not None}
+    for k, d in enumerate(detections):
+        if k not in refused and _collinear(d.object_points):
+            refused[k] = "its corners lie on one line of the board (a plane needs corners off it)"
     frame_rms = np.full(n, np.nan)
     residuals: list[np.ndarray] = [np.zeros((0, 2)) for _ in range(n)]
     rms_all = None
@@ -390,10 +404,18 @@ def calibrate_from_corners(
                 f"{len(kept)} usable board frame(s) of {n}, at least {MIN_FRAMES} needed"
                 + (f" ({why})" if why else "")
             )
-        rms, fit, res, rms_free, k3_free = _calibrate(
-            [detections[k].object_points for k in kept],
-            [detections[k].image_points for k in kept], image_size,
-        )
+        try:
+            rms, fit, res, rms_free, k3_free = _calibrate(
+                [detections[k].object_points for k in kept],
+                [detections[k].image_points for k in kept], image_size,
+            )
+        except cv2.error as exc:  # a configuration its initialisation cannot start from
+            reason = str(exc).strip().splitlines()[-1] if str(exc).strip() else "no reason given"
+            raise CalibrationError(
+                f"board frames {names[kept[0]]} ... {names[kept[-1]]}: OpenCV cannot calibrate "
+                f"from these corners ({reason[:160]}): {len(kept)} frames, "
+                f"{sum(len(detections[k].image_points) for k in kept)} corners"
+            ) from None
         if rms_all is None:
             rms_all = rms
         per_frame = np.array([np.sqrt(np.mean(np.sum(r * r, axis=1))) for r in res])

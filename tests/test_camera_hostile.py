@@ -429,6 +429,17 @@ def test_weakly_tilted_views_warn_with_numbers() -> None:
     assert abs(result.camera.fx - LENS.fx) < 3 * result.sigma["fx"]
 
 
+def test_corners_on_one_line_are_refused_not_an_opencv_assertion() -> None:
+    """A board cut by the frame down to one row of corners: OpenCV's initialisation asserted."""
+    detections = _detections(board_poses(TARGET, LENS, 4, seed=3))
+    one_row = []
+    for d in detections:
+        row = d.object_points[:, 1] == d.object_points[0, 1]
+        one_row.append(Detection(d.object_points[row], d.image_points[row]))
+    with pytest.raises(CalibrationError, match="one line"):
+        calibrate_from_corners(one_row, SIZE)
+
+
 def test_tilt_spread_is_the_largest_angle_between_normals() -> None:
     a = np.radians([10.0, 0.0, 0.0])  # Rodrigues vectors: about x by 10 deg...
     b = np.radians([-20.0, 0.0, 0.0])
