@@ -19,8 +19,8 @@ This module judges a calibration by three numbers, each a pure function of the v
 :func:`judge_views` refuses a set with fewer than 3 distinct views, a tilt spread below
 :data:`MIN_TILT_SPREAD_DEG` (there the standard deviations are not to be trusted: the problem is
 singular, and they come out small while f is tens of percent off), a focal length's standard
-deviation above :data:`MAX_F_SIGMA` or a principal point's above :data:`MAX_C_SIGMA`, and warns (one line, with the numbers) below
-:data:`WEAK_TILT_SPREAD_DEG` or above :data:`WEAK_F_SIGMA` / :data:`WEAK_C_SIGMA`. The bounds come
+deviation above :data:`MAX_F_SIGMA` or a principal point's above :data:`MAX_C_SIGMA`, and warns
+(one line, with the numbers) below :data:`WEAK_TILT_SPREAD_DEG` or above :data:`WEAK_F_SIGMA` / :data:`WEAK_C_SIGMA`. The bounds come
 from seeded synthetic sets (0.1 px corner noise, 8 views of a 9x6 board, tilts up to T): T = 2 deg
 (spread 3-4 deg) gave f errors up to 16 % with sigma_f/f 22-54 %; T = 4 deg (spread 6-9 deg) f
 errors up to 4.8 % with sigma_f/f 6-12 %; T = 10 deg (spread 14-21 deg) errors below 1 % with

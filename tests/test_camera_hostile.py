@@ -47,8 +47,11 @@ from ps_lab.render.board import (
 
 sys.path.insert(0, str(Path(__file__).parent))
 from helpers.hostile import (  # noqa: E402 - the sweeps' runner
+    PS_LAB,
+    Result,
     assert_one_error_line,
     assert_quiet,
+    environment,
     run,
     snapshot,
     temporary_leftovers,
@@ -306,29 +309,15 @@ def test_read_only_out_names_the_users_folder(made, tmp_path) -> None:
     frames = w.frames("boards")
     before = snapshot(w.root)
     done = subprocess.run(
-        [unshare, "-rm", "sh", "-c", script, str(mount), *_ps_lab(), "calibrate-camera", *frames,
+        [unshare, "-rm", "sh", "-c", script, str(mount), PS_LAB, "calibrate-camera", *frames,
          "--board", BOARD, "--out", str(mount / "cam")], capture_output=True, text=True,
-        check=False, env=_env(w.home),
+        check=False, env=environment(w.home),
     )
-    from helpers.hostile import Result
-
     result = Result(done.returncode, done.stdout, done.stderr, 0)
     assert_quiet(result)
     line = assert_one_error_line(result, (f"--out {mount / 'cam'}",))
     assert "partial" not in line, line
     assert snapshot(w.root) == before
-
-
-def _ps_lab() -> list[str]:
-    from helpers.hostile import PS_LAB
-
-    return [PS_LAB]
-
-
-def _env(home: Path) -> dict[str, str]:
-    from helpers.hostile import environment
-
-    return environment(home)
 
 
 def test_good_views_record_their_uncertainty(made, tmp_path) -> None:
@@ -349,7 +338,7 @@ def test_good_views_record_their_uncertainty(made, tmp_path) -> None:
     assert abs(fx - LENS.fx) < 4 * sigma["fx"] + 1e-3 * LENS.fx
     assert data["views"]["distinct"] == len(frames)
     assert data["views"]["tilt_spread_deg"] > WEAK_TILT_SPREAD_DEG
-    assert f"± {sigma['fx']:.2f}" in result.stdout
+    assert f"+/- {sigma['fx']:.2f}" in result.stdout
 
 
 # --- the degeneracy checks on projected corners ------------------------------------------------

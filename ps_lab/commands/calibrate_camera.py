@@ -58,8 +58,8 @@ def calibrate_camera(
     used = len(frames) - len(result.refused)
     sd = result.sigma
     typer.echo(
-        f"fx {cam.fx:.2f} ± {sd['fx']:.2f} fy {cam.fy:.2f} ± {sd['fy']:.2f} px, principal point "
-        f"({cam.cx:.2f} ± {sd['cx']:.2f}, {cam.cy:.2f} ± {sd['cy']:.2f}) (± 1 sigma); "
+        f"fx {cam.fx:.2f} +/- {sd['fx']:.2f} fy {cam.fy:.2f} +/- {sd['fy']:.2f} px, principal "
+        f"point ({cam.cx:.2f} +/- {sd['cx']:.2f}, {cam.cy:.2f} +/- {sd['cy']:.2f}) (1 sigma); "
         f"k1 {k1:.5f} k2 {k2:.5f} p1 {p1:.6f} p2 {p2:.6f} k3 {k3:.5f}"
     )
     views = result.views
