@@ -429,6 +429,15 @@ def test_corners_on_one_line_are_refused_not_an_opencv_assertion() -> None:
         calibrate_from_corners(one_row, SIZE)
 
 
+def test_an_implausible_rms_is_refused_naming_the_board() -> None:
+    """Corners off by 4 px per axis everywhere (a wrong --board, a bent board): no frame is an
+    outlier, and the overall RMS (about 4 x sqrt(2) = 5.7 px, MAX_RMS_PX is 2) is refused."""
+    detections = _detections(board_poses(TARGET, LENS, 8, seed=3), noise=4.0)
+    with pytest.raises(CalibrationError, match="--board") as caught:
+        calibrate_from_corners(detections, SIZE)
+    assert "implausible" in str(caught.value)
+
+
 def test_tilt_spread_is_the_largest_angle_between_normals() -> None:
     a = np.radians([10.0, 0.0, 0.0])  # Rodrigues vectors: about x by 10 deg...
     b = np.radians([-20.0, 0.0, 0.0])
