@@ -160,19 +160,25 @@ def _prepare_kernel(obs, usable, lights, a, rel_eps, y, w, scale, ok):
 
 
 def _store_tile(a, b, y, w, scale, ok, res, lights, normals, albedo, outliers, iterations,
-                segments):
-    """Unit normals, the Lambertian-equivalent albedo and flags of pixels a:b into the outputs."""
+                segments, albedo_flags=None):
+    """Unit normals, the Lambertian-equivalent albedo and flags of pixels a:b into the outputs.
+
+    ``albedo_flags`` (m, n): the observations left out of the albedo (default the result's
+    outliers; the default method: SBL's, whichever model gave the normal).
+    """
     has_segments = segments is not None
+    flags = np.ascontiguousarray(res.outliers)
     _store_kernel(a, y, w, scale, ok, np.ascontiguousarray(res.x, dtype=np.float64),
-                  np.ascontiguousarray(res.outliers), np.ascontiguousarray(res.iterations),
+                  flags, flags if albedo_flags is None else np.ascontiguousarray(albedo_flags),
+                  np.ascontiguousarray(res.iterations),
                   np.ascontiguousarray(res.segments) if has_segments else res.iterations,
                   np.ascontiguousarray(lights, dtype=np.float64), normals, albedo, outliers,
                   iterations, segments if has_segments else iterations, has_segments)
 
 
 @njit(nogil=True, cache=True, error_model="numpy")
-def _store_kernel(a, y, w, scale, ok, x, flags, iters, segs, lights, normals, albedo, outliers,
-                  iterations, segments, has_segments):
+def _store_kernel(a, y, w, scale, ok, x, flags, albedo_flags, iters, segs, lights, normals,
+                  albedo, outliers, iterations, segments, has_segments):
     m, n = y.shape
     for p in range(m):
         q = a + p
@@ -190,7 +196,7 @@ def _store_kernel(a, y, w, scale, ok, x, flags, iters, segs, lights, normals, al
         den = 0.0
         for i in range(n):
             sh = u0 * lights[i, 0] + u1 * lights[i, 1] + u2 * lights[i, 2]
-            if w[p, i] > 0.0 and not flags[p, i] and sh > 0.0:
+            if w[p, i] > 0.0 and not albedo_flags[p, i] and sh > 0.0:
                 num += sh * y[p, i]
                 den += sh * sh
         if not good:
