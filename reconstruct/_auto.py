@@ -1,4 +1,5 @@
-"""The default method ``auto`` over tiles: SBL, a score test, PL-SBL where SBL fails it.
+"""The default method ``auto`` over tiles: SBL, a score test, PL-SBL where SBL fails it, then a
+last choice between SBL and least squares.
 
 Two passes (docs/solvers.md, "The default `auto`", rule 0):
 
@@ -14,6 +15,19 @@ Two passes (docs/solvers.md, "The default `auto`", rule 0):
    where they still fail, fitted by PL-SBL and compared with SBL by their left-out residuals
    (:func:`._pl_kernels._choose`). SBL's fit of the first pass is reused, not repeated, and so
    are the test's break points (order statistics of SBL's fitted values: ``gate_breaks``).
+   Then every pixel's SBL fit is compared with least squares (:func:`last_choice`: truncated
+   left-out residuals, both in closed form), and LS is kept where it predicts better by more
+   than one standard error.
+
+Not with lights in rings of equal elevation (an RTI dome, :func:`light_rings`): PL-SBL's break
+points are order statistics of the pixel's observations, and on a dome they fall inside a ring
+(SynthRTI Object1: the first at the 16th of 48, inside the 18 lights at 10 degrees), so the
+ring's brightest lights get another slope than the rest; a ring's lights differ only in azimuth,
+and that variation is what carries the normal's tilt. PL-SBL was worse than SBL on 14 of the 17
+SynthRTI Object1 collections, by up to 5 degrees (docs/results.md), and dropping the 10 degree
+ring turned it around (Multi/material4: SBL 6.8, PL-SBL 4.4 deg), so the default keeps the
+Lambertian models there. One albedo for every pixel, whichever model gave its normal: the
+Lambertian-equivalent reflectance on the observations SBL keeps.
 """
 
 from __future__ import annotations
@@ -26,6 +40,31 @@ from numba import njit
 from . import _pl_kernels
 from ._pl_algebra import GATE_NOISE, gate_variance
 from ._tiles import _finish_solution, _prepare_tile, _store_tile, sbl_lambda
+
+
+def light_rings(lights: np.ndarray) -> float:
+    """Share of the lights in rings of equal elevation (an RTI dome); 0 for scattered lights.
+
+    Parameters
+    ----------
+    lights : ndarray of shape (n, 3)
+
+    Returns
+    -------
+    float
+        The share of the lights whose elevation (``asin(l_z / |l|)``) lies within
+        ``RING_TOLERANCE_DEG`` of that of its neighbour in elevation order, in a chain of at least
+        ``RING_MIN_LIGHTS`` lights.
+    """
+    v = np.asarray(lights, dtype=np.float64)
+    length = np.linalg.norm(v, axis=1)
+    good = length > 0
+    if not good.any():
+        return 0.0
+    elevation = np.sort(np.degrees(np.arcsin(np.clip(v[good, 2] / length[good], -1.0, 1.0))))
+    cut = np.flatnonzero(np.diff(elevation) > RING_TOLERANCE_DEG) + 1
+    sizes = np.diff(np.concatenate(([0], cut, [elevation.size])))
+    return float(sizes[sizes >= RING_MIN_LIGHTS].sum() / v.shape[0])
 
 
 def auto_tiles(obs, lights, usable, params, used, starts, tile, mapper, progress, pl_noise_of):
@@ -55,12 +94,17 @@ def auto_tiles(obs, lights, usable, params, used, starts, tile, mapper, progress
         return a, b, y, w, scale, ok, res
 
     tiles = list(mapper(first, starts))
+    rings = light_rings(lights)
+    used["lights_in_rings"] = rings
+    dome = rings >= DOME_SHARE  # PL-SBL is not used (module docstring)
     failing = [np.flatnonzero(t[5] & (t[6].gate > 0.0)) for t in tiles]
     count = int(sum(f.size for f in failing))
     used["gate_false_alarm"] = _pl_kernels.GATE_FALSE_ALARM
     used["gate_noise"] = GATE_NOISE
     used["pixels_failing_lambertian_test"] = count
-    if count and sigma_pl is None and per_pixel:
+    if dome:
+        failing = [f[:0] for f in failing]
+    if count and not dome and sigma_pl is None and per_pixel:
         columns = np.concatenate([t[0] + f for t, f in zip(tiles, failing, strict=True)])
         sigma_pl = pl_noise_of(columns)
     if sigma_pl is not None:
@@ -76,21 +120,26 @@ def auto_tiles(obs, lights, usable, params, used, starts, tile, mapper, progress
 
     per_model = np.zeros(len(MODELS), np.int64)
 
+    def pl_stage(t, rows, z):
+        """PL-SBL (and its choice against SBL at ``z`` standard errors) on rows of tile t."""
+        a, b, y, w, scale, ok, res = t
+        part = _pl_kernels.PLTileResult(res.x[rows], res.outliers[rows],
+                                        res.iterations[rows], res.segments[rows],
+                                        sbl_weights=res.sbl_weights[rows],
+                                        gate_breaks=res.gate_breaks[rows])
+        lam = noise(scale[rows], used.get("noise_sigma", 0.0))
+        lam_pl = noise(scale[rows], sigma_pl) if per_pixel else None
+        return _pl_kernels.pl_tile(y[rows], w[rows], lights, choose=True,
+                                   sbl_max_iter=sbl_max_iter, lam=lam, lam_pl=lam_pl,
+                                   lam_test=gate_variance(lam if lam_pl is None else lam_pl),
+                                   stage="pl", sbl_fit=part, choice_z=z, **kernel_params)
+
     def second(job):
         (a, b, y, w, scale, ok, res), rows = job
         x_sbl, flags_sbl = res.x.copy(), res.outliers.copy()
         pl = np.zeros(b - a, bool)
         if rows.size:
-            part = _pl_kernels.PLTileResult(res.x[rows], res.outliers[rows],
-                                            res.iterations[rows], res.segments[rows],
-                                            sbl_weights=res.sbl_weights[rows],
-                                            gate_breaks=res.gate_breaks[rows])
-            lam = noise(scale[rows], used.get("noise_sigma", 0.0))
-            lam_pl = noise(scale[rows], sigma_pl) if per_pixel else None
-            out = _pl_kernels.pl_tile(y[rows], w[rows], lights, choose=True,
-                                      sbl_max_iter=sbl_max_iter, lam=lam, lam_pl=lam_pl,
-                                      lam_test=gate_variance(lam if lam_pl is None else lam_pl),
-                                      stage="pl", sbl_fit=part, **kernel_params)
+            out = pl_stage((a, b, y, w, scale, ok, res), rows, PL_CHOICE_Z)
             res.x[rows], res.outliers[rows] = out.x, out.outliers
             res.iterations[rows], res.segments[rows] = out.iterations, out.segments
             pl[rows] = out.segments > 1
@@ -125,6 +174,14 @@ CHOICE_CLIP = 3.0
 CHOICE_Z = 1.0
 # Models of the default's last choice (``Solution.params["pixels_per_model"]``).
 MODELS = ("ls", "sbl", "plsbl")
+# PL-SBL replaces SBL where its left-out gain exceeds this many standard errors (_pl_kernels._choose)
+PL_CHOICE_Z = _pl_kernels.CHOICE_Z
+# Lights in rings of equal elevation (an RTI dome: SynthRTI's 49 lights in 5 rings): a ring is
+# RING_MIN_LIGHTS or more lights whose elevations chain within RING_TOLERANCE_DEG; with at least
+# DOME_SHARE of the lights in rings, PL-SBL is not used (module docstring).
+RING_TOLERANCE_DEG = 0.5
+RING_MIN_LIGHTS = 6
+DOME_SHARE = 0.5
 
 
 @njit(nogil=True, cache=True, error_model="numpy")
