@@ -119,6 +119,33 @@ def _share(row) -> str:
     return parts
 
 
+def speckle_case(folder: Path, threads=None) -> dict:
+    """Albedo speckle (%) of the default and SBL on a whole image (mask pixels), e.g. a real RTI
+    panel without ground truth or a DiLiGenT object."""
+    data = load_dataset(folder)
+    mask = data.mask
+    obs = data.images[:, mask]
+    factors = light_noise_factors(data.light_intensities)
+    valid = _black_valid(obs, data.valid[:, mask], factors, data.light_directions)
+    row = {"case": folder.name}
+    for method in ("sbl", "auto"):
+        started = time.perf_counter()
+        sol = solve(obs, data.light_directions, method=method, valid=valid, threads=threads,
+                    light_noise=factors)
+        row[f"{method}_s"] = time.perf_counter() - started
+        image = np.zeros(mask.shape)
+        image[mask] = sol.albedo
+        a = np.pad(image, 1, mode="edge")
+        stack = np.stack([a[i:i + mask.shape[0], j:j + mask.shape[1]]
+                          for i in range(3) for j in range(3)])
+        med = np.median(stack, axis=0)
+        ok = mask & (med > 0)
+        row[method] = 100.0 * float(np.mean(np.abs(image[ok] / med[ok] - 1.0) > SPECKLE_OFF))
+        if method == "auto":
+            row["share"] = sol.params.get("pixels_per_model")
+    return row
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--synthrti", type=Path, default=DATA / "synthrti-object1")
@@ -129,8 +156,18 @@ def main(argv=None) -> int:
     ap.add_argument("--no-synthrti", action="store_true")
     ap.add_argument("--no-diligent", action="store_true")
     ap.add_argument("--no-sim", action="store_true")
+    ap.add_argument("--speckle", type=Path, nargs="*", default=None,
+                    help="only the albedo speckle of these folders (default and SBL)")
     args = ap.parse_args(argv)
     rows = []
+    if args.speckle is not None:
+        print("| case | speckle % default | speckle % SBL | time default / SBL | LS/SBL/PL % |")
+        print("|---|---|---|---|---|")
+        for folder in args.speckle or [DATA / "realrti-3" / "item3", args.diligent / "cat"]:
+            row = speckle_case(folder, args.threads)
+            print(f"| {row['case']} | {row['auto']:.2f} | {row['sbl']:.2f} | "
+                  f"{row['auto_s'] / row['sbl_s']:.2f} | {_share(row)} |", flush=True)
+        return 0
 
     def report(row):
         rows.append(row)

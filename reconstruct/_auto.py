@@ -151,7 +151,7 @@ def auto_tiles(obs, lights, usable, params, used, starts, tile, mapper, progress
         res.segments = np.where(model == 2, res.segments, 1)
         per_model[:] += np.bincount(model[ok], minlength=len(MODELS))
         _store_tile(a, b, y, w, scale, ok, res, lights, normals, albedo, outliers, iterations,
-                    segments, albedo_flags=flags_sbl)
+                    segments, albedo_flags=flags_sbl, albedo_x=x_sbl if ALBEDO_FROM_SBL else None)
         return b - a
 
     for done in mapper(second, list(zip(tiles, failing, strict=True))):
@@ -180,6 +180,7 @@ PL_CHOICE_Z = _pl_kernels.CHOICE_Z
 # a ring with RING_MIN_LIGHTS or more lights within RING_TOLERANCE_DEG of its elevation; with at
 # least DOME_SHARE of the lights in rings, PL-SBL is not used (module docstring).
 RING_TOLERANCE_DEG = 0.25
+ALBEDO_FROM_SBL = True
 RING_MIN_LIGHTS = 6
 DOME_SHARE = 0.5
 
