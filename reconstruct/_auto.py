@@ -263,9 +263,11 @@ def _last_choice_kernel(y, w, lights, lam, x_sbl, d, x_pl, pl, clip2, z, x_out, 
     m, n = y.shape
     t_ls = np.empty(n)
     t_sbl = np.empty(n)
+    per_pixel = lights.shape[0] > 1
     for p in range(m):
-        s_ls = _loo_terms(y[p], w[p], w[p], lights, lam[p], clip2, t_ls)
-        s_sbl = _loo_terms(y[p], d[p], w[p], lights, lam[p], clip2, t_sbl)
+        lp = lights[p if per_pixel else 0]
+        s_ls = _loo_terms(y[p], w[p], w[p], lp, lam[p], clip2, t_ls)
+        s_sbl = _loo_terms(y[p], d[p], w[p], lp, lam[p], clip2, t_sbl)
         if s_ls < math.inf and (not s_sbl < math.inf or _gain(t_sbl, t_ls, w[p], z) > 0.0):
             model[p] = 0
         else:
@@ -273,7 +275,7 @@ def _last_choice_kernel(y, w, lights, lam, x_sbl, d, x_pl, pl, clip2, z, x_out, 
         if pl[p] and model[p] == 1:  # PL-SBL nests SBL: the PL stage chose it over SBL
             model[p] = 2
         if model[p] == 0:
-            _ls_x(y[p], w[p], lights, x_out, p)
+            _ls_x(y[p], w[p], lp, x_out, p)
         elif model[p] == 1:
             x_out[p, 0], x_out[p, 1], x_out[p, 2] = x_sbl[p, 0], x_sbl[p, 1], x_sbl[p, 2]
         else:
@@ -317,8 +319,9 @@ def last_choice(y, w, lights, lam, x_sbl, d, x_pl, pl, *,
     ----------
     y, w : ndarray of shape (m, n)
         Scaled observations and their usable mask (1/0).
-    lights : ndarray of shape (n, 3)
-    lam : ndarray of shape (m, 1) or (m, n)
+    lights : ndarray of shape (n, 3) or (m, n, 3)
+        The same for every pixel, or each pixel's own (near lights).
+    lam : float or ndarray of shape (m, 1) or (m, n)
         SBL's noise variance of each observation (the pixel's relative units).
     x_sbl, d : ndarray of shape (m, 3), (m, n)
         SBL's fit and its final weights ``d = 1 / (gamma + lam)``.
@@ -343,9 +346,11 @@ def last_choice(y, w, lights, lam, x_sbl, d, x_pl, pl, *,
     lam_obs = np.require(np.broadcast_to(np.asarray(lam, dtype=np.float64), (m, n)), None, "CW")
     model = np.zeros(m, np.int8)
     x = np.zeros((m, 3))
+    light_stack = np.asarray(lights, dtype=np.float64)
+    light_stack = np.ascontiguousarray(light_stack[None] if light_stack.ndim == 2 else light_stack)
     if m:
         _last_choice_kernel(np.require(y, np.float64, "C"), np.require(w, np.float64, "C"),
-                            np.ascontiguousarray(lights, dtype=np.float64), lam_obs,
+                            light_stack, lam_obs,
                             np.require(x_sbl, np.float64, "C"), np.require(d, np.float64, "C"),
                             np.require(x_pl, np.float64, "C"), np.require(pl, np.bool_, "C"),
                             float(clip) ** 2, float(z), x, model)
