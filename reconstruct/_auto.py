@@ -174,7 +174,8 @@ CHOICE_CLIP = 3.0
 CHOICE_Z = 1.0
 # Models of the default's last choice (``Solution.params["pixels_per_model"]``).
 MODELS = ("ls", "sbl", "plsbl")
-# PL-SBL replaces SBL where its left-out gain exceeds this many standard errors (_pl_kernels._choose)
+# PL-SBL replaces SBL where its left-out gain exceeds this many standard errors
+# (_pl_kernels._choose)
 PL_CHOICE_Z = _pl_kernels.CHOICE_Z
 # Lights in rings of equal elevation (an RTI dome: SynthRTI's 49 lights in 5 rings): a light is in
 # a ring with RING_MIN_LIGHTS or more lights within RING_TOLERANCE_DEG of its elevation; with at
