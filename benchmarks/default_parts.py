@@ -87,19 +87,24 @@ def run_case(name, obs, valid, lights, truth, factors, shape=None, threads=None)
     return row
 
 
-def simulated_cases(every: int):
-    """Stand-ins unlike both: glossy spheres and reliefs, 12 and 48 lights (ps-lab render)."""
+def simulated_cases(every: int, dome: np.ndarray | None = None):
+    """Stand-ins unlike both: glossy spheres and reliefs, 12 and 48 lights (ps-lab render), and
+    with ``dome`` (n, 3) (SynthRTI's dome lights) a relief with a broad lobe under it."""
     from ps_lab.render import (random_light_directions, relief_surface, render,
                                sphere_surface)
     cases = []
     size = max(32, 128 // every)
-    for name, n_lights, surface_kind, spec, rough, seed in (
-            ("sim sphere glossy 48", 48, "sphere", 0.6, 0.15, 1),
-            ("sim relief glossy 48", 48, "relief", 0.4, 0.3, 2),
-            ("sim relief matte 12", 12, "relief", 0.0, 0.5, 3),
-            ("sim sphere glossy 12", 12, "sphere", 0.5, 0.2, 4)):
+    specs = [("sim sphere glossy 48", 48, "sphere", 0.6, 0.15, 1),
+             ("sim relief glossy 48", 48, "relief", 0.4, 0.3, 2),
+             ("sim relief matte 12", 12, "relief", 0.0, 0.5, 3),
+             ("sim sphere glossy 12", 12, "sphere", 0.5, 0.2, 4)]
+    if dome is not None:
+        specs.append(("sim relief broad lobe, dome 49", 0, "relief", 0.5, 0.6, 1))
+    for name, n_lights, surface_kind, spec, rough, seed in specs:
         rng = np.random.default_rng(seed)
-        lights = random_light_directions(n_lights, rng, max_zenith_deg=70.0)
+        lights = dome if n_lights == 0 else random_light_directions(n_lights, rng,
+                                                                    max_zenith_deg=70.0)
+        n_lights = lights.shape[0]
         surf = sphere_surface((size, size)) if surface_kind == "sphere" else \
             relief_surface((size, size), seed=seed)
         images = render(surf, lights, rng=rng, specular=spec, roughness=rough,
@@ -200,7 +205,9 @@ def main(argv=None) -> int:
             report(run_case(obj.name, obj.observations, obj.valid, obj.light_directions,
                             obj.normal_gt, obj.light_noise, None, args.threads))
     if not args.no_sim:
-        for case in simulated_cases(args.every):
+        dome_folder = args.synthrti / "Single" / "Object1" / "material1" / "Dome"
+        dome = load_dataset(dome_folder).light_directions if dome_folder.is_dir() else None
+        for case in simulated_cases(args.every, dome):
             if args.only in case[0]:
                 report(run_case(*case, threads=args.threads))
     if rows:
