@@ -53,7 +53,7 @@ __all__ = [
     "encode",
     "grey_srgb",
     "psnr_per_light",
-    "fit_encoded",
+    "complete_pixels",
     "loo_weights",
     "predict_weights",
     "resolve_model",
@@ -95,9 +95,26 @@ def candidates(model: str) -> list[dict[str, Any]]:
 
 
 def encode(observations: np.ndarray, space: str) -> np.ndarray:
-    """Observations in the fit space: as given (non-finite as 0) or sRGB-encoded (clipped)."""
-    obs = np.nan_to_num(np.asarray(observations, np.float64))
+    """Observations in the fit space: as given or sRGB-encoded (clipped); a missing (NaN)
+    observation stays missing."""
+    obs = np.asarray(observations, np.float64)
     return linear_to_srgb(obs) if space == "srgb" else obs
+
+
+def complete_pixels(sample: np.ndarray, least: int = 64) -> np.ndarray:
+    """Indices of the sample's pixels with every observation (saturated ones are NaN: dropped by
+    every model), or all pixels when fewer than ``least`` (or a quarter) are complete.
+
+    Parameters
+    ----------
+    sample : ndarray of shape (n, m, C)
+
+    """
+    complete = np.isfinite(sample).all(axis=(0, 2))
+    m = sample.shape[1]
+    if complete.sum() >= min(m, max(least, m // 4)):
+        return np.flatnonzero(complete)
+    return np.arange(m)
 
 
 def _decode(values: np.ndarray, space: str) -> np.ndarray:
@@ -253,6 +270,10 @@ def resolve_model(
     """
     obs = np.asarray(sample, np.float64)
     obs = obs[..., None] if obs.ndim == 2 else obs
+    keep = complete_pixels(obs)  # cross-validation on measured values only
+    obs = obs[:, keep]
+    if normals is not None and albedo is not None:
+        normals, albedo = np.asarray(normals)[keep], np.asarray(albedo)[keep]
     m = obs.shape[1]
     scored = np.unique(np.linspace(0, m - 1, min(m, CHOICE_PIXELS)).round().astype(np.int64))
     choice = choose_model(obs[:, scored], lights, AUTO_MODELS if model == "auto" else (model,))
@@ -302,7 +323,8 @@ def smoother_setup(
     if choice.model in BASIS_TERMS:
         return meta, {}
     obs = np.asarray(sample, np.float64)
-    obs = encode(obs[..., None] if obs.ndim == 2 else obs, choice.space)
+    obs = obs[..., None] if obs.ndim == 2 else obs
+    obs = np.nan_to_num(encode(obs[:, complete_pixels(obs)], choice.space))
     n = obs.shape[0]
     k = min(terms, n)
     basis = np.stack([np.linalg.svd(obs[:, :, ch].T, full_matrices=False)[2][:k].T
@@ -314,45 +336,3 @@ def smoother_setup(
         extra["solve"] = gp_solve(lights.astype(np.float32), choice.params["sigma"],
                                   choice.params["ridge"])
     return meta, extra
-
-
-def fit_encoded(
-    model: str,
-    observations: np.ndarray,
-    directions: np.ndarray,
-    basis: np.ndarray | None,
-    scale: np.ndarray | None = None,
-    space: str = "linear",
-) -> np.ndarray:
-    """Coefficients of a block in the fit space (non-finite observations count 0).
-
-    Parameters
-    ----------
-    model : str
-        A linear basis (least squares) or ``rbf``/``bln``/``gp`` (projection on ``basis``).
-    observations : ndarray of shape (n, P, C)
-    directions : ndarray of shape (n, 3)
-    basis : ndarray of shape (C, n, K) or None
-    scale : ndarray of shape (n,) or None
-        Each light's divisor of the observations.
-    space : {"linear", "srgb"}
-
-    Returns
-    -------
-    ndarray of shape (P, C, K), float32
-
-    """
-    obs = np.asarray(observations, np.float64)
-    if scale is not None:
-        obs = obs / np.asarray(scale, np.float64).reshape(-1, 1, 1)
-    y = encode(obs, space)
-    if model in BASIS_TERMS:
-        weights = np.linalg.pinv(appearance_basis(model, directions))  # (K, n)
-        n, p, c = y.shape
-        return (weights @ y.reshape(n, p * c)).reshape(-1, p, c).transpose(1, 2, 0).astype(
-            np.float32)
-    assert basis is not None
-    out = np.empty((y.shape[1], y.shape[2], basis.shape[2]), np.float32)
-    for ch in range(y.shape[2]):
-        out[:, ch] = y[:, :, ch].T @ np.asarray(basis[ch], np.float64)
-    return out
