@@ -138,13 +138,15 @@ def relight(
     markdown: MarkdownFlag = False,
     json_out: JsonFile = None,
 ) -> None:
-    """Held-out relighting PSNR and SSIM of every appearance model (every 8th light left out)."""
+    """Held-out relighting PSNR and SSIM of every appearance model (eight folds: every light
+    held out once)."""
     folder = folder if folder is not None else bench_relight.DEFAULT_FOLDER
     captures = bench_relight.find_captures(folder)
     if not captures:
         typer.echo(f"skipped: no capture folders (light directions) under {folder}")
         return
-    total = len(captures) * len(bench_relight.MODELS)
+    total = len(captures) * len(bench_relight.MODELS) * bench_relight.folds_of(
+        folder, extrapolate=extrapolate)
     with progress_bar(total, "relighting", enabled=True) as advance:
         rows = [
             bench_relight.evaluate_capture(
