@@ -539,6 +539,13 @@ def _with_appearance(result: Path, folder: Path, model: str) -> Path:
         basis = appearance_basis("hsh3", lights)  # (n, 9)
         coefficients = np.einsum("kn,hwnc->hwck", np.linalg.pinv(basis), images)
         meta = {"basis": "hsh3", "K": 9}
+    elif model == "rbf":  # ps-lab's rbf: per-channel coefficients on a per-channel basis
+        lights = np.loadtxt(json.loads((result / "metrics.json").read_text())["dataset"]
+                            + "/light_directions.txt")
+        k = 5
+        coefficients = rng.uniform(0, 0.3, size=(h, w, 3, k)) * albedo.mean()
+        meta = {"basis": "rbf", "K": k, "sigma": 0.4}
+        extra = {"lights": lights, "basis": rng.uniform(0, 1, size=(3, len(lights), k))}
     else:  # "ps": the default terms (with "ps-vis" a visibility); "ps-all": every kind of term
         terms = list(PS_TERMS) if model in ("ps", "ps-vis") else [
             "lambert", "lx", "ly", "lz", "ambient", "lobe:4", "lobex:16", "lobey:16", "hsh:2",
@@ -555,11 +562,12 @@ def _with_appearance(result: Path, folder: Path, model: str) -> Path:
             meta["visibility"] = "clip-linear"
         model = "ps"
     write_appearance(folder, Appearance(model, coefficients.astype(np.float32), meta,
-                                        extra if meta.get("visibility") else {}))
+                                        extra if meta.get("visibility") or model == "rbf"
+                                        else {}))
     return folder
 
 
-@pytest.mark.parametrize("model", ["hsh3", "ps", "ps-all", "ps-vis"])
+@pytest.mark.parametrize("model", ["hsh3", "ps", "ps-all", "ps-vis", "rbf"])
 def test_appearance_relight_in_chromium_matches_the_model(browser, colour_result, tmp_path, model):
     from ps_lab.io.appearance import Appearance, evaluate_appearance, read_appearance
 
@@ -569,7 +577,7 @@ def test_appearance_relight_in_chromium_matches_the_model(browser, colour_result
     fit = read_appearance(result)
     coefficients = (fit.coefficients / scale).astype(np.float16).astype(np.float32)
     extra = {name: np.asarray(value).astype(np.float16).astype(np.float32)
-             for name, value in fit.extra.items()}
+             if name == "visibility" else value for name, value in fit.extra.items()}
     rounded = Appearance(fit.model, coefficients, fit.meta, extra)
     normals = view.layers[..., :3].astype(np.float16).astype(np.float64)
     norm = np.linalg.norm(normals, axis=2)
@@ -650,5 +658,53 @@ def test_a_relightlab_export_relights_in_chromium(browser, colour_result, tmp_pa
         print("RelightLab folder relight vs numpy (levels): mean", float(difference.mean()),
               "max", float(difference.max()))
         assert difference.max() <= 2.0
+    finally:
+        server.stop()
+
+
+def test_a_default_result_exported_for_openlime_relights_in_chromium_as_the_export(
+    browser, colour_result, tmp_path
+):
+    """A default result (model ps) exported with --format relight (converted to RelightLab's
+    rbf layout): ps-lab view of the export shows what the export relights (the numpy read of
+    its planes, as OpenLIME reads them), within 2 levels."""
+    from ps_lab.io.appearance import Appearance, evaluate_appearance, read_appearance
+    from ps_lab.io.relightlab import read_relightlab
+    from ps_lab.view.relightlab import load_view_result
+
+    assert read_appearance(colour_result).model == "ps"
+    out = tmp_path / "openlime"
+    done = runner.invoke(app, ["view", str(colour_result), "--export", str(out), "--format",
+                               "relight"])
+    assert done.exit_code == 0, done.output
+    assert "rbf" in done.output and "dB PSNR" in done.output
+    view = load_view_result(out)
+    fit, info = read_relightlab(out)
+    assert info["type"] == "rbf" and info["ps_lab"]["model"] == "ps"
+    coefficients = (fit.coefficients / view.albedo_scale).astype(np.float16).astype(np.float32)
+    rounded = Appearance("rbf", coefficients, fit.meta, fit.extra)
+    mask = np.linalg.norm(view.layers[..., :3], axis=2) > 0.5
+    server = ViewServer(out)
+    try:
+        browser.open(server.url)
+        assert browser.evaluate("psView.ready") is True
+        entry = browser.evaluate("psView.results()[0]")
+        assert entry["appearance"]["model"] == "rbf" and entry["appearance"]["shared"] is True
+        assert entry["appearance"]["note"] is None
+        browser.evaluate("psView.pixelScale(0, 1)")
+        browser.evaluate("psView.setView({cx: 0.5, cy: 0.5})")
+        for light in ([0.4, -0.2, float(np.sqrt(1 - 0.2))], [-0.1, 0.3, float(np.sqrt(0.9))]):
+            browser.evaluate(f"psView.setLight({json.dumps(light)})")
+            settle(browser)
+            linear = np.clip(evaluate_appearance(rounded, np.asarray(light), view.layers[..., :3],
+                                                 np.zeros(view.shape)).astype(np.float64), 0, 1)
+            expected = 255 * np.where(linear <= 0.0031308, linear * 12.92,
+                                      1.055 * linear ** (1 / 2.4) - 0.055)
+            rows, cols, picture = shown_pixels(browser, 0, view.shape)
+            shown = picture[rows][:, cols].astype(np.float64)[..., :3]
+            difference = np.abs(shown - expected)[interior(mask)]
+            print("default result's OpenLIME export in the viewer vs numpy (levels): mean",
+                  float(difference.mean()), "max", float(difference.max()))
+            assert difference.max() <= 2.0
     finally:
         server.stop()
