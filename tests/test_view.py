@@ -118,7 +118,7 @@ def test_pyramid_levels_average_and_tiles_round_trip():
     assert levels.tile(0, 3, 0) is None and levels.tile(3, 0, 0) is None
 
 
-def test_appearance_tiles_follow_the_layer_pyramid_and_rbf_gets_a_note():
+def test_appearance_tiles_follow_the_layer_pyramid_and_rbf_is_tiled():
     # hsh3 coefficients on a 1100 x 700 plane: the same levels as the layers, a tile's planes
     # are the level's coefficients term-major (3k + c) over the albedo scale; rbf is not tiled.
     from ps_lab.io.appearance import Appearance
@@ -138,9 +138,29 @@ def test_appearance_tiles_follow_the_layer_pyramid_and_rbf_gets_a_note():
     block = coefficients[:2, :2].mean(axis=(0, 1)).T.reshape(27) / 2.0
     np.testing.assert_allclose(tiles.levels[1][0, 0].astype(float), block, atol=2e-3)
     assert tiles.tile(0, 3, 0) is None and tiles.tile(3, 0, 0) is None
-    rbf = Appearance("rbf", coefficients[..., :4], {"K": 4, "sigma": 0.5})
-    assert appearance_tiles(rbf, mask, 1.0) is None
-    entry = appearance_entry(rbf, None)
+    # rbf: per-channel coefficients tiled 3k + c; channels sharing them (RelightLab's mrgb read
+    # back) tiled k; the manifest carries the lights, sigma and the basis repeated to 3 channels
+    lights = rng.normal(size=(5, 3))
+    basis = rng.uniform(size=(1, 5, 4))
+    rbf = Appearance("rbf", coefficients[..., :4], {"K": 4, "sigma": 0.5},
+                     {"lights": lights, "basis": basis})
+    tiles = appearance_tiles(rbf, mask, 1.0)
+    assert tiles.planes == 3 and tiles.levels[0].shape[2] == 12
+    entry = appearance_entry(rbf, tiles)
+    assert entry["shared"] is False and entry["note"] is None
+    np.testing.assert_allclose(np.reshape(entry["rbf"]["basis"], (3, 5, 4)),
+                               np.repeat(basis, 3, axis=0))
+    shared = Appearance("rbf", np.repeat(coefficients[..., :1, :4], 3, axis=2), rbf.meta,
+                        rbf.extra)
+    tiles = appearance_tiles(shared, mask, 2.0)
+    assert tiles.planes == 1 and appearance_entry(shared, tiles)["shared"] is True
+    np.testing.assert_array_equal(tiles.levels[0][TILE:, 2 * TILE:],
+                                  (coefficients[TILE:, 2 * TILE:, 0, :4] / 2.0).astype(np.float16))
+    # a model the page cannot relight (more terms than its uniforms) is Lambertian, with a note
+    wide = Appearance("rbf", rng.uniform(size=(h, w, 1, 40)).astype(np.float32),
+                      {"K": 40, "sigma": 0.5}, {"lights": lights, "basis": basis})
+    assert appearance_tiles(wide, mask, 1.0) is None
+    entry = appearance_entry(wide, None)
     assert entry["planes"] is None and "Lambertian" in entry["note"]
 
 
