@@ -242,7 +242,12 @@ class ViewServer:
     def stop(self) -> tuple[int, str]:
         """Ctrl-C: the exit code and stderr."""
         self.process.send_signal(signal.SIGINT)
-        _, err = self.process.communicate(timeout=10)
+        try:
+            _, err = self.process.communicate(timeout=30)
+        except subprocess.TimeoutExpired:
+            self.process.kill()
+            self.process.communicate()
+            raise
         return self.process.returncode, err
 
 
@@ -305,6 +310,10 @@ def settle(browser) -> None:
     # the drawn frame on screen (two animation frames: composited)
     browser.evaluate("new Promise(r => requestAnimationFrame(() => requestAnimationFrame(r)))")
     browser.wait_for("psView.idle()", timeout=20)
+    # every tile drawn arrived (a failed fetch is retried; one that failed for good says so here
+    # instead of as a picture off by the whole shading)
+    assert browser.evaluate("psView.stats.tilesFailed") == 0, browser.evaluate(
+        "document.getElementById('status').textContent")
 
 
 def check_relight(browser, result: Path, panel: int = 0) -> dict:

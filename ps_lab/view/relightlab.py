@@ -133,7 +133,8 @@ def check_export_folder(folder: Path) -> None:
     elif not foreign:
         foreign = names  # planes without info.json: not an export ps-lab finished
     if foreign:
-        shown = ", ".join(foreign[:5]) + (f" and {len(foreign) - 5} more" if len(foreign) > 5 else "")
+        more = f" and {len(foreign) - 5} more" if len(foreign) > 5 else ""
+        shown = ", ".join(foreign[:5]) + more
         raise OutputError(
             f"{folder}: holds files ps-lab did not write ({shown}); it is replaced only when "
             "empty or an earlier ps-lab export: choose a new or empty folder"
