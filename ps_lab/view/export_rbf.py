@@ -85,11 +85,18 @@ class RbfConversion:
 
         """
         n, count, _ = pictures.shape
-        centred = (np.asarray(pictures, np.float64) - self.mean[:, None, :])
-        design = self.eigen.reshape(len(self.eigen), -1).T  # (3n, P)
-        rows = centred.transpose(0, 2, 1).reshape(n * 3, count)  # (3n, N), light-major as design
-        solution, *_ = np.linalg.lstsq(design, rows, rcond=None)
-        return solution.T
+        centred = np.asarray(pictures, np.float64) - self.mean[:, None, :]
+        rows = centred.transpose(1, 0, 2).reshape(count, n * 3)  # light-major, as the design
+        return rows @ self.projection.T
+
+    @property
+    def projection(self) -> np.ndarray:
+        """The least-squares projection onto the decoded components, (P, 3n)."""
+        cached = self.__dict__.get("_projection")
+        if cached is None:
+            cached = np.linalg.pinv(self.eigen.reshape(len(self.eigen), -1).T)
+            object.__setattr__(self, "_projection", cached)
+        return cached
 
 
 def dome(count: int, z_min: float, offset: float = 0.5) -> np.ndarray:
