@@ -219,7 +219,8 @@ def test_default_result_converts_and_relightlab_relights_the_export(tmp_path):
     psnr = grey_psnr(export, model)
     assert info["ps_lab"]["conversion"]["psnr_db"] == pytest.approx(psnr, abs=0.01)
     assert f"{psnr:.1f} dB" in done.output
-    # the promise of docs/viewer.md: a conversion at least 30 dB from the model
+    # a usable conversion: at least 30 dB from the model (docs/viewer.md measures 30 to 42 dB on
+    # real captures)
     assert psnr >= 30.0, psnr
     tool = RELIGHT_CLI
     if tool is None:
