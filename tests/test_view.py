@@ -31,7 +31,7 @@ from ps_lab.cli import app
 from ps_lab.view import ViewSite, export_site, load_result
 from ps_lab.view.result import CHANNELS, decimate_mesh, vertex_normals
 from ps_lab.view.tiles import TILE, pyramid
-from tests.helpers.browser import Browser, find_chromium
+from tests.helpers.browser import Browser, default_sigint, find_chromium
 
 runner = CliRunner()
 DILIGENT = Path(__file__).resolve().parents[2] / "shared" / "data" / "diligent-8bit"
@@ -233,6 +233,7 @@ class ViewServer:
             stderr=subprocess.PIPE,
             text=True,
             env=env,
+            preexec_fn=default_sigint,  # noqa: PLW1509 - one signal call before exec
         )
         line = self.process.stdout.readline()
         match = re.search(r"http://127\.0\.0\.1:(\d+)/", line)

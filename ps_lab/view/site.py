@@ -382,9 +382,6 @@ class ViewServer(ThreadingHTTPServer):
     """
 
     daemon_threads = True
-    # Closing does not wait for the connection threads: a browser keeps idle keep-alive
-    # connections open, and waiting for them (up to REQUEST_TIMEOUT each) made Ctrl-C take 10 s.
-    block_on_close = False
     request_queue_size = LISTEN_BACKLOG
 
     def __init__(self, site: ViewSite, port: int = 0, timeout: float = REQUEST_TIMEOUT) -> None:
