@@ -176,6 +176,14 @@ class Browser:
                 self.send("Target.closeTarget", {"targetId": previous}, browser=True)
             except BrowserError:
                 pass  # already gone
+            # closeTarget answers before the page is gone: wait until the browser no longer
+            # lists it (its renderer and WebGL context released) before the next page draws.
+            deadline = time.monotonic() + 10
+            while any(t.get("targetId") == previous for t in self.send(
+                "Target.getTargets", browser=True).get("targetInfos", [])):
+                if time.monotonic() > deadline:
+                    raise BrowserError(f"page {previous} still open 10 s after closing it")
+                time.sleep(0.02)
         target = self.send("Target.createTarget", {"url": "about:blank"}, browser=True)["targetId"]
         self.target = target
         self.session = self.send(
