@@ -241,3 +241,36 @@ def test_default_result_converts_and_relightlab_relights_the_export(tmp_path):
 
 RELIGHT_CLI = next((p for p in [Path(__file__).resolve().parents[2] / "shared" / "tools" /
                                 "relightlab" / "run"] if p.is_file()), None)
+
+
+def test_relightlabs_own_rbf_folder_reads_as_relight_cli_relights_it(tmp_path):
+    """RelightLab's own ``relight-cli -b rbf`` output (mrgb, no ps_lab field) read by ps-lab
+    relights as relight-cli renders it: the layout is read as RelightLab writes it."""
+    if RELIGHT_CLI is None:
+        pytest.skip("RelightLab's relight-cli not found")
+    surface, lights, _ = _fit("ptm", seed=3)
+    images = render.render(surface, lights, specular=0.3)
+    images = np.clip(images / images.max(), 0, 1)
+    capture = tmp_path / "capture"
+    capture.mkdir()
+    lines = [str(len(lights))]
+    for i, (light, image) in enumerate(zip(lights, images)):
+        srgb = np.where(image <= 0.0031308, image * 12.92, 1.055 * image ** (1 / 2.4) - 0.055)
+        cv2.imwrite(str(capture / f"{i:02d}.jpg"), np.rint(srgb[..., ::-1] * 255).astype(np.uint8),
+                    [cv2.IMWRITE_JPEG_QUALITY, 98])
+        lines.append(f"{i:02d}.jpg {light[0]:.6f} {light[1]:.6f} {light[2]:.6f}")
+    (capture / "dirs.lp").write_text("\n".join(lines) + "\n")
+    out = tmp_path / "rbf"
+    subprocess.run([str(RELIGHT_CLI), "relight-cli", "-b", "rbf", "-p", "9", str(capture),
+                    str(out)], check=True, capture_output=True, timeout=300)
+    read, info = read_relightlab(out)
+    assert read.model == "rbf" and "ps_lab" not in info
+    zeros = np.zeros((*SHAPE, 3))
+    light = np.array([0.3, 0.2, 0.933]) / np.linalg.norm([0.3, 0.2, 0.933])
+    png = tmp_path / "relit.png"
+    subprocess.run([str(RELIGHT_CLI), "relight-cli", "-L", ":".join(f"{x:.6f}" for x in light),
+                    "-D", str(png), str(out)], check=True, capture_output=True, timeout=120)
+    rendered = cv2.imread(str(png), cv2.IMREAD_UNCHANGED)[..., :3][..., ::-1].astype(np.float64)
+    ours = 255 * np.clip(evaluate_appearance(read, light, zeros, zeros[..., 0]), 0, 1)
+    bound = 1.0 + 255 * (info["nplanes"] + 1) * max(info["materials"][0]["scale"]) * 2**-22
+    assert np.abs(rendered - ours).max() <= bound

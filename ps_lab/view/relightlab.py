@@ -252,9 +252,9 @@ def _write_converted(stage: Path, out: Path, source, lights, pictures) -> tuple[
                             np.zeros((1, len(pixels))))[0] for light in test
     ]) * exposure
     psnr = grey_psnr(predicted, relight(test, pixels))
-    info["ps_lab"]["conversion"] = {
-        "from": model, "psnr_db": round(psnr, 2), "lights": conversion.lights_source,
-        "test_lights": len(test),
+    info["ps_lab"]["conversion"] = {  # psnr_db null: exact (JSON has no infinity)
+        "from": model, "psnr_db": round(psnr, 2) if math.isfinite(psnr) else None,
+        "lights": conversion.lights_source, "test_lights": len(test),
     }
     try:
         (stage / INFO).write_text(json.dumps(info, indent=1) + "\n", encoding="utf-8")
@@ -263,8 +263,9 @@ def _write_converted(stage: Path, out: Path, source, lights, pictures) -> tuple[
     line = (
         f"RelightLab rbf ({info['nplanes']} planes, {len(conversion.lights)} "
         f"{conversion.lights_source} lights, sigma {conversion.sigma:.3f}) written to {out}: "
-        f"{model} converted at {psnr:.1f} dB PSNR against the model ({len(test)} lights it was "
-        "not sampled at)"
+        + (f"{model} converted at {psnr:.1f} dB PSNR against the model" if math.isfinite(psnr)
+           else f"{model} converted exactly (no error against the model)")
+        + f" ({len(test)} lights it was not sampled at)"
     )
     return info, line
 
