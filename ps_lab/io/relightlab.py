@@ -114,7 +114,7 @@ def write_relightlab(
 
     """
     folder = Path(folder)
-    if appearance.model not in EXPORT_MODELS:
+    if appearance.model not in EXPORT_MODELS or appearance.meta.get("space", "linear") != "linear":
         raise OutputError(
             f"--format relight: the result's appearance model is {appearance.model!r}; "
             f"RelightLab's layout holds {', '.join(EXPORT_MODELS)} (reconstruct with "

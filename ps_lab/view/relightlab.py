@@ -144,8 +144,8 @@ def check_export_folder(folder: Path) -> None:
 def export_relightlab(result: Path, out: Path) -> tuple[dict, str]:
     """Write the result's appearance model into ``out`` in RelightLab's web layout.
 
-    A PTM or HSH fit is written as it is; any other model (``ps``, ``rbf``, Lambertian, ...)
-    is converted to the ``rbf`` layout (:mod:`ps_lab.view.export_rbf`) and the conversion's
+    A PTM or HSH fit in linear light is written as it is; any other model (``ps``, ``gp``,
+    ``bln``, ``rbf``, Lambertian, a fit in the sRGB space, ...) is converted to the ``rbf`` layout (:mod:`ps_lab.view.export_rbf`) and the conversion's
     PSNR against the model is measured on the written files. ``out`` must be absent, empty or
     an earlier such export (:func:`check_export_folder`); it is replaced only when the new
     folder is complete.
@@ -175,7 +175,10 @@ def export_relightlab(result: Path, out: Path) -> tuple[dict, str]:
     for name in ("normal.png", "albedo.png"):
         picture = cv2.imread(str(result / name), cv2.IMREAD_COLOR)
         pictures[name] = None if picture is None else picture[..., ::-1]
-    direct = appearance is not None and appearance.model in EXPORT_MODELS
+    # RelightLab's PTM and HSH layouts hold linear coefficients: a fit in the sRGB-encoded space
+    # (``meta["space"]``) is converted like every other model
+    direct = (appearance is not None and appearance.model in EXPORT_MODELS
+              and appearance.meta.get("space", "linear") == "linear")
     source = None if direct else read_relight_source(
         result, "fitted" if appearance is not None else "lambertian"
     )
