@@ -10,6 +10,8 @@ segments (:func:`_design3`, one pass). See :mod:`._pl_kernels` for the model.
 
 from __future__ import annotations
 
+import math
+
 from numba import njit
 
 from ._kernels import INLINE
@@ -183,3 +185,58 @@ def _slopes(x, k, slopes):
         slopes[j] = x[j]
         last -= x[j]
     slopes[k - 1] = last
+
+
+@njit(**INLINE)
+def _loo_pl3(st, tab, n, inv, sw, slope_of, out):
+    """:func:`._pl_algebra._loo_pl` of the three-segment fit that :func:`_iterate3` left.
+
+    Its final solve is the fit that ``_loo_pl`` would form again from the same weights ``d``,
+    prior (the ``tau2`` it used) and targets: ``inv`` holds its ``M^-1`` and the state row
+    ``_R`` its residuals ``t - a.x``, so only the leverages ``h_i = d_i a_i^T M^-1 a_i`` are
+    left, one vectorised pass. Same measure and returns (infinity when a scored ``h_i`` is 1).
+    """
+    i00, i11, i22, i33, i44 = inv[0, 0], inv[1, 1], inv[2, 2], inv[3, 3], inv[4, 4]
+    j01, j02, j03, j04 = 2.0 * inv[0, 1], 2.0 * inv[0, 2], 2.0 * inv[0, 3], 2.0 * inv[0, 4]
+    j12, j13, j14 = 2.0 * inv[1, 2], 2.0 * inv[1, 3], 2.0 * inv[1, 4]
+    j23, j24, j34 = 2.0 * inv[2, 3], 2.0 * inv[2, 4], 2.0 * inv[3, 4]
+    score = 0.0
+    bad = 0
+    for i in range(n):
+        a0 = tab[0, i]
+        a1 = tab[1, i]
+        a2 = tab[2, i]
+        a3 = tab[3, i]
+        a4 = tab[4, i]
+        q = (a0 * (i00 * a0 + j01 * a1 + j02 * a2 + j03 * a3 + j04 * a4)
+             + a1 * (i11 * a1 + j12 * a2 + j13 * a3 + j14 * a4)
+             + a2 * (i22 * a2 + j23 * a3 + j24 * a4)
+             + a3 * (i33 * a3 + j34 * a4) + a4 * i44 * a4)
+        h = st[_D, i] * q
+        scored = sw[i] > 0.0
+        bad += scored and not h < 1.0
+        e = st[_R, i] / ((1.0 - h) * slope_of[i])
+        term = sw[i] * e * e if scored else 0.0
+        out[i] = term
+        score += term
+    return math.inf if bad else score
+
+
+@njit(**INLINE)
+def _finish(p, k, x, slopes, breaks, st, n, threshold, x_out, outliers, segments_out):
+    """Albedo-normal of pixel p (the normal times the secant slope ``b_K / f(b_K)``), flags."""
+    ns = k - 1
+    fb = 0.0
+    for j in range(k):
+        fb += slopes[j] * (breaks[j + 1] - breaks[j])
+    gain = breaks[k] / fb if fb > 0.0 else 0.0
+    x_out[p, 0] = x[ns] * gain
+    x_out[p, 1] = x[ns + 1] * gain
+    x_out[p, 2] = x[ns + 2] * gain
+    segments_out[p] = k
+    for i in range(n):
+        sl = slopes[int(st[_SEG, i])]
+        sl = sl if sl > SLOPE_FLOOR / k else SLOPE_FLOOR / k
+        # the corruption in the pixel's units: e = Gamma S t = gamma d r, over the slope
+        e = st[_G, i] * st[_D, i] * st[_R, i] / sl
+        outliers[p, i] = st[_W, i] > 0.0 and abs(e) > threshold

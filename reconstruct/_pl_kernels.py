@@ -68,6 +68,8 @@ from ._pl_design import (  # noqa: F401 (MAX_SEGMENTS and the rows are read from
     _normal_equations,
     _prior,
     _slopes,
+    _loo_pl3,
+    _finish,
 )
 from ._pl_algebra import (
     _bend_score,
@@ -224,7 +226,7 @@ def _iterate3(st, tab, n, ridge, learn_tau, max_iter, ftol, floor, sbl, inv, x, 
 @njit(**INLINE)
 def _pl_pixel(y, w, lights, p, k_max, lam_row, ridge, learn_tau, max_iter, tol, floor, start,
               sbl, st, tab, mat, inv, low, x, rhs, prior, prior_rhs, breaks, vals, slopes,
-              evidence):
+              evidence, g0, use_g0):
     """One pixel with up to ``k_max`` segments (fewer when it has few observations).
 
     Leaves ``x`` (U), ``slopes`` (K) and the state rows of the final iteration (and, for three
@@ -254,6 +256,12 @@ def _pl_pixel(y, w, lights, p, k_max, lam_row, ridge, learn_tau, max_iter, tol, 
             st[_G, i] = start * scale2
             st[_D, i] = st[_W, i] / ((st[_G, i] if sbl else 0.0) + st[_LAM, i])
             st[_Z, i] = 0.0
+    if use_g0 and sbl:
+        # the EM starts from the Lambertian model's robust fit (SBL's final gamma, in f's units)
+        for i in range(n):
+            g = g0[i] * scale2
+            st[_G, i] = g
+            st[_D, i] = st[_W, i] / (g + st[_LAM, i])
     for j in range(k):
         slopes[j] = 1.0 / k
     ftol = tol / k
@@ -381,32 +389,12 @@ def _pl_pixel(y, w, lights, p, k_max, lam_row, ridge, learn_tau, max_iter, tol, 
     return k, iters, evidence, tau2
 
 
-@njit(**INLINE)
-def _finish(p, k, x, slopes, breaks, st, n, threshold, x_out, outliers, segments_out):
-    """Albedo-normal of pixel p (the normal times the secant slope ``b_K / f(b_K)``), flags."""
-    ns = k - 1
-    fb = 0.0
-    for j in range(k):
-        fb += slopes[j] * (breaks[j + 1] - breaks[j])
-    gain = breaks[k] / fb if fb > 0.0 else 0.0
-    x_out[p, 0] = x[ns] * gain
-    x_out[p, 1] = x[ns + 1] * gain
-    x_out[p, 2] = x[ns + 2] * gain
-    segments_out[p] = k
-    for i in range(n):
-        sl = slopes[int(st[_SEG, i])]
-        sl = sl if sl > SLOPE_FLOOR / k else SLOPE_FLOOR / k
-        # the corruption in the pixel's units: e = Gamma S t = gamma d r, over the slope
-        e = st[_G, i] * st[_D, i] * st[_R, i] / sl
-        outliers[p, i] = st[_W, i] > 0.0 and abs(e) > threshold
-
-
 @njit(nogil=True, cache=True, **VECTOR)
 def _pl_kernel(y, w, lights, per_pixel, lam, lam_pl, k_max, choose, sbl, ridge, learn_tau,
                max_iter,
                sbl_max_iter, tol, floor, start, threshold, x_out, outliers, iters, segments_out,
                evidence_out, want_residuals, resid_out, choice_z, gate, lam_test, q_table,
-               run_sbl, run_pl, v_io, stat_out, breaks_io, breaks_known):
+               run_sbl, run_pl, v_io, stat_out, breaks_io, breaks_known, sbl_start):
     m, n = y.shape
     umax = k_max + 2
     st = np.zeros((STATE_ROWS, n))
@@ -427,7 +415,11 @@ def _pl_kernel(y, w, lights, per_pixel, lam, lam_pl, k_max, choose, sbl, ridge, 
     slope_of = np.zeros(n)
     loo = np.zeros((2, n))
     scratch = np.zeros(umax)
-    if choose and not per_pixel:
+    g0 = np.zeros(n)
+    keep = np.zeros((3, n))
+    keep_x = np.zeros(umax + k_max)
+    start_sbl = sbl and sbl_start and not choose
+    if (choose or start_sbl) and not per_pixel:
         _light_table(lights[0], sbl_tab)
     for p in range(m):
         lp = lights[p] if per_pixel else lights[0]
@@ -460,9 +452,48 @@ def _pl_kernel(y, w, lights, per_pixel, lam, lam_pl, k_max, choose, sbl, ridge, 
                     continue
             if not run_pl:
                 continue
+        elif start_sbl:
+            # PL-SBL alone: the Lambertian model's robust fit (SBL) first, to start its EM from
+            if per_pixel:
+                _light_table(lp, sbl_tab)
+            for i in range(n):
+                sbl_st[_kernels._Y, i] = y[p, i]
+                sbl_st[_kernels._W, i] = w[p, i]
+                sbl_st[_kernels._LAM, i] = lam_row[i]
+            _sbl_pixel(sbl_st, sbl_tab, n, ridge, sbl_max_iter, tol, floor, start, threshold,
+                       x_out, outliers, iters, p)
         k, it, ev, tau2 = _pl_pixel(y, w, lp, p, k_max, lam_pl[p], ridge, learn_tau, max_iter,
                                     tol, floor, start, sbl, st, tab, mat, inv, low, x, rhs, prior,
-                                    prior_rhs, breaks, vals, slopes, not choose)
+                                    prior_rhs, breaks, vals, slopes, not choose, g0, False)
+        if start_sbl and k > 1:
+            # the second start, SBL's final gamma (from its weights d = w / (gamma + lambda));
+            # the fit of the higher log evidence is kept (the first's held in keep)
+            for i in range(n):
+                v = sbl_st[_kernels._V, i]
+                g = 1.0 / v - lam_row[i] if v > 0.0 else start
+                g0[i] = g if g > floor else floor
+                keep[0, i] = st[_G, i]
+                keep[1, i] = st[_D, i]
+                keep[2, i] = st[_R, i]
+            for r in range(k + 2):
+                keep_x[r] = x[r]
+            for j in range(k):
+                keep_x[k + 2 + j] = slopes[j]
+            _, it2, ev2, tau22 = _pl_pixel(y, w, lp, p, k_max, lam_pl[p], ridge, learn_tau,
+                                           max_iter, tol, floor, start, sbl, st, tab, mat, inv,
+                                           low, x, rhs, prior, prior_rhs, breaks, vals, slopes,
+                                           True, g0, True)
+            if ev2 >= ev or not ev == ev:
+                it, ev, tau2 = it2, ev2, tau22
+            else:
+                for i in range(n):
+                    st[_G, i] = keep[0, i]
+                    st[_D, i] = keep[1, i]
+                    st[_R, i] = keep[2, i]
+                for r in range(k + 2):
+                    x[r] = keep_x[r]
+                for j in range(k):
+                    slopes[j] = keep_x[k + 2 + j]
         if choose:
             if k == 1 or not ev > -math.inf:
                 continue  # one segment is the Lambertian model; a failed PL fit
@@ -541,41 +572,6 @@ def _choose(y, p, n, k, threshold, lam_row, outliers, st, tab, sbl_st, sbl_tab, 
     return (score_sbl - score_pl) - z * math.sqrt(kept * var / (kept - 1))
 
 
-@njit(**INLINE)
-def _loo_pl3(st, tab, n, inv, sw, slope_of, out):
-    """:func:`._pl_algebra._loo_pl` of the three-segment fit that :func:`_iterate3` left.
-
-    Its final solve is the fit that ``_loo_pl`` would form again from the same weights ``d``,
-    prior (the ``tau2`` it used) and targets: ``inv`` holds its ``M^-1`` and the state row
-    ``_R`` its residuals ``t - a.x``, so only the leverages ``h_i = d_i a_i^T M^-1 a_i`` are
-    left, one vectorised pass. Same measure and returns (infinity when a scored ``h_i`` is 1).
-    """
-    i00, i11, i22, i33, i44 = inv[0, 0], inv[1, 1], inv[2, 2], inv[3, 3], inv[4, 4]
-    j01, j02, j03, j04 = 2.0 * inv[0, 1], 2.0 * inv[0, 2], 2.0 * inv[0, 3], 2.0 * inv[0, 4]
-    j12, j13, j14 = 2.0 * inv[1, 2], 2.0 * inv[1, 3], 2.0 * inv[1, 4]
-    j23, j24, j34 = 2.0 * inv[2, 3], 2.0 * inv[2, 4], 2.0 * inv[3, 4]
-    score = 0.0
-    bad = 0
-    for i in range(n):
-        a0 = tab[0, i]
-        a1 = tab[1, i]
-        a2 = tab[2, i]
-        a3 = tab[3, i]
-        a4 = tab[4, i]
-        q = (a0 * (i00 * a0 + j01 * a1 + j02 * a2 + j03 * a3 + j04 * a4)
-             + a1 * (i11 * a1 + j12 * a2 + j13 * a3 + j14 * a4)
-             + a2 * (i22 * a2 + j23 * a3 + j24 * a4)
-             + a3 * (i33 * a3 + j34 * a4) + a4 * i44 * a4)
-        h = st[_D, i] * q
-        scored = sw[i] > 0.0
-        bad += scored and not h < 1.0
-        e = st[_R, i] / ((1.0 - h) * slope_of[i])
-        term = sw[i] * e * e if scored else 0.0
-        out[i] = term
-        score += term
-    return math.inf if bad else score
-
-
 @dataclass
 class PLTileResult(TileResult):
     """:class:`._kernels.TileResult` plus the segments each pixel used and its log evidence."""
@@ -594,7 +590,7 @@ def pl_tile(y, w, lights, *, segments: int, lam, sigma_x2: float = 1e6, max_iter
             choose: bool = False, sbl_max_iter: int = 100, lam_pl=None,
             residuals: bool = False, choice_z: float = CHOICE_Z, lam_test=None,
             false_alarm: float = GATE_FALSE_ALARM, stage: str = "both",
-            sbl_fit: PLTileResult | None = None) -> PLTileResult:
+            sbl_fit: PLTileResult | None = None, sbl_start: bool = True) -> PLTileResult:
     """Piecewise-linear model of ``segments`` segments on one tile (module docstring).
 
     Parameters
@@ -683,7 +679,8 @@ def pl_tile(y, w, lights, *, segments: int, lam, sigma_x2: float = 1e6, max_iter
                    float(tol),
                    float(gamma_floor), float(gamma_start), float(outlier_threshold), x, outliers,
                    iters, segs, evidence, bool(residuals), resid, float(choice_z), gate, lam_t,
-                   q_table, stage != "pl", stage != "sbl", v_io, stat, breaks, known)
+                   q_table, stage != "pl", stage != "sbl", v_io, stat, breaks, known,
+                   bool(sbl_start))
     return PLTileResult(x, outliers, iters, segs, evidence, resid if residuals else None,
                         stat if gate else None, v_io if stage == "sbl" else None,
                         breaks if gate and stage == "sbl" else None)

@@ -78,7 +78,8 @@ def sbl_pixel(y, a, *, lam, sigma_x2=1e6, max_iter=100, tol=1e-4, gamma_floor=1e
 
 
 def pl_model(y, a, *, segments, lam, sigma_x2=1e6, max_iter=20, tol=1e-4, gamma_floor=1e-10,
-             gamma_start=1e3, sbl=True, learn_tau=True, slope_floor=1e-3, out=None):
+             gamma_start=1e3, sbl=True, learn_tau=True, slope_floor=1e-3, out=None,
+             breaks_from=None, slope_noise=True):
     """Piecewise-linear model of one pixel, with the design and the constraint written out.
 
     Returns (x (K+2), slopes (K), breaks (K+1), segment of each observation, gamma, lambda,
@@ -87,8 +88,9 @@ def pl_model(y, a, *, segments, lam, sigma_x2=1e6, max_iter=20, tol=1e-4, gamma_
     """
     n = y.size
     k = max(1, min(segments, n // 4))  # at least 4 observations per segment
-    srt = np.sort(y)
-    breaks = np.array([0.0] + [srt[(j * n) // k] for j in range(1, k)] + [srt[-1]])
+    srt = np.sort(y if breaks_from is None else y[breaks_from])
+    u = srt.size
+    breaks = np.array([0.0] + [srt[(j * u) // k] for j in range(1, k)] + [srt[-1]])
     phi = np.clip(y[:, None] - breaks[None, :k], 0.0, breaks[1:] - breaks[:k])
     seg = (y[:, None] > breaks[None, 1:k]).sum(axis=1)
     # f(y) = sum_k s_k phi_k = -a.l ; s_{K-1} = 1 - sum_{k<K-1} s_k eliminated
@@ -133,7 +135,8 @@ def pl_model(y, a, *, segments, lam, sigma_x2=1e6, max_iter=20, tol=1e-4, gamma_
                 dev = x[:k - 1] - 1.0 / k
                 e2 = dev @ q_free @ dev + np.trace(q_free @ minv[:k - 1, :k - 1])
                 tau2 = max(e2 / (k - 1), 1e-10)
-            lam_f = lam0 * np.maximum(slopes[seg], slope_floor / k) ** 2
+            if slope_noise:
+                lam_f = lam0 * np.maximum(slopes[seg], slope_floor / k) ** 2
         it += 1
         if not moved.any():
             iters = it
