@@ -26,6 +26,13 @@ Cholesky. Beyond the paper (docs/solvers.md has the measurements):
 - each pixel's log evidence in the space of ``y`` (the Gaussian marginal of ``t`` at the learned
   ``gamma``, ``tau^2``, plus the log Jacobian ``sum_i log s_{k(i)}`` of ``y -> f(y)``; recorded,
   no longer used for the choice);
+- PL-SBL alone (issue 42) fits SBL first (the Lambertian model it nests): its interior break
+  points are the order statistics of the observations SBL's fit sees lit (``l_i . x > 0``;
+  shadows kept where no black level was found would otherwise put the first break in their
+  noise, and the EM all the scale on that segment's slope: ``f`` and the normal collapse), and
+  its EM runs from ``gamma_start`` and again from SBL's final ``gamma``, the fit of the higher
+  log evidence kept (a glossy pixel's EM from the flat start flattens the top segment to take
+  the specular lobe as response);
 - the ``auto`` kernel solves every pixel with ``K = 1`` (SBL, its own kernel and iterations);
   where SBL's fit fails a chi^2 score test towards K segments it fits them too, and keeps PL
   only where it predicts the pixel's observations better (closed-form leave-one-out residuals
@@ -62,6 +69,7 @@ from ._pl_design import (  # noqa: F401 (MAX_SEGMENTS and the rows are read from
     SLOPE_FLOOR,
     TAU_FLOOR,
     _usable,
+    _lit,
     _breaks,
     _design3,
     _design,
@@ -70,13 +78,13 @@ from ._pl_design import (  # noqa: F401 (MAX_SEGMENTS and the rows are read from
     _slopes,
     _loo_pl3,
     _finish,
+    _choose,
+    CHOICE_PER_UNKNOWN,
 )
 from ._pl_algebra import (
     _bend_score,
     _cholesky_inverse,
     _inverse5,
-    _loo_lambertian,
-    _loo_pl,
     _select,
     _sum_log,
     chi2_quantiles,
@@ -85,10 +93,6 @@ from ._pl_algebra import (
 # The default's choice: PL-SBL replaces SBL where its leave-one-out gain exceeds this many standard
 # errors of the gain (the one-standard-error rule of model selection, docs/solvers.md).
 CHOICE_Z = 1.0
-# ... and only with at least this many scored observations per unknown of the PL model: the mean
-# leverage is then at most 1/4, so that a left-out residual measures prediction (with fewer, it
-# is dominated by the 1 / (1 - h) inflation of interpolated observations; docs/solvers.md).
-CHOICE_PER_UNKNOWN = 4
 # The Lambertian model's score test: PL-SBL (which nests it) is fitted and compared only
 # where the score statistic of SBL's fit exceeds its chi^2 quantile at this false-alarm rate.
 GATE_FALSE_ALARM = 0.01
@@ -226,7 +230,7 @@ def _iterate3(st, tab, n, ridge, learn_tau, max_iter, ftol, floor, sbl, inv, x, 
 @njit(**INLINE)
 def _pl_pixel(y, w, lights, p, k_max, lam_row, ridge, learn_tau, max_iter, tol, floor, start,
               sbl, st, tab, mat, inv, low, x, rhs, prior, prior_rhs, breaks, vals, slopes,
-              evidence, g0, use_g0):
+              evidence, g0, use_g0, fit, use_fit):
     """One pixel with up to ``k_max`` segments (fewer when it has few observations).
 
     Leaves ``x`` (U), ``slopes`` (K) and the state rows of the final iteration (and, for three
@@ -243,7 +247,19 @@ def _pl_pixel(y, w, lights, p, k_max, lam_row, ridge, learn_tau, max_iter, tol, 
     k = k_max if k_max < cnt // MIN_PER_SEGMENT else cnt // MIN_PER_SEGMENT
     k = k if k > 1 else 1
     u = k + 2
-    _breaks(vals, cnt, k, breaks)
+    # interior break points from the observations the Lambertian fit sees lit (_lit; all usable
+    # ones without that fit or with fewer than MIN_PER_SEGMENT a segment); b_K the largest usable
+    top = breaks[0]
+    if use_fit and k > 1:
+        top = vals[0]
+        for i in range(1, cnt):
+            top = vals[i] if vals[i] > top else top
+    lit = _lit(y, w, lights, p, n, fit[0], fit[1], fit[2], vals) if use_fit and k > 1 else 0
+    if lit < k * MIN_PER_SEGMENT:
+        _usable(y, w, p, n, vals)
+        lit = cnt
+    _breaks(vals, lit, k, breaks)
+    breaks[k] = top if lit < cnt else breaks[k]
     tau2 = 1.0
     scale2 = 1.0 / (k * k)
     if k == 3:
@@ -416,6 +432,7 @@ def _pl_kernel(y, w, lights, per_pixel, lam, lam_pl, k_max, choose, sbl, ridge, 
     loo = np.zeros((2, n))
     scratch = np.zeros(umax)
     g0 = np.zeros(n)
+    fit = np.zeros(3)
     keep = np.zeros((3, n))
     keep_x = np.zeros(umax + k_max)
     start_sbl = sbl and sbl_start and not choose
@@ -462,9 +479,11 @@ def _pl_kernel(y, w, lights, per_pixel, lam, lam_pl, k_max, choose, sbl, ridge, 
                 sbl_st[_kernels._LAM, i] = lam_row[i]
             _sbl_pixel(sbl_st, sbl_tab, n, ridge, sbl_max_iter, tol, floor, start, threshold,
                        x_out, outliers, iters, p)
+        fit[0], fit[1], fit[2] = x_out[p, 0], x_out[p, 1], x_out[p, 2]  # SBL's, if it ran
         k, it, ev, tau2 = _pl_pixel(y, w, lp, p, k_max, lam_pl[p], ridge, learn_tau, max_iter,
                                     tol, floor, start, sbl, st, tab, mat, inv, low, x, rhs, prior,
-                                    prior_rhs, breaks, vals, slopes, not choose, g0, False)
+                                    prior_rhs, breaks, vals, slopes, not choose, g0, False,
+                                    fit, start_sbl)
         if start_sbl and k > 1:
             # the second start, SBL's final gamma (from its weights d = w / (gamma + lambda));
             # the fit of the higher log evidence is kept (the first's held in keep)
@@ -482,7 +501,7 @@ def _pl_kernel(y, w, lights, per_pixel, lam, lam_pl, k_max, choose, sbl, ridge, 
             _, it2, ev2, tau22 = _pl_pixel(y, w, lp, p, k_max, lam_pl[p], ridge, learn_tau,
                                            max_iter, tol, floor, start, sbl, st, tab, mat, inv,
                                            low, x, rhs, prior, prior_rhs, breaks, vals, slopes,
-                                           True, g0, True)
+                                           True, g0, True, fit, True)
             if ev2 >= ev or not ev == ev:
                 it, ev, tau2 = it2, ev2, tau22
             else:
@@ -512,64 +531,6 @@ def _pl_kernel(y, w, lights, per_pixel, lam, lam_pl, k_max, choose, sbl, ridge, 
                 sl = slopes[int(st[_SEG, i])]
                 sl = sl if sl > SLOPE_FLOOR / k else SLOPE_FLOOR / k
                 resid_out[p, i] = -st[_R, i] / sl * st[_W, i]
-
-
-@njit(**INLINE)
-def _choose(y, p, n, k, threshold, lam_row, outliers, st, tab, sbl_st, sbl_tab, slopes, tau2,
-            ridge, sw, slope_of, prior, prior_rhs, mat, inv, low, scratch, loo, z):
-    """The piecewise-linear model's predictive gain over the Lambertian one at pixel p.
-
-    Scored: the usable observations that at least one robust fit accepts as uncorrupted (SBL's
-    flags in ``outliers[p]``, the PL fit's from its final state): a model that calls corrupted
-    what the other explains pays for it; what both call corrupted says nothing about either.
-    Each model is scored as fitted (its final weights ``d``; PL with its slopes' prior)
-    by its closed-form leave-one-out residuals in ``y``'s units, under the same noise (SBL's
-    ``lambda_i``): :func:`._pl_algebra._loo_lambertian`, :func:`._pl_algebra._loo_pl`. The gain
-    is the sum of the paired differences ``d_i`` of the two squared left-out residuals
-    (Lambertian minus PL) less ``z`` standard errors of that sum (``z sqrt(N) sd(d)``): positive
-    when PL predicts better by more than chance gives a model with more unknowns; -inf when
-    fewer than ``CHOICE_PER_UNKNOWN`` observations per PL unknown are scored or a fit fails.
-    Three segments: PL's fit is :func:`_pl_pixel`'s final one (its ``M^-1`` in ``inv``, its
-    residuals in the state), not formed again (:func:`_loo_pl3`).
-    """
-    u = k + 2
-    kept = 0
-    fl = SLOPE_FLOOR / k
-    s0 = slopes[0] if slopes[0] > fl else fl
-    s1 = slopes[1 % k] if slopes[1 % k] > fl else fl
-    s2 = slopes[2 % k] if slopes[2 % k] > fl else fl
-    for i in range(n):
-        if k == 3:  # (one vectorised pass: the slope by selects, not by an index)
-            seg = st[_SEG, i]
-            sl = s2 if seg > 1.5 else (s1 if seg > 0.5 else s0)
-        else:
-            sl = slopes[int(st[_SEG, i])]
-            sl = sl if sl > fl else fl
-        slope_of[i] = sl
-        e = st[_G, i] * st[_D, i] * st[_R, i] / sl
-        flagged = outliers[p, i] and abs(e) > threshold
-        ok = st[_W, i] > 0.0 and not flagged
-        sw[i] = 1.0 / lam_row[i] if ok else 0.0
-        kept += ok
-    if kept < CHOICE_PER_UNKNOWN * u:
-        return -math.inf
-    score_sbl = _loo_lambertian(y[p], sbl_st[_kernels._V], sw, sbl_tab, n, ridge, loo[0])
-    if k == 3:
-        score_pl = _loo_pl3(st, tab, n, inv, sw, slope_of, loo[1])
-    else:
-        _prior(k, tau2, ridge, prior, prior_rhs)
-        score_pl = _loo_pl(st[_T], st[_D], sw, slope_of, tab, n, u, prior, prior_rhs, mat, inv,
-                           low, scratch, loo[1])
-    if not (score_pl < math.inf and score_sbl == score_sbl):
-        return -math.inf
-    if not score_sbl < math.inf:
-        return math.inf
-    mean = (score_sbl - score_pl) / kept
-    var = 0.0
-    for i in range(n):
-        d = loo[0, i] - loo[1, i] - mean
-        var += d * d if sw[i] > 0.0 else 0.0
-    return (score_sbl - score_pl) - z * math.sqrt(kept * var / (kept - 1))
 
 
 @dataclass
@@ -641,6 +602,11 @@ def pl_tile(y, w, lights, *, segments: int, lam, sigma_x2: float = 1e6, max_iter
         ``sbl_fit``, and the test's break points from it where it has them).
     sbl_fit : PLTileResult, optional
         Stage "pl": the "sbl" stage's result on the same rows.
+    sbl_start : bool
+        Without ``choose`` (PL-SBL alone): fit SBL first (``sbl_max_iter``), take the break
+        points from the observations its fit sees lit, and run the EM from ``gamma_start`` and
+        from SBL's final ``gamma``, keeping the fit of the higher log evidence (module
+        docstring). False: the issue-23 PL-SBL (all usable observations, one start).
     """
     y = np.ascontiguousarray(y, dtype=np.float64)
     w = np.ascontiguousarray(w, dtype=np.float64)
