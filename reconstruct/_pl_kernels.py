@@ -26,13 +26,14 @@ Cholesky. Beyond the paper (docs/solvers.md has the measurements):
 - each pixel's log evidence in the space of ``y`` (the Gaussian marginal of ``t`` at the learned
   ``gamma``, ``tau^2``, plus the log Jacobian ``sum_i log s_{k(i)}`` of ``y -> f(y)``; recorded,
   no longer used for the choice);
-- PL-SBL alone (issue 42) fits SBL first (the Lambertian model it nests): its interior break
-  points are the order statistics of the observations SBL's fit sees lit (``l_i . x > 0``;
-  shadows kept where no black level was found would otherwise put the first break in their
-  noise, and the EM all the scale on that segment's slope: ``f`` and the normal collapse), and
-  its EM runs from ``gamma_start`` and again from SBL's final ``gamma``, the fit of the higher
-  log evidence kept (a glossy pixel's EM from the flat start flattens the top segment to take
-  the specular lobe as response);
+- PL-SBL alone (issue 42) fits SBL first (the Lambertian model it nests) and the PL model
+  twice: as above (break points from all usable observations, the EM from ``gamma_start``),
+  and with the interior break points from the observations SBL's fit sees lit (``l_i . x >
+  0``) and the EM from SBL's final ``gamma``; the fit of the higher log evidence is kept (the
+  break points and the start are choices of the same model). Kept shadows (no black level
+  found) put the first break in their noise, and the EM all the scale on that segment's slope
+  (``f`` and the normal collapse); a glossy pixel's EM from the flat start flattens the top
+  segment to take the specular lobe as response;
 - the ``auto`` kernel solves every pixel with ``K = 1`` (SBL, its own kernel and iterations);
   where SBL's fit fails a chi^2 score test towards K segments it fits them too, and keeps PL
   only where it predicts the pixel's observations better (closed-form leave-one-out residuals
@@ -433,8 +434,8 @@ def _pl_kernel(y, w, lights, per_pixel, lam, lam_pl, k_max, choose, sbl, ridge, 
     scratch = np.zeros(umax)
     g0 = np.zeros(n)
     fit = np.zeros(3)
-    keep = np.zeros((3, n))
-    keep_x = np.zeros(umax + k_max)
+    keep = np.zeros((4, n))
+    keep_x = np.zeros(umax + 2 * k_max + 1)
     start_sbl = sbl and sbl_start and not choose
     if (choose or start_sbl) and not per_pixel:
         _light_table(lights[0], sbl_tab)
@@ -483,10 +484,11 @@ def _pl_kernel(y, w, lights, per_pixel, lam, lam_pl, k_max, choose, sbl, ridge, 
         k, it, ev, tau2 = _pl_pixel(y, w, lp, p, k_max, lam_pl[p], ridge, learn_tau, max_iter,
                                     tol, floor, start, sbl, st, tab, mat, inv, low, x, rhs, prior,
                                     prior_rhs, breaks, vals, slopes, not choose, g0, False,
-                                    fit, start_sbl)
+                                    fit, False)
         if start_sbl and k > 1:
-            # the second start, SBL's final gamma (from its weights d = w / (gamma + lambda));
-            # the fit of the higher log evidence is kept (the first's held in keep)
+            # the second fit: break points from what SBL's fit sees lit, the EM from SBL's final
+            # gamma (from its weights d = w / (gamma + lambda)); the fit of the higher log
+            # evidence is kept (the first's held in keep)
             for i in range(n):
                 v = sbl_st[_kernels._V, i]
                 g = 1.0 / v - lam_row[i] if v > 0.0 else start
@@ -494,10 +496,13 @@ def _pl_kernel(y, w, lights, per_pixel, lam, lam_pl, k_max, choose, sbl, ridge, 
                 keep[0, i] = st[_G, i]
                 keep[1, i] = st[_D, i]
                 keep[2, i] = st[_R, i]
+                keep[3, i] = st[_SEG, i]
             for r in range(k + 2):
                 keep_x[r] = x[r]
             for j in range(k):
                 keep_x[k + 2 + j] = slopes[j]
+            for j in range(k + 1):
+                keep_x[2 * k + 2 + j] = breaks[j]
             _, it2, ev2, tau22 = _pl_pixel(y, w, lp, p, k_max, lam_pl[p], ridge, learn_tau,
                                            max_iter, tol, floor, start, sbl, st, tab, mat, inv,
                                            low, x, rhs, prior, prior_rhs, breaks, vals, slopes,
@@ -509,10 +514,13 @@ def _pl_kernel(y, w, lights, per_pixel, lam, lam_pl, k_max, choose, sbl, ridge, 
                     st[_G, i] = keep[0, i]
                     st[_D, i] = keep[1, i]
                     st[_R, i] = keep[2, i]
+                    st[_SEG, i] = keep[3, i]
                 for r in range(k + 2):
                     x[r] = keep_x[r]
                 for j in range(k):
                     slopes[j] = keep_x[k + 2 + j]
+                for j in range(k + 1):
+                    breaks[j] = keep_x[2 * k + 2 + j]
         if choose:
             if k == 1 or not ev > -math.inf:
                 continue  # one segment is the Lambertian model; a failed PL fit
@@ -603,10 +611,10 @@ def pl_tile(y, w, lights, *, segments: int, lam, sigma_x2: float = 1e6, max_iter
     sbl_fit : PLTileResult, optional
         Stage "pl": the "sbl" stage's result on the same rows.
     sbl_start : bool
-        Without ``choose`` (PL-SBL alone): fit SBL first (``sbl_max_iter``), take the break
-        points from the observations its fit sees lit, and run the EM from ``gamma_start`` and
-        from SBL's final ``gamma``, keeping the fit of the higher log evidence (module
-        docstring). False: the issue-23 PL-SBL (all usable observations, one start).
+        Without ``choose`` (PL-SBL alone): fit SBL first (``sbl_max_iter``) and the PL model a
+        second time, break points from the observations SBL's fit sees lit and the EM from its
+        final ``gamma``; the fit of the higher log evidence is kept (module docstring). False:
+        the issue-23 PL-SBL (that first fit alone).
     """
     y = np.ascontiguousarray(y, dtype=np.float64)
     w = np.ascontiguousarray(w, dtype=np.float64)

@@ -102,10 +102,11 @@ def test_pl_sbl_is_near_sbl_on_a_glossy_capture_with_its_shadows_kept():
     # Issue 42 (the hidden glossy ball: PL-SBL 4.27 deg against SBL's 2.07). The rim pixels keep
     # a third or more of their observations in shadow, at the read noise: from all observations
     # the first break fell in that noise and the EM put the scale on its slope (f and the normal
-    # collapsing: before, on seeds 0-2, 8-10x SBL's mean and 87-176x its 90th percentile). Break
-    # points from what SBL's fit sees lit and the EM started from SBL's fit too (the higher
-    # evidence kept): measured 1.1-1.9x SBL's mean, 0.86-1.0x its 90th percentile (the mean is
-    # the few rim pixels with most lights in shadow, where SBL too is 20 deg off).
+    # collapsing: before, on seeds 0-2, 8-10x SBL's mean and 87-176x its 90th percentile). A
+    # second fit with the break points from what SBL's fit sees lit, its EM started from SBL's
+    # gamma, the higher evidence kept: measured 1.2-1.8x SBL's mean, 0.91-1.02x its 90th
+    # percentile (the mean is the few rim pixels with most lights in shadow, where SBL too is
+    # 20 deg off).
     obs, lights, valid, normals = _glossy_capture(0)
     errors = {method: angular_errors_deg(solve(obs, lights, valid=valid, method=method).normals,
                                          normals) for method in ("sbl", "plsbl")}

@@ -178,8 +178,9 @@ def _pl_statistic(model, y, a, slope_floor=1e-3):
 
 def plsbl_pixel(y, a, *, lam, segments=3, sigma_x2=1e6, max_iter=20, tol=1e-4,
                 gamma_floor=1e-10, gamma_start=1e3, sbl_max_iter=100):
-    """PL-SBL as ps-lab runs it: SBL first (the Lambertian fit: which observations it sees lit,
-    and its final gamma), the EM from gamma_start and again from SBL's gamma, the fit of the
+    """PL-SBL as ps-lab runs it: the issue-23 fit (break points from all observations, the EM
+    from ``gamma_start``) and, with SBL's fit (the Lambertian model), a second one (break points
+    from the observations SBL's fit sees lit, the EM from SBL's final gamma); the fit of the
     higher log evidence kept."""
     common = dict(segments=segments, lam=lam, sigma_x2=sigma_x2, max_iter=max_iter, tol=tol,
                   gamma_floor=gamma_floor)
@@ -188,10 +189,8 @@ def plsbl_pixel(y, a, *, lam, segments=3, sigma_x2=1e6, max_iter=20, tol=1e-4,
         fit = {}
         x_sbl = sbl_pixel(y, a, lam=lam, sigma_x2=sigma_x2, max_iter=sbl_max_iter, tol=tol,
                           gamma_floor=gamma_floor, gamma_start=gamma_start, out=fit)[0]
-        lit = a @ x_sbl > 0.0
-        first = pl_model(y, a, gamma_start=gamma_start, lit=lit, **common)
-        second = pl_model(y, a, gamma_start=fit["gamma"], lit=lit, **common)
-        model = second if second[7] >= first[7] or np.isnan(first[7]) else first
+        second = pl_model(y, a, gamma_start=fit["gamma"], lit=a @ x_sbl > 0.0, **common)
+        model = second if second[7] >= model[7] or np.isnan(model[7]) else model
     normal, *_, iters, _, _ = _pl_result(model, y, np.inf)
     return normal, _pl_statistic(model, y, a), iters
 
