@@ -434,8 +434,6 @@ def _pl_kernel(y, w, lights, per_pixel, lam, lam_pl, k_max, choose, sbl, ridge, 
     scratch = np.zeros(umax)
     g0 = np.zeros(n)
     fit = np.zeros(3)
-    keep = np.zeros((4, n))
-    keep_x = np.zeros(umax + 2 * k_max + 1)
     start_sbl = sbl and sbl_start and not choose
     if (choose or start_sbl) and not per_pixel:
         _light_table(lights[0], sbl_tab)
@@ -481,28 +479,19 @@ def _pl_kernel(y, w, lights, per_pixel, lam, lam_pl, k_max, choose, sbl, ridge, 
             _sbl_pixel(sbl_st, sbl_tab, n, ridge, sbl_max_iter, tol, floor, start, threshold,
                        x_out, outliers, iters, p)
         fit[0], fit[1], fit[2] = x_out[p, 0], x_out[p, 1], x_out[p, 2]  # SBL's, if it ran
+        full = start_sbl or not choose  # the log evidence itself, not only its -inf cases
         k, it, ev, tau2 = _pl_pixel(y, w, lp, p, k_max, lam_pl[p], ridge, learn_tau, max_iter,
                                     tol, floor, start, sbl, st, tab, mat, inv, low, x, rhs, prior,
-                                    prior_rhs, breaks, vals, slopes, not choose, g0, False,
-                                    fit, False)
+                                    prior_rhs, breaks, vals, slopes, full, g0, False, fit, False)
         if start_sbl and k > 1:
             # the second fit: break points from what SBL's fit sees lit, the EM from SBL's final
             # gamma (from its weights d = w / (gamma + lambda)); the fit of the higher log
-            # evidence is kept (the first's held in keep)
+            # evidence is kept (the first, where it wins, fitted again: its state is the kept
+            # fit's for the choice and _finish)
             for i in range(n):
                 v = sbl_st[_kernels._V, i]
                 g = 1.0 / v - lam_row[i] if v > 0.0 else start
                 g0[i] = g if g > floor else floor
-                keep[0, i] = st[_G, i]
-                keep[1, i] = st[_D, i]
-                keep[2, i] = st[_R, i]
-                keep[3, i] = st[_SEG, i]
-            for r in range(k + 2):
-                keep_x[r] = x[r]
-            for j in range(k):
-                keep_x[k + 2 + j] = slopes[j]
-            for j in range(k + 1):
-                keep_x[2 * k + 2 + j] = breaks[j]
             _, it2, ev2, tau22 = _pl_pixel(y, w, lp, p, k_max, lam_pl[p], ridge, learn_tau,
                                            max_iter, tol, floor, start, sbl, st, tab, mat, inv,
                                            low, x, rhs, prior, prior_rhs, breaks, vals, slopes,
@@ -510,17 +499,10 @@ def _pl_kernel(y, w, lights, per_pixel, lam, lam_pl, k_max, choose, sbl, ridge, 
             if ev2 >= ev or not ev == ev:
                 it, ev, tau2 = it2, ev2, tau22
             else:
-                for i in range(n):
-                    st[_G, i] = keep[0, i]
-                    st[_D, i] = keep[1, i]
-                    st[_R, i] = keep[2, i]
-                    st[_SEG, i] = keep[3, i]
-                for r in range(k + 2):
-                    x[r] = keep_x[r]
-                for j in range(k):
-                    slopes[j] = keep_x[k + 2 + j]
-                for j in range(k + 1):
-                    breaks[j] = keep_x[2 * k + 2 + j]
+                k, it, ev, tau2 = _pl_pixel(y, w, lp, p, k_max, lam_pl[p], ridge, learn_tau,
+                                            max_iter, tol, floor, start, sbl, st, tab, mat, inv,
+                                            low, x, rhs, prior, prior_rhs, breaks, vals, slopes,
+                                            full, g0, False, fit, False)
         if choose:
             if k == 1 or not ev > -math.inf:
                 continue  # one segment is the Lambertian model; a failed PL fit
