@@ -273,7 +273,8 @@ def pl_noise_level(observations, light_directions, valid=None, *, segments: int 
     def level(data, use):
         def fit(rows):
             res = _pl_kernels.pl_tile(data[rows], use[rows], lights, segments=segments, lam=lam,
-                                      max_iter=20, tol=0.0, residuals=True)
+                                      max_iter=20, tol=0.0, residuals=True,
+                                      sbl_start=False)  # the noise: one flat-start fit
             r, keep = _kept_residuals(data[rows], use[rows], data[rows] - res.residuals)
             return r[keep]
 
