@@ -33,6 +33,7 @@ from typing import Any
 
 import numpy as np
 
+from ps_lab.errors import DatasetError
 from ps_lab.io.appearance import BASIS_TERMS, appearance_basis
 from ps_lab.io.encoding import linear_to_srgb, srgb_to_linear
 from ps_lab.io.smoothers import (
@@ -66,6 +67,9 @@ AUTO_MODELS = ("ptm", "hsh3", "rbf", "bln", "gp")
 SMOOTH_TERMS = 24
 #: Pixels of the sample that score the candidates (evenly spread over it).
 CHOICE_PIXELS = 2048
+#: A light whose leverage is within this of 1 is fitted by its own term: the model's
+#: leave-one-out prediction of it is undefined (and its closed form divides by ~0).
+LEVERAGE_MARGIN = 1e-6
 _GRIDS: dict[str, list[dict[str, Any]]] = {
     "ptm": [{}],
     "hsh2": [{}],
@@ -140,7 +144,8 @@ def predict_weights(model: str, params: dict, lights: np.ndarray,
 
 def loo_weights(model: str, params: dict, lights: np.ndarray) -> np.ndarray:
     """Leave-one-light-out prediction matrix (n, n): row ``i`` predicts light ``i`` from the
-    others (zero diagonal up to rounding)."""
+    others (zero diagonal up to rounding); None where the model fitted without a light cannot
+    predict it (a linear basis with as many terms as lights: leverage 1)."""
     lights = np.asarray(lights, np.float64)
     lights = lights / np.linalg.norm(lights, axis=1, keepdims=True)
     n = len(lights)
@@ -148,7 +153,9 @@ def loo_weights(model: str, params: dict, lights: np.ndarray) -> np.ndarray:
     if model in BASIS_TERMS:
         x = appearance_basis(model, lights)
         hat = x @ np.linalg.pinv(x)
-        return eye - (eye - hat) / np.maximum(1.0 - np.diag(hat), 1e-9)[:, None]
+        if np.any(np.diag(hat) > 1.0 - LEVERAGE_MARGIN):
+            return None  # a light only its own term fits: no prediction of it from the others
+        return eye - (eye - hat) / (1.0 - np.diag(hat))[:, None]
     if model == "gp":
         sigma, ridge = params["sigma"], params["ridge"]
         kernel = np.exp(-np.sum((lights[:, None] - lights[None]) ** 2, -1) / sigma**2)
@@ -156,6 +163,8 @@ def loo_weights(model: str, params: dict, lights: np.ndarray) -> np.ndarray:
         m = mean.shape[1]
         system = np.block([[kernel + ridge * eye, mean], [mean.T, np.zeros((m, m))]])
         a = np.linalg.pinv(system)[:n, :n]
+        if n <= m or np.any(np.abs(np.diag(a)) <= LEVERAGE_MARGIN * np.abs(a).max()):
+            return None  # the PTM trend interpolates the lights (n <= its 6 terms)
         return eye - a / np.diag(a)[:, None]
     if model == "rbf":
         d2 = np.sum((lights[:, None] - lights[None]) ** 2, -1) / params["sigma"] ** 2
@@ -231,12 +240,17 @@ def choose_model(
         for model in models:
             for params in candidates(model):
                 w = loo_weights(model, params, lights)
+                if w is None:  # not a candidate on these lights
+                    continue
                 predicted = _decode((w @ y).reshape(n, m, c), space)
                 score = float(np.mean(psnr_per_light(grey_srgb(predicted), truth)))
                 table.append({"model": model, "space": space, **params, "loo_psnr": score})
                 if best is None or score > best.score:
                     best = Choice(model, space, dict(params), score)
-    assert best is not None
+    if best is None:
+        raise DatasetError(
+            f"--appearance {'/'.join(models)}: the {n} training lights cannot cross-validate it "
+            "(each light is fitted by its own term); use --appearance rbf or bln, or more lights")
     best.table = table
     return best
 

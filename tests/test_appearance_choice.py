@@ -202,3 +202,19 @@ def test_reconstruct_default_is_the_chosen_model_and_relights_as_recorded(tmp_pa
     inside = surface.mask
     assert np.allclose(picture[inside], np.broadcast_to(expected, picture.shape)[inside],
                        atol=1e-6)
+
+
+@pytest.mark.parametrize("n", [6, 8, 9])
+def test_a_basis_that_interpolates_every_light_is_not_a_candidate(rng, n):
+    # hsh3 has 9 terms: on 8 lights (and 9, general position) every light has leverage 1, its
+    # leave-one-out prediction is undefined (the closed form divided by ~0 and predicted each
+    # light from itself: a perfect score); gp's PTM trend (6 terms) interpolates 6 lights
+    lights = _lights(rng, n)
+    assert loo_weights("hsh3", {}, lights) is None
+    sample = rng.uniform(0.1, 0.9, (n, 64, 3))
+    choice = choose_model(sample, lights)
+    assert choice.model != "hsh3"
+    assert all(row["model"] != "hsh3" for row in choice.table)
+    if n == 6:
+        with pytest.raises(DatasetError, match="cannot cross-validate"):
+            choose_model(sample, lights, ("gp",))
