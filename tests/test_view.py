@@ -162,6 +162,23 @@ def test_appearance_tiles_follow_the_layer_pyramid_and_rbf_is_tiled():
     assert appearance_tiles(wide, mask, 1.0) is None
     entry = appearance_entry(wide, None)
     assert entry["planes"] is None and "Lambertian" in entry["note"]
+    # gp and bln are tiled as rbf is, their entries carry the solve matrix / the grid resolution
+    solve = rng.normal(size=(11, 5))
+    gp = Appearance("gp", rbf.coefficients, {"K": 4, "sigma": 0.5, "ridge": 0.01},
+                    {**rbf.extra, "solve": solve})
+    entry = appearance_entry(gp, appearance_tiles(gp, mask, 1.0))
+    assert entry["planes"] == 3 and entry["note"] is None
+    np.testing.assert_array_equal(np.reshape(entry["rbf"]["solve"], (11, 5)), solve)
+    bln = Appearance("bln", rbf.coefficients, {"K": 4, "sigma": 0.2, "resolution": 8}, rbf.extra)
+    entry = appearance_entry(bln, appearance_tiles(bln, mask, 1.0))
+    assert entry["rbf"]["resolution"] == 8 and entry["space"] == "linear" and entry["gain"] == 1
+    # an sRGB-space fit: coefficients not scaled (the page decodes, then multiplies by the gain)
+    ptm = Appearance("ptm", coefficients[..., :6], {"K": 6, "space": "srgb"})
+    tiles = appearance_tiles(ptm, mask, 4.0)
+    entry = appearance_entry(ptm, tiles)
+    assert entry["space"] == "srgb" and entry["gain"] == 0.25
+    np.testing.assert_array_equal(tiles.levels[0][..., :3],
+                                  coefficients[..., :, 0].astype(np.float16))
 
 
 def test_vertex_normals_of_a_tilted_plane_and_decimation():
@@ -551,27 +568,52 @@ def test_colour_relight_in_chromium_shows_the_albedo_colour(browser, colour_resu
 
 
 def _with_appearance(result: Path, folder: Path, model: str) -> Path:
-    """A copy of ``result`` with an appearance fit: an HSH 3 fit of its Lambertian renders plus
-    a seeded gloss, or ps terms with seeded coefficients."""
+    """A copy of ``result`` with an appearance fit: an HSH 3, an sRGB-space PTM, a gp or a bln
+    fit of its Lambertian renders plus a gloss, or ps / rbf with seeded coefficients."""
     from ps_lab.io.appearance import PS_TERMS, Appearance, appearance_basis, write_appearance
+    from ps_lab.io.encoding import linear_to_srgb
 
     shutil.copytree(result, folder)
     normals = np.load(result / "normals.npy").astype(np.float64)
     albedo = np.load(result / "albedo.npy").astype(np.float64)
     h, w = normals.shape[:2]
     rng = np.random.default_rng(7)
-    if model == "hsh3":
-        lights = np.loadtxt(json.loads((result / "metrics.json").read_text())["dataset"]
-                            + "/light_directions.txt")
-        shade = np.maximum(normals @ lights.T, 0)  # (H, W, n)
-        gloss = 0.5 * shade ** 8
-        images = albedo[..., None, :] * (shade + gloss)[..., None]  # (H, W, n, 3)
+    lights = np.loadtxt(json.loads((result / "metrics.json").read_text())["dataset"]
+                        + "/light_directions.txt")
+    shade = np.maximum(normals @ lights.T, 0)  # (H, W, n)
+    gloss = 0.5 * shade ** 8
+    images = albedo[..., None, :] * (shade + gloss)[..., None]  # (H, W, n, 3)
+    if model in ("gp", "bln"):  # fitted (parameters and space chosen) on the glossy renders
+        from ps_lab.reconstruct.appearance import fit_appearance
+
+        mask = np.all(np.isfinite(normals), axis=2)
+        fit = fit_appearance(model, np.moveaxis(images[mask], 1, 0), lights, mask)
+        write_appearance(folder, fit)
+        return folder
+    if model in ("gp-srgb", "bln-srgb"):  # in sRGB space, the parameters set (not chosen)
+        from ps_lab.reconstruct.appearance_choice import Choice, smoother_setup
+
+        model = model[:-5]
+        params = {"sigma": 0.3, "ridge": 0.01} if model == "gp" else {"sigma": 0.2,
+                                                                       "resolution": 8}
+        mask = np.all(np.isfinite(normals), axis=2)
+        obs = np.moveaxis(images[mask], 1, 0)  # (n, P, 3)
+        meta, extra = smoother_setup(Choice(model, "srgb", params, 0.0), obs, lights)
+        k = extra["basis"].shape[2]
+        coefficients = np.zeros((h, w, 3, k))  # the orthonormal basis: x_c = B_cᵀ y_c
+        coefficients[mask] = np.einsum("cnk,npc->pck", extra["basis"], linear_to_srgb(obs))
+        meta = {"basis": model, "K": k, **meta}
+    elif model == "hsh3":
         basis = appearance_basis("hsh3", lights)  # (n, 9)
         coefficients = np.einsum("kn,hwnc->hwck", np.linalg.pinv(basis), images)
         meta = {"basis": "hsh3", "K": 9}
+    elif model == "ptm-srgb":  # PTM of the sRGB-encoded renders (evaluation decodes)
+        basis = appearance_basis("ptm", lights)  # (n, 6)
+        encoded = linear_to_srgb(np.nan_to_num(images))
+        coefficients = np.einsum("kn,hwnc->hwck", np.linalg.pinv(basis), encoded)
+        meta = {"basis": "ptm", "K": 6, "space": "srgb"}
+        model = "ptm"
     elif model == "rbf":  # ps-lab's rbf: per-channel coefficients on a per-channel basis
-        lights = np.loadtxt(json.loads((result / "metrics.json").read_text())["dataset"]
-                            + "/light_directions.txt")
         k = 5
         coefficients = rng.uniform(0, 0.3, size=(h, w, 3, k)) * albedo.mean()
         meta = {"basis": "rbf", "K": k, "sigma": 0.4}
@@ -592,20 +634,30 @@ def _with_appearance(result: Path, folder: Path, model: str) -> Path:
             meta["visibility"] = "clip-linear"
         model = "ps"
     write_appearance(folder, Appearance(model, coefficients.astype(np.float32), meta,
-                                        extra if meta.get("visibility") or model == "rbf"
-                                        else {}))
+                                        extra if meta.get("visibility") or model in
+                                        ("rbf", "gp", "bln") else {}))
     return folder
 
 
-@pytest.mark.parametrize("model", ["hsh3", "ps", "ps-all", "ps-vis", "rbf"])
+@pytest.mark.parametrize("model", ["hsh3", "ps", "ps-all", "ps-vis", "rbf", "gp", "bln",
+                                   "ptm-srgb", "gp-srgb", "bln-srgb"])
 def test_appearance_relight_in_chromium_matches_the_model(browser, colour_result, tmp_path, model):
+    """The page's relit picture is ``evaluate_appearance`` of the half-float tiles (an sRGB-space
+    fit: its coefficients unscaled, the decoded prediction divided by ``albedo_scale``), within
+    2 levels (the half-float rounding of the coefficients, under 2^-11 relative, times the sRGB
+    curve's slope, plus the 8-bit rounding)."""
     from ps_lab.io.appearance import Appearance, evaluate_appearance, read_appearance
 
     result = _with_appearance(colour_result, tmp_path / model, model)
     view = load_result(result)
     scale = view.albedo_scale
     fit = read_appearance(result)
-    coefficients = (fit.coefficients / scale).astype(np.float16).astype(np.float32)
+    srgb = fit.meta.get("space") == "srgb"
+    assert srgb == model.endswith("-srgb") or model in ("gp", "bln")  # (those: chosen)
+    # the tiles hold coefficients / albedo_scale (linear fits) or as fitted (sRGB fits: the
+    # decoded picture is divided)
+    before, after = (1.0, scale) if srgb else (scale, 1.0)
+    coefficients = (fit.coefficients / before).astype(np.float16).astype(np.float32)
     extra = {name: np.asarray(value).astype(np.float16).astype(np.float32)
              if name == "visibility" else value for name, value in fit.extra.items()}
     rounded = Appearance(fit.model, coefficients, fit.meta, extra)
@@ -620,16 +672,21 @@ def test_appearance_relight_in_chromium_matches_the_model(browser, colour_result
         assert browser.evaluate("psView.ready") is True
         entry = browser.evaluate("psView.results()[0]")
         assert entry["appearance"]["model"] == fit.model and entry["appearance"]["planes"]
+        assert entry["appearance"]["note"] is None
+        assert entry["appearance"]["space"] == ("srgb" if srgb else "linear")
         browser.evaluate("psView.pixelScale(0, 1)")
         browser.evaluate("psView.setView({cx: 0.5, cy: 0.5})")
-        light = [-0.35, 0.25, float(np.sqrt(1 - 0.35**2 - 0.25**2))]
-        browser.evaluate(f"psView.setLight({json.dumps(light)})")
+        # two lights, the second nearer the rim (grazing on most of the object)
+        first = [-0.35, 0.25, float(np.sqrt(1 - 0.35**2 - 0.25**2))]
+        rim = [0.7, -0.55, float(np.sqrt(1 - 0.7**2 - 0.55**2))]
         numbers, pictures = {}, {}
-        for switch in (True, False):
+        for key, light, switch in (("model", first, True), ("Lambertian", first, False),
+                                   ("model at the rim", rim, True)):
+            browser.evaluate(f"psView.setLight({json.dumps(light)})")
             browser.evaluate(f"psView.set({{appearance: {json.dumps(switch)}}})")
             settle(browser)
             if switch:
-                linear = evaluate_appearance(rounded, np.asarray(light), unit, albedo)
+                linear = evaluate_appearance(rounded, np.asarray(light), unit, albedo) / after
             else:
                 linear = np.maximum(unit @ light, 0)[..., None] * albedo
             linear = np.clip(linear.astype(np.float64), 0, 1)
@@ -639,15 +696,15 @@ def test_appearance_relight_in_chromium_matches_the_model(browser, colour_result
             shown = picture[rows][:, cols].astype(np.float64)[..., :3]
             inner = interior(mask)
             difference = np.abs(shown - expected)[inner]
-            numbers[switch] = (float(difference.mean()), float(difference.max()),
-                               float(np.abs(shown - expected)[inner].mean()))
+            numbers[key] = (float(difference.mean()), float(difference.max()))
             assert difference.max() <= 2.0, numbers
-            pictures[switch] = expected[inner]
+            pictures[key] = expected[inner]
         # the model's picture is not the Lambertian one: the switch shows a difference
-        numbers["model_vs_lambertian"] = float(np.abs(pictures[True] - pictures[False]).mean())
+        numbers["model_vs_lambertian"] = float(np.abs(pictures["model"]
+                                                      - pictures["Lambertian"]).mean())
         assert numbers["model_vs_lambertian"] > 3.0, numbers
-        print(f"{model} relight vs numpy (mean, max levels): appearance {numbers[True]}, "
-              f"Lambertian {numbers[False]}, model vs Lambertian {numbers['model_vs_lambertian']}")
+        print(f"{model} ({fit.model}, {fit.meta.get('space', 'linear')}) relight vs numpy "
+              f"(mean, max levels): {numbers}")
     finally:
         server.stop()
 

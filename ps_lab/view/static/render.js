@@ -35,7 +35,8 @@ uniform bool u_colour;
 // Appearance (issue 32; ps_lab/view/appearance_tiles.py): coefficient 3k + c of term k, channel c,
 // four to an RGBA plane, planes stacked in one texture of u_tsize.x x (u_tsize.y * planes).
 uniform highp sampler2D u_coef;
-uniform int u_model;      // 0 Lambertian, 1 a basis of the light (ptm, hsh2, hsh3), 2 ps, 3 rbf
+uniform int u_model;      // 0 Lambertian, 1 a basis of the light (ptm, hsh2, hsh3), 2 ps,
+                          // 3 weights over the training lights (rbf, bln, gp)
 uniform int u_terms;
 uniform ivec2 u_tsize;
 uniform float u_basis[16];   // the basis at the light (ptm / hsh, and ps's hsh terms)
@@ -44,8 +45,10 @@ uniform float u_basis[16];   // the basis at the light (ptm / hsh, and ps's hsh 
 uniform int u_kind[16];
 uniform float u_power[16];   // ps lobes: the exponent P
 uniform bool u_vis;          // ps visibility: coefficients 3K .. 3K + 3 hold w (io/appearance.py)
-uniform vec3 u_rbf[32];      // rbf: sum_i w_i(l) B_c[i, k], channel c in x, y, z
-uniform bool u_shared;       // rbf: one coefficient per term (index k), else 3k + c
+uniform vec3 u_rbf[32];      // rbf, bln, gp: sum_i w_i(l) B_c[i, k], channel c in x, y, z
+uniform bool u_shared;       // rbf, bln, gp: one coefficient per term (index k), else 3k + c
+uniform bool u_srgb;         // a fit in sRGB-encoded space: its prediction decoded to linear
+uniform float u_gain;        // ... then times 1 / albedo_scale
 uniform int u_mode;
 uniform vec3 u_light;
 uniform float u_exposure;
@@ -63,7 +66,10 @@ float coefficient(ivec2 px, int i) {
   int j = i - (i / 4) * 4;
   return j == 0 ? t.x : (j == 1 ? t.y : (j == 2 ? t.z : t.w));
 }
-vec3 fitted(vec3 n, vec3 albedo) {    // io/appearance.py: evaluate_appearance, per pixel
+vec3 linear(vec3 c) {      // io/encoding.py: srgb_to_linear
+  return mix(c / 12.92, pow((c + 0.055) / 1.055, vec3(2.4)), step(0.04045, c));
+}
+vec3 prediction(vec3 n, vec3 albedo) {    // io/appearance.py: evaluate_appearance, per pixel
   ivec2 px = clamp(ivec2(v_uv * vec2(u_tsize)), ivec2(0), u_tsize - 1);
   float nl = dot(n, u_light);
   vec3 h = normalize(u_light + vec3(0.0, 0.0, 1.0));
@@ -102,6 +108,10 @@ vec3 fitted(vec3 n, vec3 albedo) {    // io/appearance.py: evaluate_appearance, 
     c += b * vec3(coefficient(px, 3 * k), coefficient(px, 3 * k + 1), coefficient(px, 3 * k + 2));
   }
   return c;
+}
+vec3 fitted(vec3 n, vec3 albedo) {    // evaluate_appearance's decoding of an sRGB-space fit
+  vec3 c = prediction(n, albedo);
+  return u_srgb ? linear(clamp(c, 0.0, 1.0)) * u_gain : c;
 }
 vec3 heat(float t) {       // black - red - yellow - white
   t = clamp(t, 0.0, 1.0);
@@ -174,38 +184,73 @@ function hshBasis(l) {    // Gautron et al. 2004 as RTIBuilder / RelightLab defi
   ];
 }
 
-// rbf (io/appearance.py: rbf_weights, evaluate_appearance): per channel c and term k,
-// sum_i w_i(l) B_c[i, k] with normalised Gaussian weights of width sigma over the lights.
+// The interpolating models' weights over the n training lights (io/smoothers.py), float64.
+function gaussianWeights(lights, sigma, u) {    // gaussian_weights: normalised, of a unit u
+  const n = lights.length / 3, w = new Float64Array(n);
+  let top = -Infinity, total = 0;
+  for (let i = 0; i < n; i++) {
+    const dx = u[0] - lights[3 * i], dy = u[1] - lights[3 * i + 1], dz = u[2] - lights[3 * i + 2];
+    w[i] = -(dx * dx + dy * dy + dz * dz) / (sigma * sigma);
+    top = Math.max(top, w[i]);
+  }
+  for (let i = 0; i < n; i++) { w[i] = Math.exp(w[i] - top); total += w[i]; }
+  for (let i = 0; i < n; i++) w[i] /= total;
+  return w;
+}
+
+function blnWeights(lights, sigma, r, u) {    // bln_weights: bilinear over the grid's nodes
+  const n = lights.length / 3, w = new Float64Array(n), top = r - 1 - 1e-9;
+  const g = [0, 1].map((a) => Math.min(Math.max((u[a] + 1) / 2 * (r - 1), 0), top));
+  const i0 = g.map(Math.floor), t = [g[0] - i0[0], g[1] - i0[1]];
+  for (const dy of [0, 1]) {
+    for (const dx of [0, 1]) {
+      const x = -1 + 2 * (i0[0] + dx) / (r - 1), y = -1 + 2 * (i0[1] + dy) / (r - 1);   // grid_nodes
+      const node = gaussianWeights(lights, sigma, unitVector([x, y, Math.sqrt(Math.min(Math.max(1 - x * x - y * y, 0), 1))]));
+      const f = (dx ? t[0] : 1 - t[0]) * (dy ? t[1] : 1 - t[1]);
+      for (let i = 0; i < n; i++) w[i] += f * node[i];
+    }
+  }
+  return w;
+}
+
+function gpWeights(lights, sigma, solve, u) {    // gp_weights: [k(l, L), ptm(l)] . G
+  const n = lights.length / 3, w = new Float64Array(n), row = new Float64Array(n + 6);
+  for (let i = 0; i < n; i++) {
+    const dx = u[0] - lights[3 * i], dy = u[1] - lights[3 * i + 1], dz = u[2] - lights[3 * i + 2];
+    row[i] = Math.exp(-(dx * dx + dy * dy + dz * dz) / (sigma * sigma));
+  }
+  row.set([1, u[0], u[1], u[0] * u[0], u[0] * u[1], u[1] * u[1]], n);
+  for (let i = 0; i < n + 6; i++) for (let j = 0; j < n; j++) w[j] += row[i] * solve[i * n + j];
+  return w;
+}
+
+// rbf, bln, gp (io/appearance.py: smoother_weights, evaluate_appearance): per channel c and term
+// k, sum_i w_i(l) B_c[i, k].
 function rbfUniforms(fit, l) {
   const out = new Float32Array(96);
   const { lights, sigma, basis } = fit.rbf, n = lights.length / 3, K = fit.K, u = unitVector(l);
-  const logw = new Float64Array(n);
-  let top = -Infinity;
-  for (let i = 0; i < n; i++) {
-    const dx = u[0] - lights[3 * i], dy = u[1] - lights[3 * i + 1], dz = u[2] - lights[3 * i + 2];
-    logw[i] = -(dx * dx + dy * dy + dz * dz) / (sigma * sigma);
-    top = Math.max(top, logw[i]);
-  }
-  let total = 0;
-  for (let i = 0; i < n; i++) { logw[i] = Math.exp(logw[i] - top); total += logw[i]; }
+  const w = fit.model === "bln" ? blnWeights(lights, sigma, fit.rbf.resolution, u)
+    : fit.model === "gp" ? gpWeights(lights, sigma, fit.rbf.solve, u) : gaussianWeights(lights, sigma, u);
   for (let c = 0; c < 3; c++) {
     for (let k = 0; k < K; k++) {
       let s = 0;
-      for (let i = 0; i < n; i++) s += logw[i] * basis[(c * n + i) * K + k];
-      out[3 * k + c] = s / total;
+      for (let i = 0; i < n; i++) s += w[i] * basis[(c * n + i) * K + k];
+      out[3 * k + c] = s;
     }
   }
   return out;
 }
 
-// The uniforms of a fitted model at light l: { model, basis, kind, power, rbf, shared }
-// (model 0: Lambertian).
+// The uniforms of a fitted model at light l: { model, basis, kind, power, rbf, shared, srgb,
+// gain } (model 0: Lambertian).
 function appearanceUniforms(fit, l) {
   const basis = new Float32Array(16), kind = new Int32Array(16), power = new Float32Array(16);
-  const none = { model: 0, terms: 0, basis, kind, power, vis: false, rbf: new Float32Array(96), shared: false };
+  const none = { model: 0, terms: 0, basis, kind, power, vis: false, rbf: new Float32Array(96), shared: false,
+                 srgb: false, gain: 1 };
   if (!fit || !fit.planes) return none;
-  if (fit.model === "rbf") {
-    return { ...none, model: 3, terms: fit.K, rbf: rbfUniforms(fit, l), shared: !!fit.shared };
+  const space = { srgb: fit.space === "srgb", gain: fit.gain ?? 1 };
+  if (fit.rbf) {   // rbf, bln, gp
+    return { ...none, ...space, model: 3, terms: fit.K, rbf: rbfUniforms(fit, l), shared: !!fit.shared };
   }
   const [x, y] = unitVector(l);
   if (fit.model === "ptm") basis.set([1, x, y, x * x, x * y, y * y]);
@@ -223,7 +268,7 @@ function appearanceUniforms(fit, l) {
       else { kind[k] = 3; basis[k] = 0; }   // a term this page does not know: left out
     });
   }
-  return { ...none, model: fit.model === "ps" ? 2 : 1, terms: fit.K, basis, kind, power, vis: !!fit.visibility };
+  return { ...none, ...space, model: fit.model === "ps" ? 2 : 1, terms: fit.K, basis, kind, power, vis: !!fit.visibility };
 }
 
 function program(gl, vs, fs) {

@@ -323,6 +323,8 @@ function drawImage(result, panel) {
   gl.uniform1i(p.u.u_vis, fit.vis ? 1 : 0);
   gl.uniform3fv(p.u["u_rbf[0]"], fit.rbf);
   gl.uniform1i(p.u.u_shared, fit.shared ? 1 : 0);
+  gl.uniform1i(p.u.u_srgb, fit.srgb ? 1 : 0);
+  gl.uniform1f(p.u.u_gain, fit.gain);
   gl.uniform1i(p.u.u_coef, 4);
   // The tiles of that level over the panel; the one-tile top level is drawn under them until
   // they have all arrived.
