@@ -41,7 +41,7 @@ from ps_lab.io.coded_frames import frame_coding
 from ps_lab.io.dataset import LIGHT_POSITIONS, OBJECT_OUTLINE, DatasetHeader, open_dataset
 from ps_lab.io.encoding import frames_encoding
 from ps_lab.io.files import json_safe, staged_folder
-from ps_lab.io.result import METRICS, RESULT_FORMAT, is_result_folder
+from ps_lab.io.result import METRICS, RESULT_FORMAT, foreign_entries, read_result_metrics
 from ps_lab.io.truth import open_normal_gt
 from ps_lab.reconstruct._bands import LocalBands
 from ps_lab.reconstruct._colour import grey_albedo
@@ -155,19 +155,26 @@ class ReconstructResult:
         return list(self.metrics.get("refinement", {}).get("history", []))
 
 
-def _is_result_folder(folder: Path) -> bool:
-    return not any(folder.iterdir()) or is_result_folder(folder)
-
-
 def check_output_folder(out: Path) -> None:
-    """Raise :class:`OutputError` unless ``out`` is absent, empty or an earlier ps-lab result."""
+    """Raise :class:`OutputError` unless ``out`` is absent, empty or an earlier ps-lab result
+    holding only files ps-lab wrote (:func:`ps_lab.io.result.foreign_entries`)."""
     out = Path(out)
     if out.exists() and not out.is_dir():
         raise OutputError(f"{out}: exists and is not a folder")
-    if out.is_dir() and not _is_result_folder(out):
+    if not out.is_dir() or not any(out.iterdir()):
+        return
+    metrics = read_result_metrics(out)
+    if metrics is None:
         raise OutputError(
             f"{out}: exists and is not a ps-lab result folder (no {METRICS}); "
             "choose another --out or remove it"
+        )
+    foreign = foreign_entries(out, metrics)
+    if foreign:
+        more = f" and {len(foreign) - 1} more" if len(foreign) > 1 else ""
+        raise OutputError(
+            f"{out / foreign[0]}{more}: not written by ps-lab, in the earlier result that this "
+            "run would replace; move it out of the folder or choose another --out"
         )
 
 
