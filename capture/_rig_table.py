@@ -130,6 +130,8 @@ class _Table:
             or any(isinstance(v, bool) or not isinstance(v, int | float) for v in value)
         ):
             raise self.error(key, f"expected a list of {length} numbers, got {value!r}")
+        if not all(math.isfinite(v) for v in value):
+            raise self.error(key, f"every number must be finite, got {value!r}")
         return tuple(float(v) for v in value)
 
 

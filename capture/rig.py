@@ -437,10 +437,15 @@ def _unit_vectors(t: _Table, key: str, count: int) -> tuple[tuple[float, float, 
         raise t.error(key, f"expected {count} directions (one per light), got {len(vectors)}")
     out = []
     for i, v in enumerate(vectors):
-        norm = math.sqrt(sum(c * c for c in v))
+        scale = max(abs(c) for c in v)  # scaled first: no overflow for huge components
+        norm = scale * math.sqrt(sum((c / scale) ** 2 for c in v)) if scale > 0 else 0.0
         if norm < 1e-9:
             raise t.error(f"{key}[{i}]", "zero vector")
-        out.append(tuple(c / norm for c in v))
+        unit = tuple(c / norm for c in v)
+        if unit[2] <= 0.0:
+            raise t.error(f"{key}[{i}]", f"points below the horizon (z = {unit[2]:.3g}); a light "
+                          "is above the scene, z > 0")
+        out.append(unit)
     return tuple(out)  # type: ignore[return-value]
 
 
@@ -583,9 +588,12 @@ def _parse_scene(t: _Table, n_lights: int) -> SceneConfig:
             intensity_spread=lt.float("intensity_spread", 0.0, lo=0.0, hi=0.9),
             color_spread=lt.float("color_spread", 0.0, lo=0.0, hi=0.9),
             nominal_error_deg=lt.float("nominal_error_deg", 0.0, lo=0.0, hi=20.0),
-            dome_radius=lt.float("dome_radius", None, lo=1.0),
-            led_radius=lt.float("led_radius", 15.0, lo=0.01),
+            dome_radius=lt.float("dome_radius", None, lo=1.0, hi=1e6),
+            led_radius=lt.float("led_radius", 15.0, lo=0.01, hi=1e4),
         )
+        if lights.dome_radius is not None and lights.led_radius >= lights.dome_radius:
+            raise lt.error("led_radius", f"must be smaller than dome_radius "
+                           f"({lights.dome_radius:g})")
         lt.done()
     t.done()
     return SceneConfig(
@@ -601,9 +609,15 @@ def _intensities(t: _Table, count: int) -> tuple[tuple[float, ...], ...] | None:
         raise t.error(
             "intensities", f"expected {count} [r, g, b] rows (one per light), got {len(rows)}"
         )
-    if any(v <= 0 for row in rows for v in row):
-        raise t.error("intensities", "every intensity must be positive")
+    if any(not 0 < v <= MAX_INTENSITY for row in rows for v in row):
+        raise t.error("intensities", f"every intensity must be positive and at most "
+                      f"{MAX_INTENSITY:g} (relative to 1)")
     return rows
+
+
+#: Light intensities are relative (1: the rig's nominal LED); beyond this the simulated camera's
+#: counts overflow.
+MAX_INTENSITY = 1e3
 
 
 _ALL_CAMERA_FAULTS = tuple(dict.fromkeys(CAMERA_FAULT_KINDS + PTPIP_FAULT_KINDS))
