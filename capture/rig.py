@@ -22,7 +22,7 @@ from pathlib import Path
 from typing import Any
 
 from ps_lab.capture._rig_lens import LensConfig, parse_lens
-from ps_lab.capture._rig_table import _kind, _Table
+from ps_lab.capture._rig_table import _kind, _Table, light_intensities, unit_vectors
 from ps_lab.capture.faults import CAMERA_FAULT_KINDS, PTPIP_FAULT_KINDS, Fault
 from ps_lab.capture.faults import FAULT_KINDS as CONTROLLER_FAULT_KINDS
 from ps_lab.errors import RigError
@@ -409,7 +409,7 @@ def _parse_controller(t: _Table) -> ControllerConfig:
         timeout_s=t.float("timeout_s", 1.0, lo=0.01, hi=60.0),
         baudrate=t.int("baudrate", 115200, lo=300),
         settle_ms=t.int("settle_ms", 0, lo=0, hi=60_000),
-        directions=_unit_vectors(t, "directions", lights),
+        directions=unit_vectors(t, "directions", lights),
         pins=pins,
         elf=elf,
         anisotropy=t.float("anisotropy", 0.0, lo=0.0, hi=100.0),
@@ -427,26 +427,6 @@ def _pins(t: _Table, lights: int) -> tuple[int, ...] | None:
     if any(not 2 <= p <= 19 for p in pins) or len(set(pins)) != len(pins):
         raise t.error("pins", "each light needs its own Uno pin 2-19 (0 and 1 are the serial port)")
     return pins
-
-
-def _unit_vectors(t: _Table, key: str, count: int) -> tuple[tuple[float, float, float], ...] | None:
-    vectors = t.vectors(key, 3)
-    if vectors is None:
-        return None
-    if len(vectors) != count:
-        raise t.error(key, f"expected {count} directions (one per light), got {len(vectors)}")
-    out = []
-    for i, v in enumerate(vectors):
-        scale = max(abs(c) for c in v)  # scaled first: no overflow for huge components
-        norm = scale * math.sqrt(sum((c / scale) ** 2 for c in v)) if scale > 0 else 0.0
-        if norm < 1e-9:
-            raise t.error(f"{key}[{i}]", "zero vector")
-        unit = tuple(c / norm for c in v)
-        if unit[2] <= 0.0:
-            raise t.error(f"{key}[{i}]", f"points below the horizon (z = {unit[2]:.3g}); a light "
-                          "is above the scene, z > 0")
-        out.append(unit)
-    return tuple(out)  # type: ignore[return-value]
 
 
 _SENSOR_KEYS = {
@@ -583,8 +563,8 @@ def _parse_scene(t: _Table, n_lights: int) -> SceneConfig:
         lights = LightLayoutConfig(
             seed=lt.int("seed", 0, lo=0),
             max_zenith_deg=lt.float("max_zenith_deg", 55.0, lo=1.0, hi=89.0),
-            directions=_unit_vectors(lt, "directions", n_lights),
-            intensities=_intensities(lt, n_lights),
+            directions=unit_vectors(lt, "directions", n_lights),
+            intensities=light_intensities(lt, n_lights),
             intensity_spread=lt.float("intensity_spread", 0.0, lo=0.0, hi=0.9),
             color_spread=lt.float("color_spread", 0.0, lo=0.0, hi=0.9),
             nominal_error_deg=lt.float("nominal_error_deg", 0.0, lo=0.0, hi=20.0),
@@ -599,25 +579,6 @@ def _parse_scene(t: _Table, n_lights: int) -> SceneConfig:
     return SceneConfig(
         width=width, height=height, objects=tuple(objects), lights=lights, background=background
     )
-
-
-def _intensities(t: _Table, count: int) -> tuple[tuple[float, ...], ...] | None:
-    rows = t.vectors("intensities", 3)
-    if rows is None:
-        return None
-    if len(rows) != count:
-        raise t.error(
-            "intensities", f"expected {count} [r, g, b] rows (one per light), got {len(rows)}"
-        )
-    if any(not 0 < v <= MAX_INTENSITY for row in rows for v in row):
-        raise t.error("intensities", f"every intensity must be positive and at most "
-                      f"{MAX_INTENSITY:g} (relative to 1)")
-    return rows
-
-
-#: Light intensities are relative (1: the rig's nominal LED); beyond this the simulated camera's
-#: counts overflow.
-MAX_INTENSITY = 1e3
 
 
 _ALL_CAMERA_FAULTS = tuple(dict.fromkeys(CAMERA_FAULT_KINDS + PTPIP_FAULT_KINDS))
