@@ -281,6 +281,11 @@ def calibrate_leds(board: np.ndarray, positions: np.ndarray, height: float,
     return LedModel(beams, flat, e)
 
 
+#: A flat matte board's frames fit the beam model within a few percent (docs/results.md); beyond
+#: this the frames are not of a board under these LEDs (wrong folder, order, or height).
+MAX_BEAM_RMS_PCT = 20.0
+
+
 def check_board_below_leds(height: float, positions: np.ndarray, option: str) -> None:
     """The board's plane below every placed LED and within reach of them, else an error naming
     ``option`` (the ``--board`` that gave ``height``) and the reason.
@@ -360,6 +365,14 @@ def with_led_model(calibration, board: np.ndarray, height: float | str = "table"
     check_board_below_leds(float(height), tri.positions, option)
     model = calibrate_leds(board, tri.positions, float(height), calibration.camera,
                            saturated=saturated)
+    misfit = np.flatnonzero(np.nan_to_num(model.beams.rms_pct, nan=np.inf) > MAX_BEAM_RMS_PCT)
+    if misfit.size:
+        j = int(misfit[0])
+        raise CalibrationError(
+            f"--flat-field: board frame {j + 1} is not a flat board lit by LED {j + 1} (the beam "
+            f"model misses it by {model.beams.rms_pct[j]:.0f} % RMS, a board fits within a few "
+            f"%; {misfit.size} frame(s) so): check the frames and --board"
+        )
     columns = calibration.light_intensities.shape[1]
     metadata = {**calibration.metadata, "led_model": model.record()}
     return replace(calibration, led_model=model, metadata=metadata,

@@ -16,6 +16,7 @@ from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, replace
 from pathlib import Path
 
+import cv2
 import numpy as np
 import pytest
 
@@ -287,3 +288,23 @@ def test_earlier_result_with_its_depth_files_is_replaced(earlier, tmp_path) -> N
         assert result.code == 0, result.stderr
         assert_quiet(result)
     assert not (out / "mesh.ply").exists() and (out / "normals.npy").is_file()
+
+
+def test_frames_that_are_not_a_board_are_refused(near, tmp_path) -> None:
+    """Seeded noise in place of the board frames: the beam model cannot fit them."""
+    board = tmp_path / "noise"
+    board.mkdir()
+    rng = np.random.default_rng(5)
+    for frame in sorted(near["board"].glob("*.png")):
+        shape = cv2.imread(str(frame), cv2.IMREAD_UNCHANGED).shape
+        cv2.imwrite(str(board / frame.name), rng.integers(0, 65535, shape).astype(np.uint16))
+    ds = tmp_path / "case" / "ds"
+    shutil.copytree(near["near"], ds)
+    before = snapshot(ds.parent)
+    result = _cli(["calibrate", str(ds), *SPHERES, "--object", "table", "--flat-field",
+                   str(board)], ds.parent, tmp_path / "home")
+    line = assert_one_error_line(result, (str(board),))
+    assert "--flat-field" in line and "not a flat board" in line, line
+    assert_quiet(result)
+    assert snapshot(ds.parent) == before
+
