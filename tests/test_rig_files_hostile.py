@@ -9,8 +9,10 @@ option), no traceback or numpy warning, nothing created or changed.
 
 from __future__ import annotations
 
+import io
 import shutil
 import sys
+import zipfile
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, replace
@@ -99,6 +101,26 @@ def _npy_instead(ds: Path) -> None:
         np.save(handle, np.ones((24, 3, 3)))
 
 
+def _forged_gains(ds: Path) -> None:
+    """gains.npy whose header claims 24 x 90000 x 90000 values (1.5 TB) over the real bytes."""
+    with np.load(ds / FLAT) as data:
+        arrays = {k: data[k] for k in data.files}
+    members = {}
+    for key, value in arrays.items():
+        buffer = io.BytesIO()
+        np.save(buffer, value)
+        members[key] = buffer.getvalue()
+    raw = members["gains"]
+    end = raw.index(b"\n") + 1
+    shape = str(arrays["gains"].shape).encode()
+    header = raw[:end].replace(shape, b"(24, 90000, 90000)")
+    header = header[:-1].rstrip(b" ").ljust(end - 1) + b"\n"  # the same length
+    members["gains"] = header + raw[end:]
+    with zipfile.ZipFile(ds / FLAT, "w") as archive:
+        for key, value in members.items():
+            archive.writestr(f"{key}.npy", value)
+
+
 def _text(name: str, rows: str) -> Callable[[Path], None]:
     def damage(ds: Path) -> None:
         (ds / name).write_text(rows)
@@ -132,6 +154,7 @@ CASES = [
     Case("truncated npz", _truncate, (FLAT,)),
     Case("not an archive", lambda ds: (ds / FLAT).write_bytes(np.ones(3).tobytes()), (FLAT,)),
     Case("one array, not an archive", _npy_instead, (FLAT,)),
+    Case("forged gains header", _forged_gains, (FLAT,), also=("gains",)),
     Case("scalar gains", _flat(gains=np.array(1.0)), (FLAT,), also=("gains",)),
     Case("2-D gains", _flat(gains=lambda g: g[0]), (FLAT,), also=("gains",)),
     Case("empty gains axis", _flat(gains=lambda g: g[:, :0]), (FLAT,), also=("gains",)),

@@ -113,19 +113,43 @@ def write_flat_field(path: Path, flat: FlatField) -> None:
 GAIN_RANGE = (1e-6, 1e6)
 
 
+#: The most values one array of the file may hold (a forged header is refused before reading).
+MAX_VALUES = 1 << 27
+
+
+def _header(data: np.lib.npyio.NpzFile, name: str) -> tuple[tuple[int, ...], np.dtype]:
+    """Shape and dtype of the archive's array ``name``, from its header alone."""
+    with data.zip.open(f"{name}.npy") as member:
+        version = np.lib.format.read_magic(member)
+        read = (np.lib.format.read_array_header_1_0 if version == (1, 0)
+                else np.lib.format.read_array_header_2_0)
+        shape, _, dtype = read(member)
+    return shape, dtype
+
+
 def _real_array(path: Path, data, name: str, ndim: int) -> np.ndarray:
-    """``data[name]`` as float64 with ``ndim`` dimensions, else a DatasetError naming both."""
+    """``data[name]`` as float64 with ``ndim`` dimensions, else a DatasetError naming both.
+
+    Type, shape and size are checked on the array's header before its values are read.
+    """
     if name not in data.files:
         raise DatasetError(f"{path}: not a flat-field file (no array '{name}')")
+    try:
+        shape, dtype = _header(data, name)
+    except (OSError, ValueError, EOFError, KeyError, zipfile.BadZipFile, zlib.error) as exc:
+        raise DatasetError(f"{path}: array '{name}' cannot be read ({exc})") from None
+    if dtype.kind not in "fiu":
+        raise DatasetError(f"{path}: array '{name}' holds {dtype} values, not real numbers")
+    if len(shape) != ndim:
+        want = {0: "one number", 1: "a 1-D axis", 2: "a 2-D table", 3: "a 3-D stack"}[ndim]
+        raise DatasetError(f"{path}: array '{name}' has shape {shape}, expected {want}")
+    if int(np.prod(shape, dtype=np.float64)) > MAX_VALUES:
+        raise DatasetError(f"{path}: array '{name}' claims shape {shape}, more values than a "
+                           f"flat-field holds (at most {MAX_VALUES})")
     try:
         raw = data[name]
     except (OSError, ValueError, EOFError, zipfile.BadZipFile, zlib.error) as exc:
         raise DatasetError(f"{path}: array '{name}' cannot be read ({exc})") from None
-    if raw.dtype.kind not in "fiu":
-        raise DatasetError(f"{path}: array '{name}' holds {raw.dtype} values, not real numbers")
-    if raw.ndim != ndim:
-        want = {0: "one number", 1: "a 1-D axis", 2: "a 2-D table", 3: "a 3-D stack"}[ndim]
-        raise DatasetError(f"{path}: array '{name}' has shape {raw.shape}, expected {want}")
     return np.asarray(raw, np.float64)
 
 
