@@ -367,8 +367,8 @@ def _check_leds_above_outline(header: DatasetHeader) -> None:
     if low.size:
         j = int(low[0])
         raise DatasetError(
-            f"{header.root / LIGHT_POSITIONS}: LED {j + 1} (z={positions[j, 2]:g} px) is not above "
-            f"the object's outline plane (z={outline:g} px, {OBJECT_OUTLINE})"
+            f"{header.root / LIGHT_POSITIONS}: LED {j + 1} (z={positions[j, 2]:g} px) is not "
+            f"above the object's outline plane (z={outline:g} px, {OBJECT_OUTLINE})"
         )
 
 
