@@ -24,6 +24,7 @@ Z. Zhang, "A flexible new technique for camera calibration", IEEE TPAMI 22(11), 
 
 from __future__ import annotations
 
+import os
 import re
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
@@ -33,7 +34,19 @@ import cv2
 import numpy as np
 
 from ps_lab.errors import CalibrationError, PsLabError
-from ps_lab.io.camera import CAMERA_FILE, CameraModel, camera_from_arrays, camera_json
+from ps_lab.calibration._camera_views import (
+    ViewVerdict,
+    judge_views,
+    repeated_views,
+    tilt_spread_deg,
+)
+from ps_lab.io.camera import (
+    CAMERA_FILE,
+    CameraModel,
+    camera_from_arrays,
+    camera_json,
+    camera_problem,
+)
 from ps_lab.io.codecs import imwrite
 from ps_lab.io.files import staged_files, write_json_atomic
 from ps_lab.io.images import read_image
@@ -46,6 +59,17 @@ OUTLIER_FLOOR_PX = 0.5
 MIN_FRAMES = 3
 #: Fewest corners a frame must show.
 MIN_CORNERS = 8
+#: A calibration whose RMS is above this (pixels), or above MAX_RMS_SHARE of the frame's diagonal
+#: where that is more, is refused: sub-pixel corners of a flat board sit well below 1 px, and
+#: an RMS of several pixels is a wrong board spec, a bent board or misdetected corners.
+MAX_RMS_PX = 2.0
+MAX_RMS_SHARE = 5e-4
+#: A board square (and marker) side in mm: a printed board's, from a micro target to a wall.
+SQUARE_RANGE_MM = (0.01, 10_000.0)
+#: Most squares along a board's side.
+MAX_SQUARES = 200
+#: Smallest marker side as a share of the square's.
+MIN_MARKER_SHARE = 0.1
 CAMERA_PICTURE = "camera.png"
 DEFAULT_DICTIONARY = "DICT_5X5_100"
 _DICTIONARIES = sorted(n for n in dir(cv2.aruco) if n.startswith("DICT_"))
@@ -111,14 +135,27 @@ def parse_board(text: str) -> BoardSpec:
     cols, rows = int(size.group(1)), int(size.group(2))
     if cols < 3 or rows < 3:
         raise CalibrationError(f"--board {text}: a board needs at least 3x3 squares")
+    if kind == "chessboard" and (cols < 4 or rows < 4):  # OpenCV's detector: 3x3 inner corners
+        raise CalibrationError(f"--board {text}: a chessboard needs at least 4x4 squares "
+                               "(3x3 inner corners)")
+    if cols > MAX_SQUARES or rows > MAX_SQUARES:
+        raise CalibrationError(
+            f"--board {text}: at most {MAX_SQUARES} squares a side (got {cols}x{rows})"
+        )
 
     def length(value: str, name: str) -> float:
         try:
             number = float(value)
         except ValueError:
             raise CalibrationError(f"--board {text}: {name} {value!r} is not a number") from None
+        lo, hi = SQUARE_RANGE_MM
         if not (np.isfinite(number) and number > 0):
-            raise CalibrationError(f"--board {text}: {name} must be positive")
+            raise CalibrationError(f"--board {text}: {name} must be positive (a length in mm)")
+        if not lo <= number <= hi:
+            raise CalibrationError(
+                f"--board {text}: {name} {number:g} mm is not a printed board's size "
+                f"({lo:g} to {hi:g} mm)"
+            )
         return number
 
     square = length(parts[2], "SQUARE")
@@ -127,6 +164,11 @@ def parse_board(text: str) -> BoardSpec:
     marker = length(parts[3], "MARKER")
     if marker >= square:
         raise CalibrationError(f"--board {text}: MARKER must be smaller than SQUARE")
+    if marker < MIN_MARKER_SHARE * square:
+        raise CalibrationError(
+            f"--board {text}: MARKER must be at least {MIN_MARKER_SHARE:g} x SQUARE (markers "
+            "that small are not decoded)"
+        )
     dictionary = DEFAULT_DICTIONARY
     if len(parts) == 5:
         name = parts[4].strip().upper()
@@ -137,12 +179,12 @@ def parse_board(text: str) -> BoardSpec:
                 "DICT_5X5_100, DICT_6X6_250, DICT_APRILTAG_36H11)"
             )
         dictionary = name
-        count = int(re.search(r"_(\d+)$", name).group(1)) if re.search(r"_(\d+)$", name) else None
-        if count is not None and count < cols * rows // 2:
-            raise CalibrationError(
-                f"--board {text}: {name} has {count} markers, a {cols}x{rows} board needs "
-                f"{cols * rows // 2}"
-            )
+    count = cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, dictionary)).bytesList.shape[0]
+    if count < cols * rows // 2:
+        raise CalibrationError(
+            f"--board {text}: {dictionary} has {count} markers, a {cols}x{rows} board needs "
+            f"{cols * rows // 2}"
+        )
     return BoardSpec("charuco", cols, rows, square, marker, dictionary)
 
 
@@ -188,6 +230,14 @@ def _refused(reason: str) -> Detection:
     return Detection(empty, np.zeros((0, 2), np.float32), reason)
 
 
+def _collinear(objects: np.ndarray) -> bool:
+    """Whether board corners (m, 3) lie on one line (no homography, no calibration)."""
+    xy = objects[:, :2].astype(np.float64)
+    centred = xy - xy.mean(axis=0)
+    singular = np.linalg.svd(centred, compute_uv=False)
+    return len(xy) < 4 or singular[-1] <= 1e-6 * max(singular[0], 1e-300)
+
+
 def detect_corners(grey: np.ndarray, board: BoardSpec, legacy: bool = False) -> Detection:
     """Find the board's corners in one 8-bit grey frame.
 
@@ -211,8 +261,11 @@ def detect_corners(grey: np.ndarray, board: BoardSpec, legacy: bool = False) -> 
         if len(ids) < MIN_CORNERS:
             return _refused(f"only {len(ids)} corners seen (at least {MIN_CORNERS})")
         objects, images = board.charuco_board(legacy).matchImagePoints(corners, ids)
-        return Detection(objects.reshape(-1, 3).astype(np.float32),
-                         images.reshape(-1, 2).astype(np.float32))
+        objects = objects.reshape(-1, 3).astype(np.float32)
+        if _collinear(objects):
+            return _refused(f"the {len(ids)} corners seen lie on one line of the board (a "
+                            "plane needs corners off it)")
+        return Detection(objects, images.reshape(-1, 2).astype(np.float32))
     pattern = (board.cols - 1, board.rows - 1)
     found, corners = cv2.findChessboardCornersSB(grey, pattern, flags=cv2.CALIB_CB_ACCURACY)
     if not found:
@@ -249,6 +302,12 @@ class CameraCalibration:
         OpenCV's own RMS (all 5 coefficients free) on the kept frames' corners.
     k3_fitted : bool
         Whether k3 was fitted (else held at 0: :func:`_calibrate`).
+    sigma : dict of str -> float
+        OpenCV's standard deviations (1 sigma, pixels) of ``fx``, ``fy``, ``cx``, ``cy``
+        (``calibrateCameraExtended``: from the Jacobian at the solution and the residual
+        variance; meaningful only for views that determine them, :mod:`._camera_views`).
+    views : ViewVerdict or None
+        Distinct views, tilt spread and the warning, if any (:func:`judge_views`).
     """
 
     camera: CameraModel
@@ -258,6 +317,13 @@ class CameraCalibration:
     rms_all_frames: float | None = None
     rms_opencv: float | None = None
     k3_fitted: bool = True
+    sigma: dict[str, float] = field(default_factory=dict)
+    views: ViewVerdict | None = None
+
+    @property
+    def warning(self) -> str | None:
+        """Why the views make a weak calibration (one line), else None."""
+        return None if self.views is None else self.views.warning
 
 
 #: Free k3 only where it lowers the reprojection RMS by more than this share (module docstring).
@@ -274,16 +340,29 @@ def _calibrate(objects, images, size):
     OpenCV's own 5-coefficient fit on the same corners (returned as ``rms_free``).
     """
     criteria = (cv2.TERM_CRITERIA_COUNT + cv2.TERM_CRITERIA_EPS, 200, 1e-12)
-    free = cv2.calibrateCamera(objects, images, size, None, None, flags=0, criteria=criteria)
-    held = cv2.calibrateCamera(objects, images, size, None, None, flags=cv2.CALIB_FIX_K3,
-                               criteria=criteria)
+    free = cv2.calibrateCameraExtended(objects, images, size, None, None, flags=0,
+                                       criteria=criteria)
+    held = cv2.calibrateCameraExtended(objects, images, size, None, None,
+                                       flags=cv2.CALIB_FIX_K3, criteria=criteria)
     use_free = held[0] > (1.0 + K3_GAIN) * free[0]
-    rms, k, d, rvecs, tvecs = free if use_free else held
+    rms, k, d, rvecs, tvecs, sigma = (free if use_free else held)[:6]
     residuals = []
     for obj, img, r, t in zip(objects, images, rvecs, tvecs, strict=True):
         projected, _ = cv2.projectPoints(obj, r, t, k, d)
         residuals.append(img.reshape(-1, 2).astype(np.float64) - projected.reshape(-1, 2))
-    return float(rms), k, d, residuals, float(free[0]), use_free
+    fit = _Fit(k, d, [np.asarray(r).reshape(3) for r in rvecs],
+               np.asarray(sigma, np.float64).ravel()[:4])
+    return float(rms), fit, residuals, float(free[0]), use_free
+
+
+@dataclass(frozen=True)
+class _Fit:
+    """One OpenCV calibration: matrix (3, 3), coefficients, rvecs (n x (3,)), sigma (4,)."""
+
+    matrix: np.ndarray
+    distortion: np.ndarray
+    rvecs: list[np.ndarray]
+    sigma: np.ndarray
 
 
 def calibrate_from_corners(
@@ -311,6 +390,9 @@ def calibrate_from_corners(
     n = len(detections)
     names = list(names) if names is not None else [f"frame {k + 1}" for k in range(n)]
     refused = {k: d.refused for k, d in enumerate(detections) if d.refused is not None}
+    for k, d in enumerate(detections):
+        if k not in refused and _collinear(d.object_points):
+            refused[k] = "its corners lie on one line of the board (a plane needs corners off it)"
     frame_rms = np.full(n, np.nan)
     residuals: list[np.ndarray] = [np.zeros((0, 2)) for _ in range(n)]
     rms_all = None
@@ -322,10 +404,18 @@ def calibrate_from_corners(
                 f"{len(kept)} usable board frame(s) of {n}, at least {MIN_FRAMES} needed"
                 + (f" ({why})" if why else "")
             )
-        rms, k_matrix, dist, res, rms_free, k3_free = _calibrate(
-            [detections[k].object_points for k in kept],
-            [detections[k].image_points for k in kept], image_size,
-        )
+        try:
+            rms, fit, res, rms_free, k3_free = _calibrate(
+                [detections[k].object_points for k in kept],
+                [detections[k].image_points for k in kept], image_size,
+            )
+        except cv2.error as exc:  # a configuration its initialisation cannot start from
+            reason = str(exc).strip().splitlines()[-1] if str(exc).strip() else "no reason given"
+            raise CalibrationError(
+                f"board frames {names[kept[0]]} ... {names[kept[-1]]}: OpenCV cannot calibrate "
+                f"from these corners ({reason[:160]}): {len(kept)} frames, "
+                f"{sum(len(detections[k].image_points) for k in kept)} corners"
+            ) from None
         if rms_all is None:
             rms_all = rms
         per_frame = np.array([np.sqrt(np.mean(np.sum(r * r, axis=1))) for r in res])
@@ -340,8 +430,30 @@ def calibrate_from_corners(
             f"reprojection RMS {per_frame[worst]:.3f} px is an outlier (median frame "
             f"{median:.3f} px, limit {limit:.3f} px)"
         )
-    camera = camera_from_arrays(k_matrix, dist, image_size, rms)
-    return CameraCalibration(camera, frame_rms, refused, residuals, rms_all, rms_free, k3_free)
+    camera = camera_from_arrays(fit.matrix, fit.distortion, image_size, rms)
+    span = f"{names[kept[0]]} ... {names[kept[-1]]}"
+    limit = max(MAX_RMS_PX, MAX_RMS_SHARE * float(np.hypot(*image_size)))
+    if not np.isfinite(rms) or rms > limit:
+        raise CalibrationError(
+            f"board frames {span}: reprojection RMS {rms:.4g} px is implausible for a lens "
+            f"(at most {limit:.3g} px): check --board (kind, squares, square and marker size) "
+            "and that the board is flat and sharp in the frames"
+        )
+    verdict = judge_views(
+        [names[k] for k in kept],
+        repeated_views([detections[k].object_points for k in kept],
+                       [detections[k].image_points for k in kept], image_size),
+        tilt_spread_deg(fit.rvecs), (camera.fx, camera.fy), fit.sigma, image_size,
+    )
+    if verdict.refused is not None:
+        raise CalibrationError(f"board frames {span}: {verdict.refused}")
+    problem = camera_problem(camera)
+    if problem is not None:
+        raise CalibrationError(f"board frames {span}: the calibration found no usable lens "
+                               f"model ({problem})")
+    sigma = {name: float(v) for name, v in zip(("fx", "fy", "cx", "cy"), fit.sigma, strict=True)}
+    return CameraCalibration(camera, frame_rms, refused, residuals, rms_all, rms_free, k3_free,
+                             sigma, verdict)
 
 
 def _read_frame(path: Path) -> tuple[np.ndarray, np.ndarray]:
@@ -385,6 +497,8 @@ def calibrate_camera_files(
     """
     if not frames:
         raise CalibrationError("no board frames given (FRAMES...)")
+    out = Path(out)
+    _check_out(out)  # before the work
     paths = [Path(f) for f in frames]
     for path in paths:
         if not path.is_file():
@@ -415,6 +529,7 @@ def calibrate_camera_files(
             progress(1)
     assert size is not None
     result = calibrate_from_corners(detections, size, [p.name for p in paths])
+    kept = [k for k in range(len(paths)) if k not in result.refused]
     extra = {
         "board": board.describe() + (" (legacy pattern)" if legacy else ""),
         "frames": [
@@ -432,17 +547,50 @@ def calibrate_camera_files(
         "k3": "fitted" if result.k3_fitted else "held at 0 (freeing it lowered the RMS by "
         f"less than {100 * K3_GAIN:g} %)",
         "rms_method": "cv2.calibrateCamera on the kept frames' sub-pixel corners",
+        "uncertainty_px": {
+            **result.sigma,
+            "meaning": "1-sigma standard deviations of fx, fy, cx, cy from "
+            "cv2.calibrateCameraExtended (Jacobian at the solution, residual variance)",
+        },
+        "views": {
+            "distinct": result.views.distinct_views if result.views else None,
+            "tilt_spread_deg": result.views.tilt_spread_deg if result.views else None,
+            "repeats": {paths[kept[j]].name: paths[kept[i]].name
+                        for j, i in (result.views.repeats.items() if result.views else ())},
+            "warning": result.warning,
+        },
     }
     picture = camera_picture(greys, detections, result)
-    out = Path(out)
     written: dict[str, Path] = {}
-    with staged_files(out, prefix=".calibrate-camera-", error=CalibrationError) as stage:
-        write_json_atomic(stage / CAMERA_FILE, camera_json(result.camera, **extra))
-        if not imwrite(stage / CAMERA_PICTURE, picture):
-            raise CalibrationError(f"{out / CAMERA_PICTURE}: OpenCV could not write the PNG")
+    try:
+        with staged_files(out, prefix=".calibrate-camera-", error=CalibrationError) as stage:
+            write_json_atomic(stage / CAMERA_FILE, camera_json(result.camera, **extra))
+            if not imwrite(stage / CAMERA_PICTURE, picture):
+                raise CalibrationError(f"{out / CAMERA_PICTURE}: OpenCV could not write the PNG")
+    except OSError as exc:  # the staging folder's name is ours, not the user's: name ``out``
+        raise CalibrationError(f"{out}: cannot write {CAMERA_FILE} and {CAMERA_PICTURE} "
+                               f"({exc.strerror or type(exc).__name__}); nothing written") from None
     for name in (CAMERA_FILE, CAMERA_PICTURE):
         written[name] = out / name
     return result, written
+
+
+def _check_out(out: Path) -> None:
+    """Refuse an ``--out`` that cannot take ``camera.json`` (a file, a read-only folder)."""
+    if out.exists() and not out.is_dir():
+        raise CalibrationError(f"--out {out}: not a folder")
+    folder = out
+    while not folder.exists():
+        if folder.is_symlink():
+            raise CalibrationError(f"--out {out}: {folder} is a broken link")
+        if folder.parent == folder:
+            break
+        folder = folder.parent
+    if not folder.is_dir():
+        raise CalibrationError(f"--out {out}: {folder} is not a folder")
+    if not os.access(folder, os.W_OK | os.X_OK):
+        raise CalibrationError(f"--out {out}: {folder} is not writable (read-only or no "
+                               "permission)")
 
 
 def camera_picture(

@@ -24,7 +24,7 @@ from typing import Any
 
 from ps_lab.capture._rig_table import _Table
 from ps_lab.errors import PsLabError, RigError
-from ps_lab.io.camera import CameraModel, read_camera_file
+from ps_lab.io.camera import CameraModel, check_frame_size, read_camera_file
 from ps_lab.render.board import CharucoTarget, write_board_frames
 
 
@@ -72,8 +72,16 @@ def lens_camera_file(lens: LensConfig | None, source: Path | None) -> Path | Non
     return path
 
 
-def lens_camera(lens: LensConfig | None, source: Path | None, origin: str) -> CameraModel | None:
-    """The rig's calibrated camera, read and validated (a :class:`RigError` naming [lens])."""
+def lens_camera(
+    lens: LensConfig | None, source: Path | None, origin: str, scene: Any = None
+) -> CameraModel | None:
+    """The rig's calibrated camera, read and validated (a :class:`RigError` naming [lens]).
+
+    With the rig's ``scene`` (a simulated camera: its frames are ``scene.width x
+    scene.height``), a camera calibrated for another frame size is refused by the rule
+    ``calibrate`` and ``reconstruct`` apply (:func:`ps_lab.io.camera.check_frame_size`); a real
+    camera's frames are checked when a run is loaded.
+    """
     path = lens_camera_file(lens, source)
     if path is None:
         return None
@@ -81,9 +89,12 @@ def lens_camera(lens: LensConfig | None, source: Path | None, origin: str) -> Ca
         raise RigError(f"{origin}: [lens] camera: {path} does not exist (write it with "
                        "`ps-lab calibrate-camera`)")
     try:
-        return read_camera_file(path)
+        camera = read_camera_file(path)
+        if scene is not None:
+            check_frame_size(camera, (scene.height, scene.width), "a frame of this rig")
     except PsLabError as exc:
         raise RigError(f"{origin}: [lens] camera: {exc}") from None
+    return camera
 
 
 def simulated_lens(lens: LensConfig | None, width: int, height: int) -> CameraModel | None:
@@ -101,7 +112,7 @@ def with_lens_camera(rig: Any, camera_file: Path) -> Any:
     """``rig`` with ``[lens] camera`` set to ``camera_file`` (``ps-lab capture --camera``)."""
     lens = dataclasses.replace(rig.lens or LensConfig(), camera=str(Path(camera_file).resolve()))
     try:
-        lens_camera(lens, None, "--camera")
+        lens_camera(lens, None, "--camera", rig.scene)
     except RigError as exc:
         raise RigError(str(exc).replace("--camera: [lens] camera: ", "--camera ")) from None
     return dataclasses.replace(rig, lens=lens)

@@ -21,7 +21,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from ps_lab.capture._rig_lens import LensConfig, parse_lens
+from ps_lab.capture._rig_lens import LensConfig, lens_camera, parse_lens
 from ps_lab.capture._rig_table import _kind, _Table, light_intensities, unit_vectors
 from ps_lab.capture.faults import CAMERA_FAULT_KINDS, PTPIP_FAULT_KINDS, Fault
 from ps_lab.capture.faults import FAULT_KINDS as CONTROLLER_FAULT_KINDS
@@ -328,6 +328,7 @@ def parse_rig(data: Mapping[str, Any], *, origin: str = "<rig>", source: Path | 
     calibration = _parse_calibration(cal_table) if cal_table is not None else CalibrationConfig()
     scene_table = top.table("scene")
     scene = _parse_scene(scene_table, controller.lights) if scene_table is not None else None
+    lens_camera(lens, source, origin, scene)  # the camera calibrated for these frames
     faults_table = top.table("faults")
     faults = _parse_faults(faults_table) if faults_table is not None else FaultsConfig()
     top.done()

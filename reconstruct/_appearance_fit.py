@@ -8,10 +8,11 @@ per-light divisor ``scale``, so that no divided copy is made), and returns coeff
 
 - ``ptm``, ``hsh2``, ``hsh3``: as the RTI tools fit them, linear least squares of every finite
   observation on the light-only basis (one pseudo-inverse shared by all pixels whose
-  observations are all finite: one matrix product; per-pixel normal equations for the others);
+  observations are all finite: one matrix product; per-pixel normal equations for the others),
+  on the terms the lights determine (:mod:`._appearance_design`; the others 0);
 - ``rbf``: the observations projected on a per-channel basis of the training lights
-  (:func:`rbf_setup`: an uncentred PCA of a pixel sample and the Gaussian width chosen by
-  leave-one-light-out prediction on that sample);
+  (:func:`rbf_setup`: an uncentred PCA of a pixel sample, one vector per distinct light at
+  most, and the Gaussian width chosen by leave-one-light-out prediction on that sample);
 - ``ps``: first the visibility ``V(l) = clamp(w·[l, 1], 0, 1)`` (:func:`fit_visibility`:
   least squares of a 0/1 label, "the pixel is lit", on the training lights that face it), then
   the residual of the visible Lambertian term, ``y − V·ρ·max(n·l, 0)``, fitted on the model's
@@ -44,6 +45,7 @@ from ps_lab.io.appearance import (
     is_direct,
 )
 
+from ._appearance_design import determined_terms, distinct_lights
 from ._ps_kernel import (  # noqa: F401 (the constants are read from here too)
     PS_FLOOR,
     PS_RIDGE,
@@ -95,6 +97,9 @@ def fit_linear(
 ) -> np.ndarray:
     """PTM / HSH coefficients by least squares on every finite observation.
 
+    Only the terms the lights determine are fitted (:func:`._appearance_design.determined_terms`);
+    the others are 0.
+
     A pixel whose observations are all finite gets ``pinv(B) y`` (one matrix product for all
     such pixels and channels); a pixel with missing observations the solution of its normal
     equations on the finite ones (regularised by ``1e-9`` of the basis' trace).
@@ -116,7 +121,26 @@ def fit_linear(
     """
     obs = _as_block(observations)
     n, p, c = obs.shape
-    basis = appearance_basis(model, directions)  # (n, K)
+    full = appearance_basis(model, directions)  # (n, K)
+    keep = _determined(model, np.ascontiguousarray(directions, np.float64).tobytes())
+    if len(keep) < full.shape[1]:  # the terms the lights do not determine are 0
+        out = np.zeros((p, c, full.shape[1]), np.float32)
+        out[..., keep] = _fit_columns(full[:, keep], obs, scale)
+        return out
+    return _fit_columns(full, obs, scale)
+
+
+@lru_cache(maxsize=16)
+def _determined(model: str, directions: bytes) -> np.ndarray:
+    """:func:`determined_terms`' columns of a linear model, once per set of lights (the fit
+    runs block by block on the same lights)."""
+    d = np.frombuffer(directions, np.float64).reshape(-1, 3)
+    return determined_terms(model, d, tuple(range(BASIS_TERMS[model])))[0]
+
+
+def _fit_columns(basis: np.ndarray, obs: np.ndarray, scale: np.ndarray | None) -> np.ndarray:
+    """Least squares of (n, P, C) observations on a basis (n, K) of full column rank."""
+    n, p, c = obs.shape
     k = basis.shape[1]
     factor = _scale(scale, n)
     weights = np.linalg.pinv(basis) / factor  # (K, n): the divisor folded into the product
@@ -128,14 +152,30 @@ def fit_linear(
     _project(weights, np.where(np.isfinite(obs), obs, 0.0), out)
     # Missing observations: per-pixel normal equations on the finite ones.
     bad = ~finite
-    sub = obs[:, bad] / factor[:, None, None]
+    out[bad] = _masked_solve(basis, obs[:, bad] / factor[:, None, None])
+    return out
+
+
+def _masked_solve(basis: np.ndarray, sub: np.ndarray) -> np.ndarray:
+    """Per pixel and channel, least squares on the finite observations (ridge ``1e-9`` of the
+    basis' trace: a pixel with too few finite ones gets its least-norm solution).
+
+    Parameters
+    ----------
+    basis : ndarray of shape (n, K)
+    sub : ndarray of shape (n, q, C), NaN where missing
+
+    Returns
+    -------
+    ndarray of shape (q, C, K), float64
+
+    """
+    k = basis.shape[1]
     good = np.isfinite(sub)
-    w = good.astype(np.float64)
-    gram = np.einsum("nk,nj,npc->pckj", basis, basis, w)
+    gram = np.einsum("nk,nj,npc->pckj", basis, basis, good.astype(np.float64))
     gram += 1e-9 * np.trace(basis.T @ basis) * np.eye(k)
     rhs = np.einsum("nk,npc->pck", basis, np.where(good, sub, 0.0))
-    out[bad] = np.linalg.solve(gram, rhs[..., None])[..., 0]
-    return out
+    return np.linalg.solve(gram, rhs[..., None])[..., 0]
 
 
 def _project(weights: np.ndarray, obs: np.ndarray, out: np.ndarray) -> None:
@@ -176,9 +216,11 @@ def rbf_setup(
 
     """
     obs = np.asarray(_as_block(sample), np.float64)
-    obs = np.where(np.isfinite(obs), obs, 0.0)
+    complete = np.isfinite(obs).all(axis=(0, 2))
     n = obs.shape[0]
-    k = min(terms, n)
+    k = min(terms, len(distinct_lights(directions)))
+    # the basis from the sample's pixels with every observation (saturated ones are NaN)
+    obs = obs[:, complete] if complete.sum() >= k else np.where(np.isfinite(obs), obs, 0.0)
     basis = np.stack(
         [np.linalg.svd(obs[:, :, c].T, full_matrices=False)[2][:k].T for c in range(obs.shape[2])]
     )
@@ -201,7 +243,8 @@ def rbf_setup(
 def fit_rbf(
     observations: np.ndarray, basis: np.ndarray, scale: np.ndarray | None = None
 ) -> np.ndarray:
-    """Coefficients of the observations on the rbf basis (non-finite observations count 0).
+    """Coefficients of the observations on the rbf basis (its orthonormal columns: a projection;
+    a pixel with missing (NaN) observations: least squares on its finite ones).
 
     Parameters
     ----------
@@ -215,14 +258,21 @@ def fit_rbf(
     ndarray of shape (P, C, K), float32
 
     """
-    obs = _as_block(observations)
-    n, p, c = obs.shape
-    if _pixel_finite(obs) is not None:
-        obs = np.where(np.isfinite(obs), obs, 0.0)
-    weights = np.asarray(basis, np.float64) / _scale(scale, n)[:, None]  # (C, n, K)
+    raw = _as_block(observations)
+    n, p, c = raw.shape
+    finite = _pixel_finite(raw)
+    obs = raw if finite is None else np.where(np.isfinite(raw), raw, 0.0)
+    factor = _scale(scale, n)
+    weights = np.asarray(basis, np.float64) / factor[:, None]  # (C, n, K)
     out = np.empty((p, c, weights.shape[2]), np.float32)
     for ch in range(c):
         out[:, ch] = obs[:, :, ch].T @ weights[ch]
+    if finite is not None:  # missing (saturated) observations: least squares on the others
+        bad = np.flatnonzero(~finite)
+        sub = raw[:, bad] / factor[:, None, None]
+        for ch in range(c):
+            solved = _masked_solve(np.asarray(basis[ch], np.float64), sub[..., ch:ch + 1])
+            out[bad, ch] = solved[:, 0]
     return out
 
 

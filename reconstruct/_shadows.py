@@ -22,8 +22,9 @@ data hold: a float render with sparse additive noise (the authors' synthetic bun
 shadows on ~20 % of its observations *and* ~1 % negative values (the noise that fell on a shadow),
 and those negatives are not noise at black (black is exact there). So, per light, the atom is
 looked for first (:func:`_atoms`: the smallest repeated value holding at least as many observations
-as lie below it and, where some do, a pile-up over the next value up, which the steps of a
-quantised noise distribution are not); observations at or below it are dropped (the authors of SBL
+as lie below it and, where some do or where it is above 0, a pile-up over the next value up, which
+the steps of a quantised noise distribution are not; and dark, near 0 against the light's bright
+observations); observations at or below it are dropped (the authors of SBL
 and PL-SBL drop observations <= 0). Only the lights without an atom use the negative observations'
 3 sigma rule above, and with too few negatives to measure the noise, keep everything (a light whose
 darkest value is not repeated and nothing negative drops observations <= 0 once another light has
@@ -61,6 +62,10 @@ _MIN_NEGATIVE_SHARE = 1e-3
 # darkest ATOM_SEARCH_SHARE of the light's observations.
 ATOM_PILE_UP = 4
 ATOM_SEARCH_SHARE = 0.5
+# ... and is at most ATOM_MAX_SHARE of the light's ATOM_BRIGHT_QUANTILE quantile: a clipped
+# black is near 0 whatever its offset (a dark frame, a 16-bit black level of a few DN).
+ATOM_MAX_SHARE = 0.05
+ATOM_BRIGHT_QUANTILE = 0.9
 # The threshold of a light whose observations are all kept (finite, so metrics.json can hold it).
 KEEP_ALL = float(np.finfo(np.float32).min)
 
@@ -164,7 +169,11 @@ def _atoms(observations: np.ndarray, usable: np.ndarray):
     below ``v`` than at it, and, where some do (negative noise on a render's exact zeros), ``v``
     holds ``ATOM_PILE_UP`` times the observations of the next value above it (a clipped or
     rendered black, not a step of a quantised noise distribution). Without anything below it,
-    the darkest value is the atom when it is repeated (a clip at black: 8-bit zeros).
+    the darkest value is the atom when it is repeated and at or below 0 (a clip at black: 8-bit
+    zeros), or, above 0, when it is such a pile-up too. Every atom is dark: at most
+    ``ATOM_MAX_SHARE`` of the light's ``ATOM_BRIGHT_QUANTILE`` quantile (issue 42: an 8-bit JPEG
+    of a lit object repeats its darkest code, and a flat matte region piles up on its own grey;
+    SynthRTI lost 32-47 % of some collections' lit observations to them).
     """
     n = observations.shape[0]
     low = np.zeros(n)
@@ -177,8 +186,15 @@ def _atoms(observations: np.ndarray, usable: np.ndarray):
         starts = np.flatnonzero(np.concatenate(([True], v[1:] != v[:-1])))
         counts = np.diff(np.append(starts, v.size))
         nxt = np.append(counts[1:], 0)
-        pile = (counts >= 2) & (counts >= starts) & (
-            (starts == 0) | (counts >= ATOM_PILE_UP * nxt))
+        # a pile-up over the next value up, with or without values below it: the darkest code
+        # of an 8-bit JPEG of a lit object is repeated too, but no more often than its
+        # neighbours (SynthRTI: 32 % of material4's lit observations were taken for black)
+        bottom = (starts == 0) & (v[starts] <= 0.0)  # a clip at or below black: any repeat
+        # black is dark: near zero against the light's bright observations (a flat matte
+        # region piles up on one value of its own, a lit grey: SynthRTI material1)
+        dark = v[starts] <= ATOM_MAX_SHARE * v[int(ATOM_BRIGHT_QUANTILE * (v.size - 1))]
+        pile = (counts >= 2) & (counts >= starts) & dark & (
+            bottom | (counts >= ATOM_PILE_UP * nxt))
         # only the bottom of the range: the first value holding more than what lies below
         first = np.flatnonzero(pile & (np.cumsum(counts) <= ATOM_SEARCH_SHARE * v.size + counts))
         if first.size:

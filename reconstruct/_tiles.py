@@ -160,19 +160,28 @@ def _prepare_kernel(obs, usable, lights, a, rel_eps, y, w, scale, ok):
 
 
 def _store_tile(a, b, y, w, scale, ok, res, lights, normals, albedo, outliers, iterations,
-                segments):
-    """Unit normals, the Lambertian-equivalent albedo and flags of pixels a:b into the outputs."""
+                segments, albedo_flags=None, albedo_x=None):
+    """Unit normals, the Lambertian-equivalent albedo and flags of pixels a:b into the outputs.
+
+    ``albedo_flags`` (m, n) and ``albedo_x`` (m, 3): the observations left out of the albedo and
+    the fit whose normal shades it (default the result's outliers and ``x``; the default method:
+    SBL's, whichever model gave the normal).
+    """
     has_segments = segments is not None
-    _store_kernel(a, y, w, scale, ok, np.ascontiguousarray(res.x, dtype=np.float64),
-                  np.ascontiguousarray(res.outliers), np.ascontiguousarray(res.iterations),
+    flags = np.ascontiguousarray(res.outliers)
+    x = np.ascontiguousarray(res.x, dtype=np.float64)
+    _store_kernel(a, y, w, scale, ok, x,
+                  x if albedo_x is None else np.ascontiguousarray(albedo_x, dtype=np.float64),
+                  flags, flags if albedo_flags is None else np.ascontiguousarray(albedo_flags),
+                  np.ascontiguousarray(res.iterations),
                   np.ascontiguousarray(res.segments) if has_segments else res.iterations,
                   np.ascontiguousarray(lights, dtype=np.float64), normals, albedo, outliers,
                   iterations, segments if has_segments else iterations, has_segments)
 
 
 @njit(nogil=True, cache=True, error_model="numpy")
-def _store_kernel(a, y, w, scale, ok, x, flags, iters, segs, lights, normals, albedo, outliers,
-                  iterations, segments, has_segments):
+def _store_kernel(a, y, w, scale, ok, x, albedo_x, flags, albedo_flags, iters, segs, lights,
+                  normals, albedo, outliers, iterations, segments, has_segments):
     m, n = y.shape
     for p in range(m):
         q = a + p
@@ -186,11 +195,17 @@ def _store_kernel(a, y, w, scale, ok, x, flags, iters, segs, lights, normals, al
             u0 = u1 = u2 = 0.0
         normals[q, 0], normals[q, 1], normals[q, 2] = u0, u1, u2
         # one albedo for every method: the Lambertian-equivalent reflectance on the inliers
+        v0, v1, v2 = albedo_x[p, 0], albedo_x[p, 1], albedo_x[p, 2]
+        vl = math.sqrt(v0 * v0 + v1 * v1 + v2 * v2)
+        if vl > 0.0 and math.isfinite(vl):
+            v0, v1, v2 = v0 / vl, v1 / vl, v2 / vl
+        else:
+            v0, v1, v2 = u0, u1, u2
         num = 0.0
         den = 0.0
         for i in range(n):
-            sh = u0 * lights[i, 0] + u1 * lights[i, 1] + u2 * lights[i, 2]
-            if w[p, i] > 0.0 and not flags[p, i] and sh > 0.0:
+            sh = v0 * lights[i, 0] + v1 * lights[i, 1] + v2 * lights[i, 2]
+            if w[p, i] > 0.0 and not albedo_flags[p, i] and sh > 0.0:
                 num += sh * y[p, i]
                 den += sh * sh
         if not good:

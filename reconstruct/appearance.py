@@ -11,6 +11,7 @@ coefficients into a temporary ``.npy`` in the staged result folder and then ``ap
 
 from __future__ import annotations
 
+import logging
 import time
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
@@ -29,12 +30,19 @@ from ps_lab.io.appearance import (
 )
 from ps_lab.io.bands import ObservationStore
 from ps_lab.io.files import allocate_npy, write_npy_rows
+from ps_lab.reconstruct._appearance_design import (
+    TERM_NAMES,
+    determined_terms,
+    distinct_lights,
+    saturated_observations,
+)
 from ps_lab.reconstruct._appearance_fit import RBF_TERMS, fit_block, rbf_setup
 
 __all__ = [
     "APPEARANCE_MODELS",
     "FIT_CHUNK",
     "FIT_WORKERS",
+    "check_lights",
     "fit_appearance",
     "fit_appearance_bands",
     "model_meta",
@@ -46,11 +54,14 @@ FIT_CHUNK = 8192
 # Threads fitting the blocks of a band with the ps model (its numba kernel releases the GIL; the
 # linear models' products are BLAS's, threaded by BLAS itself).
 FIT_WORKERS = 2
+log = logging.getLogger(__name__)
 _TEMP = ".appearance-coefficients.npy"
 _TEMP_VIS = ".appearance-visibility.npy"
 
 
 def _terms(model: str, channels: int, lights: int) -> list[str]:
+    """The term names of ``model`` (``rbf``: as many as ``lights``, the distinct ones, up to
+    :data:`RBF_TERMS`)."""
     if model == "ps":
         return list(PS_TERMS)
     if model == "rbf":
@@ -60,15 +71,37 @@ def _terms(model: str, channels: int, lights: int) -> list[str]:
     return []
 
 
-def model_meta(model: str, channels: int, lights: int, sigma: float | None = None) -> dict:
-    """The ``meta`` of an :class:`Appearance` of ``model`` (basis, K, term names, sigma)."""
-    terms = _terms(model, channels, lights)
+def model_meta(model: str, channels: int, lights: int, sigma: float | None = None,
+               terms: list[str] | None = None) -> dict:
+    """The ``meta`` of an :class:`Appearance` of ``model`` (basis, K, term names, sigma);
+    ``terms``: the names fitted (``ps``: those the lights determine) instead of the model's."""
+    terms = _terms(model, channels, lights) if terms is None else list(terms)
     meta: dict[str, Any] = {"basis": model, "K": len(terms), "terms": terms, "channels": channels}
     if model == "ps":
         meta["visibility"] = "clip-linear"
     if sigma is not None:
         meta["sigma"] = float(sigma)
     return meta
+
+
+def check_lights(model: str, directions: np.ndarray) -> tuple[int, list[str] | None]:
+    """What the training lights determine of ``model``, said once as a ``warning:`` line.
+
+    Returns the count of distinct lights and, for ``ps``, the terms it fits (None: the
+    model's own). The rule (:func:`ps_lab.reconstruct._appearance_design.determined_terms`):
+    terms the design at the distinct lights does not determine are not fitted (``ptm``/``hsh*``:
+    stored as 0; ``ps``: left out of its terms; ``rbf``: one basis vector per distinct light).
+    """
+    distinct = len(distinct_lights(directions))
+    if model == "none":
+        return distinct, None
+    names = _terms(model, 1, len(directions))
+    keep, warning = determined_terms(model, directions, TERM_NAMES.get(model, tuple(names)))
+    if warning is not None:
+        log.warning(warning)
+    if model == "ps":
+        return distinct, [names[k] for k in keep]
+    return distinct, None
 
 
 def _as_colour(observations: np.ndarray) -> np.ndarray:
@@ -108,16 +141,17 @@ def fit_appearance(
     obs = _as_colour(np.asarray(observations))
     n, p, c = obs.shape
     directions = _unit_rows(directions)
+    distinct, terms = check_lights(model, directions)
     sigma, basis = None, None
     extra: dict[str, np.ndarray] = {}
     if model == "rbf":
         sigma, basis = rbf_setup(obs[:, _sample_index(p)], directions)
         extra = {"lights": directions.astype(np.float32), "basis": basis.astype(np.float32)}
-    meta = model_meta(model, c, n, sigma)
+    meta = model_meta(model, c, distinct, sigma, terms)
     coeffs = np.zeros((*mask.shape, c, meta["K"]), np.float32)
     if model != "none":
         coeffs[mask], vis = fit_block(model, obs, directions, normals=normals, albedo=albedo,
-                                      rbf_basis=basis)
+                                      rbf_basis=basis, terms=tuple(meta["terms"]))
         if vis is not None:
             extra["visibility"] = np.zeros((*mask.shape, VISIBILITY_TERMS), np.float32)
             extra["visibility"][..., 3] = 1.0
@@ -182,16 +216,22 @@ def fit_appearance_bands(
     factor = np.ones(store.n_lights) if scale is None else np.asarray(scale, np.float64)
     normals = np.load(folder / "normals.npy", mmap_mode="r")
     albedo = np.load(folder / "albedo.npy", mmap_mode="r")
+    distinct, terms = check_lights(model, directions)
     colour = getattr(store, "colours", 0)  # colour frames: fit the three channels (issue 32)
+    rule = getattr(store, "rule", None)
+    threshold = rule.threshold if rule is not None and rule.use_threshold else None
     sample = (store.sample_colour if colour else _as_colour(store.sample_observations))
     sample = sample / factor[:, None, None]
+    fitted_terms = len(terms) if terms is not None else len(_terms(model, 1, distinct))
+    sample[saturated_observations(store.sample_observations, store.sample_valid, threshold,
+                                  fitted_terms)] = np.nan
     channels = sample.shape[2]
     sigma, basis = None, None
     extra: dict[str, np.ndarray] = {}
     if model == "rbf":
         sigma, basis = rbf_setup(sample, directions)
         extra = {"lights": directions.astype(np.float32), "basis": basis.astype(np.float32)}
-    meta = model_meta(model, channels, store.n_lights, sigma)
+    meta = model_meta(model, channels, distinct, sigma, terms)
     height, width = store.shape
     shape = (height, width, channels, meta["K"])
     temp, temp_vis = folder / _TEMP, folder / _TEMP_VIS
@@ -211,10 +251,13 @@ def fit_appearance_bands(
                     # the store's buffers (this band's observations are used up before the next)
                     read = store.observe(band, colour=bool(colour), reuse=True)
                     observations = read[2] if colour else read[0]
+                    # saturated observations are dropped (NaN: missing) by every model
+                    observations[saturated_observations(read[0], read[1], threshold,
+                                                        fitted_terms)] = np.nan
                     coeffs, vis = _fit_band(model, _as_colour(observations), directions, factor,
                                             np.asarray(normals[rows])[inside],
                                             np.asarray(albedo[rows])[inside], basis, workers,
-                                            advance)
+                                            advance, tuple(meta["terms"]))
                     block[inside] = coeffs
                     if vis is not None:
                         vis_block[inside] = vis
@@ -249,6 +292,7 @@ def _fit_band(
     basis: np.ndarray | None,
     workers: int,
     advance: Callable[..., None],
+    terms: tuple[str, ...] = PS_TERMS,
 ) -> tuple[np.ndarray, np.ndarray | None]:
     """One band's coefficients (P, C, K) float32 and the ps visibility (P, 4) float32 (or None).
 
@@ -261,7 +305,8 @@ def _fit_band(
 
     def fit(part: slice) -> tuple[np.ndarray, np.ndarray | None]:
         return fit_block(model, observations, directions, pixels=part, scale=factor,
-                         normals=normals[part], albedo=albedo[part], rbf_basis=basis)
+                         normals=normals[part], albedo=albedo[part], rbf_basis=basis,
+                         terms=terms if model == "ps" else PS_TERMS)
 
     results: list[tuple[np.ndarray, np.ndarray | None]] = []
     if model == "ps" and workers > 1 and len(parts) > 1:

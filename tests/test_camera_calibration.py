@@ -189,7 +189,7 @@ def test_dataset_with_camera_json_is_read_undistorted(tmp_path):
     expected = undistort_frame(camera, plain.images[1])[0]
     np.testing.assert_array_equal(read.images[1], expected)
     write_camera(tmp_path / "camera.json",
-                 CameraModel(60.0, 60.0, 31.5, 23.5, (-0.2, 0, 0, 0, 0), (640, 480)))
+                 CameraModel(600.0, 600.0, 319.5, 239.5, (-0.2, 0, 0, 0, 0), (640, 480)))
     with pytest.raises(DatasetError, match="camera.json: calibrated for 640x480 frames"):
         load_frames(tmp_path)
 

@@ -79,8 +79,11 @@ def test_the_default_is_sbl_on_noisy_lambertian_data():
     # the same SBL, compiled into another kernel: fastmath may reassociate its sums differently,
     # and a pixel can stop one iteration apart at the tolerance (measured: 359 of 368 equal to
     # 1e-9 deg, all 368 within 1e-5)
+    # (the default's last choice may take least squares on a few of its one-segment pixels)
     same = angular_errors_deg(auto.normals, sbl.normals) < 1e-5
-    assert same.sum() >= counts.get(1, 0) > 0.5 * sum(counts.values())
+    models = auto.params["pixels_per_model"]
+    assert same.sum() >= models["sbl"] > 0.5 * sum(counts.values())
+    assert models["sbl"] + models["ls"] == counts.get(1, 0)
     err_auto = angular_errors_deg(auto.normals, normals).mean()
     err_sbl = angular_errors_deg(sbl.normals, normals).mean()
     assert err_auto < 1.03 * err_sbl
@@ -179,3 +182,107 @@ def test_default_is_sbl_on_noisy_lambertian_data():
     assert auto.params["pixels_per_segments"] == {1: obs.shape[1]}
     # the same SBL, summed over the lights in another kernel (rounding: PL_NORMALS)
     np.testing.assert_allclose(auto.normals, sbl.normals, rtol=0, atol=PL_NORMALS)
+
+
+def _lambertian_pixels(rng, m, lights, sigma):
+    normals = rng.normal(size=(m, 3))
+    normals[:, 2] = np.abs(normals[:, 2]) + 1.5
+    normals /= np.linalg.norm(normals, axis=1, keepdims=True)
+    clean = normals @ lights.T
+    return normals, clean, clean + rng.normal(0.0, sigma, clean.shape)
+
+
+def test_last_choice_keeps_sbl_where_outliers_exist_and_takes_ls_where_sbl_discards():
+    """The truncated left-out rule (_auto.last_choice) on seeded pixels with a known answer."""
+    from ps_lab.reconstruct._auto import last_choice
+
+    rng = np.random.default_rng(11)
+    lights = random_light_directions(40, rng, max_zenith_deg=60.0)
+    m, sigma = 400, 0.01
+    normals, clean, y = _lambertian_pixels(rng, m, lights, sigma)
+    w = np.ones_like(y)
+    lam = np.full((m, 1), sigma**2)
+    x_ls = np.linalg.lstsq(lights, y.T, rcond=None)[0].T
+    # sparse gross outliers (speculars): SBL's weights d drop them; LS is pulled by them
+    hit = rng.random(y.shape) < 0.1
+    bad = y + hit * rng.uniform(0.5, 1.0, y.shape)
+    d = np.where(hit, 1e-6, 1.0 / sigma**2)
+    x_sbl = np.stack([np.linalg.lstsq(lights[~h], bad[p, ~h], rcond=None)[0]
+                      for p, h in enumerate(hit)])
+    model, x = last_choice(bad, w, lights, lam, x_sbl, d, x_sbl, np.zeros(m, bool))
+    assert (model == 1).mean() > 0.95  # measured 1.0
+    np.testing.assert_allclose(x[model == 1], x_sbl[model == 1])
+    # clean Lambertian pixels, but an SBL that flagged a third of good observations (a bad
+    # noise level): least squares predicts them, and is taken
+    drop = rng.random(y.shape) < 0.33
+    d = np.where(drop, 1e-6, 1.0 / sigma**2)
+    x_sub = np.stack([np.linalg.lstsq(lights[~h], y[p, ~h], rcond=None)[0]
+                      for p, h in enumerate(drop)])
+    model, x = last_choice(y, w, lights, lam, x_sub, d, x_sub, np.zeros(m, bool))
+    # a subset fit predicts its left-out third about as well (unbiased): the one-standard-error
+    # rule keeps SBL on many; where LS is taken it is least squares exactly
+    ls = model == 0
+    np.testing.assert_allclose(x[ls], x_ls[ls], atol=1e-12)
+    err = angular_errors_deg(x, normals).mean()
+    bound = max(angular_errors_deg(x_ls, normals).mean(),
+                angular_errors_deg(x_sub, normals).mean())
+    assert err <= bound  # never worse than the worse part; in practice near the better
+    # an SBL that kept a quarter of the observations (a far too small noise level): its fit is
+    # three times noisier, and least squares is taken nearly everywhere
+    few = np.where(rng.random(y.shape) < 0.75, 1e-6, 1.0 / sigma**2)
+    model, _ = last_choice(y, w, lights, lam, x_sub, few, x_sub, np.zeros(m, bool))
+    assert (model == 0).mean() > 0.5, (model == 0).mean()
+
+
+def test_pl_sbl_is_not_used_with_lights_in_rings():
+    """A dome of rings of equal elevation (light_rings): the default keeps SBL and LS."""
+    from ps_lab.reconstruct._auto import light_rings
+
+    rng = np.random.default_rng(13)
+    rings = [(e, k) for e, k in ((10.0, 18), (30.0, 12), (50.0, 10), (70.0, 8))]
+    dome = np.concatenate([
+        np.stack([np.cos(np.radians(e)) * np.cos(a), np.cos(np.radians(e)) * np.sin(a),
+                  np.full(k, np.sin(np.radians(e)))], axis=1)
+        for e, k in rings for a in [np.linspace(0, 2 * np.pi, k, endpoint=False)]])
+    assert light_rings(dome) == 1.0
+    scattered = random_light_directions(48, rng, max_zenith_deg=60.0)
+    assert light_rings(scattered) == 0.0
+    surface = relief_surface((24, 24), seed=3)
+    obs = np.sqrt(np.clip(render(surface, dome, rng=rng), 0.0, None))[:, surface.mask]
+    sol = solve(obs, dome, method="auto", valid=obs > 0.01)
+    assert sol.params["pixels_per_model"]["plsbl"] == 0
+    assert sol.params["lights_in_rings"] == 1.0
+    # the same bent response under scattered lights: PL-SBL is taken (the test above)
+
+
+def test_the_default_is_not_worse_than_the_better_of_ls_and_sbl_on_a_glossy_sphere():
+    """The default against LS and SBL on a seeded specular render (issue 42's bound: the better
+    of the two, + 5 % + 0.1 deg: the choice is per pixel, by the noise, not by the truth).
+
+    Not against PL-SBL: measured auto 0.65, SBL 0.83, PL-SBL 0.33 deg (the PL stage keeps SBL
+    on pixels where PL would be better; open in issue 42)."""
+    rng = np.random.default_rng(12)
+    lights = random_light_directions(40, rng, max_zenith_deg=60.0)
+    surface = sphere_surface((40, 40))
+    obs = render(surface, lights, rng=rng, specular=0.5, roughness=0.2, noise_sigma=0.003,
+                 noise_fraction=1.0)[:, surface.mask]
+    truth = surface.normals[surface.mask]
+    valid = obs > 0.01
+    errs = {m: angular_errors_deg(solve(obs, lights, method=m, valid=valid).normals,
+                                  truth).mean() for m in ("auto", "ls", "sbl", "plsbl")}
+    best = min(errs["ls"], errs["sbl"])
+    assert errs["auto"] <= 1.05 * best + 0.1, errs
+
+
+def test_the_last_choice_equals_its_oracle_where_least_squares_is_taken():
+    """The default against the per-pixel oracle (helpers/solver_oracles.py: each model refitted
+    without each observation) on a scene where the last choice takes least squares: Lambertian
+    data with a noise variance given larger than the noise (measured: LS on 61 of 376 pixels)."""
+    from test_solvers import assert_equals_oracle
+
+    obs, lights, _, rng = _scene(shape=(24, 24), n_lights=20, seed=1)
+    noisy = obs + rng.normal(0.0, 0.002, obs.shape)
+    valid = noisy > 0.005
+    sol = solve(noisy, lights, method="auto", valid=valid, lam=1e-4)
+    assert sol.params["pixels_per_model"]["ls"] > 10
+    assert_equals_oracle(sol, noisy, lights, valid, "auto")

@@ -9,7 +9,7 @@ import typer
 
 from ps_lab._cli_util import lab_command
 from ps_lab.commands.reconstruct import DepthMethod, _depth_line, _terminal_bars
-from ps_lab.io.camera import read_camera_file
+from ps_lab.io.camera import read_result_camera
 from ps_lab.reconstruct.depth import DepthOptions, integrate_result, with_camera
 
 
@@ -48,7 +48,7 @@ def integrate(
     """Integrate normals.npy into depth.npy, depth.tiff, depth.png and mesh.ply."""
     options = DepthOptions(method=method.value, pixel_size=pixel_size, focal_length=focal_length)
     if camera is not None:
-        options = with_camera(options, read_camera_file(camera))
+        options = with_camera(options, read_result_camera(camera, result))
     depth = integrate_result(result, out, options, progress_bars=_terminal_bars)
     typer.echo(_depth_line(depth))
     typer.echo(f"results: {out if out is not None else result}")

@@ -79,6 +79,7 @@ from __future__ import annotations
 import json
 import math
 import zipfile
+import zlib
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -122,6 +123,14 @@ _VIEW = np.array([0.0, 0.0, 1.0])
 DIRECT_KINDS = ("lambert", "lx", "ly", "lz", "lobe", "lobex", "lobey")
 #: Numbers per pixel of the ps model's visibility.
 VISIBILITY_TERMS = 4
+#: Largest magnitude of a stored coefficient or model array (the solver's units are of order 1;
+#: beyond this a picture would overflow float32).
+MAX_STORED = 1e12
+#: Largest exponent of a ps lobe term read from a file (a lobe narrower than 0.1° is a spike).
+MAX_LOBE_POWER = 1e6
+#: rbf widths read from a file (unit directions are at most 2 apart; the fit picks in
+#: [0.03, 1]): narrower would divide by an underflowing σ², wider is a constant.
+RBF_SIGMA_RANGE = (1e-3, 1e3)
 
 
 @dataclass(frozen=True)
@@ -518,19 +527,34 @@ def read_appearance(folder: Path) -> Appearance | None:
     path = Path(folder) / APPEARANCE_FILE
     if not path.is_file():
         return None
-    try:
-        with np.load(path, allow_pickle=False) as data:
-            model = str(data["model"])
-            coefficients = np.asarray(data["coefficients"])
-            meta = json.loads(str(data["meta"]))
-            extra = {k[6:]: np.asarray(data[k]) for k in data.files if k.startswith("extra_")}
-    except (OSError, ValueError, KeyError, zipfile.BadZipFile, EOFError) as exc:
+    try:  # the file opened here: numpy leaves it open when the archive is damaged
+        with open(path, "rb") as handle:
+            data = np.load(handle, allow_pickle=False)
+            if not isinstance(data, np.lib.npyio.NpzFile):
+                raise ValueError("a single array, not an .npz archive")
+            with data:
+                model = str(data["model"])
+                coefficients = np.asarray(data["coefficients"])
+                meta = json.loads(str(data["meta"]))
+                extra = {k[6:]: np.asarray(data[k]) for k in data.files
+                         if k.startswith("extra_")}
+    except RecursionError:
+        raise DatasetError(f"{path}: not a readable appearance file (its meta is nested too "
+                           "deeply)") from None
+    except MemoryError:
+        raise DatasetError(f"{path}: not a readable appearance file (an array too large to "
+                           "read)") from None
+    except (OSError, ValueError, KeyError, zipfile.BadZipFile, EOFError, zlib.error,
+            NotImplementedError) as exc:
         raise DatasetError(f"{path}: not a readable appearance file ({exc})") from None
     _validate(path, model, coefficients, meta, extra)
     return Appearance(model, coefficients, meta, extra)
 
 
 def _validate(path: Path, model: str, coeffs: np.ndarray, meta: Any, extra: dict) -> None:
+    """Every array and number the evaluation reads: shapes, dtypes, finite values, sane
+    parameters (the lobe exponents in [1, :data:`MAX_LOBE_POWER`], rbf's σ in
+    :data:`RBF_SIGMA_RANGE`, its training lights unit vectors)."""
     def fail(why: str) -> None:
         raise DatasetError(f"{path}: {why}")
 
@@ -540,8 +564,15 @@ def _validate(path: Path, model: str, coeffs: np.ndarray, meta: Any, extra: dict
         fail(f"coefficients must be float32 (H, W, 1|3, K), not {coeffs.dtype} {coeffs.shape}")
     if not np.all(np.isfinite(coeffs)):
         fail("coefficients are not all finite")
+    if coeffs.size and float(np.max(np.abs(coeffs))) > MAX_STORED:
+        fail(f"coefficients beyond ±{MAX_STORED:.0e} (the solver's units are of order 1)")
     if not isinstance(meta, dict):
         fail("meta is not a JSON object")
+    for name, value in extra.items():
+        if value.dtype.kind != "f" or not np.all(np.isfinite(value)):
+            fail(f"extra_{name} must hold finite floats, not {value.dtype} {value.shape}")
+        if value.size and float(np.max(np.abs(value))) > MAX_STORED:
+            fail(f"extra_{name} holds values beyond ±{MAX_STORED:.0e}")
     k = coeffs.shape[3]
     if model in BASIS_TERMS and k != BASIS_TERMS[model]:
         fail(f"{model} has {BASIS_TERMS[model]} terms, the file {k}")
@@ -550,24 +581,46 @@ def _validate(path: Path, model: str, coeffs: np.ndarray, meta: Any, extra: dict
         if not isinstance(terms, list) or len(terms) != k:
             fail("ps terms missing or not matching the coefficients")
         for term in terms:
-            try:
-                ps_term(str(term), _VIEW, _VIEW)
-            except ValueError:
-                fail(f"unknown ps term {term!r}")
+            why = ps_term_problem(term)
+            if why:
+                fail(why)
     vis = extra.get("visibility")
     if vis is not None and (model != "ps" or vis.dtype != np.float32
-                            or vis.shape != (*coeffs.shape[:2], VISIBILITY_TERMS)
-                            or not np.all(np.isfinite(vis))):
+                            or vis.shape != (*coeffs.shape[:2], VISIBILITY_TERMS)):
         fail(f"visibility must be a finite float32 (H, W, 4) of a ps model, not {vis.dtype} "
              f"{vis.shape}")
     if model == "rbf":
         lights, basis = extra.get("lights"), extra.get("basis")
-        if lights is None or basis is None or lights.ndim != 2 or lights.shape[1] != 3:
-            fail("rbf needs its training lights (n, 3) and basis (C, n, K)")
+        if (lights is None or basis is None or lights.ndim != 2 or lights.shape[1] != 3
+                or not 1 <= k <= lights.shape[0]):
+            fail("rbf needs its training lights (n, 3) and basis (C, n, K), 1 <= K <= n")
         if basis.shape != (coeffs.shape[2], lights.shape[0], k):
             fail(f"rbf basis shape {basis.shape} does not match the coefficients")
-        if not (np.all(np.isfinite(lights)) and np.all(np.isfinite(basis))):
-            fail("rbf lights or basis not finite")
+        if np.any(np.abs(np.linalg.norm(lights.astype(np.float64), axis=1) - 1) > 1e-3):
+            fail("rbf training lights must be unit directions")
         sigma = meta.get("sigma")
-        if not isinstance(sigma, (int, float)) or not sigma > 0:
-            fail("rbf sigma missing or not positive")
+        low, high = RBF_SIGMA_RANGE
+        if isinstance(sigma, bool) or not isinstance(sigma, (int, float)) or not (
+                low <= sigma <= high):
+            fail(f"rbf sigma must be a number in [{low:g}, {high:g}], not {sigma!r}")
+
+
+def ps_term_problem(term: Any) -> str | None:
+    """Why ``term`` is not a ps term this module evaluates (None when it is)."""
+    if not isinstance(term, str):
+        return f"ps term {term!r} is not a name"
+    kind, _, argument = term.partition(":")
+    if kind in ("lambert", "ambient", "lx", "ly", "lz") and not argument:
+        return None
+    if kind in ("lobe", "lobex", "lobey"):
+        try:
+            power = float(argument)
+        except ValueError:
+            power = math.nan
+        if not 1.0 <= power <= MAX_LOBE_POWER:
+            return (f"ps term {term!r}: the lobe exponent must be a number in "
+                    f"[1, {MAX_LOBE_POWER:g}]")
+        return None
+    if kind == "hsh" and argument in tuple(str(i) for i in range(9)):
+        return None
+    return f"unknown ps term {term!r}"

@@ -153,9 +153,114 @@ def write_camera(path: Path, camera: CameraModel, **extra: Any) -> Path:
 
 
 def _number(value: Any, where: str) -> float:
-    if isinstance(value, bool) or not isinstance(value, int | float) or not np.isfinite(value):
+    if isinstance(value, bool) or not isinstance(value, int | float):
         raise DatasetError(f"{where}: expected a finite number, got {value!r}")
-    return float(value)
+    try:
+        number = float(value)
+    except OverflowError:  # an integer beyond float range
+        raise DatasetError(f"{where}: expected a finite number, got an integer of "
+                           f"{len(str(abs(value)))} digits") from None
+    if not np.isfinite(number):
+        raise DatasetError(f"{where}: expected a finite number, got {value!r}")
+    return number
+
+
+#: Largest frame side a camera file may name (pixels).
+MAX_IMAGE_SIDE = 100_000
+#: Focal lengths in this range times the frame's larger side: a horizontal field of view from
+#: ~0.06 deg (long telephoto, microscope) to ~157 deg (beyond that the pinhole model with 5
+#: coefficients does not describe the lens).
+FOCAL_RANGE = (0.1, 1000.0)
+#: Largest fx / fy (or fy / fx): square pixels are 1, anamorphic lenses up to 2.
+MAX_ASPECT = 2.0
+#: The undistorted frame must read at least this share of its pixels inside the recorded one.
+MIN_UNDISTORTED_COVERAGE = 0.5
+
+
+def camera_problem(camera: CameraModel) -> str | None:
+    """Why ``camera`` cannot describe a lens for its frame size, else None.
+
+    One rule for every command that reads or writes a ``camera.json``: finite values; focal
+    lengths positive and within :data:`FOCAL_RANGE` of the frame's larger side, aspect within
+    :data:`MAX_ASPECT`; the principal point inside the frame; a distortion model that is
+    one-to-one over the undistorted frame (its Jacobian stays positive along every ray from the
+    principal point out to the frame's border, so the undistortion map
+    (:func:`undistortion_maps`) is monotonic and never shows a recorded pixel twice) and whose
+    undistorted frame reads at least :data:`MIN_UNDISTORTED_COVERAGE` of its pixels from inside
+    the recorded frame (else nearly every undistorted pixel is black). Recorded pixels beyond
+    the model's reach (a wide lens's corners under barrel distortion) are simply cropped.
+
+    Parameters
+    ----------
+    camera : CameraModel
+
+    Returns
+    -------
+    str or None
+        The reason, worded for an error line after the file's name.
+    """
+    w, h = camera.image_size
+    values = np.array([camera.fx, camera.fy, camera.cx, camera.cy, *camera.distortion])
+    if not np.all(np.isfinite(values)):
+        return "camera values must be finite numbers"
+    if not (0 < w <= MAX_IMAGE_SIDE and 0 < h <= MAX_IMAGE_SIDE):
+        return f"image_size {w}x{h} is not a frame size (1 to {MAX_IMAGE_SIDE} px a side)"
+    side = max(w, h)
+    lo, hi = FOCAL_RANGE[0] * side, FOCAL_RANGE[1] * side
+    for name, f in (("fx", camera.fx), ("fy", camera.fy)):
+        if not lo <= f <= hi:
+            return (f"focal length {name} {f:g} px is implausible for {w}x{h} frames (expected "
+                    f"{lo:g} to {hi:g} px, {FOCAL_RANGE[0]:g} to {FOCAL_RANGE[1]:g} x the larger "
+                    "side)")
+    if max(camera.fx / camera.fy, camera.fy / camera.fx) > MAX_ASPECT:
+        return (f"fx {camera.fx:g} and fy {camera.fy:g} px differ by more than a factor "
+                f"{MAX_ASPECT:g} (pixel aspect ratio)")
+    if not (-0.5 <= camera.cx <= w - 0.5 and -0.5 <= camera.cy <= h - 0.5):
+        return f"principal point ({camera.cx:g}, {camera.cy:g}) is outside the {w}x{h} image"
+    if camera.has_distortion:
+        return _distortion_problem(camera)
+    return None
+
+
+def _distortion_problem(camera: CameraModel) -> str | None:
+    w, h = camera.image_size
+    coefficients = camera.coefficients
+    # the undistorted frame's pixels (the border densely, the inside on a grid), normalised:
+    # undistortion reads each at distort(p) in the recorded frame (undistortion_maps)
+    edge_u, edge_v = np.linspace(-0.5, w - 0.5, 129), np.linspace(-0.5, h - 0.5, 97)
+    grid_u, grid_v = np.meshgrid(np.linspace(-0.5, w - 0.5, 33), np.linspace(-0.5, h - 0.5, 33))
+    u = np.concatenate([edge_u, edge_u, np.full(97, -0.5), np.full(97, w - 0.5), grid_u.ravel()])
+    v = np.concatenate([np.full(129, -0.5), np.full(129, h - 0.5), edge_v, edge_v, grid_v.ravel()])
+    x, y = (u - camera.cx) / camera.fx, (v - camera.cy) / camera.fy
+    with np.errstate(all="ignore"):
+        t = np.linspace(0.0, 1.0, 33)[:, None]
+        det = _distortion_jacobian_det(t * x, t * y, coefficients)
+        xd, yd = distort_normalised(x, y, coefficients)
+        pu, pv = xd * camera.fx + camera.cx, yd * camera.fy + camera.cy
+        folds = not bool(np.all(np.isfinite(det) & (det > 0)))
+        inside = np.isfinite(pu) & np.isfinite(pv) & (pu >= -0.5) & (pu <= w - 0.5) \
+            & (pv >= -0.5) & (pv <= h - 0.5)
+    if folds:
+        return ("the distortion coefficients fold the lens model inside the frame (undistortion "
+                "would not be one-to-one over it): not a calibration of this lens")
+    share = float(np.mean(inside[-grid_u.size:]))
+    if share < MIN_UNDISTORTED_COVERAGE:
+        return (f"the distortion coefficients leave {100 * (1 - share):.0f} % of the undistorted "
+                f"frame outside the recorded one (at most {100 * (1 - MIN_UNDISTORTED_COVERAGE):g}"
+                " % for a real lens)")
+    return None
+
+
+def _distortion_jacobian_det(x: np.ndarray, y: np.ndarray, coefficients: np.ndarray) -> np.ndarray:
+    """Determinant of d(x_d, y_d) / d(x, y) of :func:`distort_normalised` (same shapes)."""
+    k1, k2, p1, p2, k3 = (float(c) for c in coefficients)
+    r2 = x * x + y * y
+    radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
+    d_radial = k1 + r2 * (2.0 * k2 + 3.0 * k3 * r2)
+    a = radial + 2.0 * x * x * d_radial + 2.0 * p1 * y + 6.0 * p2 * x
+    b = 2.0 * x * y * d_radial + 2.0 * p1 * x + 2.0 * p2 * y
+    d = radial + 2.0 * y * y * d_radial + 6.0 * p1 * y + 2.0 * p2 * x
+    return a * d - b * b
 
 
 def read_camera_file(path: Path) -> CameraModel:
@@ -164,16 +269,18 @@ def read_camera_file(path: Path) -> CameraModel:
     Raises
     ------
     DatasetError
-        Unreadable file, not JSON, wrong format, a matrix that is not a camera matrix (positive
-        focal lengths, principal point inside the image), distortion that is not 5 numbers.
+        Unreadable file, not JSON, wrong format, a matrix that is not a camera matrix, or values
+        no lens has (:func:`camera_problem`); the line names the file.
     """
     path = Path(path)
     try:
         data = json.loads(path.read_text("utf-8"))
     except OSError as exc:
         raise DatasetError(f"{path}: cannot read camera file ({exc.strerror or exc})") from None
-    except (UnicodeDecodeError, json.JSONDecodeError) as exc:
+    except (UnicodeDecodeError, ValueError) as exc:
         raise DatasetError(f"{path}: not a JSON camera file ({exc})") from None
+    except RecursionError:
+        raise DatasetError(f"{path}: not a JSON camera file (nested too deeply)") from None
     if not isinstance(data, dict) or data.get("format") != CAMERA_FORMAT:
         raise DatasetError(
             f"{path}: not a ps-lab camera file (expected \"format\": \"{CAMERA_FORMAT}\"; "
@@ -182,9 +289,11 @@ def read_camera_file(path: Path) -> CameraModel:
     size = data.get("image_size")
     if (
         not isinstance(size, list) or len(size) != 2
-        or not all(isinstance(v, int) and not isinstance(v, bool) and v > 0 for v in size)
+        or not all(isinstance(v, int) and not isinstance(v, bool) and 0 < v <= MAX_IMAGE_SIDE
+                   for v in size)
     ):
-        raise DatasetError(f"{path}: image_size must be [width, height] in pixels, got {size!r}")
+        raise DatasetError(f"{path}: image_size must be [width, height] in pixels (1 to "
+                           f"{MAX_IMAGE_SIDE}), got {_short(size)}")
     matrix = data.get("camera_matrix")
     if not (isinstance(matrix, list) and len(matrix) == 3
             and all(isinstance(r, list) and len(r) == 3 for r in matrix)):
@@ -194,9 +303,6 @@ def read_camera_file(path: Path) -> CameraModel:
         raise DatasetError(f"{path}: camera_matrix focal lengths must be positive")
     if abs(k[0, 1]) > 1e-9 * k[0, 0] or np.any(k[1:, 0] != 0) or k[2, 1] != 0 or k[2, 2] != 1:
         raise DatasetError(f"{path}: camera_matrix must be [[fx,0,cx],[0,fy,cy],[0,0,1]]")
-    if not (-0.5 <= k[0, 2] <= size[0] - 0.5 and -0.5 <= k[1, 2] <= size[1] - 0.5):
-        raise DatasetError(f"{path}: principal point ({k[0, 2]:g}, {k[1, 2]:g}) is outside the "
-                           f"{size[0]}x{size[1]} image")
     dist = data.get("distortion")
     if isinstance(dist, dict):
         missing = [n for n in DISTORTION_NAMES if n not in dist]
@@ -206,14 +312,24 @@ def read_camera_file(path: Path) -> CameraModel:
     else:
         raise DatasetError(f"{path}: distortion must be {{\"k1\", \"k2\", \"p1\", \"p2\", \"k3\"}}")
     rms = data.get("rms_px")
+    if rms is not None and _number(rms, f"{path}: rms_px") < 0:
+        raise DatasetError(f"{path}: rms_px must not be negative, got {rms!r}")
     known = {"format", "model", "image_size", "camera_matrix", "distortion",
              "distortion_coefficients", "rms_px"}
     camera = camera_from_arrays(
         k, np.array(coefficients), (size[0], size[1]),
         None if rms is None else _number(rms, f"{path}: rms_px"), str(path),
     )
+    problem = camera_problem(camera)
+    if problem is not None:
+        raise DatasetError(f"{path}: {problem}")
     return CameraModel(**{**camera.__dict__, "extra": {k_: v for k_, v in data.items()
                                                         if k_ not in known}})
+
+
+def _short(value: Any) -> str:
+    text = repr(value)
+    return text if len(text) <= 60 else text[:57] + "..."
 
 
 def camera_record(camera: CameraModel, path: Path | None = None) -> dict[str, Any]:
@@ -233,6 +349,25 @@ def check_frame_size(camera: CameraModel, shape: tuple[int, int], what: str) -> 
             f"{camera.source or CAMERA_FILE}: calibrated for {w}x{h} frames, {what} is "
             f"{shape[1]}x{shape[0]} (calibrate the camera on frames as this dataset stores them)"
         )
+
+
+def read_result_camera(path: Path, result: Path) -> CameraModel:
+    """``ps-lab integrate --camera``: :func:`read_camera_file`, refused for a result of another
+    frame size (:func:`check_frame_size`, the rule ``calibrate`` and ``reconstruct`` apply to
+    the frames).
+
+    The result's frame size is its ``normals.npy``'s (memory-mapped: the header only); a result
+    without a readable one is left to the command's own checks.
+    """
+    camera = read_camera_file(path)
+    normals = Path(result) / "normals.npy"
+    try:
+        shape = np.load(normals, mmap_mode="r", allow_pickle=False).shape
+    except (OSError, ValueError, TypeError, EOFError, AttributeError):
+        return camera
+    if isinstance(shape, tuple) and len(shape) == 3:
+        check_frame_size(camera, shape[:2], f"{normals}")
+    return camera
 
 
 @lru_cache(maxsize=4)

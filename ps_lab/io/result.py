@@ -27,7 +27,7 @@ def read_result_metrics(folder: Path) -> dict[str, Any] | None:
     """The ``metrics.json`` of a complete result in ``folder``; None if absent or not a result."""
     try:
         metrics = json.loads((Path(folder) / METRICS).read_text(encoding="utf-8"))
-    except (OSError, ValueError):
+    except (OSError, ValueError, RecursionError):  # nested beyond the parser's stack: not ours
         return None
     if not isinstance(metrics, dict) or metrics.get("format") != RESULT_FORMAT:
         return None

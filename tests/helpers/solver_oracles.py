@@ -217,9 +217,38 @@ def bend_score(y, a, x, lam_test, k, clip=3.0):
     return reduction(full) - reduction(a)
 
 
+def least_squares_wins(y, a, lam, d_sbl, clip=3.0, z=1.0):
+    """Issue 42's last choice: least squares replaces SBL where its left-out terms are lower.
+
+    Each model (LS: weights 1; SBL: its final ``d``) is refitted without each observation in
+    turn; a term is ``min(r_(-i)^2 / lam_i, clip^2)``; LS wins when the paired differences (SBL
+    minus LS) sum to more than ``z`` standard errors.
+    """
+    def terms(d):
+        t = np.zeros(y.size)
+        for i in range(y.size):
+            keep = np.arange(y.size) != i
+            x = np.linalg.solve(a[keep].T @ (d[keep, None] * a[keep]),
+                                a[keep].T @ (d[keep] * y[keep]))
+            t[i] = min((y[i] - a[i] @ x) ** 2 / lam[i], clip**2)
+        return t
+
+    diff = terms(d_sbl) - terms(np.ones(y.size))
+    return diff.sum() - z * np.sqrt(y.size * np.var(diff, ddof=1)) > 0
+
+
+def in_rings(lights, tolerance=0.25, count=6):
+    """Share of the lights with ``count`` lights within ``tolerance`` degrees of elevation."""
+    v = np.asarray(lights, float)
+    elevation = np.degrees(np.arcsin(v[:, 2] / np.linalg.norm(v, axis=1)))
+    near = (np.abs(elevation[:, None] - elevation[None, :]) <= tolerance).sum(axis=1)
+    return float(np.mean(near >= count))
+
+
 def auto_pixel(y, a, *, lam, lam_pl=None, segments=3, sigma_x2=1e6, max_iter=20, tol=1e-4,
                gamma_floor=1e-10, gamma_start=1e3, outlier_threshold=np.inf, choice_z=1.0,
-               sbl_max_iter=100, slope_floor=1e-3, gate_noise=None, gate_false_alarm=0.01):
+               sbl_max_iter=100, slope_floor=1e-3, gate_noise=None, gate_false_alarm=0.01,
+               out=None):
     """SBL, or PL-SBL where SBL fails the score test and PL predicts better (issue 31).
 
     The gate: SBL's :func:`bend_score` at the noise ``max(lam_pl, gate_noise^2)``
@@ -228,6 +257,8 @@ def auto_pixel(y, a, *, lam, lam_pl=None, segments=3, sigma_x2=1e6, max_iter=20,
     each fit's weights held at their final values and refitted without each scored
     observation (no closed form); the paired differences of the squared left-out residuals
     (in y's units, weights 1 / lam) must sum to more than ``choice_z`` standard errors.
+    Where SBL is kept, least squares replaces it where :func:`least_squares_wins` (issue 42);
+    ``out`` (a dict) receives SBL's fit and corruption (the albedo's normal and inliers).
     """
     lam = np.broadcast_to(np.asarray(lam, dtype=float), y.shape)
     lam_pl = lam if lam_pl is None else lam_pl
@@ -235,7 +266,12 @@ def auto_pixel(y, a, *, lam, lam_pl=None, segments=3, sigma_x2=1e6, max_iter=20,
     x_sbl, e_sbl, it_sbl = sbl_pixel(y, a, lam=lam, sigma_x2=sigma_x2, max_iter=sbl_max_iter,
                                      tol=tol, gamma_floor=gamma_floor, gamma_start=gamma_start,
                                      out=extra)
-    sbl_result = x_sbl, e_sbl, it_sbl
+    if out is not None:
+        out["x_sbl"], out["e_sbl"] = x_sbl, e_sbl
+    if least_squares_wins(y, a, lam, 1.0 / (extra["gamma"] + lam)):
+        sbl_result = np.linalg.lstsq(a, y, rcond=None)[0], np.zeros(y.size), it_sbl
+    else:
+        sbl_result = x_sbl, e_sbl, it_sbl
     if segments == 1:
         return sbl_result
     if gate_noise is not None:
@@ -314,8 +350,12 @@ def solve_oracle(observations, lights, method, valid=None, *, statistic=False, *
                 sigma_pl = params["noise_sigma_pl"] or 0.0
                 lam_pl = np.maximum(sigma_pl**2 + floor_term, 1e-6)
                 pixel_params["lam" if method == "plsbl" else "lam_pl"] = lam_pl
+        sbl_fit: dict = {}
         if method == "auto":
-            pixel_params = {**pixel_params, "outlier_threshold": threshold}
+            # issue 42: no PL-SBL with lights in rings of equal elevation (a dome)
+            pixel_params = {**pixel_params, "outlier_threshold": threshold, "out": sbl_fit}
+            if in_rings(lights) >= 0.5:
+                pixel_params["segments"] = 1
         x, stat, it = PIXEL_ORACLES[method](y / scale, a, **pixel_params)
         x = x * scale
         albedo[j] = np.linalg.norm(x)
@@ -323,7 +363,12 @@ def solve_oracle(observations, lights, method, valid=None, *, statistic=False, *
             normals[j] = x / albedo[j]
             outliers[np.flatnonzero(v), j] = stat > threshold
             statistics[np.flatnonzero(v), j] = stat
-            albedo[j] = lambertian_equivalent(normals[j], y, a, stat <= threshold, albedo[j])
+            # the default's albedo is SBL's whichever model gave the normal (issue 42)
+            shade, kept = normals[j], stat <= threshold
+            if sbl_fit:
+                shade = sbl_fit["x_sbl"] / np.linalg.norm(sbl_fit["x_sbl"])
+                kept = sbl_fit["e_sbl"] <= threshold
+            albedo[j] = lambertian_equivalent(shade, y, a, kept, albedo[j])
         iterations[j] = it
     if statistic:
         return normals, albedo, outliers, iterations, statistics
