@@ -192,6 +192,22 @@ CASES = [
 ]
 
 
+# Run by `make test` (one or two per file and array: the issue's cases first); the rest with
+# `-m slow` (`make test-slow`), as in the sweeps.
+CI_CASES = {
+    "truncated npz", "forged gains header", "scalar gains", "empty gains axis", "NaN gains",
+    "two-value height", "height above the LEDs", "empty x axis", "complex y axis",
+    "infinite position", "NaN axis", "axes pointing up", "huge exponent", "huge LED position",
+    "LEDs under the outline", "huge intensity",
+}
+
+
+def _params() -> list:
+    assert CI_CASES <= {c.id for c in CASES}
+    return [pytest.param(c, id=c.id, marks=() if c.id in CI_CASES else pytest.mark.slow)
+            for c in CASES]
+
+
 @dataclass
 class Outcome:
     result: Result
@@ -211,18 +227,25 @@ def _run_case(case: Case, folder: Path, near: Path) -> Outcome:
 
 
 @pytest.fixture(scope="session")
-def outcomes(near, tmp_path_factory) -> dict[str, Outcome]:
+def outcomes(request, near, tmp_path_factory) -> dict[str, Outcome]:
+    """Every selected case at once, a few processes side by side (they mostly import)."""
+    chosen = [
+        item.callspec.params["case"]
+        for item in request.session.items
+        if getattr(item, "originalname", "") == "test_damaged_led_model_file_is_one_line_naming_it"
+        and not item.get_closest_marker("skip")
+    ]
     folders = []
-    for case in CASES:
+    for case in chosen:
         root = tmp_path_factory.mktemp("led-case")
         (root / "case").mkdir()
         folders.append(root / "case")
     with ThreadPoolExecutor(max_workers=4) as pool:
-        done = list(pool.map(_run_case, CASES, folders, [near["near"]] * len(CASES)))
-    return {c.id: o for c, o in zip(CASES, done, strict=True)}
+        done = list(pool.map(_run_case, chosen, folders, [near["near"]] * len(chosen)))
+    return {c.id: o for c, o in zip(chosen, done, strict=True)}
 
 
-@pytest.mark.parametrize("case", CASES, ids=[c.id for c in CASES])
+@pytest.mark.parametrize("case", _params())
 def test_damaged_led_model_file_is_one_line_naming_it(case: Case, outcomes) -> None:
     outcome = outcomes[case.id]
     line = assert_one_error_line(outcome.result, case.names)
@@ -245,7 +268,10 @@ def test_sound_led_model_files_reconstruct(near, tmp_path) -> None:
 # --- the board of calibrate --flat-field -----------------------------------------------------
 
 
-@pytest.mark.parametrize("board", ["5000", "1e308", "80", "-1e6"])
+@pytest.mark.parametrize(
+    "board", ["5000", "80", pytest.param("1e308", marks=pytest.mark.slow),
+              pytest.param("-1e6", marks=pytest.mark.slow)],
+)
 def test_board_not_below_every_led_names_the_option(board, near, tmp_path) -> None:
     """A board above some LED (the LEDs sit 65-145 px up) or absurdly far below them."""
     ds = tmp_path / "case" / "ds"
