@@ -46,6 +46,7 @@ from ps_lab.io.appearance import (
 )
 
 from ._appearance_design import determined_terms, distinct_lights
+from .appearance_choice import encode
 from ._ps_kernel import (  # noqa: F401 (the constants are read from here too)
     PS_FLOOR,
     PS_RIDGE,
@@ -360,6 +361,7 @@ def fit_block(
     terms: tuple[str, ...] = PS_TERMS,
     pixels: slice | None = None,
     scale: np.ndarray | None = None,
+    space: str = "linear",
 ) -> tuple[np.ndarray, np.ndarray | None]:
     """Fit ``model`` on one block of pixels.
 
@@ -381,6 +383,10 @@ def fit_block(
         ``q = P``).
     scale : ndarray of shape (n,) or None
         Each light's divisor of the observations (None: 1).
+    space : {"linear", "srgb"}
+        The fit space: the observations are encoded (:func:`.appearance_choice.encode`; a
+        missing one stays missing) and fitted as in linear; ``bln`` and ``gp`` project on their
+        basis as ``rbf`` does.
 
     Returns
     -------
@@ -393,6 +399,12 @@ def fit_block(
     part = slice(0, obs.shape[1]) if pixels is None else slice(*pixels.indices(obs.shape[1]))
     if part.step not in (None, 1):
         raise ValueError(f"a block is a run of consecutive pixels, not {pixels}")
+    if space != "linear" or model in ("bln", "gp"):
+        obs = encode(obs[:, part] / _scale(scale, obs.shape[0])[:, None, None], space)
+        part, scale = slice(0, obs.shape[1]), None
+        if model in ("bln", "gp"):
+            assert rbf_basis is not None
+            return fit_rbf(obs, rbf_basis), None
     if model in BASIS_TERMS:
         return fit_linear(model, obs[:, part], directions, scale), None
     if model == "rbf":

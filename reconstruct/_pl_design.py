@@ -1,5 +1,5 @@
-"""The piecewise-linear model's design per pixel: usable values, break points, design rows, and
-the normal equations and prior of ``K`` segments.
+"""The piecewise-linear model's design per pixel: usable values, break points, design rows, the
+normal equations and prior of ``K`` segments; the fit's flags and the default's choice.
 
 Shared by the tile kernels of :mod:`._pl_kernels` (inlined into them): the rows of the per-pixel
 state, the pixel's usable observations and break points (``b_k`` the ``floor(k u / K)``-th
@@ -10,10 +10,13 @@ segments (:func:`_design3`, one pass). See :mod:`._pl_kernels` for the model.
 
 from __future__ import annotations
 
+import math
+
 from numba import njit
 
+from . import _kernels
 from ._kernels import INLINE
-from ._pl_algebra import _select
+from ._pl_algebra import _loo_lambertian, _loo_pl, _select
 
 # Rows of the per-pixel state: usable (1/0), observation noise in y units, in f units, gamma,
 # d = w / (gamma + lambda), corruption estimate of the last iteration, residual, a^T M^-1 a,
@@ -25,6 +28,11 @@ MIN_PER_SEGMENT = 4
 # Smallest slope (times 1/K) used for an observation's noise and the Jacobian.
 SLOPE_FLOOR = 1e-3
 TAU_FLOOR = 1e-10
+# The default's choice (:func:`_choose`): PL-SBL only with at least this many scored observations
+# per unknown of the PL model: the mean leverage is then at most 1/4, so that a left-out residual
+# measures prediction (with fewer, it is dominated by the 1 / (1 - h) inflation of interpolated
+# observations; docs/solvers.md).
+CHOICE_PER_UNKNOWN = 4
 
 
 @njit(**INLINE)
@@ -34,6 +42,26 @@ def _usable(y, w, p, n, vals):
     for i in range(n):
         vals[cnt] = y[p, i]  # a dropped one is overwritten by the next
         cnt += w[p, i] > 0.0
+    return cnt
+
+
+@njit(**INLINE)
+def _lit(y, w, lights, p, n, x0, x1, x2, vals):
+    """Pack pixel p's usable observations that the Lambertian fit ``x`` predicts lit
+    (``l_i . x > 0``) into ``vals[:count]`` (no branch); their count.
+
+    The observations the break points are chosen from: the response ``f`` maps a shading
+    ``n.l >= 0`` to an intensity, and an attached shadow (kept where no black level was found,
+    a 16-bit capture's noise above 0) is not on it. Where shadows are a third of a pixel's
+    observations, the first break would fall in their noise: a segment narrower than the noise,
+    whose slope the constraint ``sum s = 1`` lets take all the scale, ``f`` and the normal
+    collapsing towards 0 (docs/solvers.md).
+    """
+    cnt = 0
+    for i in range(n):
+        vals[cnt] = y[p, i]
+        v = lights[i, 0] * x0 + lights[i, 1] * x1 + lights[i, 2] * x2
+        cnt += w[p, i] > 0.0 and v > 0.0
     return cnt
 
 
@@ -183,3 +211,116 @@ def _slopes(x, k, slopes):
         slopes[j] = x[j]
         last -= x[j]
     slopes[k - 1] = last
+
+
+@njit(**INLINE)
+def _loo_pl3(st, tab, n, inv, sw, slope_of, out):
+    """:func:`._pl_algebra._loo_pl` of the three-segment fit that :func:`_iterate3` left.
+
+    Its final solve is the fit that ``_loo_pl`` would form again from the same weights ``d``,
+    prior (the ``tau2`` it used) and targets: ``inv`` holds its ``M^-1`` and the state row
+    ``_R`` its residuals ``t - a.x``, so only the leverages ``h_i = d_i a_i^T M^-1 a_i`` are
+    left, one vectorised pass. Same measure and returns (infinity when a scored ``h_i`` is 1).
+    """
+    i00, i11, i22, i33, i44 = inv[0, 0], inv[1, 1], inv[2, 2], inv[3, 3], inv[4, 4]
+    j01, j02, j03, j04 = 2.0 * inv[0, 1], 2.0 * inv[0, 2], 2.0 * inv[0, 3], 2.0 * inv[0, 4]
+    j12, j13, j14 = 2.0 * inv[1, 2], 2.0 * inv[1, 3], 2.0 * inv[1, 4]
+    j23, j24, j34 = 2.0 * inv[2, 3], 2.0 * inv[2, 4], 2.0 * inv[3, 4]
+    score = 0.0
+    bad = 0
+    for i in range(n):
+        a0 = tab[0, i]
+        a1 = tab[1, i]
+        a2 = tab[2, i]
+        a3 = tab[3, i]
+        a4 = tab[4, i]
+        q = (a0 * (i00 * a0 + j01 * a1 + j02 * a2 + j03 * a3 + j04 * a4)
+             + a1 * (i11 * a1 + j12 * a2 + j13 * a3 + j14 * a4)
+             + a2 * (i22 * a2 + j23 * a3 + j24 * a4)
+             + a3 * (i33 * a3 + j34 * a4) + a4 * i44 * a4)
+        h = st[_D, i] * q
+        scored = sw[i] > 0.0
+        bad += scored and not h < 1.0
+        e = st[_R, i] / ((1.0 - h) * slope_of[i])
+        term = sw[i] * e * e if scored else 0.0
+        out[i] = term
+        score += term
+    return math.inf if bad else score
+
+
+@njit(**INLINE)
+def _finish(p, k, x, slopes, breaks, st, n, threshold, x_out, outliers, segments_out):
+    """Albedo-normal of pixel p (the normal times the secant slope ``b_K / f(b_K)``), flags."""
+    ns = k - 1
+    fb = 0.0
+    for j in range(k):
+        fb += slopes[j] * (breaks[j + 1] - breaks[j])
+    gain = breaks[k] / fb if fb > 0.0 else 0.0
+    x_out[p, 0] = x[ns] * gain
+    x_out[p, 1] = x[ns + 1] * gain
+    x_out[p, 2] = x[ns + 2] * gain
+    segments_out[p] = k
+    for i in range(n):
+        sl = slopes[int(st[_SEG, i])]
+        sl = sl if sl > SLOPE_FLOOR / k else SLOPE_FLOOR / k
+        # the corruption in the pixel's units: e = Gamma S t = gamma d r, over the slope
+        e = st[_G, i] * st[_D, i] * st[_R, i] / sl
+        outliers[p, i] = st[_W, i] > 0.0 and abs(e) > threshold
+
+
+@njit(**INLINE)
+def _choose(y, p, n, k, threshold, lam_row, outliers, st, tab, sbl_st, sbl_tab, slopes, tau2,
+            ridge, sw, slope_of, prior, prior_rhs, mat, inv, low, scratch, loo, z):
+    """The piecewise-linear model's predictive gain over the Lambertian one at pixel p.
+
+    Scored: the usable observations that at least one robust fit accepts as uncorrupted (SBL's
+    flags in ``outliers[p]``, the PL fit's from its final state): a model that calls corrupted
+    what the other explains pays for it; what both call corrupted says nothing about either.
+    Each model is scored as fitted (its final weights ``d``; PL with its slopes' prior)
+    by its closed-form leave-one-out residuals in ``y``'s units, under the same noise (SBL's
+    ``lambda_i``): :func:`._pl_algebra._loo_lambertian`, :func:`._pl_algebra._loo_pl`. The gain
+    is the sum of the paired differences ``d_i`` of the two squared left-out residuals
+    (Lambertian minus PL) less ``z`` standard errors of that sum (``z sqrt(N) sd(d)``): positive
+    when PL predicts better by more than chance gives a model with more unknowns; -inf when
+    fewer than ``CHOICE_PER_UNKNOWN`` observations per PL unknown are scored or a fit fails.
+    Three segments: PL's fit is :func:`_pl_pixel`'s final one (its ``M^-1`` in ``inv``, its
+    residuals in the state), not formed again (:func:`_loo_pl3`).
+    """
+    u = k + 2
+    kept = 0
+    fl = SLOPE_FLOOR / k
+    s0 = slopes[0] if slopes[0] > fl else fl
+    s1 = slopes[1 % k] if slopes[1 % k] > fl else fl
+    s2 = slopes[2 % k] if slopes[2 % k] > fl else fl
+    for i in range(n):
+        if k == 3:  # (one vectorised pass: the slope by selects, not by an index)
+            seg = st[_SEG, i]
+            sl = s2 if seg > 1.5 else (s1 if seg > 0.5 else s0)
+        else:
+            sl = slopes[int(st[_SEG, i])]
+            sl = sl if sl > fl else fl
+        slope_of[i] = sl
+        e = st[_G, i] * st[_D, i] * st[_R, i] / sl
+        flagged = outliers[p, i] and abs(e) > threshold
+        ok = st[_W, i] > 0.0 and not flagged
+        sw[i] = 1.0 / lam_row[i] if ok else 0.0
+        kept += ok
+    if kept < CHOICE_PER_UNKNOWN * u:
+        return -math.inf
+    score_sbl = _loo_lambertian(y[p], sbl_st[_kernels._V], sw, sbl_tab, n, ridge, loo[0])
+    if k == 3:
+        score_pl = _loo_pl3(st, tab, n, inv, sw, slope_of, loo[1])
+    else:
+        _prior(k, tau2, ridge, prior, prior_rhs)
+        score_pl = _loo_pl(st[_T], st[_D], sw, slope_of, tab, n, u, prior, prior_rhs, mat, inv,
+                           low, scratch, loo[1])
+    if not (score_pl < math.inf and score_sbl == score_sbl):
+        return -math.inf
+    if not score_sbl < math.inf:
+        return math.inf
+    mean = (score_sbl - score_pl) / kept
+    var = 0.0
+    for i in range(n):
+        d = loo[0, i] - loo[1, i] - mean
+        var += d * d if sw[i] > 0.0 else 0.0
+    return (score_sbl - score_pl) - z * math.sqrt(kept * var / (kept - 1))

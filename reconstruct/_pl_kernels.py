@@ -26,6 +26,14 @@ Cholesky. Beyond the paper (docs/solvers.md has the measurements):
 - each pixel's log evidence in the space of ``y`` (the Gaussian marginal of ``t`` at the learned
   ``gamma``, ``tau^2``, plus the log Jacobian ``sum_i log s_{k(i)}`` of ``y -> f(y)``; recorded,
   no longer used for the choice);
+- PL-SBL alone (issue 42) fits SBL first (the Lambertian model it nests) and the PL model
+  twice: as above (break points from all usable observations, the EM from ``gamma_start``),
+  and with the interior break points from the observations SBL's fit sees lit (``l_i . x >
+  0``) and the EM from SBL's final ``gamma``; the fit of the higher log evidence is kept (the
+  break points and the start are choices of the same model). Kept shadows (no black level
+  found) put the first break in their noise, and the EM all the scale on that segment's slope
+  (``f`` and the normal collapse); a glossy pixel's EM from the flat start flattens the top
+  segment to take the specular lobe as response;
 - the ``auto`` kernel solves every pixel with ``K = 1`` (SBL, its own kernel and iterations);
   where SBL's fit fails a chi^2 score test towards K segments it fits them too, and keeps PL
   only where it predicts the pixel's observations better (closed-form leave-one-out residuals
@@ -62,19 +70,22 @@ from ._pl_design import (  # noqa: F401 (MAX_SEGMENTS and the rows are read from
     SLOPE_FLOOR,
     TAU_FLOOR,
     _usable,
+    _lit,
     _breaks,
     _design3,
     _design,
     _normal_equations,
     _prior,
     _slopes,
+    _loo_pl3,
+    _finish,
+    _choose,
+    CHOICE_PER_UNKNOWN,
 )
 from ._pl_algebra import (
     _bend_score,
     _cholesky_inverse,
     _inverse5,
-    _loo_lambertian,
-    _loo_pl,
     _select,
     _sum_log,
     chi2_quantiles,
@@ -83,10 +94,6 @@ from ._pl_algebra import (
 # The default's choice: PL-SBL replaces SBL where its leave-one-out gain exceeds this many standard
 # errors of the gain (the one-standard-error rule of model selection, docs/solvers.md).
 CHOICE_Z = 1.0
-# ... and only with at least this many scored observations per unknown of the PL model: the mean
-# leverage is then at most 1/4, so that a left-out residual measures prediction (with fewer, it
-# is dominated by the 1 / (1 - h) inflation of interpolated observations; docs/solvers.md).
-CHOICE_PER_UNKNOWN = 4
 # The Lambertian model's score test: PL-SBL (which nests it) is fitted and compared only
 # where the score statistic of SBL's fit exceeds its chi^2 quantile at this false-alarm rate.
 GATE_FALSE_ALARM = 0.01
@@ -224,7 +231,7 @@ def _iterate3(st, tab, n, ridge, learn_tau, max_iter, ftol, floor, sbl, inv, x, 
 @njit(**INLINE)
 def _pl_pixel(y, w, lights, p, k_max, lam_row, ridge, learn_tau, max_iter, tol, floor, start,
               sbl, st, tab, mat, inv, low, x, rhs, prior, prior_rhs, breaks, vals, slopes,
-              evidence):
+              evidence, g0, use_g0, fit, use_fit):
     """One pixel with up to ``k_max`` segments (fewer when it has few observations).
 
     Leaves ``x`` (U), ``slopes`` (K) and the state rows of the final iteration (and, for three
@@ -241,7 +248,19 @@ def _pl_pixel(y, w, lights, p, k_max, lam_row, ridge, learn_tau, max_iter, tol, 
     k = k_max if k_max < cnt // MIN_PER_SEGMENT else cnt // MIN_PER_SEGMENT
     k = k if k > 1 else 1
     u = k + 2
-    _breaks(vals, cnt, k, breaks)
+    # interior break points from the observations the Lambertian fit sees lit (_lit; all usable
+    # ones without that fit or with fewer than MIN_PER_SEGMENT a segment); b_K the largest usable
+    top = breaks[0]
+    if use_fit and k > 1:
+        top = vals[0]
+        for i in range(1, cnt):
+            top = vals[i] if vals[i] > top else top
+    lit = _lit(y, w, lights, p, n, fit[0], fit[1], fit[2], vals) if use_fit and k > 1 else 0
+    if lit < k * MIN_PER_SEGMENT:
+        _usable(y, w, p, n, vals)
+        lit = cnt
+    _breaks(vals, lit, k, breaks)
+    breaks[k] = top if lit < cnt else breaks[k]
     tau2 = 1.0
     scale2 = 1.0 / (k * k)
     if k == 3:
@@ -254,6 +273,12 @@ def _pl_pixel(y, w, lights, p, k_max, lam_row, ridge, learn_tau, max_iter, tol, 
             st[_G, i] = start * scale2
             st[_D, i] = st[_W, i] / ((st[_G, i] if sbl else 0.0) + st[_LAM, i])
             st[_Z, i] = 0.0
+    if use_g0 and sbl:
+        # the EM starts from the Lambertian model's robust fit (SBL's final gamma, in f's units)
+        for i in range(n):
+            g = g0[i] * scale2
+            st[_G, i] = g
+            st[_D, i] = st[_W, i] / (g + st[_LAM, i])
     for j in range(k):
         slopes[j] = 1.0 / k
     ftol = tol / k
@@ -381,32 +406,12 @@ def _pl_pixel(y, w, lights, p, k_max, lam_row, ridge, learn_tau, max_iter, tol, 
     return k, iters, evidence, tau2
 
 
-@njit(**INLINE)
-def _finish(p, k, x, slopes, breaks, st, n, threshold, x_out, outliers, segments_out):
-    """Albedo-normal of pixel p (the normal times the secant slope ``b_K / f(b_K)``), flags."""
-    ns = k - 1
-    fb = 0.0
-    for j in range(k):
-        fb += slopes[j] * (breaks[j + 1] - breaks[j])
-    gain = breaks[k] / fb if fb > 0.0 else 0.0
-    x_out[p, 0] = x[ns] * gain
-    x_out[p, 1] = x[ns + 1] * gain
-    x_out[p, 2] = x[ns + 2] * gain
-    segments_out[p] = k
-    for i in range(n):
-        sl = slopes[int(st[_SEG, i])]
-        sl = sl if sl > SLOPE_FLOOR / k else SLOPE_FLOOR / k
-        # the corruption in the pixel's units: e = Gamma S t = gamma d r, over the slope
-        e = st[_G, i] * st[_D, i] * st[_R, i] / sl
-        outliers[p, i] = st[_W, i] > 0.0 and abs(e) > threshold
-
-
 @njit(nogil=True, cache=True, **VECTOR)
 def _pl_kernel(y, w, lights, per_pixel, lam, lam_pl, k_max, choose, sbl, ridge, learn_tau,
                max_iter,
                sbl_max_iter, tol, floor, start, threshold, x_out, outliers, iters, segments_out,
                evidence_out, want_residuals, resid_out, choice_z, gate, lam_test, q_table,
-               run_sbl, run_pl, v_io, stat_out, breaks_io, breaks_known):
+               run_sbl, run_pl, v_io, stat_out, breaks_io, breaks_known, sbl_start):
     m, n = y.shape
     umax = k_max + 2
     st = np.zeros((STATE_ROWS, n))
@@ -427,7 +432,10 @@ def _pl_kernel(y, w, lights, per_pixel, lam, lam_pl, k_max, choose, sbl, ridge, 
     slope_of = np.zeros(n)
     loo = np.zeros((2, n))
     scratch = np.zeros(umax)
-    if choose and not per_pixel:
+    g0 = np.zeros(n)
+    fit = np.zeros(3)
+    start_sbl = sbl and sbl_start and not choose
+    if (choose or start_sbl) and not per_pixel:
         _light_table(lights[0], sbl_tab)
     for p in range(m):
         lp = lights[p] if per_pixel else lights[0]
@@ -460,9 +468,41 @@ def _pl_kernel(y, w, lights, per_pixel, lam, lam_pl, k_max, choose, sbl, ridge, 
                     continue
             if not run_pl:
                 continue
+        elif start_sbl:
+            # PL-SBL alone: the Lambertian model's robust fit (SBL) first, to start its EM from
+            if per_pixel:
+                _light_table(lp, sbl_tab)
+            for i in range(n):
+                sbl_st[_kernels._Y, i] = y[p, i]
+                sbl_st[_kernels._W, i] = w[p, i]
+                sbl_st[_kernels._LAM, i] = lam_row[i]
+            _sbl_pixel(sbl_st, sbl_tab, n, ridge, sbl_max_iter, tol, floor, start, threshold,
+                       x_out, outliers, iters, p)
+        fit[0], fit[1], fit[2] = x_out[p, 0], x_out[p, 1], x_out[p, 2]  # SBL's, if it ran
+        full = start_sbl or not choose  # the log evidence itself, not only its -inf cases
         k, it, ev, tau2 = _pl_pixel(y, w, lp, p, k_max, lam_pl[p], ridge, learn_tau, max_iter,
                                     tol, floor, start, sbl, st, tab, mat, inv, low, x, rhs, prior,
-                                    prior_rhs, breaks, vals, slopes, not choose)
+                                    prior_rhs, breaks, vals, slopes, full, g0, False, fit, False)
+        if start_sbl and k > 1:
+            # the second fit: break points from what SBL's fit sees lit, the EM from SBL's final
+            # gamma (from its weights d = w / (gamma + lambda)); the fit of the higher log
+            # evidence is kept (the first, where it wins, fitted again: its state is the kept
+            # fit's for the choice and _finish)
+            for i in range(n):
+                v = sbl_st[_kernels._V, i]
+                g = 1.0 / v - lam_row[i] if v > 0.0 else start
+                g0[i] = g if g > floor else floor
+            _, it2, ev2, tau22 = _pl_pixel(y, w, lp, p, k_max, lam_pl[p], ridge, learn_tau,
+                                           max_iter, tol, floor, start, sbl, st, tab, mat, inv,
+                                           low, x, rhs, prior, prior_rhs, breaks, vals, slopes,
+                                           True, g0, True, fit, True)
+            if ev2 >= ev or not ev == ev:
+                it, ev, tau2 = it2, ev2, tau22
+            else:
+                k, it, ev, tau2 = _pl_pixel(y, w, lp, p, k_max, lam_pl[p], ridge, learn_tau,
+                                            max_iter, tol, floor, start, sbl, st, tab, mat, inv,
+                                            low, x, rhs, prior, prior_rhs, breaks, vals, slopes,
+                                            full, g0, False, fit, False)
         if choose:
             if k == 1 or not ev > -math.inf:
                 continue  # one segment is the Lambertian model; a failed PL fit
@@ -483,99 +523,6 @@ def _pl_kernel(y, w, lights, per_pixel, lam, lam_pl, k_max, choose, sbl, ridge, 
                 resid_out[p, i] = -st[_R, i] / sl * st[_W, i]
 
 
-@njit(**INLINE)
-def _choose(y, p, n, k, threshold, lam_row, outliers, st, tab, sbl_st, sbl_tab, slopes, tau2,
-            ridge, sw, slope_of, prior, prior_rhs, mat, inv, low, scratch, loo, z):
-    """The piecewise-linear model's predictive gain over the Lambertian one at pixel p.
-
-    Scored: the usable observations that at least one robust fit accepts as uncorrupted (SBL's
-    flags in ``outliers[p]``, the PL fit's from its final state): a model that calls corrupted
-    what the other explains pays for it; what both call corrupted says nothing about either.
-    Each model is scored as fitted (its final weights ``d``; PL with its slopes' prior)
-    by its closed-form leave-one-out residuals in ``y``'s units, under the same noise (SBL's
-    ``lambda_i``): :func:`._pl_algebra._loo_lambertian`, :func:`._pl_algebra._loo_pl`. The gain
-    is the sum of the paired differences ``d_i`` of the two squared left-out residuals
-    (Lambertian minus PL) less ``z`` standard errors of that sum (``z sqrt(N) sd(d)``): positive
-    when PL predicts better by more than chance gives a model with more unknowns; -inf when
-    fewer than ``CHOICE_PER_UNKNOWN`` observations per PL unknown are scored or a fit fails.
-    Three segments: PL's fit is :func:`_pl_pixel`'s final one (its ``M^-1`` in ``inv``, its
-    residuals in the state), not formed again (:func:`_loo_pl3`).
-    """
-    u = k + 2
-    kept = 0
-    fl = SLOPE_FLOOR / k
-    s0 = slopes[0] if slopes[0] > fl else fl
-    s1 = slopes[1 % k] if slopes[1 % k] > fl else fl
-    s2 = slopes[2 % k] if slopes[2 % k] > fl else fl
-    for i in range(n):
-        if k == 3:  # (one vectorised pass: the slope by selects, not by an index)
-            seg = st[_SEG, i]
-            sl = s2 if seg > 1.5 else (s1 if seg > 0.5 else s0)
-        else:
-            sl = slopes[int(st[_SEG, i])]
-            sl = sl if sl > fl else fl
-        slope_of[i] = sl
-        e = st[_G, i] * st[_D, i] * st[_R, i] / sl
-        flagged = outliers[p, i] and abs(e) > threshold
-        ok = st[_W, i] > 0.0 and not flagged
-        sw[i] = 1.0 / lam_row[i] if ok else 0.0
-        kept += ok
-    if kept < CHOICE_PER_UNKNOWN * u:
-        return -math.inf
-    score_sbl = _loo_lambertian(y[p], sbl_st[_kernels._V], sw, sbl_tab, n, ridge, loo[0])
-    if k == 3:
-        score_pl = _loo_pl3(st, tab, n, inv, sw, slope_of, loo[1])
-    else:
-        _prior(k, tau2, ridge, prior, prior_rhs)
-        score_pl = _loo_pl(st[_T], st[_D], sw, slope_of, tab, n, u, prior, prior_rhs, mat, inv,
-                           low, scratch, loo[1])
-    if not (score_pl < math.inf and score_sbl == score_sbl):
-        return -math.inf
-    if not score_sbl < math.inf:
-        return math.inf
-    mean = (score_sbl - score_pl) / kept
-    var = 0.0
-    for i in range(n):
-        d = loo[0, i] - loo[1, i] - mean
-        var += d * d if sw[i] > 0.0 else 0.0
-    return (score_sbl - score_pl) - z * math.sqrt(kept * var / (kept - 1))
-
-
-@njit(**INLINE)
-def _loo_pl3(st, tab, n, inv, sw, slope_of, out):
-    """:func:`._pl_algebra._loo_pl` of the three-segment fit that :func:`_iterate3` left.
-
-    Its final solve is the fit that ``_loo_pl`` would form again from the same weights ``d``,
-    prior (the ``tau2`` it used) and targets: ``inv`` holds its ``M^-1`` and the state row
-    ``_R`` its residuals ``t - a.x``, so only the leverages ``h_i = d_i a_i^T M^-1 a_i`` are
-    left, one vectorised pass. Same measure and returns (infinity when a scored ``h_i`` is 1).
-    """
-    i00, i11, i22, i33, i44 = inv[0, 0], inv[1, 1], inv[2, 2], inv[3, 3], inv[4, 4]
-    j01, j02, j03, j04 = 2.0 * inv[0, 1], 2.0 * inv[0, 2], 2.0 * inv[0, 3], 2.0 * inv[0, 4]
-    j12, j13, j14 = 2.0 * inv[1, 2], 2.0 * inv[1, 3], 2.0 * inv[1, 4]
-    j23, j24, j34 = 2.0 * inv[2, 3], 2.0 * inv[2, 4], 2.0 * inv[3, 4]
-    score = 0.0
-    bad = 0
-    for i in range(n):
-        a0 = tab[0, i]
-        a1 = tab[1, i]
-        a2 = tab[2, i]
-        a3 = tab[3, i]
-        a4 = tab[4, i]
-        q = (a0 * (i00 * a0 + j01 * a1 + j02 * a2 + j03 * a3 + j04 * a4)
-             + a1 * (i11 * a1 + j12 * a2 + j13 * a3 + j14 * a4)
-             + a2 * (i22 * a2 + j23 * a3 + j24 * a4)
-             + a3 * (i33 * a3 + j34 * a4) + a4 * i44 * a4)
-        h = st[_D, i] * q
-        scored = sw[i] > 0.0
-        bad += scored and not h < 1.0
-        e = st[_R, i] / ((1.0 - h) * slope_of[i])
-        term = sw[i] * e * e if scored else 0.0
-        out[i] = term
-        score += term
-    return math.inf if bad else score
-
-
 @dataclass
 class PLTileResult(TileResult):
     """:class:`._kernels.TileResult` plus the segments each pixel used and its log evidence."""
@@ -594,7 +541,7 @@ def pl_tile(y, w, lights, *, segments: int, lam, sigma_x2: float = 1e6, max_iter
             choose: bool = False, sbl_max_iter: int = 100, lam_pl=None,
             residuals: bool = False, choice_z: float = CHOICE_Z, lam_test=None,
             false_alarm: float = GATE_FALSE_ALARM, stage: str = "both",
-            sbl_fit: PLTileResult | None = None) -> PLTileResult:
+            sbl_fit: PLTileResult | None = None, sbl_start: bool = True) -> PLTileResult:
     """Piecewise-linear model of ``segments`` segments on one tile (module docstring).
 
     Parameters
@@ -645,6 +592,11 @@ def pl_tile(y, w, lights, *, segments: int, lam, sigma_x2: float = 1e6, max_iter
         ``sbl_fit``, and the test's break points from it where it has them).
     sbl_fit : PLTileResult, optional
         Stage "pl": the "sbl" stage's result on the same rows.
+    sbl_start : bool
+        Without ``choose`` (PL-SBL alone): fit SBL first (``sbl_max_iter``) and the PL model a
+        second time, break points from the observations SBL's fit sees lit and the EM from its
+        final ``gamma``; the fit of the higher log evidence is kept (module docstring). False:
+        the issue-23 PL-SBL (that first fit alone).
     """
     y = np.ascontiguousarray(y, dtype=np.float64)
     w = np.ascontiguousarray(w, dtype=np.float64)
@@ -683,7 +635,8 @@ def pl_tile(y, w, lights, *, segments: int, lam, sigma_x2: float = 1e6, max_iter
                    float(tol),
                    float(gamma_floor), float(gamma_start), float(outlier_threshold), x, outliers,
                    iters, segs, evidence, bool(residuals), resid, float(choice_z), gate, lam_t,
-                   q_table, stage != "pl", stage != "sbl", v_io, stat, breaks, known)
+                   q_table, stage != "pl", stage != "sbl", v_io, stat, breaks, known,
+                   bool(sbl_start))
     return PLTileResult(x, outliers, iters, segs, evidence, resid if residuals else None,
                         stat if gate else None, v_io if stage == "sbl" else None,
                         breaks if gate and stage == "sbl" else None)

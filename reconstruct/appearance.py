@@ -37,6 +37,8 @@ from ps_lab.reconstruct._appearance_design import (
     saturated_observations,
 )
 from ps_lab.reconstruct._appearance_fit import RBF_TERMS, fit_block, rbf_setup
+from ps_lab.reconstruct._ps_cv import ps_cv_score
+from ps_lab.reconstruct.appearance_choice import CHOSEN_MODELS, resolve_model
 
 __all__ = [
     "APPEARANCE_MODELS",
@@ -93,7 +95,8 @@ def check_lights(model: str, directions: np.ndarray) -> tuple[int, list[str] | N
     stored as 0; ``ps``: left out of its terms; ``rbf``: one basis vector per distinct light).
     """
     distinct = len(distinct_lights(directions))
-    if model == "none":
+    if model == "none" or model in CHOSEN_MODELS or model in ("bln", "gp"):
+        # chosen models are checked once resolved; bln and gp interpolate the lights they have
         return distinct, None
     names = _terms(model, 1, len(directions))
     keep, warning = determined_terms(model, directions, TERM_NAMES.get(model, tuple(names)))
@@ -120,7 +123,9 @@ def fit_appearance(
 
     Parameters
     ----------
-    model : {"ps", "ptm", "hsh2", "hsh3", "rbf", "none"}
+    model : {"auto", "ps", "ptm", "hsh2", "hsh3", "rbf", "bln", "gp", "none"}
+        ``auto``: chosen by cross-validation (:mod:`.appearance_choice`); ``bln``, ``gp``: their
+        parameters and fit space chosen so.
     observations : ndarray of shape (n, P, C) or (n, P)
         Training observations of the P mask pixels (row-major), solver units.
     directions : ndarray of shape (n, 3)
@@ -144,14 +149,25 @@ def fit_appearance(
     distinct, terms = check_lights(model, directions)
     sigma, basis = None, None
     extra: dict[str, np.ndarray] = {}
-    if model == "rbf":
+    chosen: dict[str, Any] = {}
+    if model in CHOSEN_MODELS:
+        pick = _sample_index(p)
+        choice, chosen, extra = resolve_model(
+            model, obs[:, pick], directions, *(() if normals is None or albedo is None else
+                                              (np.asarray(normals)[pick], np.asarray(albedo)[pick])),
+            ps_scorer=ps_cv_score)
+        model, basis = choice.model, extra.get("basis")
+    elif model == "rbf":
         sigma, basis = rbf_setup(obs[:, _sample_index(p)], directions)
         extra = {"lights": directions.astype(np.float32), "basis": basis.astype(np.float32)}
-    meta = model_meta(model, c, distinct, sigma, terms)
+    if chosen:  # the model the choice resolved to: what the lights determine of it
+        distinct, terms = check_lights(model, directions)
+    meta = {**model_meta(model, c, distinct, sigma, terms), **chosen}
     coeffs = np.zeros((*mask.shape, c, meta["K"]), np.float32)
     if model != "none":
         coeffs[mask], vis = fit_block(model, obs, directions, normals=normals, albedo=albedo,
-                                      rbf_basis=basis, terms=tuple(meta["terms"]))
+                                      rbf_basis=basis, terms=tuple(meta["terms"]),
+                                      space=meta.get("space", "linear"))
         if vis is not None:
             extra["visibility"] = np.zeros((*mask.shape, VISIBILITY_TERMS), np.float32)
             extra["visibility"][..., 3] = 1.0
@@ -206,7 +222,7 @@ def fit_appearance_bands(
         ``timings`` (``fit_seconds``), and rbf's ``sigma``.
 
     """
-    if model not in APPEARANCE_MODELS:
+    if model not in APPEARANCE_MODELS and model not in CHOSEN_MODELS:
         raise ValueError(f"unknown appearance model {model!r}")
     if model == "none":
         return {"model": "none", "coefficients_per_pixel": 0}
@@ -222,16 +238,26 @@ def fit_appearance_bands(
     threshold = rule.threshold if rule is not None and rule.use_threshold else None
     sample = (store.sample_colour if colour else _as_colour(store.sample_observations))
     sample = sample / factor[:, None, None]
-    fitted_terms = len(terms) if terms is not None else len(_terms(model, 1, distinct))
+    fitted_terms = (len(terms) if terms is not None else
+                    RBF_TERMS if model in CHOSEN_MODELS else len(_terms(model, 1, distinct)))
     sample[saturated_observations(store.sample_observations, store.sample_valid, threshold,
                                   fitted_terms)] = np.nan
     channels = sample.shape[2]
     sigma, basis = None, None
     extra: dict[str, np.ndarray] = {}
-    if model == "rbf":
+    chosen: dict[str, Any] = {}
+    if model in CHOSEN_MODELS:
+        choice, chosen, extra = resolve_model(
+            model, sample, directions, *_sample_solution(store, normals, albedo),
+            ps_scorer=ps_cv_score)
+        model, basis = choice.model, extra.get("basis")
+    elif model == "rbf":
         sigma, basis = rbf_setup(sample, directions)
         extra = {"lights": directions.astype(np.float32), "basis": basis.astype(np.float32)}
-    meta = model_meta(model, channels, distinct, sigma, terms)
+    if chosen:  # the model the choice resolved to: what the lights determine of it
+        distinct, terms = check_lights(model, directions)
+    meta = {**model_meta(model, channels, distinct, sigma, terms), **chosen}
+    space = meta.get("space", "linear")
     height, width = store.shape
     shape = (height, width, channels, meta["K"])
     temp, temp_vis = folder / _TEMP, folder / _TEMP_VIS
@@ -257,7 +283,7 @@ def fit_appearance_bands(
                     coeffs, vis = _fit_band(model, _as_colour(observations), directions, factor,
                                             np.asarray(normals[rows])[inside],
                                             np.asarray(albedo[rows])[inside], basis, workers,
-                                            advance, tuple(meta["terms"]))
+                                            advance, tuple(meta["terms"]), space)
                     block[inside] = coeffs
                     if vis is not None:
                         vis_block[inside] = vis
@@ -269,7 +295,7 @@ def fit_appearance_bands(
             extra["visibility"] = np.load(temp_vis, mmap_mode="r")
         write_appearance(folder, Appearance(model, coefficients, meta, extra))
         del coefficients
-        extra.pop("visibility", None)
+        extra.clear()
     finally:
         temp.unlink(missing_ok=True)
         temp_vis.unlink(missing_ok=True)
@@ -279,7 +305,16 @@ def fit_appearance_bands(
         "terms": meta["terms"],
         "timings": {"fit_seconds": time.perf_counter() - started},
         **({"sigma": sigma} if sigma is not None else {}),
+        **({"space": space, "choice": meta["choice"]} if "choice" in meta else {}),
     }
+
+
+def _sample_solution(store: ObservationStore, normals: np.ndarray, albedo: np.ndarray):
+    """The normals (m, 3) and albedo of the store's sample pixels (the mask's pixels
+    ``store.sample_index`` in row-major order)."""
+    rows, cols = np.nonzero(store.mask)
+    r, c = rows[store.sample_index], cols[store.sample_index]
+    return np.asarray(normals[r, c], np.float64), np.asarray(albedo[r, c], np.float64)
 
 
 def _fit_band(
@@ -293,6 +328,7 @@ def _fit_band(
     workers: int,
     advance: Callable[..., None],
     terms: tuple[str, ...] = PS_TERMS,
+    space: str = "linear",
 ) -> tuple[np.ndarray, np.ndarray | None]:
     """One band's coefficients (P, C, K) float32 and the ps visibility (P, 4) float32 (or None).
 
@@ -306,7 +342,7 @@ def _fit_band(
     def fit(part: slice) -> tuple[np.ndarray, np.ndarray | None]:
         return fit_block(model, observations, directions, pixels=part, scale=factor,
                          normals=normals[part], albedo=albedo[part], rbf_basis=basis,
-                         terms=terms if model == "ps" else PS_TERMS)
+                         terms=terms if model == "ps" else PS_TERMS, space=space)
 
     results: list[tuple[np.ndarray, np.ndarray | None]] = []
     if model == "ps" and workers > 1 and len(parts) > 1:

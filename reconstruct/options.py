@@ -205,9 +205,11 @@ class ReconstructOptions:
         object on the spheres' table, minus their radius). None: the dataset's
         ``object_outline.txt`` (``ps-lab calibrate --object``), else found from the shading
         (:func:`ps_lab.reconstruct.near.near_light_rounds`).
-    appearance : {"ps", "ptm", "hsh2", "hsh3", "rbf", "none"}
+    appearance : {"auto", "ps", "ptm", "hsh2", "hsh3", "rbf", "bln", "gp", "none"}
         The appearance model fitted per pixel after the normals (``appearance.npz``;
-        :mod:`ps_lab.reconstruct.appearance`, docs/appearance.md); ``none``: no fit.
+        :mod:`ps_lab.reconstruct.appearance`, docs/appearance.md); ``auto``: the model and fit
+        space of best cross-validated relighting (:mod:`ps_lab.reconstruct.appearance_choice`);
+        ``none``: no fit.
     led_model : {"auto", "isotropic", "beam", "flat-field"}
         Near lights: the LEDs' emission. ``isotropic`` (the intensities at the origin and
         ``light_anisotropy.txt``'s exponents about the direction to the origin), ``beam``
@@ -236,13 +238,13 @@ class ReconstructOptions:
     encoding: str = "auto"
     normal_map: str = "opengl"
     object_outline: float | None = None
-    appearance: str = "ps"
+    appearance: str = "auto"
     led_model: str = "auto"
 
     def __post_init__(self) -> None:
-        if self.appearance not in APPEARANCE_MODELS:
+        if self.appearance not in ("auto", *APPEARANCE_MODELS):
             raise OutputError(
-                f"--appearance must be one of {', '.join(APPEARANCE_MODELS)}, "
+                f"--appearance must be one of auto, {', '.join(APPEARANCE_MODELS)}, "
                 f"got {self.appearance!r}"
             )
         if self.encoding not in ENCODINGS:

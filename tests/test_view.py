@@ -31,7 +31,7 @@ from ps_lab.cli import app
 from ps_lab.view import ViewSite, export_site, load_result
 from ps_lab.view.result import CHANNELS, decimate_mesh, vertex_normals
 from ps_lab.view.tiles import TILE, pyramid
-from tests.helpers.browser import Browser, find_chromium
+from tests.helpers.browser import Browser, default_sigint, find_chromium
 
 runner = CliRunner()
 DILIGENT = Path(__file__).resolve().parents[2] / "shared" / "data" / "diligent-8bit"
@@ -118,7 +118,7 @@ def test_pyramid_levels_average_and_tiles_round_trip():
     assert levels.tile(0, 3, 0) is None and levels.tile(3, 0, 0) is None
 
 
-def test_appearance_tiles_follow_the_layer_pyramid_and_rbf_gets_a_note():
+def test_appearance_tiles_follow_the_layer_pyramid_and_rbf_is_tiled():
     # hsh3 coefficients on a 1100 x 700 plane: the same levels as the layers, a tile's planes
     # are the level's coefficients term-major (3k + c) over the albedo scale; rbf is not tiled.
     from ps_lab.io.appearance import Appearance
@@ -138,9 +138,29 @@ def test_appearance_tiles_follow_the_layer_pyramid_and_rbf_gets_a_note():
     block = coefficients[:2, :2].mean(axis=(0, 1)).T.reshape(27) / 2.0
     np.testing.assert_allclose(tiles.levels[1][0, 0].astype(float), block, atol=2e-3)
     assert tiles.tile(0, 3, 0) is None and tiles.tile(3, 0, 0) is None
-    rbf = Appearance("rbf", coefficients[..., :4], {"K": 4, "sigma": 0.5})
-    assert appearance_tiles(rbf, mask, 1.0) is None
-    entry = appearance_entry(rbf, None)
+    # rbf: per-channel coefficients tiled 3k + c; channels sharing them (RelightLab's mrgb read
+    # back) tiled k; the manifest carries the lights, sigma and the basis repeated to 3 channels
+    lights = rng.normal(size=(5, 3))
+    basis = rng.uniform(size=(1, 5, 4))
+    rbf = Appearance("rbf", coefficients[..., :4], {"K": 4, "sigma": 0.5},
+                     {"lights": lights, "basis": basis})
+    tiles = appearance_tiles(rbf, mask, 1.0)
+    assert tiles.planes == 3 and tiles.levels[0].shape[2] == 12
+    entry = appearance_entry(rbf, tiles)
+    assert entry["shared"] is False and entry["note"] is None
+    np.testing.assert_allclose(np.reshape(entry["rbf"]["basis"], (3, 5, 4)),
+                               np.repeat(basis, 3, axis=0))
+    shared = Appearance("rbf", np.repeat(coefficients[..., :1, :4], 3, axis=2), rbf.meta,
+                        rbf.extra)
+    tiles = appearance_tiles(shared, mask, 2.0)
+    assert tiles.planes == 1 and appearance_entry(shared, tiles)["shared"] is True
+    np.testing.assert_array_equal(tiles.levels[0][TILE:, 2 * TILE:],
+                                  (coefficients[TILE:, 2 * TILE:, 0, :4] / 2.0).astype(np.float16))
+    # a model the page cannot relight (more terms than its uniforms) is Lambertian, with a note
+    wide = Appearance("rbf", rng.uniform(size=(h, w, 1, 40)).astype(np.float32),
+                      {"K": 40, "sigma": 0.5}, {"lights": lights, "basis": basis})
+    assert appearance_tiles(wide, mask, 1.0) is None
+    entry = appearance_entry(wide, None)
     assert entry["planes"] is None and "Lambertian" in entry["note"]
 
 
@@ -213,6 +233,7 @@ class ViewServer:
             stderr=subprocess.PIPE,
             text=True,
             env=env,
+            preexec_fn=default_sigint,  # noqa: PLW1509 - one signal call before exec
         )
         line = self.process.stdout.readline()
         match = re.search(r"http://127\.0\.0\.1:(\d+)/", line)
@@ -222,7 +243,12 @@ class ViewServer:
     def stop(self) -> tuple[int, str]:
         """Ctrl-C: the exit code and stderr."""
         self.process.send_signal(signal.SIGINT)
-        _, err = self.process.communicate(timeout=10)
+        try:
+            _, err = self.process.communicate(timeout=30)
+        except subprocess.TimeoutExpired:
+            self.process.kill()
+            self.process.communicate()
+            raise
         return self.process.returncode, err
 
 
@@ -285,6 +311,10 @@ def settle(browser) -> None:
     # the drawn frame on screen (two animation frames: composited)
     browser.evaluate("new Promise(r => requestAnimationFrame(() => requestAnimationFrame(r)))")
     browser.wait_for("psView.idle()", timeout=20)
+    # every tile drawn arrived (a failed fetch is retried; one that failed for good says so here
+    # instead of as a picture off by the whole shading)
+    assert browser.evaluate("psView.stats.tilesFailed") == 0, browser.evaluate(
+        "document.getElementById('status').textContent")
 
 
 def check_relight(browser, result: Path, panel: int = 0) -> dict:
@@ -539,6 +569,13 @@ def _with_appearance(result: Path, folder: Path, model: str) -> Path:
         basis = appearance_basis("hsh3", lights)  # (n, 9)
         coefficients = np.einsum("kn,hwnc->hwck", np.linalg.pinv(basis), images)
         meta = {"basis": "hsh3", "K": 9}
+    elif model == "rbf":  # ps-lab's rbf: per-channel coefficients on a per-channel basis
+        lights = np.loadtxt(json.loads((result / "metrics.json").read_text())["dataset"]
+                            + "/light_directions.txt")
+        k = 5
+        coefficients = rng.uniform(0, 0.3, size=(h, w, 3, k)) * albedo.mean()
+        meta = {"basis": "rbf", "K": k, "sigma": 0.4}
+        extra = {"lights": lights, "basis": rng.uniform(0, 1, size=(3, len(lights), k))}
     else:  # "ps": the default terms (with "ps-vis" a visibility); "ps-all": every kind of term
         terms = list(PS_TERMS) if model in ("ps", "ps-vis") else [
             "lambert", "lx", "ly", "lz", "ambient", "lobe:4", "lobex:16", "lobey:16", "hsh:2",
@@ -555,11 +592,12 @@ def _with_appearance(result: Path, folder: Path, model: str) -> Path:
             meta["visibility"] = "clip-linear"
         model = "ps"
     write_appearance(folder, Appearance(model, coefficients.astype(np.float32), meta,
-                                        extra if meta.get("visibility") else {}))
+                                        extra if meta.get("visibility") or model == "rbf"
+                                        else {}))
     return folder
 
 
-@pytest.mark.parametrize("model", ["hsh3", "ps", "ps-all", "ps-vis"])
+@pytest.mark.parametrize("model", ["hsh3", "ps", "ps-all", "ps-vis", "rbf"])
 def test_appearance_relight_in_chromium_matches_the_model(browser, colour_result, tmp_path, model):
     from ps_lab.io.appearance import Appearance, evaluate_appearance, read_appearance
 
@@ -569,7 +607,7 @@ def test_appearance_relight_in_chromium_matches_the_model(browser, colour_result
     fit = read_appearance(result)
     coefficients = (fit.coefficients / scale).astype(np.float16).astype(np.float32)
     extra = {name: np.asarray(value).astype(np.float16).astype(np.float32)
-             for name, value in fit.extra.items()}
+             if name == "visibility" else value for name, value in fit.extra.items()}
     rounded = Appearance(fit.model, coefficients, fit.meta, extra)
     normals = view.layers[..., :3].astype(np.float16).astype(np.float64)
     norm = np.linalg.norm(normals, axis=2)
@@ -650,5 +688,53 @@ def test_a_relightlab_export_relights_in_chromium(browser, colour_result, tmp_pa
         print("RelightLab folder relight vs numpy (levels): mean", float(difference.mean()),
               "max", float(difference.max()))
         assert difference.max() <= 2.0
+    finally:
+        server.stop()
+
+
+def test_a_default_result_exported_for_openlime_relights_in_chromium_as_the_export(
+    browser, colour_result, tmp_path
+):
+    """A default result (model ps) exported with --format relight (converted to RelightLab's
+    rbf layout): ps-lab view of the export shows what the export relights (the numpy read of
+    its planes, as OpenLIME reads them), within 2 levels."""
+    from ps_lab.io.appearance import Appearance, evaluate_appearance, read_appearance
+    from ps_lab.io.relightlab import read_relightlab
+    from ps_lab.view.relightlab import load_view_result
+
+    assert read_appearance(colour_result).model == "ps"
+    out = tmp_path / "openlime"
+    done = runner.invoke(app, ["view", str(colour_result), "--export", str(out), "--format",
+                               "relight"])
+    assert done.exit_code == 0, done.output
+    assert "rbf" in done.output and "dB PSNR" in done.output
+    view = load_view_result(out)
+    fit, info = read_relightlab(out)
+    assert info["type"] == "rbf" and info["ps_lab"]["model"] == "ps"
+    coefficients = (fit.coefficients / view.albedo_scale).astype(np.float16).astype(np.float32)
+    rounded = Appearance("rbf", coefficients, fit.meta, fit.extra)
+    mask = np.linalg.norm(view.layers[..., :3], axis=2) > 0.5
+    server = ViewServer(out)
+    try:
+        browser.open(server.url)
+        assert browser.evaluate("psView.ready") is True
+        entry = browser.evaluate("psView.results()[0]")
+        assert entry["appearance"]["model"] == "rbf" and entry["appearance"]["shared"] is True
+        assert entry["appearance"]["note"] is None
+        browser.evaluate("psView.pixelScale(0, 1)")
+        browser.evaluate("psView.setView({cx: 0.5, cy: 0.5})")
+        for light in ([0.4, -0.2, float(np.sqrt(1 - 0.2))], [-0.1, 0.3, float(np.sqrt(0.9))]):
+            browser.evaluate(f"psView.setLight({json.dumps(light)})")
+            settle(browser)
+            linear = np.clip(evaluate_appearance(rounded, np.asarray(light), view.layers[..., :3],
+                                                 np.zeros(view.shape)).astype(np.float64), 0, 1)
+            expected = 255 * np.where(linear <= 0.0031308, linear * 12.92,
+                                      1.055 * linear ** (1 / 2.4) - 0.055)
+            rows, cols, picture = shown_pixels(browser, 0, view.shape)
+            shown = picture[rows][:, cols].astype(np.float64)[..., :3]
+            difference = np.abs(shown - expected)[interior(mask)]
+            print("default result's OpenLIME export in the viewer vs numpy (levels): mean",
+                  float(difference.mean()), "max", float(difference.max()))
+            assert difference.max() <= 2.0
     finally:
         server.stop()

@@ -40,6 +40,7 @@ from ps_lab.cli import app
 from ps_lab.view import ViewSite, load_result
 from ps_lab.view.site import REQUEST_TIMEOUT, ViewServer
 from ps_lab.view.tiles import mesh_address, tile_address
+from tests.helpers.browser import default_sigint
 
 SIZE = 24
 runner = CliRunner()
@@ -566,6 +567,7 @@ class Server:
             stdin=subprocess.DEVNULL,
             text=True,
             env=env(),
+            preexec_fn=default_sigint,  # noqa: PLW1509 - one signal call before exec
         )
         line = self.process.stdout.readline()
         match = re.search(r"http://127\.0\.0\.1:(\d+)/", line)

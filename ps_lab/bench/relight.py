@@ -1,13 +1,16 @@
 """Relighting quality on held-out lights: ``ps-lab bench relight``.
 
-Every 8th light of a capture (lights 8, 16, ...) is left out; the normals (the default solver on
-the channel mean, with the reconstruction's shadow rule) and every appearance model are fitted on
-the rest (the same training lights for all), in colour (each channel divided by its light's
-intensity), and each model predicts the held-out images. The predictions are compared with the
-held-out images in the images' own units (the solver's units times the light's intensity,
-clipped to [0, 1]) over the object mask: PSNR of the pooled squared error (peak 1), and SSIM
-(:func:`ssim`: Wang et al. 2004, 11 × 11 Gaussian window of σ = 1.5, K1 = 0.01, K2 = 0.03,
-averaged over the mask pixels, channels and held-out lights).
+Eight folds: fold ``f`` holds out the lights of index ``i % 8 == f`` (0-based, the file's order),
+so that every light is held out once. In each fold the normals (the default solver on the channel
+mean, with the reconstruction's shadow rule) and every appearance model are fitted on the other
+lights only (the same training lights for all; ``auto``'s cross-validated choice sees only them),
+in colour (each channel divided by its light's intensity), and each model predicts the held-out
+images. The judged metric (RealRTI's): the prediction and the held-out image in the images' own
+units (the solver's units times the light's intensity, clipped to [0, 1]) reduced to grey (the
+channel mean of linear RGB), sRGB-encoded, PSNR per image at peak 255 over the object mask; mean
+over the held-out images, then over the folds. SSIM (:func:`ssim`: Wang et al. 2004, 11 × 11
+Gaussian window of σ = 1.5, K1 = 0.01, K2 = 0.03, on the same grey sRGB images) is averaged the
+same way. ``--extrapolate``: one split instead, the lowest eighth of the lights held out.
 
 ``lambertian`` is ``ρ_c · max(n·l, 0)`` with the solver's normal and a per-channel albedo fitted
 to the training observations the solver kept (least squares with the normal fixed).
@@ -25,6 +28,7 @@ import numpy as np
 
 from ps_lab.io.appearance import coefficients_per_pixel, evaluate_appearance, lambertian
 from ps_lab.io.dataset import load_dataset
+from ps_lab.io.encoding import linear_to_srgb
 from ps_lab.io.lights import find_lp
 from ps_lab.reconstruct import light_noise_factors, solve
 from ps_lab.reconstruct._shadows import black_threshold
@@ -32,19 +36,22 @@ from ps_lab.reconstruct._solve import NOISE_SAMPLE_PIXELS
 from ps_lab.reconstruct.appearance import fit_appearance
 
 DEFAULT_FOLDER = Path(__file__).resolve().parents[2].parent / "shared" / "data" / "diligent-8bit"
-MODELS = ("lambertian", "ptm", "hsh2", "hsh3", "rbf", "ps")
+MODELS = ("auto", "ps", "lambertian", "ptm", "hsh2", "hsh3", "rbf", "bln", "gp")
 HOLD_OUT_EVERY = 8
 
 
 @dataclass
 class RelightRow:
-    """One capture: per model PSNR (dB), SSIM, coefficients per pixel and fit seconds."""
+    """One capture: per model the fold-mean PSNR (dB) and SSIM, per fold PSNR (``folds``),
+    coefficients per pixel and fit seconds (summed over folds); ``choices``: per fold what
+    ``auto`` chose."""
 
     name: str
     pixels: int
     train: int
     test: int
-    cells: dict[str, dict[str, float]] = field(default_factory=dict)
+    cells: dict[str, dict] = field(default_factory=dict)
+    choices: list[str] = field(default_factory=list)
 
 
 def find_captures(folder: Path) -> list[Path]:
@@ -63,9 +70,11 @@ def find_captures(folder: Path) -> list[Path]:
 
 
 def split_lights(
-    n: int, every: int = HOLD_OUT_EVERY, directions: np.ndarray | None = None
+    n: int, every: int = HOLD_OUT_EVERY, directions: np.ndarray | None = None,
+    fold: int | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Training and held-out light indices: every ``every``-th light (8th, 16th...) held out.
+    """Training and held-out light indices: the lights ``i % every == fold`` held out (default
+    fold ``every − 1``: the 8th, 16th... light).
 
     With ``directions`` (n, 3): the ``n // every`` lights farthest from the view axis (lowest
     z) are held out instead, to measure extrapolation outside the training lights' range.
@@ -75,7 +84,7 @@ def split_lights(
         held = np.zeros(n, bool)
         held[np.argsort(np.asarray(directions)[:, 2], kind="stable")[: n // every]] = True
     else:
-        held = (index % every) == every - 1
+        held = (index % every) == (every - 1 if fold is None else fold)
     return index[~held], index[held]
 
 
@@ -140,6 +149,17 @@ def _colour_albedo(obs, valid, directions, normals):
     return np.where(den > 0, num / np.maximum(den, 1e-12), 0.0)
 
 
+def _grey_srgb(linear: np.ndarray) -> np.ndarray:
+    """(..., P, C) linear in [0, 1] -> (..., P) grey sRGB at peak 255."""
+    return linear_to_srgb(np.mean(linear, axis=-1)) * 255.0
+
+
+def _fold_splits(n: int, directions: np.ndarray, extrapolate: bool):
+    if extrapolate:
+        return [split_lights(n, directions=directions)]
+    return [split_lights(n, fold=f) for f in range(HOLD_OUT_EVERY)]
+
+
 def evaluate_capture(
     path: Path,
     models=MODELS,
@@ -147,62 +167,77 @@ def evaluate_capture(
     *,
     extrapolate: bool = False,
 ) -> RelightRow:
-    """Fit every model on the training lights of one capture; score the held-out lights.
+    """Every model on every fold of one capture (module docstring); ``progress`` is called once
+    per model and fold.
 
-    ``extrapolate``: hold out the lowest lights instead (:func:`split_lights`).
+    ``extrapolate``: one split, the lowest lights held out (:func:`split_lights`).
     """
     base, mask, obs = _load_colour(path)
     n = obs.shape[0]
     directions = base.light_directions / np.linalg.norm(base.light_directions, axis=1,
                                                         keepdims=True)
-    train, test = split_lights(n, directions=directions if extrapolate else None)
-    started = time.perf_counter()
-    normals, valid = _solver_normals(base, mask, train)
-    solve_seconds = time.perf_counter() - started
-    albedo = _colour_albedo(obs[train], valid, directions[train], normals)
-    row = RelightRow(Path(path).name, int(mask.sum()), len(train), len(test))
+    splits = _fold_splits(n, directions, extrapolate)
+    row = RelightRow(Path(path).name, int(mask.sum()), n - len(splits[0][1]), len(splits[0][1]))
     height, width = mask.shape
-    normal_image = np.zeros((height, width, 3), np.float32)
-    normal_image[mask] = normals
-    albedo_image = np.zeros((height, width, 3), np.float32)
-    albedo_image[mask] = albedo
     intensities = np.asarray(base.light_intensities, np.float64).reshape(n, -1)
-    truth = np.clip(obs[test] * intensities[test][:, None, :], 0.0, 1.0)
-    for model in models:
+    cells = {m: {"folds": [], "ssim_folds": [], "coefficients": 0, "seconds": 0.0}
+             for m in models}
+    for train, test in splits:
         started = time.perf_counter()
-        if model == "lambertian":
+        solved = bool({"ps", "lambertian"} & set(models))
+        if solved:
+            normals, valid = _solver_normals(base, mask, train)
+            albedo = _colour_albedo(obs[train], valid, directions[train], normals)
+        else:  # the interpolating models need neither (auto then does not consider ps)
+            normals, albedo = np.zeros((obs.shape[1], 3)), np.zeros((obs.shape[1], 3))
+        solve_seconds = time.perf_counter() - started
+        normal_image = np.zeros((height, width, 3), np.float32)
+        normal_image[mask] = normals
+        albedo_image = np.zeros((height, width, 3), np.float32)
+        albedo_image[mask] = albedo
+        truth = _grey_srgb(np.clip(obs[test] * intensities[test][:, None, :], 0.0, 1.0))
+        for model in models:
+            started = time.perf_counter()
             appearance = None
-            count = 2 + 3  # the normal and the albedo
-        else:
-            appearance = fit_appearance(model, obs[train], directions[train], mask,
-                                        normals=normals, albedo=albedo)
-            count = coefficients_per_pixel(appearance)
-            if model == "ps":
-                count += 2 + 3  # the normal and the albedo it relights with
-        seconds = time.perf_counter() - started + (solve_seconds if model == "ps" else 0.0)
-        squared, scores = [], []
-        for k, light in enumerate(test):
-            if appearance is None:
-                picture = lambertian(directions[light], normal_image, albedo_image)
-            else:
-                picture = evaluate_appearance(appearance, directions[light], normal_image,
-                                              albedo_image)
-            predicted = np.clip(picture[mask] * intensities[light], 0.0, 1.0)
-            squared.append(np.mean((predicted - truth[k]) ** 2))
-            full_p = np.zeros((height, width, 3))
-            full_t = np.zeros((height, width, 3))
-            full_p[mask], full_t[mask] = predicted, truth[k]
-            scores += [ssim(full_p[..., c], full_t[..., c], mask) for c in range(3)]
-        mse = float(np.mean(squared))
-        row.cells[model] = {
-            "psnr": 10 * np.log10(1.0 / max(mse, 1e-20)),
-            "ssim": float(np.mean(scores)),
-            "coefficients": count,
-            "seconds": seconds,
-        }
-        if progress is not None:
-            progress(f"{row.name} {model}")
+            count = 2 + 3  # lambertian: the normal and the albedo
+            if model != "lambertian":
+                appearance = fit_appearance(model, obs[train], directions[train], mask,
+                                            normals=normals if solved else None,
+                                            albedo=albedo if solved else None)
+                count = coefficients_per_pixel(appearance) + (5 if model == "ps" else 0)
+                if model == "auto":
+                    row.choices.append(f"{appearance.model}/{appearance.meta.get('space')}")
+            seconds = time.perf_counter() - started + (solve_seconds if model == "ps" else 0.0)
+            scores, ssims = [], []
+            for k, light in enumerate(test):
+                if appearance is None:
+                    picture = lambertian(directions[light], normal_image, albedo_image)
+                else:
+                    picture = evaluate_appearance(appearance, directions[light], normal_image,
+                                                  albedo_image)
+                predicted = _grey_srgb(np.clip(picture[mask] * intensities[light], 0.0, 1.0))
+                mse = float(np.mean((predicted - truth[k]) ** 2))
+                scores.append(10 * np.log10(255.0**2 / max(mse, 1e-12)))
+                full_p, full_t = np.zeros((height, width)), np.zeros((height, width))
+                full_p[mask], full_t[mask] = predicted, truth[k]
+                ssims.append(ssim(full_p, full_t, mask, peak=255.0))
+            cell = cells[model]
+            cell["folds"].append(float(np.mean(scores)))
+            cell["ssim_folds"].append(float(np.mean(ssims)))
+            cell["coefficients"] = count
+            cell["seconds"] += seconds
+            if progress is not None:
+                progress(f"{row.name} {model}")
+    for model, cell in cells.items():
+        cell["psnr"] = float(np.mean(cell["folds"]))
+        cell["ssim"] = float(np.mean(cell.pop("ssim_folds")))
+        row.cells[model] = cell
     return row
+
+
+def folds_of(path: Path, *, extrapolate: bool = False) -> int:
+    """How many folds :func:`evaluate_capture` runs (1 with ``extrapolate``, else 8)."""
+    return 1 if extrapolate else HOLD_OUT_EVERY
 
 
 def run_relight(
@@ -214,7 +249,8 @@ def run_relight(
 
 
 def format_table(rows: list[RelightRow], *, markdown: bool = False) -> str:
-    """Per capture and model: ``PSNR dB / SSIM (coefficients per pixel)``."""
+    """Per capture and model: ``fold-mean PSNR dB / SSIM (coefficients per pixel)
+    [worst fold]``; ``auto`` also its margin over the best other model ``{mean, min per fold}``."""
     if not rows:
         return ""
     names = list(rows[0].cells)
@@ -222,12 +258,15 @@ def format_table(rows: list[RelightRow], *, markdown: bool = False) -> str:
     lines = []
     for row in rows:
         cells = [row.name, f"{row.train}/{row.test}"]
-        best = max(row.cells[m]["psnr"] for m in names if m not in ("ps", "lambertian"))
+        others = [m for m in names if m != "auto"]
         for name in names:
             c = row.cells[name]
-            text = f"{c['psnr']:.2f} / {c['ssim']:.4f} ({c['coefficients']})"
-            if name == "ps":
-                text += f" [{c['psnr'] - best:+.2f}]"
+            text = f"{c['psnr']:.2f} / {c['ssim']:.4f} ({c['coefficients']}) [{min(c['folds']):.2f}]"
+            if name == "auto" and others:
+                folds = np.array([row.cells[m]["folds"] for m in others])
+                mean = c["psnr"] - folds.mean(axis=1).max()
+                worst = float(np.min(np.array(c["folds"]) - folds.max(axis=0)))
+                text += f" {{{mean:+.2f}, {worst:+.2f}}}"
             cells.append(text)
         lines.append(cells)
     if markdown:
@@ -242,4 +281,4 @@ def format_table(rows: list[RelightRow], *, markdown: bool = False) -> str:
 def results_as_dict(rows: list[RelightRow]) -> list[dict]:
     """Plain data for JSON."""
     return [{"capture": r.name, "pixels": r.pixels, "train": r.train, "held_out": r.test,
-             "results": r.cells} for r in rows]
+             "auto_choices": r.choices, "results": r.cells} for r in rows]

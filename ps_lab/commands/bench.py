@@ -211,17 +211,20 @@ def relight(
     markdown: MarkdownFlag = False,
     json_out: JsonFile = None,
 ) -> None:
-    """Held-out relighting PSNR and SSIM of every appearance model (every 8th light left out)."""
+    """Held-out relighting PSNR and SSIM of every appearance model (eight folds: every light
+    held out once)."""
     check_json_path(json_out)
-    captures = bench_relight.find_captures(
-        folder if folder is not None else bench_relight.DEFAULT_FOLDER)
+    folder_given = folder
+    folder = folder if folder is not None else bench_relight.DEFAULT_FOLDER
+    captures = bench_relight.find_captures(folder)
     what = "capture folders (light_directions.txt or an .lp file)"
-    if not check_bench_folder(folder, captures, bench_relight.DEFAULT_FOLDER, what):
-        typer.echo(f"skipped: no {what} under {bench_relight.DEFAULT_FOLDER}")
+    if not check_bench_folder(folder_given, captures, bench_relight.DEFAULT_FOLDER, what):
+        typer.echo(f"skipped: no {what} under {folder}")
         return
-    every = bench_relight.HOLD_OUT_EVERY
+    every = bench_relight.HOLD_OUT_EVERY  # each of the eight folds holds out one light at least
     check_light_counts(captures, every, f"holding out every {every}th light")
-    total = len(captures) * len(bench_relight.MODELS)
+    total = len(captures) * len(bench_relight.MODELS) * bench_relight.folds_of(
+        folder, extrapolate=extrapolate)
     with progress_bar(total, "relighting", enabled=True) as advance:
         rows = [
             bench_relight.evaluate_capture(

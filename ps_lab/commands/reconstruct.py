@@ -32,11 +32,14 @@ class Method(str, Enum):  # noqa: UP042 - typer needs str-valued choices
 
 
 class AppearanceModel(str, Enum):  # noqa: UP042
+    auto = "auto"
     ps = "ps"
     ptm = "ptm"
     hsh2 = "hsh2"
     hsh3 = "hsh3"
     rbf = "rbf"
+    bln = "bln"
+    gp = "gp"
     none = "none"
 
 
@@ -44,9 +47,11 @@ AppearanceOption = Annotated[
     AppearanceModel,
     typer.Option(
         case_sensitive=False,
-        help="Appearance model fitted per pixel for relighting (appearance.npz): ps (ps-lab's: "
-        "the normal and albedo plus gloss terms), ptm, hsh2, hsh3, rbf (as RTI tools fit "
-        "them) or none. See docs/appearance.md.",
+        help="Appearance model fitted per pixel for relighting (appearance.npz): auto (the "
+        "model and fit space, linear or sRGB, that best predict each light from the others), "
+        "ps (ps-lab's: the normal and albedo plus gloss terms), ptm, hsh2, hsh3, rbf, bln "
+        "(as RTI tools fit them), gp (kernel regression over the lights) or none. See "
+        "docs/appearance.md.",
     ),
 ]
 
@@ -261,7 +266,7 @@ def reconstruct(
             help="normal16.png / normals.exr y axis: opengl (up) or directx (down).",
         ),
     ] = NormalMap.opengl,
-    appearance: AppearanceOption = AppearanceModel.ps,
+    appearance: AppearanceOption = AppearanceModel.auto,
 ) -> None:
     """Estimate surface normals and albedo; write normals.npy, normal.png, albedo, metrics.json."""
     out = out if out is not None else dataset / "recon" / method.value

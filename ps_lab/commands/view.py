@@ -55,8 +55,9 @@ def view(
             "--format",
             case_sensitive=False,
             help="With --export: site (the viewer as a static folder) or relight "
-            "(RelightLab's web layout of one result's PTM / HSH fit: info.json, plane_N.jpg, "
-            "normals.png, albedo.png; opens in OpenLIME's RTI layer).",
+            "(RelightLab's web layout of one result for OpenLIME's RTI layer: info.json, "
+            "plane_N.jpg, normals.png, albedo.png; a PTM / HSH fit as it is, any other model "
+            "converted to RBF, its PSNR against the model printed).",
         ),
     ] = ExportFormat.site,
 ) -> None:
@@ -68,8 +69,8 @@ def view(
     if export_format is ExportFormat.relight:
         if export is None or len(results) != 1:
             raise fail("--format relight needs --export DIR and exactly one result")
-        info = export_relightlab(results[0], export)
-        typer.echo(f"RelightLab {info['type']} ({info['nplanes']} planes) written to {export}")
+        _, line = export_relightlab(results[0], export)
+        typer.echo(line)
         return
     site = ViewSite([load_view_result(result) for result in results])
     if export is not None:

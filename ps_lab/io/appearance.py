@@ -71,6 +71,15 @@ channel) with the visibility (4 per pixel); with the normal's 2 and the albedo i
 per pixel in colour (13 in grey), as many as HSH order 3's 27 (9). Every term is bounded by 1 for any light, so the model
 cannot explode outside the captured range of lights (unlike PTM's and HSH's polynomials).
 
+``bln`` and ``gp``: interpolating models stored as ``rbf`` is (``lights``, ``basis``,
+coefficients), with other weights ``w(l)`` over the training lights (:mod:`ps_lab.io.smoothers`):
+``bln`` RelightLab's bilinear grid (``meta`` ``sigma`` and ``resolution``), ``gp`` kernel-ridge
+regression with a PTM mean (``meta`` ``sigma`` and ``ridge``, ``extra["solve"]`` (n + 6, n)).
+
+**Fit space** (``meta["space"]``, any model but ``ps`` and ``none``; absent means ``"linear"``):
+``"srgb"``: the coefficients model the sRGB-encoded observations (of the solver's units), and the
+evaluation decodes its prediction (clipped to [0, 1]) to linear light.
+
 ``none``: Lambertian only, ``ρ_c · max(n·l, 0)``, no coefficients.
 """
 
@@ -87,13 +96,17 @@ from typing import Any
 import numpy as np
 
 from ps_lab.errors import DatasetError
+from ps_lab.io.encoding import srgb_to_linear
 from ps_lab.io.files import PARTIAL_PREFIX, json_safe, publish_file
+from ps_lab.io.smoothers import bln_weights, gp_weights
 
 __all__ = [
     "APPEARANCE_FILE",
     "APPEARANCE_MODELS",
     "BASIS_TERMS",
+    "FIT_SPACES",
     "PS_TERMS",
+    "SMOOTHER_MODELS",
     "VISIBILITY_TERMS",
     "Appearance",
     "appearance_basis",
@@ -107,12 +120,17 @@ __all__ = [
     "ps_visibility",
     "ptm_basis",
     "rbf_weights",
+    "smoother_weights",
     "read_appearance",
     "write_appearance",
 ]
 
 APPEARANCE_FILE = "appearance.npz"
-APPEARANCE_MODELS = ("ps", "ptm", "hsh2", "hsh3", "rbf", "none")
+APPEARANCE_MODELS = ("ps", "ptm", "hsh2", "hsh3", "rbf", "bln", "gp", "none")
+#: Models that interpolate the training observations (stored with lights and a basis).
+SMOOTHER_MODELS = ("rbf", "bln", "gp")
+#: Spaces a model may be fitted in (``meta["space"]``).
+FIT_SPACES = ("linear", "srgb")
 #: Terms per channel of the fixed linear bases.
 BASIS_TERMS = {"ptm": 6, "hsh2": 4, "hsh3": 9}
 #: The ps model's default terms (see the module docstring).
@@ -389,6 +407,17 @@ def rbf_weights(directions: np.ndarray, lights: np.ndarray, sigma: float) -> np.
     return w / w.sum(axis=-1, keepdims=True)
 
 
+def smoother_weights(appearance: Appearance, directions: np.ndarray) -> np.ndarray:
+    """Weights (..., n) over the training lights of an ``rbf``, ``bln`` or ``gp`` model."""
+    lights = appearance.extra["lights"]
+    sigma = float(appearance.meta["sigma"])
+    if appearance.model == "bln":
+        return bln_weights(directions, lights, sigma, int(appearance.meta["resolution"]))
+    if appearance.model == "gp":
+        return gp_weights(directions, lights, sigma, appearance.extra["solve"])
+    return rbf_weights(directions, lights, sigma)
+
+
 # ---------------------------------------------------------------------------------------------
 # Evaluation
 
@@ -449,10 +478,8 @@ def evaluate_appearance(
         out = np.einsum("hwck,...k->hwc", coeffs, basis) if not per_pixel else np.einsum(
             "hwck,hwk->hwc", coeffs, basis
         )
-    elif model == "rbf":
-        lights = appearance.extra["lights"]
-        sigma = float(appearance.meta["sigma"])
-        weights = rbf_weights(light, lights, sigma)  # (n,) or (H, W, n)
+    elif model in SMOOTHER_MODELS:
+        weights = smoother_weights(appearance, light)  # (n,) or (H, W, n)
         rbf_basis = appearance.extra["basis"].astype(np.float64)  # (C, n, K)
         if per_pixel:
             planes = np.einsum("hwn,cnk->hwck", weights, rbf_basis)
@@ -479,6 +506,8 @@ def evaluate_appearance(
             out = out + extra
     else:
         raise ValueError(f"unknown appearance model {model!r}")
+    if appearance.meta.get("space") == "srgb":
+        out = srgb_to_linear(np.clip(out, 0.0, 1.0))
     return out.astype(np.float32)
 
 
@@ -589,20 +618,33 @@ def _validate(path: Path, model: str, coeffs: np.ndarray, meta: Any, extra: dict
                             or vis.shape != (*coeffs.shape[:2], VISIBILITY_TERMS)):
         fail(f"visibility must be a finite float32 (H, W, 4) of a ps model, not {vis.dtype} "
              f"{vis.shape}")
-    if model == "rbf":
+    if meta.get("space", "linear") not in FIT_SPACES or (
+            model in ("ps", "none") and meta.get("space", "linear") != "linear"):
+        fail(f"fit space {meta.get('space')!r} is not one of {', '.join(FIT_SPACES)} for {model}")
+    if model in SMOOTHER_MODELS:
         lights, basis = extra.get("lights"), extra.get("basis")
         if (lights is None or basis is None or lights.ndim != 2 or lights.shape[1] != 3
                 or not 1 <= k <= lights.shape[0]):
-            fail("rbf needs its training lights (n, 3) and basis (C, n, K), 1 <= K <= n")
+            fail(f"{model} needs its training lights (n, 3) and basis (C, n, K), 1 <= K <= n")
         if basis.shape != (coeffs.shape[2], lights.shape[0], k):
-            fail(f"rbf basis shape {basis.shape} does not match the coefficients")
+            fail(f"{model} basis shape {basis.shape} does not match the coefficients")
+        if not (np.all(np.isfinite(lights)) and np.all(np.isfinite(basis))):
+            fail(f"{model} lights or basis not finite")
         if np.any(np.abs(np.linalg.norm(lights.astype(np.float64), axis=1) - 1) > 1e-3):
-            fail("rbf training lights must be unit directions")
+            fail(f"{model} training lights must be unit directions")
         sigma = meta.get("sigma")
         low, high = RBF_SIGMA_RANGE
         if isinstance(sigma, bool) or not isinstance(sigma, (int, float)) or not (
                 low <= sigma <= high):
-            fail(f"rbf sigma must be a number in [{low:g}, {high:g}], not {sigma!r}")
+            fail(f"{model} sigma must be a number in [{low:g}, {high:g}], not {sigma!r}")
+        resolution = meta.get("resolution")
+        if model == "bln" and not (isinstance(resolution, int) and not isinstance(resolution, bool)
+                                   and 2 <= resolution <= 1024):
+            fail("bln resolution missing or not an integer in [2, 1024]")
+        solve = extra.get("solve")
+        if model == "gp" and (solve is None or solve.shape != (lights.shape[0] + 6, lights.shape[0])
+                              or not np.all(np.isfinite(solve))):
+            fail("gp needs its finite solve matrix (n + 6, n)")
 
 
 def ps_term_problem(term: Any) -> str | None:

@@ -12,8 +12,12 @@ plane and the planes stacked one under the other (a tile is one
 relit picture of a block is the block's mean picture).
 
 The page's shader (``static/render.js``) evaluates the bases of :mod:`ps_lab.io.appearance`:
-``ptm``, ``hsh2``, ``hsh3`` (weights of the light computed once per frame) and ``ps`` (per pixel,
-with the tile's normal). ``rbf`` is relit Lambertian, with a note on the page.
+``ptm``, ``hsh2``, ``hsh3`` (weights of the light computed once per frame), ``ps`` (per pixel,
+with the tile's normal) and ``rbf`` (per frame, the page sums the Gaussian weights of the light
+times each channel's basis, ``Σ_i w_i(l) B_c[i, k]``; the shader takes the dot product with
+the pixel's coefficients). An ``rbf`` fit whose channels share their coefficients (a grey fit,
+or a RelightLab / OpenLIME ``mrgb`` layout read back) is tiled with ``K`` coefficients per
+pixel instead of ``3·K`` (``shared`` in the manifest).
 """
 
 from __future__ import annotations
@@ -28,9 +32,10 @@ from ps_lab.view.tiles import TILE
 __all__ = ["VIEW_MODELS", "AppearanceTiles", "appearance_entry", "appearance_tiles"]
 
 #: Models the page relights with their own basis (the others are Lambertian there).
-VIEW_MODELS = ("ptm", "hsh2", "hsh3", "ps")
-#: Most terms per channel the shader takes (its uniform arrays).
+VIEW_MODELS = ("ptm", "hsh2", "hsh3", "ps", "rbf")
+#: Most terms per channel the shader takes (its uniform arrays; rbf has its own).
 MAX_TERMS = 16
+MAX_RBF_TERMS = 32
 
 
 class AppearanceTiles:
@@ -85,12 +90,16 @@ def appearance_tiles(
         return None
     coefficients = np.asarray(appearance.coefficients, np.float32)
     h, w, c, k = coefficients.shape
-    if k == 0 or k > MAX_TERMS or (h, w) != mask.shape:
+    limit = MAX_RBF_TERMS if appearance.model == "rbf" else MAX_TERMS
+    if k == 0 or k > limit or (h, w) != mask.shape:
         return None
-    if c == 1:
-        coefficients = np.repeat(coefficients, 3, axis=2)
-    # term-major: index 3k + c
-    flat = coefficients[:, :, :3, :].transpose(0, 1, 3, 2).reshape(h, w, 3 * k)
+    if appearance.model == "rbf" and shared_coefficients(coefficients):
+        flat = coefficients[:, :, 0, :]  # index k
+    else:
+        if c == 1:
+            coefficients = np.repeat(coefficients, 3, axis=2)
+        # term-major: index 3k + c
+        flat = coefficients[:, :, :3, :].transpose(0, 1, 3, 2).reshape(h, w, 3 * k)
     flat = np.where(mask[..., None], np.nan_to_num(flat) / np.float32(albedo_scale), 0.0)
     vis = appearance.extra.get("visibility") if appearance.model == "ps" else None
     if vis is not None:  # V = clamp(w·[l, 1], 0, 1), shared by the channels, unscaled
@@ -103,8 +112,20 @@ def appearance_tiles(
     return AppearanceTiles(levels)
 
 
+def shared_coefficients(coefficients: np.ndarray) -> bool:
+    """Whether every channel has the same coefficients (one channel, or equal channels)."""
+    c = coefficients.shape[2]
+    return c == 1 or all(
+        np.array_equal(coefficients[:, :, 0], coefficients[:, :, i]) for i in range(1, c)
+    )
+
+
 def appearance_entry(appearance: Appearance | None, tiles: AppearanceTiles | None) -> dict | None:
-    """The manifest's ``appearance`` entry: model, terms, planes, and a note when not relit."""
+    """The manifest's ``appearance`` entry: model, terms, planes, and a note when not relit.
+
+    An ``rbf`` entry adds ``rbf``: ``lights`` (n × 3, flat), ``sigma`` and ``basis`` (the
+    per-channel basis (3, n, K), flat, a one-channel basis repeated), and ``shared``.
+    """
     if appearance is None:
         return None
     k = int(appearance.coefficients.shape[3])
@@ -116,6 +137,15 @@ def appearance_entry(appearance: Appearance | None, tiles: AppearanceTiles | Non
         "planes": None if tiles is None else tiles.planes,
         "note": None,
     }
+    if appearance.model == "rbf" and tiles is not None:
+        basis = np.asarray(appearance.extra["basis"], np.float64)
+        basis = np.repeat(basis, 3, axis=0) if basis.shape[0] == 1 else basis[:3]
+        entry["shared"] = bool(tiles.levels[0].shape[2] == k)
+        entry["rbf"] = {
+            "lights": [float(x) for x in np.asarray(appearance.extra["lights"]).reshape(-1)],
+            "sigma": float(appearance.meta["sigma"]),
+            "basis": [float(x) for x in np.nan_to_num(basis).reshape(-1)],
+        }
     if tiles is None:
         entry["note"] = (
             f"the page relights {appearance.model} as Lambertian (it evaluates "

@@ -16,6 +16,7 @@ import fcntl
 import json
 import os
 import shutil
+import signal
 import subprocess
 import tempfile
 import time
@@ -25,6 +26,17 @@ import cv2
 import numpy as np
 
 CANDIDATES = ("chromium", "chromium-browser", "google-chrome", "chrome")
+
+
+def default_sigint() -> None:
+    """``preexec_fn`` for a ``ps-lab view`` server a test stops with SIGINT (Ctrl-C).
+
+    A job a non-interactive shell starts in the background (``make test &``, a CI wrapper, a
+    loop under ``nohup``) inherits SIGINT *ignored*, and Python then installs no
+    KeyboardInterrupt handler in the server: the test's Ctrl-C was lost and every stop timed
+    out. The child gets the default disposition back, as a terminal's Ctrl-C would find it.
+    """
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
 
 
 def find_chromium() -> str | None:
@@ -164,6 +176,14 @@ class Browser:
                 self.send("Target.closeTarget", {"targetId": previous}, browser=True)
             except BrowserError:
                 pass  # already gone
+            # closeTarget answers before the page is gone: wait until the browser no longer
+            # lists it (its renderer and WebGL context released) before the next page draws.
+            deadline = time.monotonic() + 10
+            while any(t.get("targetId") == previous for t in self.send(
+                "Target.getTargets", browser=True).get("targetInfos", [])):
+                if time.monotonic() > deadline:
+                    raise BrowserError(f"page {previous} still open 10 s after closing it")
+                time.sleep(0.02)
         target = self.send("Target.createTarget", {"url": "about:blank"}, browser=True)["targetId"]
         self.target = target
         self.session = self.send(

@@ -78,24 +78,31 @@ def sbl_pixel(y, a, *, lam, sigma_x2=1e6, max_iter=100, tol=1e-4, gamma_floor=1e
 
 
 def pl_model(y, a, *, segments, lam, sigma_x2=1e6, max_iter=20, tol=1e-4, gamma_floor=1e-10,
-             gamma_start=1e3, sbl=True, learn_tau=True, slope_floor=1e-3, out=None):
+             gamma_start=1e3, sbl=True, learn_tau=True, slope_floor=1e-3, out=None,
+             lit=None, slope_noise=True):
     """Piecewise-linear model of one pixel, with the design and the constraint written out.
 
+    Interior break points: order statistics of the observations ``lit`` (bool (n,), those the
+    Lambertian fit predicts lit; all of them when None or with fewer than 4 per segment); the
+    top one the largest observation. ``gamma_start`` may be an array
+    (n,) in ``y``'s units (a start from SBL's fit); ``slope_noise`` False keeps ``lam / K^2``.
     Returns (x (K+2), slopes (K), breaks (K+1), segment of each observation, gamma, lambda,
     iterations, log evidence, K used); ``out`` (a dict) receives the final fit's ``design``,
     ``target``, weights ``d``, ``prior`` and ``prior_rhs``.
     """
     n = y.size
     k = max(1, min(segments, n // 4))  # at least 4 observations per segment
-    srt = np.sort(y)
-    breaks = np.array([0.0] + [srt[(j * n) // k] for j in range(1, k)] + [srt[-1]])
+    lam0 = np.broadcast_to(np.asarray(lam, dtype=float), (n,)).copy()
+    use = lit is not None and k > 1 and lit.sum() >= 4 * k
+    srt = np.sort(y[lit] if use else y)
+    c = srt.size
+    breaks = np.array([0.0] + [srt[(j * c) // k] for j in range(1, k)] + [y.max()])
     phi = np.clip(y[:, None] - breaks[None, :k], 0.0, breaks[1:] - breaks[:k])
     seg = (y[:, None] > breaks[None, 1:k]).sum(axis=1)
     # f(y) = sum_k s_k phi_k = -a.l ; s_{K-1} = 1 - sum_{k<K-1} s_k eliminated
     design = np.concatenate([phi[:, :k - 1] - phi[:, k - 1:k], -a], axis=1)
     target = -phi[:, k - 1]
     u = k + 2
-    lam0 = np.broadcast_to(np.asarray(lam, dtype=float), (n,)).copy()
     lam_f = lam0 / k**2
     gamma = np.full(n, gamma_start / k**2)
     tau2 = 1.0
@@ -133,7 +140,8 @@ def pl_model(y, a, *, segments, lam, sigma_x2=1e6, max_iter=20, tol=1e-4, gamma_
                 dev = x[:k - 1] - 1.0 / k
                 e2 = dev @ q_free @ dev + np.trace(q_free @ minv[:k - 1, :k - 1])
                 tau2 = max(e2 / (k - 1), 1e-10)
-            lam_f = lam0 * np.maximum(slopes[seg], slope_floor / k) ** 2
+            if slope_noise:
+                lam_f = lam0 * np.maximum(slopes[seg], slope_floor / k) ** 2
         it += 1
         if not moved.any():
             iters = it
@@ -169,9 +177,20 @@ def _pl_statistic(model, y, a, slope_floor=1e-3):
 
 
 def plsbl_pixel(y, a, *, lam, segments=3, sigma_x2=1e6, max_iter=20, tol=1e-4,
-                gamma_floor=1e-10, gamma_start=1e3):
-    model = pl_model(y, a, segments=segments, lam=lam, sigma_x2=sigma_x2, max_iter=max_iter,
-                     tol=tol, gamma_floor=gamma_floor, gamma_start=gamma_start)
+                gamma_floor=1e-10, gamma_start=1e3, sbl_max_iter=100):
+    """PL-SBL as ps-lab runs it: the issue-23 fit (break points from all observations, the EM
+    from ``gamma_start``) and, with SBL's fit (the Lambertian model), a second one (break points
+    from the observations SBL's fit sees lit, the EM from SBL's final gamma); the fit of the
+    higher log evidence kept."""
+    common = dict(segments=segments, lam=lam, sigma_x2=sigma_x2, max_iter=max_iter, tol=tol,
+                  gamma_floor=gamma_floor)
+    model = pl_model(y, a, gamma_start=gamma_start, **common)
+    if model[8] > 1:
+        fit = {}
+        x_sbl = sbl_pixel(y, a, lam=lam, sigma_x2=sigma_x2, max_iter=sbl_max_iter, tol=tol,
+                          gamma_floor=gamma_floor, gamma_start=gamma_start, out=fit)[0]
+        second = pl_model(y, a, gamma_start=fit["gamma"], lit=a @ x_sbl > 0.0, **common)
+        model = second if second[7] >= model[7] or np.isnan(model[7]) else model
     normal, *_, iters, _, _ = _pl_result(model, y, np.inf)
     return normal, _pl_statistic(model, y, a), iters
 

@@ -35,7 +35,7 @@ uniform bool u_colour;
 // Appearance (issue 32; ps_lab/view/appearance_tiles.py): coefficient 3k + c of term k, channel c,
 // four to an RGBA plane, planes stacked in one texture of u_tsize.x x (u_tsize.y * planes).
 uniform highp sampler2D u_coef;
-uniform int u_model;      // 0 Lambertian, 1 a basis of the light (ptm, hsh2, hsh3), 2 ps
+uniform int u_model;      // 0 Lambertian, 1 a basis of the light (ptm, hsh2, hsh3), 2 ps, 3 rbf
 uniform int u_terms;
 uniform ivec2 u_tsize;
 uniform float u_basis[16];   // the basis at the light (ptm / hsh, and ps's hsh terms)
@@ -44,6 +44,8 @@ uniform float u_basis[16];   // the basis at the light (ptm / hsh, and ps's hsh 
 uniform int u_kind[16];
 uniform float u_power[16];   // ps lobes: the exponent P
 uniform bool u_vis;          // ps visibility: coefficients 3K .. 3K + 3 hold w (io/appearance.py)
+uniform vec3 u_rbf[32];      // rbf: sum_i w_i(l) B_c[i, k], channel c in x, y, z
+uniform bool u_shared;       // rbf: one coefficient per term (index k), else 3k + c
 uniform int u_mode;
 uniform vec3 u_light;
 uniform float u_exposure;
@@ -73,6 +75,14 @@ vec3 fitted(vec3 n, vec3 albedo) {    // io/appearance.py: evaluate_appearance, 
     V = clamp(dot(w, vec4(u_light, 1.0)), 0.0, 1.0);
   }
   vec3 c = u_model == 2 ? V * albedo * max(nl, 0.0) : vec3(0.0);
+  if (u_model == 3) {
+    for (int k = 0; k < 32; k++) {
+      if (k >= u_terms) break;
+      c += u_rbf[k] * (u_shared ? vec3(coefficient(px, k)) : vec3(coefficient(px, 3 * k),
+                       coefficient(px, 3 * k + 1), coefficient(px, 3 * k + 2)));
+    }
+    return c;
+  }
   for (int k = 0; k < 16; k++) {
     if (k >= u_terms) break;
     float b = u_basis[k];
@@ -164,10 +174,39 @@ function hshBasis(l) {    // Gautron et al. 2004 as RTIBuilder / RelightLab defi
   ];
 }
 
-// The uniforms of a fitted model at light l: { model, basis, kind, power } (model 0: Lambertian).
+// rbf (io/appearance.py: rbf_weights, evaluate_appearance): per channel c and term k,
+// sum_i w_i(l) B_c[i, k] with normalised Gaussian weights of width sigma over the lights.
+function rbfUniforms(fit, l) {
+  const out = new Float32Array(96);
+  const { lights, sigma, basis } = fit.rbf, n = lights.length / 3, K = fit.K, u = unitVector(l);
+  const logw = new Float64Array(n);
+  let top = -Infinity;
+  for (let i = 0; i < n; i++) {
+    const dx = u[0] - lights[3 * i], dy = u[1] - lights[3 * i + 1], dz = u[2] - lights[3 * i + 2];
+    logw[i] = -(dx * dx + dy * dy + dz * dz) / (sigma * sigma);
+    top = Math.max(top, logw[i]);
+  }
+  let total = 0;
+  for (let i = 0; i < n; i++) { logw[i] = Math.exp(logw[i] - top); total += logw[i]; }
+  for (let c = 0; c < 3; c++) {
+    for (let k = 0; k < K; k++) {
+      let s = 0;
+      for (let i = 0; i < n; i++) s += logw[i] * basis[(c * n + i) * K + k];
+      out[3 * k + c] = s / total;
+    }
+  }
+  return out;
+}
+
+// The uniforms of a fitted model at light l: { model, basis, kind, power, rbf, shared }
+// (model 0: Lambertian).
 function appearanceUniforms(fit, l) {
   const basis = new Float32Array(16), kind = new Int32Array(16), power = new Float32Array(16);
-  if (!fit || !fit.planes) return { model: 0, terms: 0, basis, kind, power, vis: false };
+  const none = { model: 0, terms: 0, basis, kind, power, vis: false, rbf: new Float32Array(96), shared: false };
+  if (!fit || !fit.planes) return none;
+  if (fit.model === "rbf") {
+    return { ...none, model: 3, terms: fit.K, rbf: rbfUniforms(fit, l), shared: !!fit.shared };
+  }
   const [x, y] = unitVector(l);
   if (fit.model === "ptm") basis.set([1, x, y, x * x, x * y, y * y]);
   else if (fit.model === "hsh2" || fit.model === "hsh3") basis.set(hshBasis(l).slice(0, fit.K));
@@ -184,7 +223,7 @@ function appearanceUniforms(fit, l) {
       else { kind[k] = 3; basis[k] = 0; }   // a term this page does not know: left out
     });
   }
-  return { model: fit.model === "ps" ? 2 : 1, terms: fit.K, basis, kind, power, vis: !!fit.visibility };
+  return { ...none, model: fit.model === "ps" ? 2 : 1, terms: fit.K, basis, kind, power, vis: !!fit.visibility };
 }
 
 function program(gl, vs, fs) {

@@ -21,7 +21,10 @@ const state = {
   view: { cx: 0.5, cy: 0.5, zoom: 1 },   // shared by all panels: centre (fraction), zoom over fit
   orbit: { yaw: 0, pitch: 0, zoom: 1 },
 };
-const stats = { frames: 0, tilesDrawn: 0, tilesLoaded: 0, pending: 0, meshTriangles: 0, glError: 0, drawMs: 0, fullMs: 0, reduction: 1, refined: true };
+const stats = { frames: 0, tilesDrawn: 0, tilesLoaded: 0, pending: 0, meshTriangles: 0, glError: 0, drawMs: 0, fullMs: 0, reduction: 1, refined: true, tileRetries: 0, tilesFailed: 0 };
+// A tile whose fetch fails (a keep-alive connection the server closed as it was reused, a
+// busy server) is asked for again by the next frame, up to this many times.
+const TILE_ATTEMPTS = 3;
 // While the light or the view moves, frames that took longer than this are drawn at a lower
 // resolution (1/f per axis, then scaled up); the full resolution follows REFINE_MS after the
 // last change.
@@ -91,7 +94,13 @@ function pump() {
         if (coefficients) entry.coefTexture = coefficientTexture(results[r], entry, coefficients, fit.planes);
         uploadTile(results[r], entry, buffer);
       })
-      .catch((error) => { status(`tile failed: ${error.message}`); })
+      .catch((error) => {
+        const key = tileKey(r, entry.level, entry.col, entry.row);
+        const attempts = (results[r].failures.get(key) || 0) + 1;
+        results[r].failures.set(key, attempts);
+        if (attempts < TILE_ATTEMPTS) { results[r].tiles.delete(key); stats.tileRetries++; }
+        else { stats.tilesFailed++; status(`tile failed: ${error.message}`); }
+      })
       .finally(() => { fetching--; stats.pending = fetching + queue.length; pump(); redraw(); });
   }
 }
@@ -312,6 +321,8 @@ function drawImage(result, panel) {
   gl.uniform1iv(p.u["u_kind[0]"], fit.kind);
   gl.uniform1fv(p.u["u_power[0]"], fit.power);
   gl.uniform1i(p.u.u_vis, fit.vis ? 1 : 0);
+  gl.uniform3fv(p.u["u_rbf[0]"], fit.rbf);
+  gl.uniform1i(p.u.u_shared, fit.shared ? 1 : 0);
   gl.uniform1i(p.u.u_coef, 4);
   // The tiles of that level over the panel; the one-tile top level is drawn under them until
   // they have all arrived.
@@ -629,7 +640,7 @@ async function start() {
   bindControls();
   const response = await fetch("data/manifest.json");
   const manifest = await response.json();
-  results = manifest.results.map((r, index) => ({ ...r, index, tiles: new Map() }));
+  results = manifest.results.map((r, index) => ({ ...r, index, tiles: new Map(), failures: new Map() }));
   const anyMesh = results.some((r) => r.mesh);
   document.getElementById("mode-mesh").disabled = !anyMesh;
   for (const option of document.querySelectorAll("#layer option")) {
@@ -661,7 +672,7 @@ window.psView = {
   setView(view) { Object.assign(state.view, view); redraw(); },
   setOrbit(orbit) { Object.assign(state.orbit, orbit); redraw(); },
   set(options) { Object.assign(state, options); drawLightWidget(); redraw(); },
-  results: () => results.map(({ tiles, meshState, ...r }) => r),
+  results: () => results.map(({ tiles, meshState, failures, ...r }) => r),
   // Each reads the layout as it is now (resize() first): a control shown after the results load
   // (the appearance switch) can wrap the toolbar and shrink the canvas before the next frame.
   panels: () => { resize(); return panels().map((p) => { const d = window.devicePixelRatio || 1; const box = canvas.getBoundingClientRect(); return { x: box.left + p.x / d, y: box.top + p.y / d, w: p.w / d, h: p.h / d }; }); },
