@@ -281,6 +281,44 @@ def calibrate_leds(board: np.ndarray, positions: np.ndarray, height: float,
     return LedModel(beams, flat, e)
 
 
+#: A flat matte board's frames fit the beam model within a few percent (docs/results.md); beyond
+#: this the frames are not of a board under these LEDs (wrong folder, order, or height).
+MAX_BEAM_RMS_PCT = 20.0
+
+
+def check_board_below_leds(height: float, positions: np.ndarray, option: str) -> None:
+    """The board's plane below every placed LED and within reach of them, else an error naming
+    ``option`` (the ``--board`` that gave ``height``) and the reason.
+
+    Parameters
+    ----------
+    height : float
+        The board plane's z (pixels, scene frame).
+    positions : ndarray of shape (n, 3)
+        The LED positions (NaN rows: lights not placed).
+    option : str
+        The option as the user gave it, for the message.
+    """
+    pos = np.asarray(positions, np.float64).reshape(-1, 3)
+    placed = np.isfinite(pos).all(axis=1)
+    if not placed.any():
+        raise CalibrationError(f"{option}: no LED could be placed (their positions are NaN)")
+    z = pos[placed, 2]
+    if not np.isfinite(height) or height >= z.min():
+        where = "every LED" if height >= z.max() else f"{int(np.sum(z <= height))} of the LEDs"
+        low = int(np.flatnonzero(placed)[np.argmin(z)])
+        raise CalibrationError(
+            f"{option}: the board plane at z={height:g} px is not below {where} (LED {low + 1} "
+            f"at z={z.min():.1f} px); the board must lie under every light"
+        )
+    reach = float(np.max(np.linalg.norm(pos[placed], axis=1)))
+    if z.min() - height > 10.0 * reach:
+        raise CalibrationError(
+            f"{option}: the board plane at z={height:g} px is more than 10 times the LEDs' "
+            f"distance ({reach:.0f} px) below them"
+        )
+
+
 def with_led_model(calibration, board: np.ndarray, height: float | str = "table", *,
                    saturated: np.ndarray | None = None):
     """The calibration with its LEDs' beams and flat-field fitted on board frames.
@@ -305,7 +343,8 @@ def with_led_model(calibration, board: np.ndarray, height: float | str = "table"
     Raises
     ------
     CalibrationError
-        No LED positions, a board of another light count or image size.
+        No LED positions, a board of another light count or image size, a board plane not
+        below every LED (:func:`check_board_below_leds`).
     """
     tri = calibration.triangulation
     if tri is None:
@@ -320,10 +359,20 @@ def with_led_model(calibration, board: np.ndarray, height: float | str = "table"
         raise CalibrationError(f"--flat-field: board frames are {board.shape[2]}x"
                                f"{board.shape[1]}, the capture's {calibration.image_shape[1]}x"
                                f"{calibration.image_shape[0]}")
+    option = "--board table" if height == "table" else f"--board {float(height):g}"
     if height == "table":
         height = -float(np.mean([c.radius for c in calibration.circles]))
+    check_board_below_leds(float(height), tri.positions, option)
     model = calibrate_leds(board, tri.positions, float(height), calibration.camera,
                            saturated=saturated)
+    misfit = np.flatnonzero(np.nan_to_num(model.beams.rms_pct, nan=np.inf) > MAX_BEAM_RMS_PCT)
+    if misfit.size:
+        j = int(misfit[0])
+        raise CalibrationError(
+            f"--flat-field: board frame {j + 1} is not a flat board lit by LED {j + 1} (the beam "
+            f"model misses it by {model.beams.rms_pct[j]:.0f} % RMS, a board fits within a few "
+            f"%; {misfit.size} frame(s) so): check the frames and --board"
+        )
     columns = calibration.light_intensities.shape[1]
     metadata = {**calibration.metadata, "led_model": model.record()}
     return replace(calibration, led_model=model, metadata=metadata,

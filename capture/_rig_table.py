@@ -130,6 +130,8 @@ class _Table:
             or any(isinstance(v, bool) or not isinstance(v, int | float) for v in value)
         ):
             raise self.error(key, f"expected a list of {length} numbers, got {value!r}")
+        if not all(math.isfinite(v) for v in value):
+            raise self.error(key, f"every number must be finite, got {value!r}")
         return tuple(float(v) for v in value)
 
 
@@ -142,3 +144,44 @@ def _kind(value: Any) -> str:
         list: "a list",
         dict: "a table",
     }.get(type(value), type(value).__name__)
+
+
+def unit_vectors(t: _Table, key: str, count: int) -> tuple[tuple[float, float, float], ...] | None:
+    """``t[key]``: ``count`` directions toward the lights, normalised, each above the horizon."""
+    vectors = t.vectors(key, 3)
+    if vectors is None:
+        return None
+    if len(vectors) != count:
+        raise t.error(key, f"expected {count} directions (one per light), got {len(vectors)}")
+    out = []
+    for i, v in enumerate(vectors):
+        scale = max(abs(c) for c in v)  # scaled first: no overflow for huge components
+        norm = scale * math.sqrt(sum((c / scale) ** 2 for c in v)) if scale > 0 else 0.0
+        if norm < 1e-9:
+            raise t.error(f"{key}[{i}]", "zero vector")
+        unit = tuple(c / norm for c in v)
+        if unit[2] <= 0.0:
+            raise t.error(f"{key}[{i}]", f"points below the horizon (z = {unit[2]:.3g}); a light "
+                          "is above the scene, z > 0")
+        out.append(unit)
+    return tuple(out)  # type: ignore[return-value]
+
+
+def light_intensities(t: _Table, count: int) -> tuple[tuple[float, ...], ...] | None:
+    """``t["intensities"]``: one positive, bounded [r, g, b] row per light (relative to 1)."""
+    rows = t.vectors("intensities", 3)
+    if rows is None:
+        return None
+    if len(rows) != count:
+        raise t.error(
+            "intensities", f"expected {count} [r, g, b] rows (one per light), got {len(rows)}"
+        )
+    if any(not 0 < v <= MAX_INTENSITY for row in rows for v in row):
+        raise t.error("intensities", f"every intensity must be positive and at most "
+                      f"{MAX_INTENSITY:g} (relative to 1)")
+    return rows
+
+
+#: Light intensities are relative (1: the rig's nominal LED); beyond this the simulated camera's
+#: counts overflow.
+MAX_INTENSITY = 1e3

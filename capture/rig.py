@@ -22,7 +22,7 @@ from pathlib import Path
 from typing import Any
 
 from ps_lab.capture._rig_lens import LensConfig, lens_camera, parse_lens
-from ps_lab.capture._rig_table import _kind, _Table
+from ps_lab.capture._rig_table import _kind, _Table, light_intensities, unit_vectors
 from ps_lab.capture.faults import CAMERA_FAULT_KINDS, PTPIP_FAULT_KINDS, Fault
 from ps_lab.capture.faults import FAULT_KINDS as CONTROLLER_FAULT_KINDS
 from ps_lab.errors import RigError
@@ -410,7 +410,7 @@ def _parse_controller(t: _Table) -> ControllerConfig:
         timeout_s=t.float("timeout_s", 1.0, lo=0.01, hi=60.0),
         baudrate=t.int("baudrate", 115200, lo=300),
         settle_ms=t.int("settle_ms", 0, lo=0, hi=60_000),
-        directions=_unit_vectors(t, "directions", lights),
+        directions=unit_vectors(t, "directions", lights),
         pins=pins,
         elf=elf,
         anisotropy=t.float("anisotropy", 0.0, lo=0.0, hi=100.0),
@@ -428,21 +428,6 @@ def _pins(t: _Table, lights: int) -> tuple[int, ...] | None:
     if any(not 2 <= p <= 19 for p in pins) or len(set(pins)) != len(pins):
         raise t.error("pins", "each light needs its own Uno pin 2-19 (0 and 1 are the serial port)")
     return pins
-
-
-def _unit_vectors(t: _Table, key: str, count: int) -> tuple[tuple[float, float, float], ...] | None:
-    vectors = t.vectors(key, 3)
-    if vectors is None:
-        return None
-    if len(vectors) != count:
-        raise t.error(key, f"expected {count} directions (one per light), got {len(vectors)}")
-    out = []
-    for i, v in enumerate(vectors):
-        norm = math.sqrt(sum(c * c for c in v))
-        if norm < 1e-9:
-            raise t.error(f"{key}[{i}]", "zero vector")
-        out.append(tuple(c / norm for c in v))
-    return tuple(out)  # type: ignore[return-value]
 
 
 _SENSOR_KEYS = {
@@ -579,32 +564,22 @@ def _parse_scene(t: _Table, n_lights: int) -> SceneConfig:
         lights = LightLayoutConfig(
             seed=lt.int("seed", 0, lo=0),
             max_zenith_deg=lt.float("max_zenith_deg", 55.0, lo=1.0, hi=89.0),
-            directions=_unit_vectors(lt, "directions", n_lights),
-            intensities=_intensities(lt, n_lights),
+            directions=unit_vectors(lt, "directions", n_lights),
+            intensities=light_intensities(lt, n_lights),
             intensity_spread=lt.float("intensity_spread", 0.0, lo=0.0, hi=0.9),
             color_spread=lt.float("color_spread", 0.0, lo=0.0, hi=0.9),
             nominal_error_deg=lt.float("nominal_error_deg", 0.0, lo=0.0, hi=20.0),
-            dome_radius=lt.float("dome_radius", None, lo=1.0),
-            led_radius=lt.float("led_radius", 15.0, lo=0.01),
+            dome_radius=lt.float("dome_radius", None, lo=1.0, hi=1e6),
+            led_radius=lt.float("led_radius", 15.0, lo=0.01, hi=1e4),
         )
+        if lights.dome_radius is not None and lights.led_radius >= lights.dome_radius:
+            raise lt.error("led_radius", f"must be smaller than dome_radius "
+                           f"({lights.dome_radius:g})")
         lt.done()
     t.done()
     return SceneConfig(
         width=width, height=height, objects=tuple(objects), lights=lights, background=background
     )
-
-
-def _intensities(t: _Table, count: int) -> tuple[tuple[float, ...], ...] | None:
-    rows = t.vectors("intensities", 3)
-    if rows is None:
-        return None
-    if len(rows) != count:
-        raise t.error(
-            "intensities", f"expected {count} [r, g, b] rows (one per light), got {len(rows)}"
-        )
-    if any(v <= 0 for row in rows for v in row):
-        raise t.error("intensities", "every intensity must be positive")
-    return rows
 
 
 _ALL_CAMERA_FAULTS = tuple(dict.fromkeys(CAMERA_FAULT_KINDS + PTPIP_FAULT_KINDS))

@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import re
 import shutil
 import subprocess
 import sys
@@ -61,7 +62,18 @@ def _clear_previous_demo(out: Path) -> None:
         return
     if not (out / "run" / "manifest.json").is_file() and any(out.iterdir()):
         sys.exit(f"demo: {out} exists and is not a demo folder; remove it or pass --out")
+    foreign = sorted(p.name for p in out.iterdir()
+                     if p.name not in _DEMO_ENTRIES and not _DEMO_STAGING.fullmatch(p.name))
+    if foreign:  # never delete what the user put beside the demo's folders
+        sys.exit(f"demo: {out / foreign[0]} was not written by the demo; move it out of {out} "
+                 "or pass --out")
     shutil.rmtree(out)
+
+
+#: What the demo writes in its folder (the capture run and the near-light and lens variants).
+_DEMO_ENTRIES = frozenset({"run", "near", "lens"})
+#: Their staging folders, left by a demo that was killed.
+_DEMO_STAGING = re.compile(r"\.(?:run|near|lens)\.(?:partial|old)-\d+")
 
 
 def main(argv: list[str] | None = None) -> None:

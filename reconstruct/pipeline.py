@@ -38,10 +38,10 @@ from ps_lab.geometry import Camera
 from ps_lab.io.bands import ObservationStore, plan_bands
 from ps_lab.io.camera import camera_record
 from ps_lab.io.coded_frames import frame_coding
-from ps_lab.io.dataset import DatasetHeader, open_dataset
+from ps_lab.io.dataset import LIGHT_POSITIONS, OBJECT_OUTLINE, DatasetHeader, open_dataset
 from ps_lab.io.encoding import frames_encoding
 from ps_lab.io.files import json_safe, staged_folder
-from ps_lab.io.result import METRICS, RESULT_FORMAT, is_result_folder
+from ps_lab.io.result import METRICS, RESULT_FORMAT, foreign_entries, read_result_metrics
 from ps_lab.io.truth import open_normal_gt
 from ps_lab.reconstruct._bands import LocalBands
 from ps_lab.reconstruct._colour import grey_albedo
@@ -155,19 +155,26 @@ class ReconstructResult:
         return list(self.metrics.get("refinement", {}).get("history", []))
 
 
-def _is_result_folder(folder: Path) -> bool:
-    return not any(folder.iterdir()) or is_result_folder(folder)
-
-
 def check_output_folder(out: Path) -> None:
-    """Raise :class:`OutputError` unless ``out`` is absent, empty or an earlier ps-lab result."""
+    """Raise :class:`OutputError` unless ``out`` is absent, empty or an earlier ps-lab result
+    holding only files ps-lab wrote (:func:`ps_lab.io.result.foreign_entries`)."""
     out = Path(out)
     if out.exists() and not out.is_dir():
         raise OutputError(f"{out}: exists and is not a folder")
-    if out.is_dir() and not _is_result_folder(out):
+    if not out.is_dir() or not any(out.iterdir()):
+        return
+    metrics = read_result_metrics(out)
+    if metrics is None:
         raise OutputError(
             f"{out}: exists and is not a ps-lab result folder (no {METRICS}); "
             "choose another --out or remove it"
+        )
+    foreign = foreign_entries(out, metrics)
+    if foreign:
+        more = f" and {len(foreign) - 1} more" if len(foreign) > 1 else ""
+        raise OutputError(
+            f"{out / foreign[0]}{more}: not written by ps-lab, in the earlier result that this "
+            "run would replace; move it out of the folder or choose another --out"
         )
 
 
@@ -341,14 +348,31 @@ def _near_lights(header: DatasetHeader, options: ReconstructOptions) -> NearLigh
             header.plan.camera.fx, header.plan.camera.fy, header.plan.camera.cx,
             header.plan.camera.cy,
         )
-    axes, flat = _led_model(header.root, options.led_model, n)
+    _check_leds_above_outline(header)
+    axes, flat = _led_model(header.root, options.led_model, n, positions)
     if flat is not None or options.led_model == "isotropic":
         anisotropy = np.zeros(n)  # the board's gains carry the beam; or no beam asked for
     return NearLights(positions, header.light_directions, anisotropy, camera=camera, axes=axes,
                       flat_field=flat)
 
 
-def _led_model(root, model: str, n: int):
+def _check_leds_above_outline(header: DatasetHeader) -> None:
+    """Every placed LED above the object's outline plane (``object_outline.txt``), else an error
+    naming both files: an LED at or below the plane the object stands on lights none of it."""
+    positions, outline = header.light_positions, header.object_outline
+    if positions is None or outline is None:
+        return
+    placed = np.isfinite(positions).all(axis=1)
+    low = np.flatnonzero(placed & (positions[:, 2] <= outline))
+    if low.size:
+        j = int(low[0])
+        raise DatasetError(
+            f"{header.root / LIGHT_POSITIONS}: LED {j + 1} (z={positions[j, 2]:g} px) is not "
+            f"above the object's outline plane (z={outline:g} px, {OBJECT_OUTLINE})"
+        )
+
+
+def _led_model(root, model: str, n: int, positions: np.ndarray | None = None):
     """The LED axes and flat-field ``--led-model`` asks for (files of ``calibrate --flat-field``)."""
     axes_file, flat_file = root / LIGHT_AXES, root / FLAT_FIELD
     if model == "auto":
@@ -363,7 +387,7 @@ def _led_model(root, model: str, n: int):
         if not axes_file.is_file():
             raise DatasetError(f"{root}: --led-model beam needs {LIGHT_AXES} "
                                "(ps-lab calibrate --flat-field BOARD_FOLDER)")
-        return read_light_axes(axes_file, n), None
+        return read_light_axes(axes_file, n, positions), None
     return None, None
 
 

@@ -39,15 +39,31 @@ from helpers.hostile import (  # noqa: E402 - the sweeps' runner
     PS_LAB,
     Result,
     assert_one_error_line,
+    assert_quiet,
     environment,
-    finish,
-    run,
+    finish as _finish,
+    run as _run,
     snapshot,
     start,
     temporary_leftovers,
     wait_until,
 )
 from test_bad_input import SMALL_RIG, png_chunk  # noqa: E402 - the first sweep's rig
+
+
+def run(args: list[str], cwd: Path, home: Path, timeout: float = 120) -> Result:
+    """Every CLI run of the sweep: no numpy warning or traceback, whatever the exit code."""
+    result = _run(args, cwd, home, timeout)
+    assert_quiet(result)
+    return result
+
+
+def finish(proc, out: Path, err: Path, timeout: float = 120) -> Result:
+    """:func:`helpers.hostile.finish`, and nothing noisy on the terminal (as :func:`run`)."""
+    result = _finish(proc, out, err, timeout)
+    assert_quiet(result)
+    return result
+
 
 NOT_UTF8 = os.fsdecode(b"caf\xe9")  # Latin-1 "café": not UTF-8
 

@@ -37,7 +37,8 @@ sys.path.insert(0, str(Path(__file__).parent))
 from helpers.hostile import (  # noqa: E402 - the sweeps' runner
     Result,
     assert_one_error_line,
-    run,
+    assert_quiet,
+    run as _run,
     snapshot,
     temporary_leftovers,
 )
@@ -49,6 +50,14 @@ from ps_lab.io import images as images_module  # noqa: E402
 from ps_lab.io.encoding import image_encoding, linear_to_srgb, srgb_to_linear  # noqa: E402
 from ps_lab.io.images import is_supported, read_image  # noqa: E402
 from ps_lab.io.lights import lp_directions_for, lp_image_files, read_lp_rows  # noqa: E402
+
+
+def run(args: list[str], cwd: Path, home: Path, timeout: float = 120) -> Result:
+    """Every CLI run of the sweep: no numpy warning or traceback, whatever the exit code."""
+    result = _run(args, cwd, home, timeout)
+    assert_quiet(result)
+    return result
+
 
 # --- damaged metadata, built byte by byte ------------------------------------------------------
 

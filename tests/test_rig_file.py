@@ -149,6 +149,53 @@ def test_wrong_values_are_errors_naming_the_key(
         load_rig(path)
 
 
+FOUR = "[[0, 0, 1], [0, 1, 1], [1, 0, 1], [1, 1, 1]]"
+
+
+@pytest.mark.parametrize(
+    ("lights", "key", "message"),
+    [
+        ("dome_radius = 1e308", "dome_radius", "must be <="),
+        ("dome_radius = nan", "dome_radius", "must be finite"),
+        ("dome_radius = 300.0\nled_radius = 1e300", "led_radius", "must be <="),
+        ("dome_radius = 300.0\nled_radius = 300.0", "led_radius", "smaller than dome_radius"),
+        ("led_radius = -1.0", "led_radius", "must be >="),
+        ("max_zenith_deg = inf", "max_zenith_deg", "must be finite"),
+        ("intensity_spread = 5.0", "intensity_spread", "must be <="),
+        ("intensities = [[1e308, 1, 1], [1, 1, 1], [1, 1, 1], [1, 1, 1]]", "intensities",
+         "at most"),
+        ("intensities = [[nan, 1, 1], [1, 1, 1], [1, 1, 1], [1, 1, 1]]", r"intensities\[0\]",
+         "finite"),
+        ("intensities = [[0, 1, 1], [1, 1, 1], [1, 1, 1], [1, 1, 1]]", "intensities",
+         "positive"),
+        ("intensities = 1.0", "intensities", "expected a list"),
+        (f"directions = {FOUR.replace('[0, 0, 1]', '[0, 0, -1]')}", r"directions\[0\]",
+         "below the horizon"),
+        (f"directions = {FOUR.replace('[0, 0, 1]', '[1, 0, 0]')}", r"directions\[0\]",
+         "below the horizon"),
+        (f"directions = {FOUR.replace('[0, 0, 1]', '[inf, 0, 1]')}", r"directions\[0\]",
+         "finite"),
+        (f"directions = {FOUR.replace('[0, 0, 1]', '[0, 0, 0]')}", r"directions\[0\]",
+         "zero vector"),
+        (f"directions = {FOUR.replace('[0, 0, 1]', '[true, 0, 1]')}", r"directions\[0\]",
+         "expected a list of 3 numbers"),
+    ],
+)
+def test_led_section_values_are_errors_naming_the_key(
+    tmp_path: Path, lights: str, key: str, message: str
+) -> None:
+    """Every field of ``[scene.lights]`` (the LEDs), NaN, infinite, huge and wrong-typed."""
+    path = write(tmp_path, MINIMAL + "[scene.lights]\n" + lights.replace("\\n", "\n") + "\n")
+    with pytest.raises(RigError, match=rf"rig\.toml: \[scene\.lights\] {key}: .*{message}"):
+        load_rig(path)
+
+
+def test_huge_direction_components_are_scaled_not_overflowed(tmp_path: Path) -> None:
+    big = FOUR.replace("[0, 0, 1]", "[1e308, 0, 1e308]")
+    rig = load_rig(write(tmp_path, MINIMAL + f"[scene.lights]\ndirections = {big}\n"))
+    np.testing.assert_allclose(rig.scene.lights.directions[0], [0.5**0.5, 0.0, 0.5**0.5])
+
+
 def test_missing_directory_and_malformed_files(tmp_path: Path) -> None:
     with pytest.raises(RigError, match="does not exist"):
         load_rig(tmp_path / "nope.toml")

@@ -2,9 +2,10 @@
 
 from __future__ import annotations
 
-import json
+import math
+import os
 from pathlib import Path
-from typing import Annotated
+from typing import Annotated, Any
 
 import typer
 
@@ -13,6 +14,9 @@ from ps_lab.bench import paper as bench_paper
 from ps_lab.bench import real as bench_real
 from ps_lab.bench import relight as bench_relight
 from ps_lab.bench import report
+from ps_lab.errors import DatasetError, OutputError
+from ps_lab.io.dataset import open_dataset
+from ps_lab.io.files import write_json_atomic
 
 MarkdownFlag = Annotated[
     bool, typer.Option("--markdown", help="Print Markdown (for docs/results.md) instead of text.")
@@ -20,6 +24,72 @@ MarkdownFlag = Annotated[
 JsonFile = Annotated[
     Path | None, typer.Option("--json", help="Also write all numbers to this JSON file.")
 ]
+
+
+
+def check_json_path(path: Path | None) -> None:
+    """Refuse, before any work, a ``--json`` file that could not be written at the end.
+
+    A folder, a link to one, a file in a missing or read-only folder: :class:`OutputError`
+    naming ``--json`` and the path.
+    """
+    if path is None:
+        return
+    path = Path(path)
+    if path.is_dir():
+        raise OutputError(f"--json {path}: is a folder; give a file name")
+    parent = path.parent if str(path.parent) else Path(".")
+    if not parent.is_dir():
+        raise OutputError(f"--json {path}: the folder {parent} does not exist")
+    if not os.access(parent, os.W_OK | os.X_OK):
+        raise OutputError(f"--json {path}: the folder {parent} is not writable")
+    if path.exists() and not path.is_file():
+        raise OutputError(f"--json {path}: exists and is not a file")
+
+
+def finite_json(value: Any) -> Any:
+    """``value`` with every NaN or infinite float as None (JSON has no NaN: ``null``)."""
+    if isinstance(value, float):
+        return value if math.isfinite(value) else None
+    if isinstance(value, dict):
+        return {k: finite_json(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [finite_json(v) for v in value]
+    return value
+
+
+def write_json(path: Path | None, results: Any) -> None:
+    """Write ``--json`` (atomically; NaN as null) when asked for."""
+    if path is not None:
+        write_json_atomic(path, finite_json(results))
+
+
+def check_bench_folder(folder: Path | None, found: list[Path], default: Path, what: str) -> bool:
+    """Whether to run on ``found`` (the benchmark's inputs under ``folder``).
+
+    The default shared-data folder absent: False (the caller prints "skipped"). A folder the
+    user named that is missing, a file, or holds none of ``what``: :class:`DatasetError`.
+    """
+    if folder is None and not default.is_dir():
+        return False
+    folder = default if folder is None else Path(folder)
+    if not folder.exists():
+        raise DatasetError(f"{folder}: no such folder")
+    if not folder.is_dir():
+        raise DatasetError(f"{folder}: is a file, not a folder of {what}")
+    if not found:
+        raise DatasetError(f"{folder}: holds no {what}")
+    return True
+
+
+def check_light_counts(paths: list[Path], minimum: int, reason: str) -> None:
+    """Every capture in ``paths`` opened (files checked, no pixel read) and holding at least
+    ``minimum`` lights, else :class:`DatasetError` naming it."""
+    for path in paths:
+        n = len(open_dataset(path, read_size=False).names)
+        if n < minimum:
+            raise DatasetError(f"{path}: {n} lights; {reason} needs at least {minimum}")
+
 
 bench_app = typer.Typer(
     name="bench",
@@ -71,13 +141,13 @@ def paper(
         )
     except ValueError as exc:
         raise typer.BadParameter(str(exc)) from None
+    check_json_path(json_out)
     with progress_bar(bench_paper.total_steps(config), "paper tables", enabled=progress) as advance:
         results = bench_paper.run_paper(config, progress=advance)
     typer.echo(
         report.format_markdown(results) if markdown else report.format_text(results)
     )
-    if json_out is not None:
-        json_out.write_text(json.dumps(report.results_as_dict(results), indent=1))
+    write_json(json_out, report.results_as_dict(results))
 
 
 @bench_app.command("real")
@@ -102,18 +172,21 @@ def real(
     ] = None,
 ) -> None:
     """The default, LS, L1, SBL, PL-LS, PL-SBL, R-PCA and SBL at fixed lambda on real objects."""
-    folder = folder if folder is not None else bench_real.DEFAULT_FOLDER
-    objects = bench_real.find_objects(folder)
-    if not objects:
-        typer.echo(f"skipped: no object folders with ground truth under {folder}")
+    check_json_path(json_out)
+    objects = bench_real.find_objects(folder if folder is not None else bench_real.DEFAULT_FOLDER)
+    what = "object folders with light_directions.txt and ground truth"
+    if not check_bench_folder(folder, objects, bench_real.DEFAULT_FOLDER, what):
+        typer.echo(f"skipped: no {what} under {bench_real.DEFAULT_FOLDER}")
         return
+    folder = folder if folder is not None else bench_real.DEFAULT_FOLDER
+    check_light_counts(objects, bench_real.RELIGHT_EVERY,
+                       f"holding out every {bench_real.RELIGHT_EVERY}th light")
     total = len(objects) * len(bench_real.columns())
     with progress_bar(total, "real objects", enabled=True) as advance:
         rows = bench_real.run_real(folder, every=every, threads=threads,
                                    progress=lambda label: advance(1, description=label))
     typer.echo(bench_real.format_table(rows, markdown=markdown))
-    if json_out is not None:
-        json_out.write_text(json.dumps(bench_real.results_as_dict(rows), indent=1))
+    write_json(json_out, bench_real.results_as_dict(rows))
 
 
 @bench_app.command("relight")
@@ -140,11 +213,16 @@ def relight(
 ) -> None:
     """Held-out relighting PSNR and SSIM of every appearance model (eight folds: every light
     held out once)."""
+    check_json_path(json_out)
+    folder_given = folder
     folder = folder if folder is not None else bench_relight.DEFAULT_FOLDER
     captures = bench_relight.find_captures(folder)
-    if not captures:
-        typer.echo(f"skipped: no capture folders (light directions) under {folder}")
+    what = "capture folders (light_directions.txt or an .lp file)"
+    if not check_bench_folder(folder_given, captures, bench_relight.DEFAULT_FOLDER, what):
+        typer.echo(f"skipped: no {what} under {folder}")
         return
+    every = bench_relight.HOLD_OUT_EVERY  # each of the eight folds holds out one light at least
+    check_light_counts(captures, every, f"holding out every {every}th light")
     total = len(captures) * len(bench_relight.MODELS) * bench_relight.folds_of(
         folder, extrapolate=extrapolate)
     with progress_bar(total, "relighting", enabled=True) as advance:
@@ -156,8 +234,7 @@ def relight(
             for path in captures
         ]
     typer.echo(bench_relight.format_table(rows, markdown=markdown))
-    if json_out is not None:
-        json_out.write_text(json.dumps(bench_relight.results_as_dict(rows), indent=1))
+    write_json(json_out, bench_relight.results_as_dict(rows))
 
 
 def register(app: typer.Typer) -> None:

@@ -7,6 +7,8 @@ Written by ``ps-lab calibrate --flat-field`` (:mod:`ps_lab.calibration._leds`), 
 
 from __future__ import annotations
 
+import zipfile
+import zlib
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -14,6 +16,8 @@ import numpy as np
 from scipy import ndimage
 
 from ps_lab.errors import DatasetError
+from ps_lab.io.lights import MAX_COORDINATE
+from ps_lab.io.lights import _read_table as read_table
 
 __all__ = ["FlatField", "read_flat_field", "read_light_axes", "write_flat_field"]
 
@@ -105,33 +109,140 @@ def write_flat_field(path: Path, flat: FlatField) -> None:
                             height=np.array(flat.height), positions=flat.positions)
 
 
+#: Gains outside this range are not a board's measurement (the writer scales their median to 1).
+GAIN_RANGE = (1e-6, 1e6)
+
+
+#: The most values one array of the file may hold (a forged header is refused before reading).
+MAX_VALUES = 1 << 27
+
+
+def _header(data: np.lib.npyio.NpzFile, name: str) -> tuple[tuple[int, ...], np.dtype]:
+    """Shape and dtype of the archive's array ``name``, from its header alone."""
+    with data.zip.open(f"{name}.npy") as member:
+        version = np.lib.format.read_magic(member)
+        read = (np.lib.format.read_array_header_1_0 if version == (1, 0)
+                else np.lib.format.read_array_header_2_0)
+        shape, _, dtype = read(member)
+    return shape, dtype
+
+
+def _real_array(path: Path, data, name: str, ndim: int) -> np.ndarray:
+    """``data[name]`` as float64 with ``ndim`` dimensions, else a DatasetError naming both.
+
+    Type, shape and size are checked on the array's header before its values are read.
+    """
+    if name not in data.files:
+        raise DatasetError(f"{path}: not a flat-field file (no array '{name}')")
+    try:
+        shape, dtype = _header(data, name)
+    except (OSError, ValueError, EOFError, KeyError, zipfile.BadZipFile, zlib.error) as exc:
+        raise DatasetError(f"{path}: array '{name}' cannot be read ({exc})") from None
+    if dtype.kind not in "fiu":
+        raise DatasetError(f"{path}: array '{name}' holds {dtype} values, not real numbers")
+    if len(shape) != ndim:
+        want = {0: "one number", 1: "a 1-D axis", 2: "a 2-D table", 3: "a 3-D stack"}[ndim]
+        raise DatasetError(f"{path}: array '{name}' has shape {shape}, expected {want}")
+    if int(np.prod(shape, dtype=np.float64)) > MAX_VALUES:
+        raise DatasetError(f"{path}: array '{name}' claims shape {shape}, more values than a "
+                           f"flat-field holds (at most {MAX_VALUES})")
+    try:
+        raw = data[name]
+    except (OSError, ValueError, EOFError, zipfile.BadZipFile, zlib.error) as exc:
+        raise DatasetError(f"{path}: array '{name}' cannot be read ({exc})") from None
+    return np.asarray(raw, np.float64)
+
+
+def _check_axis(path: Path, name: str, axis: np.ndarray, length: int, sign: float) -> None:
+    """A grid axis: ``length`` finite nodes, strictly increasing (``sign`` +1) or decreasing."""
+    if len(axis) != length:
+        raise DatasetError(f"{path}: array '{name}' has {len(axis)} nodes, the gains' grid "
+                           f"{length}")
+    if not np.all(np.isfinite(axis)) or np.any(np.abs(axis) > MAX_COORDINATE):
+        raise DatasetError(f"{path}: array '{name}' must be finite pixel coordinates "
+                           f"(|value| <= {MAX_COORDINATE:g})")
+    if length > 1 and not np.all(np.diff(axis) * sign > 0):
+        way = "increasing" if sign > 0 else "decreasing"
+        raise DatasetError(f"{path}: array '{name}' must be strictly {way}")
+
+
 def read_flat_field(path: Path, count: int | None = None) -> FlatField:
-    """Read ``flat_field.npz``; a DatasetError naming the file when it is not one."""
+    """Read ``flat_field.npz``; a DatasetError naming the file and the array at fault.
+
+    Every array is checked by shape, type and value before use: ``gains`` (n, gh, gw) finite
+    in :data:`GAIN_RANGE`, ``x`` (gw,) increasing and ``y`` (gh,) decreasing,
+    ``height`` one finite number below every placed LED, ``positions`` (n, 3) finite rows or
+    all-NaN rows (a light too far to place).
+    """
     try:
-        with np.load(path) as data:
-            flat = FlatField(np.asarray(data["gains"], np.float32), np.asarray(data["x"], float),
-                             np.asarray(data["y"], float), float(data["height"]),
-                             np.asarray(data["positions"], float))
-    except (OSError, ValueError, KeyError) as exc:
+        data = np.load(path, allow_pickle=False)
+    except (OSError, ValueError, EOFError, zipfile.BadZipFile, zlib.error) as exc:
         raise DatasetError(f"{path}: not a flat-field file ({exc})") from None
-    n = flat.gains.shape[0]
-    if flat.gains.ndim != 3 or flat.positions.shape != (n, 3) or (count is not None
-                                                                   and n != count):
-        raise DatasetError(f"{path}: gains for {n} lights, expected {count}")
-    if not np.all(np.isfinite(flat.gains)) or np.any(flat.gains <= 0):
-        raise DatasetError(f"{path}: gains must be finite and positive")
-    return flat
+    if not isinstance(data, np.lib.npyio.NpzFile):
+        raise DatasetError(f"{path}: not a flat-field file (one array, not an .npz archive)")
+    with data:
+        gains = _real_array(path, data, "gains", 3)
+        x, y = _real_array(path, data, "x", 1), _real_array(path, data, "y", 1)
+        height_array = _real_array(path, data, "height", 0)
+        positions = _real_array(path, data, "positions", 2)
+    n, gh, gw = gains.shape
+    if n == 0 or gh == 0 or gw == 0:
+        raise DatasetError(f"{path}: array 'gains' is empty (shape {gains.shape})")
+    if count is not None and n != count:
+        raise DatasetError(f"{path}: array 'gains' holds {n} lights, the dataset has {count}")
+    low, high = GAIN_RANGE
+    if not np.all(np.isfinite(gains)):
+        raise DatasetError(f"{path}: array 'gains' contains NaN or infinite values")
+    if np.any(gains < low) or np.any(gains > high):
+        raise DatasetError(f"{path}: array 'gains' must lie in [{low:g}, {high:g}] "
+                           f"(found {gains.min():.3g} .. {gains.max():.3g})")
+    _check_axis(path, "x", x, gw, 1.0)
+    _check_axis(path, "y", y, gh, -1.0)
+    if positions.shape != (n, 3):
+        raise DatasetError(f"{path}: array 'positions' has shape {positions.shape}, expected "
+                           f"({n}, 3)")
+    finite = np.isfinite(positions)
+    placed = finite.all(axis=1)
+    unplaced = np.isnan(positions).all(axis=1)
+    if not np.all(placed | unplaced) or np.any(np.abs(positions[placed]) > MAX_COORDINATE):
+        row = int(np.flatnonzero(~(placed | unplaced)
+                                 | np.any(np.abs(np.where(finite, positions, 0.0))
+                                          > MAX_COORDINATE, axis=1))[0])
+        raise DatasetError(f"{path}: array 'positions' row {row + 1} must be three finite "
+                           f"coordinates (|value| <= {MAX_COORDINATE:g}) or all NaN")
+    height = float(height_array)
+    if not np.isfinite(height) or abs(height) > MAX_COORDINATE:
+        raise DatasetError(f"{path}: array 'height' must be one finite number of pixels")
+    if placed.any() and height >= positions[placed, 2].min():
+        j = int(np.flatnonzero(placed)[np.argmin(positions[placed, 2])])
+        raise DatasetError(f"{path}: array 'height': the board plane at z={height:g} px is not "
+                           f"below LED {j + 1} (z={positions[j, 2]:g} px)")
+    return FlatField(gains.astype(np.float32), x, y, height, positions)
 
 
-def read_light_axes(path: Path, count: int | None = None) -> np.ndarray:
-    """Read ``light_axes.txt``: each LED's unit optical axis ``ax ay az`` per row."""
-    try:
-        axes = np.loadtxt(path, ndmin=2, dtype=np.float64)
-    except (OSError, ValueError) as exc:
-        raise DatasetError(f"{path}: cannot read LED axes ({exc})") from None
-    if axes.shape[1] != 3 or (count is not None and len(axes) != count):
-        raise DatasetError(f"{path}: expected {count} rows of 'ax ay az', got {axes.shape}")
-    norm = np.linalg.norm(axes, axis=1)
-    if not np.all(np.isfinite(norm)) or np.any(norm < 1e-6):
-        raise DatasetError(f"{path}: every axis must be a finite non-zero vector")
-    return axes / norm[:, None]
+def read_light_axes(path: Path, count: int | None = None,
+                    positions: np.ndarray | None = None) -> np.ndarray:
+    """Read ``light_axes.txt``: each LED's unit optical axis ``ax ay az`` per row.
+
+    With ``positions`` (n, 3) (NaN rows: lights not placed), each placed LED's axis must point
+    into the lower half-space of its LED (toward the scene below it): an axis pointing up or
+    sideways gives a beam that never reaches the object.
+    """
+    axes = read_table(path, (3,))
+    if count is not None and len(axes) != count:
+        raise DatasetError(f"{path}: {len(axes)} rows of 'ax ay az', the dataset has {count} "
+                           "lights")
+    scale = np.max(np.abs(axes), axis=1, keepdims=True)
+    if np.any(scale[:, 0] <= 0):
+        row = int(np.flatnonzero(scale[:, 0] <= 0)[0])
+        raise DatasetError(f"{path}: row {row + 1}: the axis is the zero vector")
+    unit = axes / scale  # scaled first: no overflow in the norm of huge rows
+    unit /= np.linalg.norm(unit, axis=1, keepdims=True)
+    if positions is not None:
+        placed = np.isfinite(positions).all(axis=1)
+        up = placed & (unit[:, 2] >= 0.0)
+        if up.any():
+            row = int(np.flatnonzero(up)[0])
+            raise DatasetError(f"{path}: row {row + 1}: the axis points up or sideways "
+                               f"(z={unit[row, 2]:.3g}), away from the scene below the LED")
+    return unit

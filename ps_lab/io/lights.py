@@ -129,7 +129,24 @@ def read_light_intensities(path: Path, count: int | None = None) -> np.ndarray:
     bad = np.flatnonzero(np.any(rows <= 0, axis=1))
     if bad.size:
         raise DatasetError(f"{path}: row {bad[0] + 1}: intensities must be positive")
+    _check_range(path, rows, INTENSITY_RANGE, "intensities")
     return np.repeat(rows, 3, axis=1) if rows.shape[1] == 1 else rows
+
+
+#: Light intensities (any unit) outside this range overflow the solver's weights (1 / I^2).
+INTENSITY_RANGE = (1e-100, 1e100)
+#: LED coordinates (pixels) beyond this are not a rig's: the model's arithmetic would overflow.
+MAX_COORDINATE = 1e9
+#: Beam exponents above this are not an LED's (``cos^mu`` narrower than about 2 degrees).
+MAX_EXPONENT = 1000.0
+
+
+def _check_range(path: Path, rows: np.ndarray, bounds: tuple[float, float], what: str) -> None:
+    """A DatasetError naming ``path`` and the first row with a value outside ``bounds``."""
+    low, high = bounds
+    bad = np.flatnonzero(np.any((rows < low) | (rows > high), axis=1))
+    if bad.size:
+        raise DatasetError(f"{path}: row {bad[0] + 1}: {what} must lie in [{low:g}, {high:g}]")
 
 
 def read_light_positions(path: Path, count: int | None = None) -> np.ndarray:
@@ -151,6 +168,9 @@ def read_light_positions(path: Path, count: int | None = None) -> np.ndarray:
     partial = np.isnan(rows).any(axis=1) & ~np.isnan(rows).all(axis=1)
     if partial.any():
         raise DatasetError(f"{path}: row {np.flatnonzero(partial)[0] + 1}: NaN in part of the row")
+    placed = np.isfinite(rows).all(axis=1)
+    _check_range(path, np.where(placed[:, None], np.abs(rows), 0.0), (0.0, MAX_COORDINATE),
+                 "|coordinates| (pixels)")
     return rows
 
 
@@ -159,8 +179,7 @@ def read_light_anisotropy(path: Path, count: int | None = None) -> np.ndarray:
     rows = _read_table(path, (1,))[:, 0]
     if count is not None and len(rows) != count:
         raise DatasetError(f"{path}: {len(rows)} values but the dataset has {count} images")
-    if np.any(rows < 0):
-        raise DatasetError(f"{path}: anisotropy exponents must be >= 0")
+    _check_range(path, rows[:, None], (0.0, MAX_EXPONENT), "anisotropy exponents")
     return rows
 
 
@@ -199,6 +218,7 @@ def read_led_intensities(path: Path, count: int | None = None) -> np.ndarray:
         raise DatasetError(f"{path}: {table.shape[0]} rows for {count} lights")
     if np.any(table <= 0):
         raise DatasetError(f"{path}: LED intensities must be > 0")
+    _check_range(path, table, INTENSITY_RANGE, "LED intensities")
     return table
 
 
