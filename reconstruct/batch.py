@@ -12,6 +12,7 @@ worker that dies has its dataset run again elsewhere by Dask.
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import os
 import time
@@ -50,6 +51,11 @@ class BatchRow:
         Mean angular error against ground truth, when the dataset has it.
     message : str or None
         Why it failed, or which options of a kept result differ.
+    warnings : tuple of str
+        The warnings its reconstruction logged on the worker (said again by the batch, each
+        naming the dataset: a worker process has no terminal of its own).
+    pid : int or None
+        The process that reconstructed it.
 
     """
 
@@ -60,6 +66,8 @@ class BatchRow:
     seconds: float | None = None
     error_deg: float | None = None
     message: str | None = None
+    warnings: tuple[str, ...] = ()
+    pid: int | None = None
 
 
 def result_folders(datasets: Sequence[Path], out_root: Path) -> list[Path]:
@@ -141,9 +149,27 @@ def _row(dataset: Path, out: Path, status: str, metrics: dict, seconds=None) -> 
     )
 
 
+class _Collected(logging.Handler):
+    """The WARNING+ messages logged while one dataset is reconstructed."""
+
+    def __init__(self) -> None:
+        super().__init__(logging.WARNING)
+        self.messages: list[str] = []
+
+    def emit(self, record: logging.LogRecord) -> None:
+        self.messages.append(record.getMessage())
+
+
 def reconstruct_one(dataset: Path, out: Path, options: ReconstructOptions) -> BatchRow:
-    """Reconstruct one dataset in this process (the task of a batch); errors become a row."""
+    """Reconstruct one dataset in this process (the task of a batch); errors become a row.
+
+    Its warnings travel in the row (:func:`reconstruct_batch` says them in the batch's own
+    process); in a worker process they would otherwise reach stderr bare, without ``warning:``.
+    """
     started = time.perf_counter()
+    collected = _Collected()
+    root = logging.getLogger()
+    root.addHandler(collected)
     try:
         metrics = reconstruct_to_folder(dataset, out, options).metrics
     except FolderOfDatasetsError as exc:
@@ -151,7 +177,10 @@ def reconstruct_one(dataset: Path, out: Path, options: ReconstructOptions) -> Ba
         return BatchRow(Path(dataset), Path(out), "failed", message=message)
     except PsLabError as exc:
         return BatchRow(Path(dataset), Path(out), "failed", message=str(exc))
-    return _row(dataset, out, "done", metrics, time.perf_counter() - started)
+    finally:
+        root.removeHandler(collected)
+    row = _row(dataset, out, "done", metrics, time.perf_counter() - started)
+    return dataclasses.replace(row, warnings=tuple(collected.messages), pid=os.getpid())
 
 
 def reconstruct_batch(
@@ -221,6 +250,10 @@ def reconstruct_batch(
         if exc is not None:  # the task itself raised: a bug, or a worker that died too often
             message = f"{type(exc).__name__}: {exc}"
             row = BatchRow(Path(datasets[index]), outs[index], "failed", message=message)
+        if row.pid is not None and row.pid != os.getpid():  # in-process: already logged here
+            for message in row.warnings:  # each naming its dataset
+                named = str(row.dataset) in message
+                log.warning("%s%s", "" if named else f"{row.dataset}: ", message)
         rows[index] = row
         if progress is not None:
             progress(1, description=f"{row.dataset.name}: {row.status}")

@@ -15,6 +15,7 @@ import sys
 import time
 from pathlib import Path
 
+import cv2
 import dask
 import distributed
 import numpy as np
@@ -427,3 +428,23 @@ def test_option_differences_compare_what_metrics_json_records():
     assert option_differences(refined, ReconstructOptions(method="sbl", refine_lights=2)) == [
         "--fixed-intensities on (asked off)"
     ]
+
+
+def test_a_workers_warning_is_said_once_as_a_warning_line_naming_its_dataset(three, tmp_path):
+    # a worker process has no terminal: its warnings came out bare (Python's last-resort
+    # handler, no "warning:"); now the row carries them and the batch says them
+    dark = tmp_path / "data" / "dark"
+    write_capture(dark, seed=3)
+    for picture in sorted(dark.glob("0*.png")):
+        image = cv2.imread(str(picture), cv2.IMREAD_UNCHANGED)
+        image[: image.shape[0] // 2] = 0  # the top half unlit under every light
+        cv2.imwrite(str(picture), image)
+    done = subprocess.run(
+        [sys.executable, "-m", "ps_lab", "batch", str(three[0]), str(dark), "--out-root",
+         str(tmp_path / "out"), "--method", "ls", "--workers", "2"],
+        capture_output=True, text=True, env={**os.environ, "NO_COLOR": "1"},
+    )  # fmt: skip
+    assert done.returncode == 0, done.stderr
+    lines = [line for line in done.stderr.splitlines() if line.strip()]
+    assert len(lines) == 1, done.stderr
+    assert lines[0].startswith(f"warning: {dark}") and "could not be solved" in lines[0]
