@@ -171,11 +171,14 @@ def _masked_solve(basis: np.ndarray, sub: np.ndarray) -> np.ndarray:
     ndarray of shape (q, C, K), float64
 
     """
-    k = basis.shape[1]
+    n, k = basis.shape
+    q, c = sub.shape[1:]
     good = np.isfinite(sub)
-    gram = np.einsum("nk,nj,npc->pckj", basis, basis, good.astype(np.float64))
+    # each pixel's Gram matrix sum_i g_i b_i b_i^T as one product with the outer products
+    outer = (basis[:, :, None] * basis[:, None, :]).reshape(n, k * k)
+    gram = (good.reshape(n, q * c).T.astype(np.float64) @ outer).reshape(q, c, k, k)
     gram += 1e-9 * np.trace(basis.T @ basis) * np.eye(k)
-    rhs = np.einsum("nk,npc->pck", basis, np.where(good, sub, 0.0))
+    rhs = (np.where(good, sub, 0.0).reshape(n, q * c).T @ basis).reshape(q, c, k)
     return np.linalg.solve(gram, rhs[..., None])[..., 0]
 
 

@@ -235,11 +235,14 @@ def choose_model(
     truth = grey_srgb(np.clip(obs, 0.0, 1.0))  # (n, m)
     table: list[dict[str, Any]] = []
     best: Choice | None = None
+    # each candidate's leave-one-out matrix depends on the lights only: once for both spaces
+    weights = {(model, index): loo_weights(model, params, lights)
+               for model in models for index, params in enumerate(candidates(model))}
     for space in spaces:
         y = encode(obs, space).reshape(n, m * c)
         for model in models:
-            for params in candidates(model):
-                w = loo_weights(model, params, lights)
+            for index, params in enumerate(candidates(model)):
+                w = weights[model, index]
                 if w is None:  # not a candidate on these lights
                     continue
                 predicted = _decode((w @ y).reshape(n, m, c), space)
@@ -316,6 +319,28 @@ def _summary(requested: str, choice: Choice) -> dict[str, Any]:
             "loo_psnr": round(float(choice.score), 3), "best_per_model": best}
 
 
+def leading_right_vectors(values: np.ndarray, k: int) -> np.ndarray:
+    """The ``k`` leading right-singular vectors of the (m, n) matrix ``values.T`` as columns.
+
+    The eigenvectors of the (n, n) Gram matrix ``values values^T`` (descending eigenvalues):
+    the same subspace as the SVD of the sample at ``m n^2`` instead of an SVD of ``m`` rows.
+
+    Parameters
+    ----------
+    values : ndarray of shape (n, m)
+        One channel's observations of ``m`` pixels under ``n`` lights.
+    k : int
+
+    Returns
+    -------
+    ndarray of shape (n, k), orthonormal columns
+
+    """
+    gram = values @ values.T
+    _, vectors = np.linalg.eigh(gram)
+    return np.ascontiguousarray(vectors[:, ::-1][:, :k])
+
+
 def smoother_setup(
     choice: Choice, sample: np.ndarray, lights: np.ndarray, terms: int = SMOOTH_TERMS
 ) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
@@ -341,8 +366,7 @@ def smoother_setup(
     obs = np.nan_to_num(encode(obs[:, complete_pixels(obs)], choice.space))
     n = obs.shape[0]
     k = min(terms, n)
-    basis = np.stack([np.linalg.svd(obs[:, :, ch].T, full_matrices=False)[2][:k].T
-                      for ch in range(obs.shape[2])])
+    basis = np.stack([leading_right_vectors(obs[:, :, ch], k) for ch in range(obs.shape[2])])
     lights = np.asarray(lights, np.float64)
     lights = lights / np.linalg.norm(lights, axis=1, keepdims=True)
     extra = {"lights": lights.astype(np.float32), "basis": basis.astype(np.float32)}
