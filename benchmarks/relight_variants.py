@@ -1,6 +1,8 @@
 """Issue 38 follow-up: the old ``gp`` grid, the current (wider) one, and stacked smoothers, 8 folds.
 
-    python benchmarks/relight_variants.py ../shared/data/realrti-3/item9 --out /tmp/item9.json
+    PYTHONPATH=. python benchmarks/relight_variants.py ../shared/data/realrti-3/item9 --out /tmp/i9.json
+
+("wide" is the grid of the ``ps_lab`` imported: run it against this checkout.)
 
 Per fold (lights ``i % 8 == f`` held out): each variant's choice by leave-one-light-out on 2048
 pixels of the training lights, then the held-out grey sRGB PSNR (the judged metric) of its full
