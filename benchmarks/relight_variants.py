@@ -66,6 +66,8 @@ for f in range(8):
                     if tag == 'wide' and p in GRIDS[model]:
                         continue
                     Wl = ac.loo_weights(model, p, Lt)
+                    if Wl is None:  # not a candidate on these lights
+                        continue
                     cand.append(dict(score=loo_score(Wl, y, truth, space), model=model, space=space,
                                      params=p, W=Wl, tag=tag))
     base = [c for c in cand if c['tag'] == 'base']
