@@ -68,6 +68,8 @@ def test_bln_reproduces_a_function_bilinear_in_the_light_plane(rng):
     ("hsh3", {}),
     ("gp", {"sigma": 0.4, "ridge": 0.01}),
     ("gp", {"sigma": 1.2, "ridge": 1e-3}),
+    ("gp", {"sigma": 2.0, "ridge": 1e-3}),  # the grid's ends (issue 38's wider grid)
+    ("gp", {"sigma": 0.1, "ridge": 3.0}),
     ("rbf", {"sigma": 0.3}),
     ("bln", {"sigma": 0.2, "resolution": 8}),
 ])
