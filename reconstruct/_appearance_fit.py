@@ -275,9 +275,81 @@ def fit_rbf(
         bad = np.flatnonzero(~finite)
         sub = raw[:, bad] / factor[:, None, None]
         for ch in range(c):
-            solved = _masked_solve(np.asarray(basis[ch], np.float64), sub[..., ch:ch + 1])
-            out[bad, ch] = solved[:, 0]
+            out[bad, ch] = masked_projection(sub[..., ch], basis[ch])
     return out
+
+
+#: The ridge of a pixel's least squares on its finite observations, relative to the basis' trace
+#: (a pixel with too few of them gets its least-norm solution).
+MASKED_RIDGE = 1e-9
+
+
+def masked_projection(sub: np.ndarray, basis: np.ndarray) -> np.ndarray:
+    """Per pixel, least squares on its finite observations (:func:`_masked_solve`'s systems,
+    ridge :data:`MASKED_RIDGE` of the basis' trace), for a basis shared by every pixel.
+
+    The pixel's Gram matrix is ``A - M^T M``: ``A = B^T B + r I`` less the basis rows ``M`` of
+    its ``m`` missing observations. By Woodbury its solution is ``g + (A^-1 B^T)[:, miss] z``
+    with ``g = A^-1 B^T y0`` (``y0``: missing as 0; one product for all pixels) and
+    ``(I - H[miss, miss]) z = (B g)[miss]``, ``H = B A^-1 B^T`` (n x n, formed once): an
+    ``m x m`` solve per pixel instead of ``K x K`` (:func:`_masked_kernel`).
+
+    Parameters
+    ----------
+    sub : ndarray of shape (n, q), NaN where missing
+    basis : ndarray of shape (n, K)
+
+    Returns
+    -------
+    ndarray of shape (q, K), float64
+
+    """
+    b = np.ascontiguousarray(basis, np.float64)
+    gram = b.T @ b
+    inverse = np.linalg.inv(gram + MASKED_RIDGE * np.trace(gram) * np.eye(len(gram)))
+    spread = np.ascontiguousarray(inverse @ b.T)  # (K, n): A^-1 B^T
+    hat = np.ascontiguousarray(b @ spread)  # (n, n)
+    y = np.ascontiguousarray(sub, np.float64)
+    out = np.ascontiguousarray(np.where(np.isfinite(y), y, 0.0).T @ spread.T)  # g (q, K)
+    _masked_kernel(y, b, hat, spread, out)
+    return out
+
+
+@njit(cache=True, nogil=True)
+def _masked_kernel(sub, basis, hat, spread, out):  # pragma: no cover - numba
+    """:func:`masked_projection`'s correction of ``out`` (``g`` on entry) per pixel.
+
+    sub (n, q) NaN where missing; basis (n, K); hat (n, n) ``B A^-1 B^T``; spread (K, n)
+    ``A^-1 B^T``; out (q, K) float64, ``g`` in, the solution out.
+    """
+    n, q = sub.shape
+    k = basis.shape[1]
+    miss = np.empty(n, np.int64)
+    for p in range(q):
+        m = 0
+        for i in range(n):
+            v = sub[i, p]
+            if v != v:
+                miss[m] = i
+                m += 1
+        if m == 0:
+            continue
+        s = np.empty((m, m))
+        t = np.empty(m)
+        for u in range(m):
+            iu = miss[u]
+            acc = 0.0
+            for j in range(k):
+                acc += basis[iu, j] * out[p, j]
+            t[u] = acc
+            for v2 in range(m):
+                s[u, v2] = (1.0 if u == v2 else 0.0) - hat[iu, miss[v2]]
+        z = np.linalg.solve(s, t)
+        for u in range(m):
+            iu = miss[u]
+            zu = z[u]
+            for j in range(k):
+                out[p, j] += spread[j, iu] * zu
 
 
 def fit_visibility(

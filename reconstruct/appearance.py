@@ -333,7 +333,7 @@ def _fit_band(
     """One band's coefficients (P, C, K) float32 and the ps visibility (P, 4) float32 (or None).
 
     The band's blocks of :data:`FIT_CHUNK` pixels are fitted in place in the band's observations
-    (n, P, C) (no per-block copy), by ``workers`` threads for ``ps``; ``advance`` is called as
+    (n, P, C) (no per-block copy), by ``workers`` threads; ``advance`` is called as
     each block completes, in order.
     """
     pixels = observations.shape[1]
@@ -345,7 +345,7 @@ def _fit_band(
                          terms=terms if model == "ps" else PS_TERMS, space=space)
 
     results: list[tuple[np.ndarray, np.ndarray | None]] = []
-    if model == "ps" and workers > 1 and len(parts) > 1:
+    if workers > 1 and len(parts) > 1:  # the kernels and numpy's products release the GIL
         with ThreadPoolExecutor(min(workers, len(parts))) as pool:
             for part, result in zip(parts, pool.map(fit, parts)):
                 results.append(result)

@@ -718,3 +718,22 @@ def test_the_warm_up_compiles_every_type_the_ps_fits_pass(rng):
                       pixels=slice(1, 5), scale=np.full(len(d), 2.0))
     assert {k.py_func.__name__: set(k.signatures) for k in kernels} == warmed
     assert len(warmed["_ps_kernel"]) == 2
+
+
+def test_masked_projection_is_the_least_squares_of_the_finite_observations():
+    # the smoothers' path (Woodbury over the missing rows of the basis) against the per-pixel
+    # normal equations on the finite observations (_masked_solve, same ridge)
+    from ps_lab.reconstruct._appearance_fit import _masked_solve, masked_projection
+
+    rng = np.random.default_rng(43)
+    n, k, q = 40, 12, 300
+    basis, _ = np.linalg.qr(rng.normal(size=(n, k)))
+    basis = basis * rng.uniform(0.5, 2.0, k)  # any basis: columns not of unit length
+    sub = rng.normal(size=(n, q))
+    sub[rng.random((n, q)) < 0.15] = np.nan
+    sub[: n - 20, :5] = np.nan  # 20 finite observations left for 12 terms
+    out = masked_projection(sub, basis)
+    reference = _masked_solve(basis, sub[..., None])[:, 0]
+    # both solve the same well-conditioned systems (>= 20 finite rows of 40 for 12 terms):
+    # agreement to the rounding of a 12 x 12 solve
+    np.testing.assert_allclose(out, reference, rtol=0, atol=1e-9 * np.abs(reference).max())
