@@ -66,6 +66,9 @@ RBF_TERMS = 9
 # (K + 16, n) per call; kept for the signature of fit_ps).
 PS_CHUNK = 8192
 _SIGMAS = np.geomspace(0.03, 1.0, 16)
+#: The ridge of a pixel's least squares on its finite observations, relative to the basis' trace
+#: (a pixel with too few of them gets its least-norm solution).
+MASKED_RIDGE = 1e-9
 
 
 # ---------------------------------------------------------------------------------------------
@@ -158,8 +161,9 @@ def _fit_columns(basis: np.ndarray, obs: np.ndarray, scale: np.ndarray | None) -
 
 
 def _masked_solve(basis: np.ndarray, sub: np.ndarray) -> np.ndarray:
-    """Per pixel and channel, least squares on the finite observations (ridge ``1e-9`` of the
-    basis' trace: a pixel with too few finite ones gets its least-norm solution).
+    """Per pixel and channel, least squares on the finite observations (ridge
+    :data:`MASKED_RIDGE` of the basis' trace: a pixel with too few finite ones gets its
+    least-norm solution).
 
     Parameters
     ----------
@@ -177,7 +181,7 @@ def _masked_solve(basis: np.ndarray, sub: np.ndarray) -> np.ndarray:
     # each pixel's Gram matrix sum_i g_i b_i b_i^T as one product with the outer products
     outer = (basis[:, :, None] * basis[:, None, :]).reshape(n, k * k)
     gram = (good.reshape(n, q * c).T.astype(np.float64) @ outer).reshape(q, c, k, k)
-    gram += 1e-9 * np.trace(basis.T @ basis) * np.eye(k)
+    gram += MASKED_RIDGE * np.trace(basis.T @ basis) * np.eye(k)
     rhs = (np.where(good, sub, 0.0).reshape(n, q * c).T @ basis).reshape(q, c, k)
     return np.linalg.solve(gram, rhs[..., None])[..., 0]
 
@@ -278,10 +282,6 @@ def fit_rbf(
             out[bad, ch] = masked_projection(sub[..., ch], basis[ch])
     return out
 
-
-#: The ridge of a pixel's least squares on its finite observations, relative to the basis' trace
-#: (a pixel with too few of them gets its least-norm solution).
-MASKED_RIDGE = 1e-9
 
 
 def masked_projection(sub: np.ndarray, basis: np.ndarray) -> np.ndarray:

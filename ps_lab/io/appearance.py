@@ -68,8 +68,8 @@ multiplies the Lambertian term and every term lit by the light (``lambert``, ``l
 
 The default term list is :data:`PS_TERMS`: ``lx, ly, lz, ambient, lobe:4, lobe:32`` (6 per
 channel) with the visibility (4 per pixel); with the normal's 2 and the albedo it is 27 numbers
-per pixel in colour (13 in grey), as many as HSH order 3's 27 (9). Every term is bounded by 1 for any light, so the model
-cannot explode outside the captured range of lights (unlike PTM's and HSH's polynomials).
+per pixel in colour (13 in grey), as many as HSH order 3's 27 (9). Every term is bounded by 1
+for any light, so the model cannot explode outside the captured range of lights (unlike PTM's and HSH's polynomials).
 
 ``bln`` and ``gp``: interpolating models stored as ``rbf`` is (``lights``, ``basis``,
 coefficients), with other weights ``w(l)`` over the training lights (:mod:`ps_lab.io.smoothers`):
@@ -98,7 +98,7 @@ import numpy as np
 from ps_lab.errors import DatasetError
 from ps_lab.io.encoding import srgb_to_linear
 from ps_lab.io.files import PARTIAL_PREFIX, json_safe, publish_file
-from ps_lab.io.smoothers import bln_weights, gp_weights
+from ps_lab.io.smoothers import bln_weights, gaussian_weights, gp_weights
 
 __all__ = [
     "APPEARANCE_FILE",
@@ -399,12 +399,7 @@ def rbf_weights(directions: np.ndarray, lights: np.ndarray, sigma: float) -> np.
     ndarray of shape (..., n), float64, rows summing to 1
 
     """
-    d = _unit(directions)
-    d2 = np.sum((d[..., None, :] - np.asarray(lights, np.float64)) ** 2, axis=-1)
-    logw = -d2 / (sigma * sigma)
-    logw -= logw.max(axis=-1, keepdims=True)
-    w = np.exp(logw)
-    return w / w.sum(axis=-1, keepdims=True)
+    return gaussian_weights(directions, lights, sigma)  # the smoothers' one definition
 
 
 def smoother_weights(appearance: Appearance, directions: np.ndarray) -> np.ndarray:

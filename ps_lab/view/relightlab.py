@@ -145,10 +145,10 @@ def export_relightlab(result: Path, out: Path) -> tuple[dict, str]:
     """Write the result's appearance model into ``out`` in RelightLab's web layout.
 
     A PTM or HSH fit in linear light is written as it is; any other model (``ps``, ``gp``,
-    ``bln``, ``rbf``, Lambertian, a fit in the sRGB space, ...) is converted to the ``rbf`` layout (:mod:`ps_lab.view.export_rbf`) and the conversion's
-    PSNR against the model is measured on the written files. ``out`` must be absent, empty or
-    an earlier such export (:func:`check_export_folder`); it is replaced only when the new
-    folder is complete.
+    ``bln``, ``rbf``, Lambertian, a fit in the sRGB space, ...) is converted to the ``rbf``
+    layout (:mod:`ps_lab.view.export_rbf`) and the conversion's PSNR against the model is
+    measured on the written files. ``out`` must be absent, empty or an earlier such export
+    (:func:`check_export_folder`); it is replaced only when the new folder is complete.
 
     Returns
     -------
