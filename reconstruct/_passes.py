@@ -30,6 +30,7 @@ from ps_lab.reconstruct._refine import fit_lights
 from ps_lab.reconstruct._shadows import black_threshold
 from ps_lab.reconstruct._solution import SolverInputError
 from ps_lab.reconstruct._solve import estimate_noise_model, light_noise_factors, pl_noise_level
+from ps_lab.reconstruct.methods import solver
 from ps_lab.reconstruct.near import (
     NearLights,
     NearRounds,
@@ -200,7 +201,7 @@ def solve_near_bands(
     fixed: dict = {}
     sample = (store.sample_observations, store.sample_valid, store.sample_index)
     set_noise = None
-    if method != "ls" and store.sample_index.size:
+    if solver(method).estimates_noise and store.sample_index.size:
         # the same level for every band, re-estimated on the sample at each height tried
         set_noise = lambda sigma: fixed.__setitem__("noise_sigma", sigma)  # noqa: E731
     params: dict = {}
@@ -328,8 +329,7 @@ def _whole_image_parameters(
     :func:`ps_lab.reconstruct.estimate_noise_model`) of its default ``lam`` and each light's share
     of it (``light_noise=``: the images were divided by the file's light intensities).
     """
-    method = options.method
-    if method in ("ls", "plls") or store.sample_index.size == 0:
+    if not solver(options.method).estimates_noise or store.sample_index.size == 0:
         return {}
     workers = int(options.threads) if options.threads else (os.cpu_count() or 1)
     with ThreadPoolExecutor(max(workers, 1)) as pool:
@@ -337,8 +337,8 @@ def _whole_image_parameters(
 
 
 def _noise_parameters(store, vectors, options, intensities, mapper, workers) -> dict:
-    method = options.method
-    sbl_like = method in ("sbl", "plsbl", "auto")
+    row = solver(options.method)
+    sbl_like = row.sbl_noise
     light_noise = light_noise_factors(intensities, options.channel) if sbl_like else None
     sigma, floor = estimate_noise_model(
         store.sample_observations,
@@ -352,10 +352,10 @@ def _noise_parameters(store, vectors, options, intensities, mapper, workers) -> 
     if not sbl_like:
         return {"noise_sigma": sigma}
     whole = {"noise_sigma": sigma, "noise_floor": floor, "light_noise": light_noise}
-    if method in ("plsbl", "auto"):  # the PL model's own noise level, on the same sample
+    if row.pl_noise:  # the PL model's own noise level, on the same sample
         whole["noise_sigma_pl"] = pl_noise_level(
             store.sample_observations, vectors, store.sample_valid,
-            segments=options.segments or 3, noise_sigma=sigma,
+            segments=options.segments or row.defaults["segments"], noise_sigma=sigma,
             max_pixels=store.sample_index.size, mapper=mapper, workers=workers)
     return whole
 

@@ -8,7 +8,6 @@ import numpy as np
 
 from ps_lab.errors import DatasetError
 
-METHODS = ("auto", "ls", "l1", "sbl", "plls", "plsbl", "rpca")
 # What every method's ``albedo`` is (``Solution.params["albedo"]``, metrics.json).
 ALBEDO_DEFINITION = "lambertian-equivalent"
 

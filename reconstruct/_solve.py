@@ -15,31 +15,14 @@ from ._linalg import SOLVABLE_REL_DET, pixel_scale  # noqa: F401 (near.py import
 from ._auto import auto_tiles
 from ._pl_algebra import gate_variance
 from ._rpca import solve_rpca
-from ._solution import ALBEDO_DEFINITION, METHODS, Solution, SolverInputError, _albedo_rows
-from ._tiles import (LAMBDA_FLOOR, _finish_solution, _prepare_tile, _store_tile, ls_tiles,
+from ._solution import ALBEDO_DEFINITION, Solution, SolverInputError, _albedo_rows
+from ._tiles import (LAMBDA_FLOOR, _finish_solution, _prepare_tile, _store_tile,  # noqa: F401
                      sbl_lambda)
+from .methods import SBL_MAX_ITER, SOLVERS, solver
 
-# Defaults of each method's parameters (in units of the pixel's robust scale, see `pixel_scale`).
-DEFAULTS: dict[str, dict] = {
-    "ls": {},
-    "l1": {"max_iter": 100, "tol": 1e-6, "delta": 1e-6, "outlier_threshold": None,
-           "noise_sigma": None},
-    "sbl": {"lam": None, "sigma_x2": 1e6, "max_iter": 100, "tol": None, "gamma_floor": 1e-10,
-            "gamma_start": 1e3, "outlier_threshold": None, "noise_sigma": None,
-            "noise_floor": None, "light_noise": None},
-    "plls": {"segments": 3},
-    "plsbl": {"lam": None, "sigma_x2": 1e6, "max_iter": 20, "tol": None, "gamma_floor": 1e-10,
-              "gamma_start": 1e3, "segments": 3, "outlier_threshold": None, "noise_sigma": None,
-              "noise_floor": None, "light_noise": None, "noise_sigma_pl": None},
-    "rpca": {"lam_sparse": None, "max_iter": 500, "tol": 1e-7, "rho": 1.5,
-             "outlier_threshold": None, "noise_sigma": None},
-}
-# The default method chooses, per pixel, SBL or PL-SBL by which predicts the pixel's kept
-# observations better (leave-one-out, docs/solvers.md); it takes PL-SBL's options, and its SBL
-# candidate runs SBL's own iterations (so where it keeps SBL, it is SBL).
-DEFAULTS["auto"] = dict(DEFAULTS["plsbl"])
-# Methods with SBL's noise variance (lambda) and its per-observation default.
-SBL_LIKE = ("sbl", "plsbl", "auto")
+# Defaults of each method's parameters (in units of the pixel's robust scale, see `pixel_scale`):
+# the solver table's (methods.py).
+DEFAULTS: dict[str, dict] = {row.name: dict(row.defaults) for row in SOLVERS}
 DEFAULT_TILE_SIZE = 4096
 # Smaller tiles when there would be fewer than this many per thread (so that no thread idles
 # while another finishes a large last tile), but never below MIN_TILE_SIZE pixels.
@@ -132,9 +115,7 @@ def _check_inputs(observations, light_directions, valid):
 
 
 def _method_params(method: str, given: dict) -> dict:
-    if method not in METHODS:
-        raise SolverInputError(f"unknown method {method!r}; choose one of {', '.join(METHODS)}")
-    allowed = set(DEFAULTS[method])
+    allowed = set(solver(method).defaults)
     unknown = sorted(set(given) - allowed)
     if unknown:
         raise SolverInputError(f"method {method!r} has no parameter(s) {', '.join(unknown)}; "
@@ -476,9 +457,10 @@ def solve(
     """
     obs, lights, usable = _check_inputs(observations, light_directions, valid)
     params = _method_params(method, method_params)
-    if method == "auto":
+    row = solver(method)
+    if row.chooses:
         # the SBL candidate runs SBL's own iterations, unless a cap is given for both models
-        params["sbl_max_iter"] = int(method_params.get("max_iter", DEFAULTS["sbl"]["max_iter"]))
+        params["sbl_max_iter"] = int(method_params.get("max_iter", SBL_MAX_ITER))
     n, p = obs.shape
     workers = int(threads) if threads else (os.cpu_count() or 1)
     if workers < 1:
@@ -488,7 +470,7 @@ def solve(
         raise SolverInputError(f"tile_size must be positive, got {tile_size}")
     tile = _tile_pixels(p, workers, bound)
     starts = range(0, p, tile)
-    parallel = workers > 1 and (len(starts) > 1 or method not in ("ls", "plls"))
+    parallel = workers > 1 and (len(starts) > 1 or row.estimates_noise)
     with ThreadPoolExecutor(max_workers=workers) if parallel else nullcontext() as pool:
         mapper = pool.map if pool is not None else map
 
@@ -500,7 +482,7 @@ def solve(
                                   noise_sigma=noise_sigma, mapper=mapper, workers=workers)
 
         used = _solve_params(n, method, params, residuals, pl_noise)
-        if method == "rpca":
+        if row.one_light_matrix:
             sol = solve_rpca(obs, lights, usable, params, used, progress)
             rho = _albedo_rows(sol.normals @ lights.T, (usable & ~sol.outliers).T,
                                np.where(usable, obs, 0.0).T)
@@ -508,7 +490,7 @@ def solve(
             return Solution(sol.normals, np.where(np.isnan(rho), sol.albedo, rho), sol.outliers,
                             sol.iterations, sol.params)
         used.update({"tile_size": bound, "threads": workers})
-        if method == "auto":
+        if row.chooses:
             def pl_noise_of(columns):  # the PL noise on some pixels (the gate's failures)
                 return pl_noise_level(obs[:, columns], lights, usable[:, columns],
                                       segments=params["segments"],
@@ -528,10 +510,11 @@ def _solve_params(n, method, params, residuals, pl_noise=None) -> dict:
     ``pl_noise(segments, noise_sigma)`` the PL models' noise level (:func:`pl_noise_level`).
     """
     used: dict = {"method": method}
+    row = solver(method)
     sigma_pl = params.pop("noise_sigma_pl", None)
-    if method not in ("ls", "plls"):
+    if row.estimates_noise:
         noise = params.pop("noise_sigma")
-        if method in SBL_LIKE:
+        if row.sbl_noise:
             noise_floor = params.pop("noise_floor")
             light_noise = params.pop("light_noise")
             if light_noise is not None:
@@ -562,40 +545,24 @@ def _solve_params(n, method, params, residuals, pl_noise=None) -> dict:
             params["outlier_threshold"] = max(3.0 * noise, MIN_OUTLIER_THRESHOLD)
         if noise is not None:
             used["noise_sigma"] = float(noise)
-        if method in ("plsbl", "auto") and params["lam"] is None:
-            if sigma_pl is None and method == "auto":
+        if row.pl_noise and params["lam"] is None:
+            if sigma_pl is None and row.chooses:
                 # measured after SBL, on the pixels whose Lambertian fit fails (_auto_tiles)
                 params["noise_sigma_pl"] = None
             elif sigma_pl is None:
                 sigma_pl = pl_noise(params["segments"], noise)
             if sigma_pl is not None:
                 used["noise_sigma_pl"] = params["noise_sigma_pl"] = float(sigma_pl)
-        if method in SBL_LIKE and params["tol"] is None:
+        if row.sbl_noise and params["tol"] is None:
             params["tol"] = max(SBL_TOL_MIN, SBL_TOL_NOISE_SHARE * noise)
     used.update({k: v for k, v in params.items()
                  if k not in ("lam", "noise_floor", "light_noise", "noise_sigma_pl")})
     return used
 
 
-def _pl_sbl_tile(y, w, lights, **params):
-    return _pl_kernels.pl_tile(y, w, lights, **params)
-
-
-def _auto_tile(y, w, lights, *, sbl_max_iter=DEFAULTS["sbl"]["max_iter"], **params):
-    lam_test = gate_variance(params.get("lam_pl", params["lam"]))  # the score test's (_auto)
-    return _pl_kernels.pl_tile(y, w, lights, choose=True, sbl_max_iter=sbl_max_iter,
-                               lam_test=lam_test, **params)
-
-
-def _pl_ls_tile(y, w, lights, *, segments):
-    return _pl_kernels.pl_tile(y, w, lights, segments=segments, lam=LAMBDA_FLOOR, sigma_x2=1e12,
-                               sbl=False, learn_tau=False)
-
-
 def tile_kernel(method: str):
     """The tile kernel of ``method`` (directional lights (n, 3); the PL kernels also (m, n, 3))."""
-    return {"ls": _kernels.ls_tile, "l1": _kernels.l1_tile, "sbl": _kernels.sbl_tile,
-            "plls": _pl_ls_tile, "plsbl": _pl_sbl_tile, "auto": _auto_tile}[method]
+    return solver(method).tile
 
 
 def _solve_tiles(obs, lights, usable, method, params, used, starts, tile, mapper, progress):
@@ -605,18 +572,18 @@ def _solve_tiles(obs, lights, usable, method, params, used, starts, tile, mapper
     albedo = np.zeros(p)
     outliers = np.zeros((n, p), bool)
     iterations = np.zeros(p, np.int64)
-    segments = np.zeros(p, np.int64) if method in ("plls", "plsbl", "auto") else None
-    kernel = tile_kernel(method)
-    kernel_params = {k: v for k, v in params.items()
-                     if k not in ("noise_floor", "light_noise", "noise_sigma_pl")}
-    if method == "ls":
-        kernel_params = {"outlier_threshold": np.inf}
-    per_pixel_lam = method in SBL_LIKE and params["lam"] is None
+    row = solver(method)
+    segments = np.zeros(p, np.int64) if row.segments else None
+    kernel = row.tile
+    kernel_params = {**{k: v for k, v in params.items()
+                        if k not in ("noise_floor", "light_noise", "noise_sigma_pl")},
+                     **row.fixed}
+    per_pixel_lam = row.sbl_noise and params["lam"] is None
 
     def run_tile(a: int) -> int:
         b = min(a + tile, p)
-        if method == "ls":  # a few sums per pixel: straight from the observations
-            ls_tiles(obs, usable, lights, a, b, normals, albedo, iterations)
+        if row.direct_tiles is not None:  # e.g. least squares: a few sums per pixel
+            row.direct_tiles(obs, usable, lights, a, b, normals, albedo, iterations)
             return b - a
         y, w, scale, ok = _prepare_tile(obs, usable, lights, a, b)
         tile_params = kernel_params
@@ -624,10 +591,10 @@ def _solve_tiles(obs, lights, usable, method, params, used, starts, tile, mapper
             floor, factors = params["noise_floor"], params["light_noise"]
             tile_params = {**kernel_params,
                            "lam": sbl_lambda(scale, used["noise_sigma"], floor, factors)}
-            if method in ("plsbl", "auto"):
+            if row.pl_noise:
                 # the PL model's noise: the same floor, its own relative noise (pl_noise_level)
                 lam_pl = sbl_lambda(scale, params["noise_sigma_pl"], floor, factors)
-                tile_params["lam_pl" if method == "auto" else "lam"] = lam_pl
+                tile_params["lam_pl" if row.chooses else "lam"] = lam_pl
         res = kernel(y, w, lights, **tile_params)
         _store_tile(a, b, y, w, scale, ok, res, lights, normals, albedo, outliers, iterations,
                     segments)

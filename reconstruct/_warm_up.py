@@ -38,6 +38,7 @@ from ._near_kernels import l1_tile_pp, sbl_tile_pp
 from ._colour import colour_albedo
 from ._auto import last_choice
 from ._pl_kernels import pl_tile
+from .methods import SOLVERS
 from ._tiles import _prepare_tile, _store_tile, ls_tiles
 
 log = logging.getLogger(__name__)
@@ -176,16 +177,8 @@ GROUPS = {
     "render": Group("renderer's shadow march", _render),
     "appearance": Group("appearance kernel", _appearance),
 }
-#: The groups ``ps-lab reconstruct --method M`` needs (L1's: the noise estimate uses it).
-METHOD_GROUPS = {
-    "ls": ("store", "tiles", "colour", "ls"),
-    "l1": ("store", "tiles", "colour", "l1"),
-    "sbl": ("store", "tiles", "colour", "l1", "sbl"),
-    "plls": ("store", "tiles", "colour", "pl"),
-    "plsbl": ("store", "tiles", "colour", "l1", "pl"),
-    "auto": ("store", "tiles", "colour", "l1", "pl"),
-    "rpca": ("store", "tiles", "colour"),
-}
+#: The groups ``ps-lab reconstruct --method M`` needs: the solver table's ``warm_up``.
+METHOD_GROUPS = {row.name: row.warm_up for row in SOLVERS}
 
 
 def _estimate(name: str) -> int:

@@ -43,8 +43,8 @@ from ._solve import (
     _method_params,
     pixel_scale,
     residual_noise,
-    tile_kernel,
 )
+from .methods import METHODS, solver
 from .integrate import integrate
 from .integrate import integrate as integrate_depth
 
@@ -64,15 +64,6 @@ __all__ = [
 # Stop when no pixel's depth moved more than this (pixels) in a round.
 DEPTH_TOLERANCE_PX = 0.5
 MAX_ROUNDS = 6
-_KERNELS = {
-    "ls": _near_kernels.ls_tile_pp,
-    "l1": _near_kernels.l1_tile_pp,
-    "sbl": _near_kernels.sbl_tile_pp,
-    # the piecewise-linear kernels take per-pixel lights (m, n, 3) as they are
-    "plls": tile_kernel("plls"),
-    "plsbl": tile_kernel("plsbl"),
-    "auto": tile_kernel("auto"),
-}
 # At most this many parabola steps of a depth search; the outline search stops at this step
 # (pixels): below it the criterion's change is within its noise (docs/solvers.md).
 _OFFSET_STEPS = 8
@@ -209,8 +200,9 @@ def solve_near(
         Observations (divided by the light intensities).
     light_vectors : ndarray of shape (P, n, 3)
         Each pixel's light vectors.
-    method : {"ls", "l1", "sbl"}
-        Solver.
+    method : str
+        Solver (a method of the solver table, :mod:`ps_lab.reconstruct.methods`, with a
+        ``near_tile``).
     valid, threads, tile_size, progress, **method_params
         As for :func:`ps_lab.reconstruct.solve`.
 
@@ -218,28 +210,31 @@ def solve_near(
     -------
     Solution
     """
-    if method == "rpca":
+    if method in METHODS and solver(method).near_tile is None:
         raise SolverInputError(
-            "rpca needs one light matrix for all pixels: use --lights directional with rpca"
+            f"{method} needs one light matrix for all pixels: use --lights directional with "
+            f"{method}"
         )
     obs, vectors, usable = _check(observations, light_vectors, valid)
     params = _method_params(method, method_params)
     n, p = obs.shape
     used: dict = {"method": method, "light_model": "near"}
-    if method == "auto":
+    fallback = solver(method).near_fallback
+    if fallback is not None:
         # The per-pixel choice between SBL and PL-SBL is a test against each pixel's own noise
         # (the per-observation model: a noise floor relative to the pixel's scale, per light),
         # which near lights do not estimate (one relative lam below); with one lam the test is
         # miscalibrated and picks PL where it is worse (docs/solvers.md), so near lights' default
         # solves with SBL, its parameters as given.
-        params = _method_params("sbl", {k: v for k, v in method_params.items()
-                                        if k in _method_params("sbl", {})})
-        method = used["solved_with"] = "sbl"
-    if method not in ("ls", "plls"):
+        params = _method_params(fallback, {k: v for k, v in method_params.items()
+                                           if k in solver(fallback).defaults})
+        method = used["solved_with"] = fallback
+    row = solver(method)
+    if row.estimates_noise:
         noise = params.pop("noise_sigma")
         if noise is None:
             noise = estimate_noise_near(obs, vectors, usable)
-        if method in ("sbl", "plsbl", "auto"):
+        if row.sbl_noise:
             # One relative lam here: the directional solver's per-light noise floor is not
             # carried over to near lights (issue 12 left it out).
             params.pop("noise_floor")
@@ -251,10 +246,9 @@ def solve_near(
         if params["outlier_threshold"] is None:
             params["outlier_threshold"] = max(3.0 * noise, MIN_OUTLIER_THRESHOLD)
         used["noise_sigma"] = float(noise)
-        if method in ("sbl", "plsbl", "auto") and params["tol"] is None:
+        if row.sbl_noise and params["tol"] is None:
             params["tol"] = max(SBL_TOL_MIN, SBL_TOL_NOISE_SHARE * noise)
-    elif method == "ls":
-        params = {"outlier_threshold": np.inf}
+    params = {**params, **row.fixed}
     used.update({k: v for k, v in params.items() if k != "lam"})
     tile = int(tile_size) if tile_size else DEFAULT_TILE_SIZE
     workers = int(threads) if threads else (os.cpu_count() or 1)
@@ -265,7 +259,7 @@ def solve_near(
     albedo = np.zeros(p)
     outliers = np.zeros((n, p), bool)
     iterations = np.zeros(p, np.int64)
-    kernel = _KERNELS[method]
+    kernel = row.near_tile
 
     def run_tile(a: int) -> int:
         b = min(a + tile, p)
@@ -666,7 +660,7 @@ def near_light_reconstruct(
     if obs.shape[1] != rows.size:
         raise SolverInputError(f"{obs.shape[1]} observed pixels but the mask has {rows.size}")
     set_noise: Callable[[float], None] | None = None
-    if method != "ls" and method_params.get("noise_sigma") is None:
+    if solver(method).estimates_noise and method_params.get("noise_sigma") is None:
         # estimated by the rounds at each height they try
         set_noise = lambda sigma: method_params.__setitem__("noise_sigma", sigma)  # noqa: E731
 

@@ -21,6 +21,7 @@ from ps_lab.io.images import available_memory
 from ps_lab.io.normal_maps import CONVENTIONS
 from ps_lab.reconstruct._solution import SolverInputError
 from ps_lab.reconstruct.depth import DepthOptions
+from ps_lab.reconstruct.methods import DEFAULT_METHOD, METHODS, methods_with, solver
 
 __all__ = [
     "BYTES_PER_OBSERVATION",
@@ -83,13 +84,12 @@ def parse_memory_size(text: str) -> int:
     return size
 
 
-# Solver fields of ReconstructOptions -> (command-line flag, methods they apply to).
+# Solver fields of ReconstructOptions -> (command-line flag, methods they apply to: the solver
+# table's, methods.py).
 SOLVER_OPTIONS = {
-    "lam": ("--lambda", ("auto", "sbl", "plsbl", "rpca")),
-    "sigma_x2": ("--sigma-x2", ("auto", "sbl", "plsbl")),
-    "max_iter": ("--max-iter", ("auto", "l1", "sbl", "plsbl", "rpca")),
-    "tol": ("--tol", ("auto", "l1", "sbl", "plsbl", "rpca")),
-    "segments": ("--segments", ("auto", "plls", "plsbl")),
+    name: (flag, methods_with(name))
+    for name, flag in (("lam", "--lambda"), ("sigma_x2", "--sigma-x2"), ("max_iter", "--max-iter"),
+                       ("tol", "--tol"), ("segments", "--segments"))
 }
 # Most segments of the piecewise-linear models (reconstruct/_pl_kernels.py).
 MAX_SEGMENTS = 8
@@ -153,8 +153,9 @@ class ReconstructOptions:
 
     Attributes
     ----------
-    method : {"auto", "ls", "l1", "sbl", "plls", "plsbl", "rpca"}
-        Solver (``auto``: per pixel SBL or PL-SBL, by their evidence; docs/solvers.md).
+    method : str
+        Solver, one of ``ps_lab.reconstruct.METHODS`` (the solver table,
+        :mod:`ps_lab.reconstruct.methods`) (``auto``: per pixel SBL or PL-SBL, by their evidence; docs/solvers.md).
         Noise level and outlier threshold are estimated once for the whole image; R-PCA's
         low-rank model is fitted per band.
     channel : {"r", "g", "b", "mean"}
@@ -218,7 +219,7 @@ class ReconstructOptions:
         else beam, else isotropic, by the files present (``ps-lab calibrate --flat-field``).
     """
 
-    method: str = "auto"
+    method: str = DEFAULT_METHOD
     channel: str = "mean"
     shadow_threshold: float | None = None
     threads: int | None = None
@@ -280,11 +281,11 @@ class ReconstructOptions:
     def solver_parameters(self) -> dict[str, Any]:
         """Keyword arguments for :func:`ps_lab.reconstruct.solve` that these options fix.
 
-        The solver fields that are set (``lam`` is R-PCA's ``lam_sparse``); every band's solve
-        receives them.
+        The solver fields that are set, each under the method's keyword (the solver table's
+        ``options``: ``lam`` is R-PCA's ``lam_sparse``); every band's solve receives them.
         """
         given = {name: getattr(self, name) for name in SOLVER_OPTIONS}
-        names = {"lam": "lam_sparse"} if self.method == "rpca" else {}
+        names = solver(self.method).options if self.method in METHODS else {}
         return {names.get(k, k): v for k, v in given.items() if v is not None}
 
     def replace(self, **changes: Any) -> ReconstructOptions:

@@ -74,6 +74,7 @@ from ps_lab.reconstruct.depth import (
 )
 from ps_lab.reconstruct.integrate import IntegrationInputError
 from ps_lab.io.led_model import FLAT_FIELD, LIGHT_AXES, read_flat_field, read_light_axes
+from ps_lab.reconstruct.methods import solver
 from ps_lab.reconstruct.near import NearLights
 from ps_lab.reconstruct.options import (
     BYTES_PER_OBSERVATION,
@@ -333,8 +334,9 @@ def _near_lights(header: DatasetHeader, options: ReconstructOptions) -> NearLigh
             "--fixed-intensities: near lights refine intensities only (positions stay); "
             "add --lights directional to refine directions"
         )
-    if options.method == "rpca":
-        raise DatasetError("rpca needs one light matrix for all pixels: add --lights directional")
+    if solver(options.method).near_tile is None:
+        raise DatasetError(f"{options.method} needs one light matrix for all pixels: add "
+                           "--lights directional")
     if options.scheduler is not None:
         raise DatasetError("--scheduler solves directional lights only: add --lights directional")
     n = len(header.names)
@@ -426,9 +428,10 @@ def _stage(
     extra += COLOUR_BYTES_PER_OBSERVATION // BYTES_PER_OBSERVATION if colours else 0
     per_light = n * (1 + extra)
     pixels = int(mask.sum())
-    keep_plan = options.method == "rpca" or options.refine_lights > 0
+    whole_bands = solver(options.method).one_light_matrix  # R-PCA: fitted per band, not capped
+    keep_plan = whole_bands or options.refine_lights > 0
     limit = band_pixels(budget, per_light)
-    if options.method != "rpca":
+    if not whole_bands:
         limit = min(limit, MAX_BAND_PIXELS)
     limit = executor.band_pixels(limit, pixels, keep_plan)
     bands = plan_bands(mask, limit)

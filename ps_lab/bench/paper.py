@@ -58,6 +58,7 @@ from ps_lab.bench.scenes import (
 )
 from ps_lab.reconstruct import metrics as _metrics
 from ps_lab.reconstruct import refine_lights, solve
+from ps_lab.reconstruct.methods import SOLVERS
 
 __all__ = [
     "METHOD_LABELS",
@@ -78,7 +79,8 @@ __all__ = [
     "total_steps",
 ]
 
-METHOD_LABELS = {"ls": "LS", "l1": "L1", "rpca": "R-PCA", "sbl": "SBL"}
+# Each method's name in the tables (the solver table's labels).
+METHOD_LABELS = {row.name: row.label for row in SOLVERS}
 
 Progress = Callable[[int], None] | None
 

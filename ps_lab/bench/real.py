@@ -30,12 +30,12 @@ from ps_lab.io.dataset import load_dataset
 from ps_lab.reconstruct import angular_errors_deg, error_summary, light_noise_factors, solve
 from ps_lab.reconstruct._shadows import black_threshold
 from ps_lab.reconstruct._solve import NOISE_SAMPLE_PIXELS
+from ps_lab.reconstruct.methods import METHODS, SOLVERS
 
 # The repository's sibling data folder (``../shared/data/diligent-8bit`` from the repo root).
 DEFAULT_FOLDER = Path(__file__).resolve().parents[2].parent / "shared" / "data" / "diligent-8bit"
-METHODS = ("auto", "ls", "l1", "sbl", "plls", "plsbl", "rpca")
 # Methods that take each light's share of the noise floor (SBL's default lambda).
-_LIGHT_NOISE = ("auto", "sbl", "plsbl")
+_LIGHT_NOISE = tuple(row.name for row in SOLVERS if row.sbl_noise)
 FIXED_LAMBDAS = (1e-6, 1e-4, 1e-2, 1e-1)
 # Every RELIGHT_EVERY-th light is left out of the relighting fit.
 RELIGHT_EVERY = 8

@@ -27,6 +27,7 @@ from ps_lab.commands.reconstruct import (
     _terminal_bars,
 )
 from ps_lab.reconstruct.batch import failure_line, run_batch, summary_table
+from ps_lab.reconstruct.methods import DEFAULT_METHOD
 from ps_lab.reconstruct.pipeline import ReconstructOptions, parse_memory_budget
 
 
@@ -58,7 +59,7 @@ def batch(
             show_default=False,
         ),
     ] = None,
-    method: MethodOption = Method.auto,
+    method: MethodOption = Method(DEFAULT_METHOD),
     shadow_threshold: ShadowThresholdOption = None,
     channel: ChannelOption = Channel.mean,
     refine_lights: RefineLightsOption = 0,

@@ -12,6 +12,7 @@ import typer
 from ps_lab._cli_util import lab_command, progress_bar
 from ps_lab.errors import DatasetError
 from ps_lab.io.frames import FolderOfDatasetsError
+from ps_lab.reconstruct.methods import DEFAULT_METHOD, METHODS, method_help
 from ps_lab.reconstruct.pipeline import (
     ReconstructOptions,
     parse_memory_budget,
@@ -19,16 +20,9 @@ from ps_lab.reconstruct.pipeline import (
 )
 
 
-class Method(str, Enum):  # noqa: UP042 - typer needs str-valued choices
-    """Solver choices (see ``ps_lab.reconstruct.METHODS``)."""
-
-    auto = "auto"
-    ls = "ls"
-    l1 = "l1"
-    sbl = "sbl"
-    plls = "plls"
-    plsbl = "plsbl"
-    rpca = "rpca"
+# Solver choices: the solver table's methods (ps_lab/reconstruct/methods.py); typer needs
+# str-valued choices.
+Method = Enum("Method", [(name, name) for name in METHODS], type=str)  # type: ignore[misc]
 
 
 class AppearanceModel(str, Enum):  # noqa: UP042
@@ -97,8 +91,7 @@ MethodOption = Annotated[
     Method,
     typer.Option(
         case_sensitive=False,
-        help="Solver: auto (per pixel sbl or plsbl by evidence, default), ls (Woodham), l1 "
-        "(IRLS), sbl (robust), plls / plsbl (piecewise-linear diffuse), rpca."
+        help=method_help(),
     ),
 ]
 SegmentsOption = Annotated[
@@ -217,7 +210,7 @@ def reconstruct(
         Path,
         typer.Argument(help="Image folder (DiLiGenT layout) or capture run.", show_default=False),
     ],
-    method: MethodOption = Method.auto,
+    method: MethodOption = Method(DEFAULT_METHOD),
     out: Annotated[
         Path | None,
         typer.Option(help="Output folder (default: DATASET/recon/<method>).", show_default=False),
