@@ -38,6 +38,7 @@ import numpy as np
 from numba import njit
 
 from . import _pl_kernels
+from ._linalg import SINGULAR_REL_DET, inverse3
 from ._pl_algebra import GATE_NOISE, gate_variance
 from ._tiles import _finish_solution, _prepare_tile, _store_tile, sbl_lambda
 
@@ -186,6 +187,29 @@ RING_MIN_LIGHTS = 6
 DOME_SHARE = 0.5
 
 
+@njit(inline="always")
+def _weighted_fit(y, v, lights):
+    """Weighted least squares of one pixel, ``x = M^-1 sum v_i y_i l_i``, ``M = sum v_i l_i
+    l_i^T``: ``(ok, x0, x1, x2, i00, i11, i22, i01, i02, i12)`` (``M^-1``; zeros when singular,
+    :func:`._linalg.inverse3`)."""
+    xx = yy = zz = xy = xz = yz = t0 = t1 = t2 = 0.0
+    for i in range(y.shape[0]):
+        vi = v[i]
+        l0, l1, l2 = lights[i, 0], lights[i, 1], lights[i, 2]
+        xx += vi * l0 * l0
+        yy += vi * l1 * l1
+        zz += vi * l2 * l2
+        xy += vi * l0 * l1
+        xz += vi * l0 * l2
+        yz += vi * l1 * l2
+        t0 += vi * y[i] * l0
+        t1 += vi * y[i] * l1
+        t2 += vi * y[i] * l2
+    ok, i00, i11, i22, i01, i02, i12 = inverse3(xx, yy, zz, xy, xz, yz, SINGULAR_REL_DET)
+    return (ok, i00 * t0 + i01 * t1 + i02 * t2, i01 * t0 + i11 * t1 + i12 * t2,
+            i02 * t0 + i12 * t1 + i22 * t2, i00, i11, i22, i01, i02, i12)
+
+
 @njit(nogil=True, cache=True, error_model="numpy")
 def _loo_terms(y, fw, use, lights, lam, clip2, out):
     """Truncated left-out terms of the weighted Lambertian fit of one pixel; their sum.
@@ -197,40 +221,17 @@ def _loo_terms(y, fw, use, lights, lam, clip2, out):
     when ``M`` is singular.
     """
     n = y.shape[0]
-    xx = yy = zz = xy = xz = yz = t0 = t1 = t2 = 0.0
-    for i in range(n):
-        v = fw[i]
-        l0, l1, l2 = lights[i, 0], lights[i, 1], lights[i, 2]
-        xx += v * l0 * l0
-        yy += v * l1 * l1
-        zz += v * l2 * l2
-        xy += v * l0 * l1
-        xz += v * l0 * l2
-        yz += v * l1 * l2
-        t0 += v * y[i] * l0
-        t1 += v * y[i] * l1
-        t2 += v * y[i] * l2
-    c00 = yy * zz - yz * yz
-    c11 = xx * zz - xz * xz
-    c22 = xx * yy - xy * xy
-    c01 = xz * yz - xy * zz
-    c02 = xy * yz - xz * yy
-    c12 = xy * xz - xx * yz
-    det = xx * c00 + xy * c01 + xz * c02
-    if not det > 1e-12 * (xx + yy + zz) ** 3:
+    ok, x0, x1, x2, i00, i11, i22, i01, i02, i12 = _weighted_fit(y, fw, lights)
+    if not ok:
         return math.inf
-    inv = 1.0 / det
-    x0 = (c00 * t0 + c01 * t1 + c02 * t2) * inv
-    x1 = (c01 * t0 + c11 * t1 + c12 * t2) * inv
-    x2 = (c02 * t0 + c12 * t1 + c22 * t2) * inv
     total = 0.0
     for i in range(n):
         out[i] = 0.0
         if use[i] > 0.0:
             l0, l1, l2 = lights[i, 0], lights[i, 1], lights[i, 2]
             r = y[i] - (x0 * l0 + x1 * l1 + x2 * l2)
-            q = (c00 * l0 * l0 + c11 * l1 * l1 + c22 * l2 * l2
-                 + 2.0 * (c01 * l0 * l1 + c02 * l0 * l2 + c12 * l1 * l2)) * inv
+            q = (i00 * l0 * l0 + i11 * l1 * l1 + i22 * l2 * l2
+                 + 2.0 * (i01 * l0 * l1 + i02 * l0 * l2 + i12 * l1 * l2))
             h = fw[i] * q
             e2 = r * r / (lam[i] * (1.0 - h) ** 2) if h < 1.0 else clip2
             out[i] = e2 if e2 < clip2 else clip2
@@ -276,40 +277,12 @@ def _last_choice_kernel(y, w, lights, lam, x_sbl, d, x_pl, pl, clip2, z, x_out, 
         if pl[p] and model[p] == 1:  # PL-SBL nests SBL: the PL stage chose it over SBL
             model[p] = 2
         if model[p] == 0:
-            _ls_x(y[p], w[p], lp, x_out, p)
+            fit = _weighted_fit(y[p], w[p], lp)
+            x_out[p, 0], x_out[p, 1], x_out[p, 2] = fit[1], fit[2], fit[3]
         elif model[p] == 1:
             x_out[p, 0], x_out[p, 1], x_out[p, 2] = x_sbl[p, 0], x_sbl[p, 1], x_sbl[p, 2]
         else:
             x_out[p, 0], x_out[p, 1], x_out[p, 2] = x_pl[p, 0], x_pl[p, 1], x_pl[p, 2]
-
-
-@njit(inline="always")
-def _ls_x(y, w, lights, x_out, p):
-    n = y.shape[0]
-    xx = yy = zz = xy = xz = yz = t0 = t1 = t2 = 0.0
-    for i in range(n):
-        v = w[i]
-        l0, l1, l2 = lights[i, 0], lights[i, 1], lights[i, 2]
-        xx += v * l0 * l0
-        yy += v * l1 * l1
-        zz += v * l2 * l2
-        xy += v * l0 * l1
-        xz += v * l0 * l2
-        yz += v * l1 * l2
-        t0 += v * y[i] * l0
-        t1 += v * y[i] * l1
-        t2 += v * y[i] * l2
-    c00 = yy * zz - yz * yz
-    c11 = xx * zz - xz * xz
-    c22 = xx * yy - xy * xy
-    c01 = xz * yz - xy * zz
-    c02 = xy * yz - xz * yy
-    c12 = xy * xz - xx * yz
-    det = xx * c00 + xy * c01 + xz * c02
-    inv = 1.0 / det if det != 0.0 else 0.0
-    x_out[p, 0] = (c00 * t0 + c01 * t1 + c02 * t2) * inv
-    x_out[p, 1] = (c01 * t0 + c11 * t1 + c12 * t2) * inv
-    x_out[p, 2] = (c02 * t0 + c12 * t1 + c22 * t2) * inv
 
 
 def last_choice(y, w, lights, lam, x_sbl, d, x_pl, pl, *,

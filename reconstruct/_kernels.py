@@ -24,7 +24,7 @@ from dataclasses import dataclass
 import numpy as np
 from numba import njit
 
-from ._linalg import apply6, inverse6, outer6
+from ._linalg import apply6, inverse6, outer6, solve3
 
 
 @dataclass
@@ -38,28 +38,9 @@ class TileResult:
 
 def ls_tile(y, w, lights, *, outlier_threshold: float) -> TileResult:
     """Woodham's least squares on the usable observations; it flags no outliers."""
-    inv, _ = inverse6(w @ outer6(lights), 0.0)
+    inv, _ = inverse6(w @ outer6(lights))
     x = apply6(inv, (w * y) @ lights)
     return TileResult(x, np.zeros(y.shape, bool), np.ones(y.shape[0], np.int64))
-
-
-@njit(nogil=True, cache=True)
-def _solve3(xx, yy, zz, xy, xz, yz, t0, t1, t2):
-    """Solve a symmetric 3x3 system by cofactors; zeros when it is singular."""
-    c00 = yy * zz - yz * yz
-    c11 = xx * zz - xz * xz
-    c22 = xx * yy - xy * xy
-    c01 = xz * yz - xy * zz
-    c02 = xy * yz - xz * yy
-    c12 = xy * xz - xx * yz
-    det = xx * c00 + xy * c01 + xz * c02
-    if not det > 0.0:
-        return 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0
-    inv = 1.0 / det
-    i00, i11, i22 = c00 * inv, c11 * inv, c22 * inv
-    i01, i02, i12 = c01 * inv, c02 * inv, c12 * inv
-    return (i00 * t0 + i01 * t1 + i02 * t2, i01 * t0 + i11 * t1 + i12 * t2,
-            i02 * t0 + i12 * t1 + i22 * t2, i00, i11, i22, i01, i02, i12)
 
 
 # The loops over the lights are vectorised (4 lights per AVX2 instruction) when numba may
@@ -124,7 +105,7 @@ def _weighted_sums(st, tab, n):
 def _weighted_fit(st, tab, n):
     """Return x minimising ``sum_i v_i (y_i - a_i.x)^2`` (v = st[_V], y = st[_Y])."""
     xx, yy, zz, xy, xz, yz, t0, t1, t2 = _weighted_sums(st, tab, n)
-    s = _solve3(xx, yy, zz, xy, xz, yz, t0, t1, t2)
+    s = solve3(xx, yy, zz, xy, xz, yz, t0, t1, t2)
     return s[0], s[1], s[2]
 
 
@@ -238,7 +219,7 @@ def _sbl_pixel(st, tab, n, ridge, max_iter, tol, floor, start, threshold, x_out,
     while True:
         # M = ridge I + A^T D A with D = (Gamma + lam I)^-1 (0 for dropped observations)
         xx, yy, zz, xy, xz, yz, t0, t1, t2 = _weighted_sums(st, tab, n)
-        x0, x1, x2, i00, i11, i22, i01, i02, i12 = _solve3(
+        x0, x1, x2, i00, i11, i22, i01, i02, i12 = solve3(
             xx + ridge, yy + ridge, zz + ridge, xy, xz, yz, t0, t1, t2)
         if done or it == max_iter:
             # posterior mean for the final gamma; corruption e = Gamma S y

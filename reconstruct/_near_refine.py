@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from ._linalg import full3, inverse6, sym6
 from ._solution import SolverInputError
 
 __all__ = ["fit_near_intensities"]
@@ -51,10 +52,10 @@ def fit_near_intensities(
     y = np.where(use, y, 0.0)
     weighted = light_vectors * use.T[:, :, None]
     normal = np.einsum("mni,mnj->mij", weighted, light_vectors)
-    ok = np.linalg.det(normal) > 1e-12 * np.einsum("mii->m", normal) ** 3
+    inverse, ok = inverse6(sym6(normal))
     if ok.sum() < 3:
         raise SolverInputError("too few solvable pixels to fit the light intensities")
-    inverse = np.linalg.inv(normal[ok])
+    inverse = full3(inverse[ok])
     rows = weighted[ok]
     hat = np.einsum("mni,mij,mkj->mnk", rows, inverse, rows)
     dy = y.T[ok]

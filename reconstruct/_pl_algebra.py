@@ -16,6 +16,7 @@ from numba import njit
 from scipy.special import chdtri  # chi^2 upper quantile: scipy.stats costs 0.7 s to import
 
 from ._kernels import INLINE
+from ._linalg import SINGULAR_REL_DET, cofactors3, inverse3
 
 
 @njit(**INLINE)
@@ -119,13 +120,9 @@ def _inverse5(m00, m01, m02, m03, m04, m11, m12, m13, m14, m22, m23, m24, m33, m
         The upper triangle of ``M^-1``, row-major.
     """
     z = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
-    c22 = m33 * m44 - m34 * m34
-    c33 = m22 * m44 - m24 * m24
-    c44 = m22 * m33 - m23 * m23
-    c23 = m24 * m34 - m23 * m44
-    c24 = m23 * m34 - m24 * m33
-    c34 = m23 * m24 - m22 * m34
-    det_n = m22 * c22 + m23 * c23 + m24 * c24
+    # N's cofactors; N and S must be positive definite (the Cholesky pivots' test), not only
+    # invertible (inverse3's rule)
+    det_n, c22, c33, c44, c23, c24, c34 = cofactors3(m22, m33, m44, m23, m24, m34)
     if not det_n > 0.0:
         return math.nan, z
     r = 1.0 / det_n
@@ -209,23 +206,14 @@ def _loo_lambertian(y, fw, sw, tab, n, ridge, out):
         t0 += vy * tab[6, i]
         t1 += vy * tab[7, i]
         t2 += vy * tab[8, i]
-    xx += ridge
-    yy += ridge
-    zz += ridge
-    c00 = yy * zz - yz * yz
-    c11 = xx * zz - xz * xz
-    c22 = xx * yy - xy * xy
-    c01 = xz * yz - xy * zz
-    c02 = xy * yz - xz * yy
-    c12 = xy * xz - xx * yz
-    det = xx * c00 + xy * c01 + xz * c02
-    if not det > 0.0:
+    ok, i00, i11, i22, i01, i02, i12 = inverse3(xx + ridge, yy + ridge, zz + ridge, xy, xz, yz,
+                                                SINGULAR_REL_DET)
+    if not ok:
         return math.nan
-    d = 1.0 / det
-    i00, i11, i22, j01, j02, j12 = c00 * d, c11 * d, c22 * d, 2 * c01 * d, 2 * c02 * d, 2 * c12 * d
-    x0 = (c00 * t0 + c01 * t1 + c02 * t2) * d
-    x1 = (c01 * t0 + c11 * t1 + c12 * t2) * d
-    x2 = (c02 * t0 + c12 * t1 + c22 * t2) * d
+    j01, j02, j12 = 2.0 * i01, 2.0 * i02, 2.0 * i12
+    x0 = i00 * t0 + i01 * t1 + i02 * t2
+    x1 = i01 * t0 + i11 * t1 + i12 * t2
+    x2 = i02 * t0 + i12 * t1 + i22 * t2
     score = 0.0
     bad = 0
     for i in range(n):  # (one vectorised pass: no branch, a failed leverage is counted)
@@ -442,20 +430,10 @@ def _bend_score(y, w, tab, p, n, k_max, x_out, lam_row, q_table, vals, mat, inv,
                 low[j, 2] += wt * h * l2
                 for c in range(j, nh):
                     mat[j, c] += wt * h * vals[c]
-    # G_LL^-1 by cofactors
-    c00 = a11 * a22 - a12 * a12
-    c01 = a02 * a12 - a01 * a22
-    c02 = a01 * a12 - a02 * a11
-    det = a00 * c00 + a01 * c01 + a02 * c02
-    if not det > 0.0:
+    # G_LL^-1
+    ok, c00, c11, c22, c01, c02, c12 = inverse3(a00, a11, a22, a01, a02, a12, SINGULAR_REL_DET)
+    if not ok:
         return -math.inf
-    d = 1.0 / det
-    c00 *= d
-    c01 *= d
-    c02 *= d
-    c11 = (a00 * a22 - a02 * a02) * d
-    c12 = (a01 * a02 - a00 * a12) * d
-    c22 = (a00 * a11 - a01 * a01) * d
     # s = g_H - G_HL G_LL^-1 g_L; S = G_HH - G_HL G_LL^-1 G_LH (upper triangle, in mat)
     e0 = c00 * gl0 + c01 * gl1 + c02 * gl2
     e1 = c01 * gl0 + c11 * gl1 + c12 * gl2

@@ -68,7 +68,7 @@ def solve_rpca(obs, lights, usable, params, used, progress) -> Solution:
     x = np.zeros((p, 3))
     if cols.size:
         m6 = np.broadcast_to(outer6(lights).sum(axis=0), (cols.size, 6)).copy()
-        inv, _ = inverse6(m6, 0.0)
+        inv, _ = inverse6(m6)
         x[cols] = apply6(inv, low.T @ lights) * scale[cols, None]
     length = np.linalg.norm(x, axis=1)
     good = ok & (length > 0)

@@ -13,21 +13,15 @@ import numpy as np
 from . import _kernels, _pl_kernels
 from ._linalg import SOLVABLE_REL_DET, pixel_scale  # noqa: F401 (near.py imports it from here)
 from ._auto import auto_tiles
-from ._pl_algebra import gate_variance
 from ._rpca import solve_rpca
 from ._solution import ALBEDO_DEFINITION, Solution, SolverInputError, _albedo_rows
-from ._tiles import (LAMBDA_FLOOR, _finish_solution, _prepare_tile, _store_tile,  # noqa: F401
-                     sbl_lambda)
+from ._tiles import (DEFAULT_TILE_SIZE, LAMBDA_FLOOR, _prepare_tile, sbl_lambda, solve_tiles,
+                     tile_pixels)
 from .methods import SBL_MAX_ITER, SOLVERS, solver
 
 # Defaults of each method's parameters (in units of the pixel's robust scale, see `pixel_scale`):
 # the solver table's (methods.py).
 DEFAULTS: dict[str, dict] = {row.name: dict(row.defaults) for row in SOLVERS}
-DEFAULT_TILE_SIZE = 4096
-# Smaller tiles when there would be fewer than this many per thread (so that no thread idles
-# while another finishes a large last tile), but never below MIN_TILE_SIZE pixels.
-TILES_PER_THREAD = 4
-MIN_TILE_SIZE = 512
 # The noise fit's pixel sample is cut into pieces of at least this many pixels for the threads.
 NOISE_PIECE_PIXELS = 1000
 # Smallest outlier threshold (relative to the pixel scale); _pl_algebra.GATE_NOISE is its third.
@@ -380,18 +374,6 @@ def _stable_order(x):
     return np.repeat(starts[runs] - (np.cumsum(lengths) - lengths), lengths) + np.arange(x.size)
 
 
-def _tile_pixels(pixels: int, workers: int, bound: int) -> int:
-    """Pixels per tile: ``bound``, or fewer for a small input on several threads.
-
-    Each of the ``workers`` threads gets ``TILES_PER_THREAD`` tiles, but a tile is never smaller
-    than ``MIN_TILE_SIZE`` pixels (nor larger than ``bound``).
-    """
-    if workers == 1:
-        return bound
-    share = -(-pixels // (workers * TILES_PER_THREAD))
-    return int(min(bound, max(MIN_TILE_SIZE, share)))
-
-
 def solve(
     observations: np.ndarray,
     light_directions: np.ndarray,
@@ -413,8 +395,10 @@ def solve(
     light_directions : ndarray of shape (n, 3)
         Unit vectors from the surface toward each light (camera frame, x right, y up, z to
         the camera), optionally scaled by the light's intensity.
-    method : {"ls", "l1", "sbl", "rpca"}
-        Woodham least squares, L1 (IRLS), sparse Bayesian learning, or R-PCA + least squares.
+    method : str
+        One of ``METHODS``: the solver table (:mod:`ps_lab.reconstruct.methods`, docs/solvers.md:
+        ``auto``, Woodham least squares, L1 (IRLS), sparse Bayesian learning, the
+        piecewise-linear models, R-PCA + least squares).
     valid : ndarray of shape (n, P), bool, optional
         False for observations to drop (saturated, under the shadow threshold). Non-finite
         observations are always dropped.
@@ -468,7 +452,7 @@ def solve(
     bound = int(tile_size) if tile_size else DEFAULT_TILE_SIZE
     if bound < 1:
         raise SolverInputError(f"tile_size must be positive, got {tile_size}")
-    tile = _tile_pixels(p, workers, bound)
+    tile = tile_pixels(p, workers, bound)
     starts = range(0, p, tile)
     parallel = workers > 1 and (len(starts) > 1 or row.estimates_noise)
     with ThreadPoolExecutor(max_workers=workers) if parallel else nullcontext() as pool:
@@ -499,8 +483,8 @@ def solve(
 
             return auto_tiles(obs, lights, usable, params, used, starts, tile, mapper, progress,
                               pl_noise_of)
-        return _solve_tiles(obs, lights, usable, method, params, used, starts, tile, mapper,
-                            progress)
+        return solve_tiles(obs, lights, usable, row, params, used, starts, tile, mapper,
+                           progress)
 
 
 def _solve_params(n, method, params, residuals, pl_noise=None) -> dict:
@@ -563,44 +547,3 @@ def _solve_params(n, method, params, residuals, pl_noise=None) -> dict:
 def tile_kernel(method: str):
     """The tile kernel of ``method`` (directional lights (n, 3); the PL kernels also (m, n, 3))."""
     return solver(method).tile
-
-
-def _solve_tiles(obs, lights, usable, method, params, used, starts, tile, mapper, progress):
-    """Run ``method``'s tile kernel over the tiles starting at ``starts``; the Solution."""
-    n, p = obs.shape
-    normals = np.zeros((p, 3))
-    albedo = np.zeros(p)
-    outliers = np.zeros((n, p), bool)
-    iterations = np.zeros(p, np.int64)
-    row = solver(method)
-    segments = np.zeros(p, np.int64) if row.segments else None
-    kernel = row.tile
-    kernel_params = {**{k: v for k, v in params.items()
-                        if k not in ("noise_floor", "light_noise", "noise_sigma_pl")},
-                     **row.fixed}
-    per_pixel_lam = row.sbl_noise and params["lam"] is None
-
-    def run_tile(a: int) -> int:
-        b = min(a + tile, p)
-        if row.direct_tiles is not None:  # e.g. least squares: a few sums per pixel
-            row.direct_tiles(obs, usable, lights, a, b, normals, albedo, iterations)
-            return b - a
-        y, w, scale, ok = _prepare_tile(obs, usable, lights, a, b)
-        tile_params = kernel_params
-        if per_pixel_lam:
-            floor, factors = params["noise_floor"], params["light_noise"]
-            tile_params = {**kernel_params,
-                           "lam": sbl_lambda(scale, used["noise_sigma"], floor, factors)}
-            if row.pl_noise:
-                # the PL model's noise: the same floor, its own relative noise (pl_noise_level)
-                lam_pl = sbl_lambda(scale, params["noise_sigma_pl"], floor, factors)
-                tile_params["lam_pl" if row.chooses else "lam"] = lam_pl
-        res = kernel(y, w, lights, **tile_params)
-        _store_tile(a, b, y, w, scale, ok, res, lights, normals, albedo, outliers, iterations,
-                    segments)
-        return b - a
-
-    for done in mapper(run_tile, starts):
-        if progress is not None:
-            progress(done)
-    return _finish_solution(used, normals, albedo, outliers, iterations, segments)

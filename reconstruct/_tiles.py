@@ -1,6 +1,8 @@
-"""Tiles of the per-pixel solvers: scaled observations in, unit normals and albedo out.
+"""Tiles of the per-pixel solvers: the tile size, and scaled observations in, unit normals and
+albedo out.
 
-Shared by :mod:`._solve` and the default's two passes (:mod:`._auto`). Both ends are numba
+:func:`solve_tiles` runs a method's tile kernel over a solve's tiles (on the solve's threads);
+the default's two passes (:mod:`._auto`) use the same ends. Both ends are numba
 kernels that release the GIL (:func:`_prepare_kernel`, :func:`_store_kernel`): the tile threads
 run them in parallel, at the speed of one pass over the tile's observations, where the same
 algebra as whole-tile numpy operations held the GIL for as long as the SBL kernel itself took
@@ -16,12 +18,16 @@ import math
 import numpy as np
 from numba import njit
 
-from ._kernels import _solve3
-from ._linalg import SOLVABLE_REL_DET
+from ._linalg import SOLVABLE_REL_DET, inverse3, solve3
 from ._solution import ALBEDO_DEFINITION, Solution
 
 # Noise level floor (relative to the pixel scale): the paper's lambda for noise-free data.
 LAMBDA_FLOOR = 1e-6
+DEFAULT_TILE_SIZE = 4096
+# Smaller tiles when there would be fewer than this many per thread (so that no thread idles
+# while another finishes a large last tile), but never below MIN_TILE_SIZE pixels.
+TILES_PER_THREAD = 4
+MIN_TILE_SIZE = 512
 
 
 def sbl_lambda(scale: np.ndarray, noise_sigma: float, noise_floor: float,
@@ -110,12 +116,7 @@ def _median(buf, k):
 @njit(inline="always")
 def _solvable(xx, yy, zz, xy, xz, yz, rel_eps):
     """The normal matrix is well conditioned: ``det > rel_eps (trace / 3)^3``, trace > 0."""
-    c00 = yy * zz - yz * yz
-    c01 = xz * yz - xy * zz
-    c02 = xy * yz - xz * yy
-    det = xx * c00 + xy * c01 + xz * c02
-    tr = (xx + yy + zz) / 3.0
-    return det > rel_eps * tr * tr * tr and tr > 0.0
+    return inverse3(xx, yy, zz, xy, xz, yz, rel_eps)[0]
 
 
 @njit(nogil=True, cache=True, error_model="numpy")
@@ -263,7 +264,7 @@ def _ls_direct(obs, usable, lights, a, b, rel_eps, normals, albedo, iterations):
         length = 0.0
         u0 = u1 = u2 = 0.0
         if good:
-            r = _solve3(xx, yy, zz, xy, xz, yz, t0, t1, t2)
+            r = solve3(xx, yy, zz, xy, xz, yz, t0, t1, t2)
             length = math.sqrt(r[0] * r[0] + r[1] * r[1] + r[2] * r[2])
             good = length > 0.0 and math.isfinite(length)
             if good:
@@ -291,3 +292,60 @@ def _finish_solution(used, normals, albedo, outliers, iterations, segments):
                                            strict=True)}
     used["albedo"] = ALBEDO_DEFINITION
     return Solution(normals, albedo, outliers, iterations, used)
+
+
+def tile_pixels(pixels: int, workers: int, bound: int) -> int:
+    """Pixels per tile: ``bound``, or fewer for a small input on several threads.
+
+    Each of the ``workers`` threads gets ``TILES_PER_THREAD`` tiles, but a tile is never smaller
+    than ``MIN_TILE_SIZE`` pixels (nor larger than ``bound``).
+    """
+    if workers == 1:
+        return bound
+    share = -(-pixels // (workers * TILES_PER_THREAD))
+    return int(min(bound, max(MIN_TILE_SIZE, share)))
+
+
+def solve_tiles(obs, lights, usable, row, params, used, starts, tile, mapper, progress):
+    """Run a method's tile kernel over the tiles starting at ``starts``; the Solution.
+
+    ``row`` is the method's :class:`~ps_lab.reconstruct.methods.SolverMethod`, ``params`` its
+    parameters with the data-driven defaults filled in (``_solve._solve_params``), ``used`` the
+    parameters as reported; ``mapper`` runs the tiles (a thread pool's ``map``, or ``map``).
+    """
+    n, p = obs.shape
+    normals = np.zeros((p, 3))
+    albedo = np.zeros(p)
+    outliers = np.zeros((n, p), bool)
+    iterations = np.zeros(p, np.int64)
+    segments = np.zeros(p, np.int64) if row.segments else None
+    kernel = row.tile
+    kernel_params = {**{k: v for k, v in params.items()
+                        if k not in ("noise_floor", "light_noise", "noise_sigma_pl")},
+                     **row.fixed}
+    per_pixel_lam = row.sbl_noise and params["lam"] is None
+
+    def run_tile(a: int) -> int:
+        b = min(a + tile, p)
+        if row.direct_tiles is not None:  # e.g. least squares: a few sums per pixel
+            row.direct_tiles(obs, usable, lights, a, b, normals, albedo, iterations)
+            return b - a
+        y, w, scale, ok = _prepare_tile(obs, usable, lights, a, b)
+        tile_params = kernel_params
+        if per_pixel_lam:
+            floor, factors = params["noise_floor"], params["light_noise"]
+            tile_params = {**kernel_params,
+                           "lam": sbl_lambda(scale, used["noise_sigma"], floor, factors)}
+            if row.pl_noise:
+                # the PL model's noise: the same floor, its own relative noise (pl_noise_level)
+                lam_pl = sbl_lambda(scale, params["noise_sigma_pl"], floor, factors)
+                tile_params["lam_pl" if row.chooses else "lam"] = lam_pl
+        res = kernel(y, w, lights, **tile_params)
+        _store_tile(a, b, y, w, scale, ok, res, lights, normals, albedo, outliers, iterations,
+                    segments)
+        return b - a
+
+    for done in mapper(run_tile, starts):
+        if progress is not None:
+            progress(done)
+    return _finish_solution(used, normals, albedo, outliers, iterations, segments)

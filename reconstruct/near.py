@@ -29,11 +29,10 @@ from ps_lab.geometry import Camera, near_light_vectors, scene_points
 from ps_lab.io.led_model import FlatField
 
 from . import _near_kernels
-from ._linalg import inverse6
+from ._linalg import apply6, inverse6, sym6
 from ._near_refine import fit_near_intensities
 from ._solution import ALBEDO_DEFINITION, Solution, SolverInputError, _albedo_rows
 from ._solve import (
-    DEFAULT_TILE_SIZE,
     LAMBDA_FLOOR,
     MIN_OUTLIER_THRESHOLD,
     NOISE_SAMPLE_PIXELS,
@@ -44,6 +43,7 @@ from ._solve import (
     pixel_scale,
     residual_noise,
 )
+from ._tiles import DEFAULT_TILE_SIZE
 from .methods import METHODS, solver
 from .integrate import integrate
 from .integrate import integrate as integrate_depth
@@ -330,10 +330,8 @@ def _inlier_residual(observations, use, vectors):
     weighted = vectors * use.T[:, :, None]
     m = np.einsum("pni,pnj->pij", weighted, vectors)
     b = np.einsum("pni,np->pi", weighted, observations)
-    det = np.linalg.det(m)
-    ok = det > 1e-12 * np.einsum("pii->p", m) ** 3
-    x = np.zeros((m.shape[0], 3))
-    x[ok] = np.linalg.solve(m[ok], b[ok][..., None])[..., 0]
+    inverse, ok = inverse6(sym6(m))
+    x = apply6(inverse, b)
     r = (observations.T - np.einsum("pni,pi->pn", vectors, x)) * use.T
     return float(np.sum(r[ok] ** 2))
 

@@ -94,14 +94,20 @@ def test_sub_packages_live_in_the_top_level_folders() -> None:
         assert set(package.__all__) <= set(dir(package))
 
 
-def test_no_module_is_over_700_lines() -> None:
-    """The house bound: a module a reader can hold (split along a responsibility, not in half)."""
+# Modules are split by concept, not by length: a module holds one concept however long it is,
+# and two concepts are two modules however short. This generous bound only catches a module
+# that has grown into several concepts; it is not a size to split at.
+MAX_MODULE_LINES = 1200
+
+
+def test_no_module_is_over_the_generous_bound() -> None:
+    """A module a reader can hold: far above any one concept's size (see above)."""
     folders = ("ps_lab", "capture", "calibration", "reconstruct")
     modules = {p.resolve() for folder in folders for p in (ROOT / folder).rglob("*.py")}
     assert len(modules) > 50
     long = {
         str(p.relative_to(ROOT)): n
         for p in sorted(modules)
-        if (n := len(p.read_text(encoding="utf-8").splitlines())) > 700
+        if (n := len(p.read_text(encoding="utf-8").splitlines())) > MAX_MODULE_LINES
     }
     assert long == {}
