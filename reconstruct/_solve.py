@@ -523,10 +523,8 @@ def _solve_params(n, method, params, residuals, pl_noise=None) -> dict:
                 used["lambda"] = float(params["lam"])
                 if noise is None:
                     noise = math.sqrt(params["lam"])
-        if params["outlier_threshold"] is None:
-            if noise is None:
-                noise = _noise_level(*residuals())
-            params["outlier_threshold"] = max(3.0 * noise, MIN_OUTLIER_THRESHOLD)
+        if params["outlier_threshold"] is None and noise is None:
+            noise = _noise_level(*residuals())
         if noise is not None:
             used["noise_sigma"] = float(noise)
         if row.pl_noise and params["lam"] is None:
@@ -537,11 +535,23 @@ def _solve_params(n, method, params, residuals, pl_noise=None) -> dict:
                 sigma_pl = pl_noise(params["segments"], noise)
             if sigma_pl is not None:
                 used["noise_sigma_pl"] = params["noise_sigma_pl"] = float(sigma_pl)
-        if row.sbl_noise and params["tol"] is None:
-            params["tol"] = max(SBL_TOL_MIN, SBL_TOL_NOISE_SHARE * noise)
+        noise_defaults(row, params, noise)
     used.update({k: v for k, v in params.items()
                  if k not in ("lam", "noise_floor", "light_noise", "noise_sigma_pl")})
     return used
+
+
+def noise_defaults(row, params: dict, noise: float | None) -> None:
+    """Fill in, from the noise level, the outlier threshold and SBL's tolerance (in place).
+
+    ``max(3 noise, MIN_OUTLIER_THRESHOLD)`` and, for SBL's methods (``row.sbl_noise``),
+    ``max(SBL_TOL_MIN, SBL_TOL_NOISE_SHARE noise)``; those given are kept (``noise`` may be None
+    only when neither is needed).
+    """
+    if params["outlier_threshold"] is None:
+        params["outlier_threshold"] = max(3.0 * noise, MIN_OUTLIER_THRESHOLD)
+    if row.sbl_noise and params["tol"] is None:
+        params["tol"] = max(SBL_TOL_MIN, SBL_TOL_NOISE_SHARE * noise)
 
 
 def tile_kernel(method: str):

@@ -103,11 +103,8 @@ _MAX_SOLVER_ITERATIONS = 500
 
 
 class IntegrationInputError(DatasetError, ValueError):
-    """Normals, mask or camera parameters that cannot be integrated.
-
-    A :class:`~ps_lab.errors.DatasetError` (the CLI prints one line) and a ``ValueError`` (for
-    library callers).
-    """
+    """Normals, mask or camera parameters that cannot be integrated (one CLI line, and a
+    ``ValueError`` for library callers, as the solvers' ``SolverInputError``)."""
 
 
 @dataclass(frozen=True)

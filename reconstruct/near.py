@@ -34,12 +34,10 @@ from ._near_refine import fit_near_intensities
 from ._solution import ALBEDO_DEFINITION, Solution, SolverInputError, _albedo_rows
 from ._solve import (
     LAMBDA_FLOOR,
-    MIN_OUTLIER_THRESHOLD,
     NOISE_SAMPLE_PIXELS,
-    SBL_TOL_MIN,
-    SBL_TOL_NOISE_SHARE,
     SOLVABLE_REL_DET,
     _method_params,
+    noise_defaults,
     pixel_scale,
     residual_noise,
 )
@@ -243,11 +241,8 @@ def solve_near(
             if params["lam"] is None:
                 params["lam"] = max(noise * noise, LAMBDA_FLOOR)
             used["lambda"] = float(params["lam"])
-        if params["outlier_threshold"] is None:
-            params["outlier_threshold"] = max(3.0 * noise, MIN_OUTLIER_THRESHOLD)
+        noise_defaults(row, params, noise)
         used["noise_sigma"] = float(noise)
-        if row.sbl_noise and params["tol"] is None:
-            params["tol"] = max(SBL_TOL_MIN, SBL_TOL_NOISE_SHARE * noise)
     params = {**params, **row.fixed}
     used.update({k: v for k, v in params.items() if k != "lam"})
     tile = int(tile_size) if tile_size else DEFAULT_TILE_SIZE
