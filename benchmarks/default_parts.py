@@ -29,7 +29,7 @@ from ps_lab.io.dataset import load_dataset
 from ps_lab.io.images import read_image
 from ps_lab.reconstruct import angular_errors_deg, light_noise_factors, solve
 from ps_lab.reconstruct._shadows import black_threshold
-from ps_lab.reconstruct._solve import NOISE_SAMPLE_PIXELS
+from ps_lab.reconstruct._noise import NOISE_SAMPLE_PIXELS
 
 DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
 METHODS = ("sbl", "ls", "plsbl", "auto")  # SBL first: its kernels are warm when auto is timed

@@ -11,7 +11,7 @@ Two passes (docs/solvers.md, "The default `auto`", rule 0):
    residuals, which hold that misfit. The PL noise is not known yet, so this pass tests with its
    lower bound (the noise floor alone): a pixel that passes it passes the real test too;
 2. only if some pixels fail, the PL model's noise is measured on a sample of *them*
-   (:func:`._solve.pl_noise_level`), and those pixels are tested again at that noise and,
+   (:func:`._noise.pl_noise_level`), and those pixels are tested again at that noise and,
    where they still fail, fitted by PL-SBL and compared with SBL by their left-out residuals
    (:func:`._pl_kernels._choose`). SBL's fit of the first pass is reused, not repeated, and so
    are the test's break points (order statistics of SBL's fitted values: ``gate_breaks``).
@@ -71,7 +71,7 @@ def light_rings(lights: np.ndarray) -> float:
 def auto_tiles(obs, lights, usable, params, used, starts, tile, mapper, progress, pl_noise_of):
     """Solve the tiles starting at ``starts`` with ``auto`` (module docstring); the Solution.
 
-    ``pl_noise_of(columns)``: the PL model's noise on those pixels (``_solve.pl_noise_level``).
+    ``pl_noise_of(columns)``: the PL model's noise on those pixels (``_noise.pl_noise_level``).
     """
     n, p = obs.shape
     per_pixel = params["lam"] is None

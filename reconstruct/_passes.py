@@ -29,7 +29,7 @@ from ps_lab.reconstruct._outputs import _OutputWriter
 from ps_lab.reconstruct._refine import fit_lights
 from ps_lab.reconstruct._shadows import black_threshold
 from ps_lab.reconstruct._solution import SolverInputError
-from ps_lab.reconstruct._solve import estimate_noise_model, light_noise_factors, pl_noise_level
+from ps_lab.reconstruct._noise import estimate_noise_model, light_noise_factors, pl_noise_level
 from ps_lab.reconstruct.methods import solver
 from ps_lab.reconstruct.near import (
     NearLights,

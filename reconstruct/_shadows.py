@@ -47,7 +47,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ._solve import estimate_noise_model
+from ._noise import estimate_noise_model
 
 __all__ = ["BLACK_SIGMAS", "KEEP_ALL", "black_level", "black_threshold"]
 

@@ -119,3 +119,33 @@ def _albedo_rows(shading: np.ndarray, inliers: np.ndarray, y: np.ndarray) -> np.
     den = np.einsum("pn,pn->p", s, s)
     with np.errstate(divide="ignore", invalid="ignore"):
         return np.where(den > 0.0, np.maximum(num / np.where(den > 0.0, den, 1.0), 0.0), np.nan)
+
+
+def check_inputs(observations, light_directions, valid):
+    """``solve``'s inputs as arrays: observations (n, P), lights (n, 3) float64 and the usable
+    mask (finite and ``valid``); :class:`SolverInputError` for wrong shapes or lights."""
+    obs = np.asarray(observations)
+    if obs.ndim != 2:
+        raise SolverInputError(f"observations must be (n_lights, n_pixels), got shape {obs.shape}")
+    if not np.issubdtype(obs.dtype, np.number):
+        raise SolverInputError(f"observations must be numeric, got {obs.dtype}")
+    # the tile kernels take C-ordered float32 (the store's) or float64 (one compiled version each)
+    obs = np.ascontiguousarray(obs, dtype=obs.dtype if obs.dtype == np.float32 else np.float64)
+    lights = np.asarray(light_directions, dtype=np.float64)
+    n = obs.shape[0]
+    if lights.shape != (n, 3):
+        raise SolverInputError(f"light_directions must be ({n}, 3) for {n} observations per "
+                               f"pixel, got {lights.shape}")
+    if not np.all(np.isfinite(lights)):
+        raise SolverInputError("light_directions contain NaN or infinite values")
+    if n < 3 or np.linalg.matrix_rank(lights) < 3:
+        raise SolverInputError("the light directions do not span 3-D space "
+                               "(need >= 3 non-coplanar lights)")
+    usable = np.isfinite(obs)
+    if valid is not None:
+        valid = np.asarray(valid, dtype=bool)
+        if valid.shape != obs.shape:
+            raise SolverInputError(f"valid must have the observations' shape {obs.shape}, "
+                               f"got {valid.shape}")
+        usable &= valid
+    return obs, lights, np.ascontiguousarray(usable)

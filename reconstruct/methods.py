@@ -23,7 +23,9 @@ from ._pl_algebra import gate_variance
 from ._solution import SolverInputError
 from ._tiles import LAMBDA_FLOOR, ls_tiles
 
-__all__ = ["DEFAULT_METHOD", "METHODS", "SOLVERS", "SolverMethod", "method_help", "methods_with", "solver"]
+__all__ = [
+    "DEFAULT_METHOD", "METHODS", "SOLVERS", "SolverMethod", "method_help", "methods_with", "solver",
+]
 
 # SBL's iterations; also those of the default method's SBL candidate.
 SBL_MAX_ITER = 100

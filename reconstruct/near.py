@@ -29,19 +29,12 @@ from ps_lab.geometry import Camera, near_light_vectors, scene_points
 from ps_lab.io.led_model import FlatField
 
 from . import _near_kernels
-from ._linalg import apply6, inverse6, sym6
 from ._near_refine import fit_near_intensities
 from ._solution import ALBEDO_DEFINITION, Solution, SolverInputError, _albedo_rows
-from ._solve import (
-    LAMBDA_FLOOR,
-    NOISE_SAMPLE_PIXELS,
-    SOLVABLE_REL_DET,
-    _method_params,
-    noise_defaults,
-    pixel_scale,
-    residual_noise,
-)
-from ._tiles import DEFAULT_TILE_SIZE
+from ._linalg import SOLVABLE_REL_DET, apply6, inverse6, pixel_scale, sym6
+from ._noise import NOISE_SAMPLE_PIXELS, residual_noise
+from ._solve import _method_params, noise_defaults
+from ._tiles import DEFAULT_TILE_SIZE, LAMBDA_FLOOR
 from .methods import METHODS, solver
 from .integrate import integrate
 from .integrate import integrate as integrate_depth

@@ -155,7 +155,8 @@ class ReconstructOptions:
     ----------
     method : str
         Solver, one of ``ps_lab.reconstruct.METHODS`` (the solver table,
-        :mod:`ps_lab.reconstruct.methods`) (``auto``: per pixel SBL or PL-SBL, by their evidence; docs/solvers.md).
+        :mod:`ps_lab.reconstruct.methods`; ``auto``: per pixel SBL or PL-SBL, by their evidence,
+        docs/solvers.md).
         Noise level and outlier threshold are estimated once for the whole image; R-PCA's
         low-rank model is fitted per band.
     channel : {"r", "g", "b", "mean"}

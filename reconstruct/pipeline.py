@@ -65,7 +65,7 @@ from ps_lab.reconstruct._passes import (
     solve_bands,
     solve_near_bands,
 )
-from ps_lab.reconstruct._solve import estimate_noise
+from ps_lab.reconstruct._noise import estimate_noise
 from ps_lab.reconstruct.depth import (
     DepthOptions,
     with_result_camera,

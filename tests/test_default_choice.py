@@ -151,7 +151,7 @@ def test_dark_subtracted_quantised_noise_has_no_atom():
 
 def test_score_gate_fails_at_its_false_alarm_rate_on_lambertian_data():
     """Known additive noise (sigma of each pixel's scale): the gate's chi^2 test fails on ~1 %."""
-    from ps_lab.reconstruct import _pl_kernels, _solve
+    from ps_lab.reconstruct import _pl_kernels, _tiles
 
     fails, tested = 0, 0
     for seed in (0, 1):
@@ -162,7 +162,7 @@ def test_score_gate_fails_at_its_false_alarm_rate_on_lambertian_data():
         sigma = 0.05
         scale = np.array([np.median(c[c > 0]) for c in clean.T])
         obs = clean + sigma * scale * rng.standard_normal(clean.shape)
-        y, w, _, ok = _solve._prepare_tile(obs, clean > 0, lights, 0, obs.shape[1])
+        y, w, _, ok = _tiles._prepare_tile(obs, clean > 0, lights, 0, obs.shape[1])
         res = _pl_kernels.pl_tile(y[ok], w[ok], lights, segments=3, lam=sigma**2, choose=True,
                                   lam_test=sigma**2, stage="sbl", outlier_threshold=3 * sigma)
         gate = res.gate[np.isfinite(res.gate)]

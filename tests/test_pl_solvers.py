@@ -13,7 +13,7 @@ import pytest
 from helpers.tolerances import PL_ALBEDO, PL_NORMALS
 
 from ps_lab.reconstruct import SolverInputError, angular_errors_deg, estimate_noise, solve
-from ps_lab.reconstruct._solve import pl_noise_level
+from ps_lab.reconstruct._noise import pl_noise_level
 from ps_lab.render import random_light_directions, relief_surface, render, sphere_surface
 
 

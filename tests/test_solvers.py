@@ -24,13 +24,9 @@ from ps_lab.reconstruct import (
     estimate_noise_model,
     solve,
 )
-from ps_lab.reconstruct._solve import (
-    _check_inputs,
-    _noise_residuals,
-    _stable_order,
-    light_noise_factors,
-    sbl_lambda,
-)
+from ps_lab.reconstruct._noise import _noise_residuals, _stable_order, light_noise_factors
+from ps_lab.reconstruct._solution import check_inputs as _check_inputs
+from ps_lab.reconstruct._tiles import sbl_lambda
 from ps_lab.render import random_light_directions, relief_surface, render, sphere_surface
 
 ORACLE_PARAMS = ("max_iter", "tol", "delta", "outlier_threshold", "sigma_x2", "gamma_floor",

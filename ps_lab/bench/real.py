@@ -29,7 +29,7 @@ import numpy as np
 from ps_lab.io.dataset import load_dataset
 from ps_lab.reconstruct import angular_errors_deg, error_summary, light_noise_factors, solve
 from ps_lab.reconstruct._shadows import black_threshold
-from ps_lab.reconstruct._solve import NOISE_SAMPLE_PIXELS
+from ps_lab.reconstruct._noise import NOISE_SAMPLE_PIXELS
 from ps_lab.reconstruct.methods import METHODS, SOLVERS
 
 # The repository's sibling data folder (``../shared/data/diligent-8bit`` from the repo root).

@@ -32,7 +32,7 @@ from ps_lab.io.encoding import linear_to_srgb
 from ps_lab.io.lights import find_lp
 from ps_lab.reconstruct import light_noise_factors, solve
 from ps_lab.reconstruct._shadows import black_threshold
-from ps_lab.reconstruct._solve import NOISE_SAMPLE_PIXELS
+from ps_lab.reconstruct._noise import NOISE_SAMPLE_PIXELS
 from ps_lab.reconstruct.appearance import fit_appearance
 
 DEFAULT_FOLDER = Path(__file__).resolve().parents[2].parent / "shared" / "data" / "diligent-8bit"
