@@ -46,7 +46,7 @@ from ps_lab.io.truth import open_normal_gt
 from ps_lab.reconstruct._bands import LocalBands
 from ps_lab.reconstruct._colour import grey_albedo
 from ps_lab.reconstruct._warm_up import start_warm_up
-from ps_lab.reconstruct.appearance import fit_appearance_bands, solved_lights as _solved_lights
+from ps_lab.appearance.fit import fit_appearance_bands, solved_lights as _solved_lights
 from ps_lab.reconstruct._outputs import (
     ERROR_BIN_DEG,
     _Histogram,

@@ -26,14 +26,14 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from ps_lab.io.appearance import coefficients_per_pixel, evaluate_appearance, lambertian
+from ps_lab.appearance.models import coefficients_per_pixel, evaluate_appearance, lambertian
 from ps_lab.io.dataset import load_dataset
 from ps_lab.io.encoding import linear_to_srgb
 from ps_lab.io.lights import find_lp
 from ps_lab.reconstruct import light_noise_factors, solve
 from ps_lab.reconstruct._shadows import black_threshold
 from ps_lab.reconstruct._solve import NOISE_SAMPLE_PIXELS
-from ps_lab.reconstruct.appearance import fit_appearance
+from ps_lab.appearance.fit import fit_appearance
 
 DEFAULT_FOLDER = Path(__file__).resolve().parents[2].parent / "shared" / "data" / "diligent-8bit"
 MODELS = ("auto", "ps", "lambertian", "ptm", "hsh2", "hsh3", "rbf", "bln", "gp")

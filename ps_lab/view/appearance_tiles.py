@@ -11,10 +11,10 @@ plane and the planes stacked one under the other (a tile is one
 :mod:`ps_lab.view.tiles` (2 × 2 blocks averaged over their mask pixels: the linear models'
 relit picture of a block is the block's mean picture).
 
-The page's shader (``static/render.js``) evaluates the bases of :mod:`ps_lab.io.appearance`:
+The page's shader (``static/render.js``) evaluates the bases of :mod:`ps_lab.appearance.models`:
 ``ptm``, ``hsh2``, ``hsh3`` (weights of the light computed once per frame), ``ps`` (per pixel,
 with the tile's normal) and the interpolating models ``rbf``, ``bln``, ``gp`` (per frame, the
-page computes the model's weights over the training lights ``w(l)`` (:mod:`ps_lab.io.smoothers`)
+page computes the model's weights over the training lights ``w(l)`` (:mod:`ps_lab.appearance.smoothers`)
 and sums them times each channel's basis, ``Σ_i w_i(l) B_c[i, k]``; the shader takes the dot
 product with the pixel's coefficients). An interpolating fit whose channels share their
 coefficients (a grey fit, or a RelightLab / OpenLIME ``mrgb`` layout read back) is tiled with
@@ -22,7 +22,7 @@ coefficients (a grey fit, or a RelightLab / OpenLIME ``mrgb`` layout read back) 
 
 A fit in sRGB-encoded space (``meta["space"] == "srgb"``) predicts encoded values of the solver's
 units: its coefficients are tiled as they are (not divided by ``albedo_scale``), and the shader
-decodes the prediction as :func:`ps_lab.io.appearance.evaluate_appearance` does (clipped to
+decodes the prediction as :func:`ps_lab.appearance.models.evaluate_appearance` does (clipped to
 [0, 1], then sRGB to linear) and multiplies it by ``gain = 1 / albedo_scale`` (the manifest's
 ``space`` and ``gain``). Its coarser levels average the encoded coefficients (the decoded
 picture of a block is then close to, not exactly, the block's mean picture).
@@ -34,7 +34,7 @@ from collections.abc import Iterator
 
 import numpy as np
 
-from ps_lab.io.appearance import BASIS_TERMS, SMOOTHER_MODELS, Appearance
+from ps_lab.appearance.models import BASIS_TERMS, SMOOTHER_MODELS, Appearance
 from ps_lab.view.tiles import TILE
 
 __all__ = ["VIEW_MODELS", "AppearanceTiles", "appearance_entry", "appearance_tiles"]

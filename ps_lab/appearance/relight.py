@@ -1,7 +1,7 @@
 """``ps-lab relight``: a result folder's object under any light, as EXR (linear) or PNG (sRGB).
 
 :func:`relight_picture` is the pure part (normals, albedo and an optional fitted
-:class:`ps_lab.io.appearance.Appearance` → a linear (H, W, C) picture);
+:class:`ps_lab.appearance.models.Appearance` → a linear (H, W, C) picture);
 :func:`relight_result` reads a result folder, evaluates every requested light and writes the
 files, all or none. Light directions are in the dataset's light frame (x right, y up, z toward
 the camera), the values in the solver's units (decoded, each channel divided by its light's
@@ -30,13 +30,8 @@ import OpenEXR
 
 from ps_lab.errors import DatasetError, OutputError
 from ps_lab.geometry import Camera, near_light_vectors, scene_points
-from ps_lab.io.appearance import (
-    MAX_STORED,
-    Appearance,
-    evaluate_appearance,
-    lambertian,
-    read_appearance,
-)
+from ps_lab.appearance.models import MAX_STORED, Appearance, evaluate_appearance, lambertian
+from ps_lab.appearance.store import read_appearance
 from ps_lab.io.encoding import linear_to_srgb
 from ps_lab.io.files import is_no_space, remove_stale_staging, remove_tree
 from ps_lab.io.normal_maps import EXR_COMPRESSION
@@ -153,7 +148,7 @@ def read_relight_source(folder: Path, mode: str = "fitted") -> RelightSource:
     Every array is checked before use: the normals (H, W, 3) real, each pixel's either zero or
     not finite (unsolved) or of unit length (within :data:`UNIT_TOLERANCE`), the albedo
     (H, W) or (H, W, 1|3) real and finite where the normal is solved, the appearance model as
-    :func:`ps_lab.io.appearance.read_appearance` validates it.
+    :func:`ps_lab.appearance.store.read_appearance` validates it.
 
     Raises
     ------

@@ -1,6 +1,6 @@
 """Per-pixel least-squares fits of the appearance models (pure functions on arrays).
 
-The models and their bases are defined in :mod:`ps_lab.io.appearance`. Every fit takes the
+The models and their bases are defined in :mod:`ps_lab.appearance.models`. Every fit takes the
 training observations of a block of pixels in colour, ``(n, P, C)`` in the solver's units (each
 channel divided by its light's intensity; the fits also take the observations as stored and the
 per-light divisor ``scale``, so that no divided copy is made), and returns coefficients
@@ -38,15 +38,15 @@ from functools import lru_cache
 import numpy as np
 from numba import njit
 
-from ps_lab.io.appearance import (
+from ps_lab.appearance.models import (
     BASIS_TERMS,
     PS_TERMS,
     appearance_basis,
     is_direct,
 )
 
-from ._appearance_design import determined_terms, distinct_lights
-from .appearance_choice import encode
+from .design import determined_terms, distinct_lights
+from .choice import encode
 from ._ps_kernel import (  # noqa: F401 (the constants are read from here too)
     PS_FLOOR,
     PS_RIDGE,
@@ -459,7 +459,7 @@ def fit_block(
     scale : ndarray of shape (n,) or None
         Each light's divisor of the observations (None: 1).
     space : {"linear", "srgb"}
-        The fit space: the observations are encoded (:func:`.appearance_choice.encode`; a
+        The fit space: the observations are encoded (:func:`.choice.encode`; a
         missing one stays missing) and fitted as in linear; ``bln`` and ``gp`` project on their
         basis as ``rbf`` does.
 
