@@ -30,9 +30,9 @@ from pathlib import Path
 
 import numpy as np
 
+from ps_lab.appearance.fit import fit_appearance_bands
 from ps_lab.io.bands import ObservationStore, plan_bands
 from ps_lab.io.files import allocate_npy, write_npy_rows
-from ps_lab.appearance.fit import fit_appearance_bands
 from ps_lab.reconstruct.options import band_pixels, parse_memory_size
 
 

@@ -14,8 +14,8 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
-from ps_lab.errors import OutputError
 from ps_lab.appearance.models import APPEARANCE_MODELS
+from ps_lab.errors import OutputError
 from ps_lab.io.encoding import ENCODINGS
 from ps_lab.io.images import available_memory
 from ps_lab.io.normal_maps import CONVENTIONS

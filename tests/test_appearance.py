@@ -13,9 +13,15 @@ from typer.testing import CliRunner
 
 from helpers.tolerances import EPS, EPS32
 from ps_lab import render
-from ps_lab.bench import relight as bench_relight
-from ps_lab.cli import app
-from ps_lab.errors import DatasetError
+from ps_lab.appearance.blocks import (
+    PS_RIDGE,
+    fit_linear,
+    fit_ps,
+    fit_rbf,
+    fit_visibility,
+    rbf_setup,
+)
+from ps_lab.appearance.fit import fit_appearance
 from ps_lab.appearance.models import (
     APPEARANCE_FILE,
     PS_TERMS,
@@ -32,17 +38,11 @@ from ps_lab.appearance.models import (
     rbf_weights,
 )
 from ps_lab.appearance.store import read_appearance, write_appearance
+from ps_lab.bench import relight as bench_relight
+from ps_lab.cli import app
+from ps_lab.errors import DatasetError
 from ps_lab.io.images import read_exr
 from ps_lab.io.result import RESULT_FORMAT
-from ps_lab.appearance.blocks import (
-    PS_RIDGE,
-    fit_linear,
-    fit_ps,
-    fit_rbf,
-    fit_visibility,
-    rbf_setup,
-)
-from ps_lab.appearance.fit import fit_appearance
 
 runner = CliRunner()
 

@@ -39,10 +39,7 @@ from helpers.hostile import (  # noqa: E402 - the sweeps' runner
 )
 
 from ps_lab import render  # noqa: E402
-from ps_lab.cli import app  # noqa: E402
-from ps_lab.appearance.models import APPEARANCE_FILE, appearance_basis  # noqa: E402
-from ps_lab.appearance.store import read_appearance, write_appearance  # noqa: E402
-from ps_lab.io.result import RESULT_FORMAT  # noqa: E402
+from ps_lab.appearance.blocks import fit_rbf  # noqa: E402
 from ps_lab.appearance.design import (  # noqa: E402
     SAME_LIGHT,
     determined_columns,
@@ -50,8 +47,11 @@ from ps_lab.appearance.design import (  # noqa: E402
     distinct_lights,
     saturated_observations,
 )
-from ps_lab.appearance.blocks import fit_rbf  # noqa: E402
 from ps_lab.appearance.fit import fit_appearance  # noqa: E402
+from ps_lab.appearance.models import APPEARANCE_FILE, appearance_basis  # noqa: E402
+from ps_lab.appearance.store import read_appearance, write_appearance  # noqa: E402
+from ps_lab.cli import app  # noqa: E402
+from ps_lab.io.result import RESULT_FORMAT  # noqa: E402
 
 SIZE = 16
 runner = CliRunner()

@@ -12,9 +12,7 @@ import pytest
 from typer.testing import CliRunner
 
 from ps_lab import render
-from ps_lab.cli import app
 from ps_lab.appearance.models import Appearance, appearance_basis, evaluate_appearance
-from ps_lab.appearance.store import write_appearance
 from ps_lab.appearance.relightlab import (
     export_error_bound,
     is_relightlab_folder,
@@ -22,6 +20,8 @@ from ps_lab.appearance.relightlab import (
     read_relightlab,
     write_relightlab,
 )
+from ps_lab.appearance.store import write_appearance
+from ps_lab.cli import app
 from ps_lab.errors import DatasetError
 
 SHAPE = (40, 48)

@@ -10,9 +10,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from ps_lab.appearance.models import PS_TERMS, Appearance, evaluate_appearance
 from ps_lab.appearance.blocks import fit_block
 from ps_lab.appearance.choice import grey_srgb, psnr_per_light
+from ps_lab.appearance.models import PS_TERMS, Appearance, evaluate_appearance
 
 __all__ = ["PS_FOLDS", "ps_cv_score"]
 

@@ -34,9 +34,7 @@ from typing import Any
 
 import numpy as np
 
-from ps_lab.errors import DatasetError
 from ps_lab.appearance.models import BASIS_TERMS, appearance_basis
-from ps_lab.io.encoding import linear_to_srgb, srgb_to_linear
 from ps_lab.appearance.smoothers import (
     bln_weights,
     gaussian_weights,
@@ -44,6 +42,8 @@ from ps_lab.appearance.smoothers import (
     gp_weights,
     grid_nodes,
 )
+from ps_lab.errors import DatasetError
+from ps_lab.io.encoding import linear_to_srgb, srgb_to_linear
 
 __all__ = [
     "AUTO_MODELS",

@@ -20,6 +20,15 @@ from typing import Any
 
 import numpy as np
 
+from ps_lab.appearance._ps_cv import ps_cv_score
+from ps_lab.appearance.blocks import RBF_TERMS, fit_block, rbf_setup
+from ps_lab.appearance.choice import CHOSEN_MODELS, resolve_model
+from ps_lab.appearance.design import (
+    TERM_NAMES,
+    determined_terms,
+    distinct_lights,
+    saturated_observations,
+)
 from ps_lab.appearance.models import (
     APPEARANCE_MODELS,
     BASIS_TERMS,
@@ -30,15 +39,6 @@ from ps_lab.appearance.models import (
 from ps_lab.appearance.store import write_appearance
 from ps_lab.io.bands import ObservationStore
 from ps_lab.io.files import allocate_npy, write_npy_rows
-from ps_lab.appearance.design import (
-    TERM_NAMES,
-    determined_terms,
-    distinct_lights,
-    saturated_observations,
-)
-from ps_lab.appearance.blocks import RBF_TERMS, fit_block, rbf_setup
-from ps_lab.appearance._ps_cv import ps_cv_score
-from ps_lab.appearance.choice import CHOSEN_MODELS, resolve_model
 
 __all__ = [
     "APPEARANCE_MODELS",

@@ -378,21 +378,9 @@ def ps_basis(
     return np.moveaxis(out, 0, -1)
 
 
-def rbf_weights(directions: np.ndarray, lights: np.ndarray, sigma: float) -> np.ndarray:
-    """RelightLab's normalised Gaussian weights over the training lights.
-
-    Parameters
-    ----------
-    directions : ndarray of shape (..., 3)
-    lights : ndarray of shape (n, 3)
-    sigma : float
-
-    Returns
-    -------
-    ndarray of shape (..., n), float64, rows summing to 1
-
-    """
-    return gaussian_weights(directions, lights, sigma)  # the smoothers' one definition
+#: RelightLab's normalised Gaussian weights over the training lights (the ``rbf`` model):
+#: :func:`ps_lab.appearance.smoothers.gaussian_weights`, the one definition.
+rbf_weights = gaussian_weights
 
 
 def smoother_weights(appearance: Appearance, directions: np.ndarray) -> np.ndarray:

@@ -25,8 +25,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ps_lab.io.encoding import linear_to_srgb
 from ps_lab.appearance.relightlab import quantise_rbf_basis
+from ps_lab.io.encoding import linear_to_srgb
 
 __all__ = [
     "PLANES",

@@ -28,12 +28,12 @@ import cv2
 import numpy as np
 import OpenEXR
 
-from ps_lab.errors import DatasetError, OutputError
-from ps_lab.geometry import Camera, near_light_vectors, scene_points
 from ps_lab.appearance.models import MAX_STORED, Appearance, evaluate_appearance, lambertian
 from ps_lab.appearance.store import read_appearance
+from ps_lab.errors import DatasetError, OutputError
+from ps_lab.geometry import Camera, near_light_vectors, scene_points
 from ps_lab.io.encoding import linear_to_srgb
-from ps_lab.io.files import is_no_space, remove_stale_staging, remove_tree
+from ps_lab.io.files import fsync_path, is_no_space, remove_stale_staging, remove_tree
 from ps_lab.io.normal_maps import EXR_COMPRESSION
 from ps_lab.io.result import read_result_metrics
 
@@ -305,7 +305,7 @@ def relight_result(
                 _write_picture(staged[-1], picture)
             for path, final in zip(staged, paths, strict=True):
                 current = final
-                _fsync(path)
+                fsync_path(path)
             _publish(stage, staged, paths)
         except OSError as exc:
             failed = Path(exc.filename) if exc.filename in {str(p) for p in paths} else current
@@ -328,14 +328,6 @@ def _write_line(out: Path, path: Path, exc: OSError) -> str:
     reason = reason[:1].lower() + reason[1:]
     remedy = "; free some space and run again" if is_no_space(exc) else ""
     return f"--out {path}: cannot write, {reason}; no picture written{remedy}"
-
-
-def _fsync(path: Path) -> None:
-    fd = os.open(path, os.O_RDONLY)
-    try:
-        os.fsync(fd)
-    finally:
-        os.close(fd)
 
 
 def _publish(stage: Path, staged: list[Path], paths: list[Path]) -> Path:

@@ -30,8 +30,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from ps_lab.errors import DatasetError, OutputError
 from ps_lab.appearance.models import Appearance, appearance_basis
+from ps_lab.errors import DatasetError, OutputError
 
 __all__ = [
     "EXPORT_MODELS",

@@ -176,7 +176,8 @@ def preallocate(handle: Any, offset: int, length: int) -> None:
         os.ftruncate(fd, max(os.fstat(fd).st_size, offset + length))
 
 
-def _fsync_dir(path: Path) -> None:
+def fsync_path(path: Path) -> None:
+    """fsync the file or folder ``path`` (a folder: the names in it)."""
     fd = os.open(path, os.O_RDONLY)
     try:
         os.fsync(fd)
@@ -193,7 +194,7 @@ def write_bytes_atomic(path: Path, data: bytes) -> None:
         f.flush()
         os.fsync(f.fileno())
     os.replace(tmp, path)
-    _fsync_dir(path.parent)
+    fsync_path(path.parent)
 
 
 def publish_file(temp: Path, final: Path) -> None:
@@ -208,7 +209,7 @@ def publish_file(temp: Path, final: Path) -> None:
     finally:
         os.close(fd)
     os.replace(temp, final)
-    _fsync_dir(Path(final).parent)
+    fsync_path(Path(final).parent)
 
 
 def write_json_atomic(path: Path, obj: Any) -> None:

@@ -30,12 +30,10 @@ picture of a block is then close to, not exactly, the block's mean picture).
 
 from __future__ import annotations
 
-from collections.abc import Iterator
-
 import numpy as np
 
 from ps_lab.appearance.models import BASIS_TERMS, SMOOTHER_MODELS, Appearance
-from ps_lab.view.tiles import TILE
+from ps_lab.view.tiles import TILE, Pyramid, block_sum, half_float, pad_even
 
 __all__ = ["VIEW_MODELS", "AppearanceTiles", "appearance_entry", "appearance_tiles"]
 
@@ -47,41 +45,14 @@ MAX_TERMS = 16
 MAX_RBF_TERMS = 32
 
 
-class AppearanceTiles:
+class AppearanceTiles(Pyramid):
     """The levels of one result's coefficients, float16 (H_k, W_k, 3K), with tile access."""
 
     def __init__(self, levels: list[np.ndarray], gain: float = 1.0) -> None:
-        self.levels = levels
+        super().__init__(levels)
         #: What the page multiplies an sRGB-space fit's decoded prediction by (1 for linear fits,
         #: whose coefficients carry the scale).
         self.gain = gain
-
-    @property
-    def planes(self) -> int:
-        """RGBA planes per tile."""
-        return -(-self.levels[0].shape[2] // 4)
-
-    def tile(self, level: int, col: int, row: int) -> bytes | None:
-        """One tile's bytes: ``planes`` RGBA16F planes of ``w × h`` one after the other."""
-        if not 0 <= level < len(self.levels):
-            return None
-        data = self.levels[level]
-        h, w = data.shape[:2]
-        if not (0 <= col and col * TILE < w and 0 <= row and row * TILE < h):
-            return None
-        block = data[row * TILE : (row + 1) * TILE, col * TILE : (col + 1) * TILE]
-        padded = np.zeros((*block.shape[:2], 4 * self.planes), np.float16)
-        padded[..., : block.shape[2]] = block
-        planes = [padded[..., 4 * p : 4 * p + 4].ravel() for p in range(self.planes)]
-        return np.concatenate(planes).astype("<f2").tobytes()
-
-    def tiles(self) -> Iterator[tuple[int, int, int]]:
-        """Every ``(level, col, row)``."""
-        for level, data in enumerate(self.levels):
-            h, w = data.shape[:2]
-            for row in range(-(-h // TILE)):
-                for col in range(-(-w // TILE)):
-                    yield level, col, row
 
 
 def appearance_tiles(
@@ -120,11 +91,11 @@ def appearance_tiles(
     vis = appearance.extra.get("visibility") if appearance.model == "ps" else None
     if vis is not None:  # V = clamp(w·[l, 1], 0, 1), shared by the channels, unscaled
         flat = np.concatenate([flat, np.asarray(vis, np.float32)], axis=2)
-    levels = [_half(flat)]
+    levels = [half_float(flat)]
     current, inside = flat, mask.astype(np.float32)
     while max(current.shape[:2]) > TILE:
         current, inside = _halve(current, inside)
-        levels.append(_half(current))
+        levels.append(half_float(current))
     return AppearanceTiles(levels, 1.0 / float(albedo_scale) if srgb else 1.0)
 
 
@@ -181,24 +152,9 @@ def appearance_entry(appearance: Appearance | None, tiles: AppearanceTiles | Non
     return entry
 
 
-def _half(values: np.ndarray) -> np.ndarray:
-    top = float(np.finfo(np.float16).max)
-    return np.clip(values, -top, top).astype(np.float16)
-
-
 def _halve(values: np.ndarray, inside: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """2 × 2 blocks averaged over their mask pixels; a block is inside when half of it is."""
-    h, w, c = values.shape
-    if h % 2 or w % 2:
-        padded = np.zeros((h + h % 2, w + w % 2, c), np.float32)
-        padded[:h, :w] = values
-        mask = np.zeros(padded.shape[:2], np.float32)
-        mask[:h, :w] = inside
-        values, inside = padded, mask
-
-    def block_sum(x):
-        return x[0::2, 0::2] + x[1::2, 0::2] + x[0::2, 1::2] + x[1::2, 1::2]
-
+    values, inside = pad_even(values), pad_even(inside)
     count = block_sum(inside)
     out = block_sum(values * inside[..., None]) / np.maximum(count, 1)[..., None]
     keep = count >= 2

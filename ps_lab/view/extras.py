@@ -20,10 +20,10 @@ from collections.abc import Iterator
 
 import numpy as np
 
+from ps_lab.appearance.export import result_lights
 from ps_lab.errors import DatasetError
 from ps_lab.view.appearance_tiles import AppearanceTiles, appearance_entry, appearance_tiles
 from ps_lab.view.readers import present, read_array
-from ps_lab.appearance.export import result_lights
 from ps_lab.view.relightlab import result_appearance
 from ps_lab.view.result import ViewResult
 from ps_lab.view.tiles import Pyramid, pyramid
