@@ -9,7 +9,7 @@ per-light divisor ``scale``, so that no divided copy is made), and returns coeff
 - ``ptm``, ``hsh2``, ``hsh3``: as the RTI tools fit them, linear least squares of every finite
   observation on the light-only basis (one pseudo-inverse shared by all pixels whose
   observations are all finite: one matrix product; per-pixel normal equations for the others),
-  on the terms the lights determine (:mod:`._appearance_design`; the others 0);
+  on the terms the lights determine (:mod:`.design`; the others 0);
 - ``rbf``: the observations projected on a per-channel basis of the training lights
   (:func:`rbf_setup`: an uncentred PCA of a pixel sample, one vector per distinct light at
   most, and the Gaussian width chosen by leave-one-light-out prediction on that sample);
@@ -101,7 +101,7 @@ def fit_linear(
 ) -> np.ndarray:
     """PTM / HSH coefficients by least squares on every finite observation.
 
-    Only the terms the lights determine are fitted (:func:`._appearance_design.determined_terms`);
+    Only the terms the lights determine are fitted (:func:`.design.determined_terms`);
     the others are 0.
 
     A pixel whose observations are all finite gets ``pinv(B) y`` (one matrix product for all

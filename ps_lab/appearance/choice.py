@@ -9,8 +9,8 @@ every pixel (:func:`loo_weights`), in closed form where the model is a least-squ
 - ``ptm``/``hsh``: with the hat matrix ``H = X (XᵀX)⁻¹ Xᵀ``, the held-out residual is
   ``e_i / (1 − H_ii)``, so ``W = I − diag(1 − H_ii)⁻¹ (I − H)``;
 - ``gp`` (penalised least squares, fixed ``σ`` and ``λ``): with ``A`` the top-left ``n × n`` block
-  of the inverse system matrix (:func:`ps_lab.appearance.smoothers.gp_solve`), the fit is ``ŷ = y − λAy``
-  and the held-out residual ``(Ay)_i / A_ii``, so ``W = I − diag(A_ii)⁻¹ A``;
+  of the inverse system matrix (:func:`ps_lab.appearance.smoothers.gp_solve`), the fit is
+  ``ŷ = y − λAy`` and the held-out residual ``(Ay)_i / A_ii``, so ``W = I − diag(A_ii)⁻¹ A``;
 - ``rbf``: the normalised Gaussian weights with the light's own weight removed;
 - ``bln``: its weights recomputed without each light in turn (``n`` small matrices).
 

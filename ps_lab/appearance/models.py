@@ -73,9 +73,10 @@ per pixel in colour (13 in grey), as many as HSH order 3's 27 (9). Every term is
 for any light, so the model cannot explode outside the captured range of lights (unlike PTM's and HSH's polynomials).
 
 ``bln`` and ``gp``: interpolating models stored as ``rbf`` is (``lights``, ``basis``,
-coefficients), with other weights ``w(l)`` over the training lights (:mod:`ps_lab.appearance.smoothers`):
-``bln`` RelightLab's bilinear grid (``meta`` ``sigma`` and ``resolution``), ``gp`` kernel-ridge
-regression with a PTM mean (``meta`` ``sigma`` and ``ridge``, ``extra["solve"]`` (n + 6, n)).
+coefficients), with other weights ``w(l)`` over the training lights
+(:mod:`ps_lab.appearance.smoothers`): ``bln`` RelightLab's bilinear grid (``meta`` ``sigma`` and
+``resolution``), ``gp`` kernel-ridge regression with a PTM mean (``meta`` ``sigma`` and ``ridge``,
+``extra["solve"]`` (n + 6, n)).
 
 **Fit space** (``meta["space"]``, any model but ``ps`` and ``none``; absent means ``"linear"``):
 ``"srgb"``: the coefficients model the sRGB-encoded observations (of the solver's units), and the

@@ -14,11 +14,12 @@ relit picture of a block is the block's mean picture).
 The page's shader (``static/render.js``) evaluates the bases of :mod:`ps_lab.appearance.models`:
 ``ptm``, ``hsh2``, ``hsh3`` (weights of the light computed once per frame), ``ps`` (per pixel,
 with the tile's normal) and the interpolating models ``rbf``, ``bln``, ``gp`` (per frame, the
-page computes the model's weights over the training lights ``w(l)`` (:mod:`ps_lab.appearance.smoothers`)
-and sums them times each channel's basis, ``Σ_i w_i(l) B_c[i, k]``; the shader takes the dot
-product with the pixel's coefficients). An interpolating fit whose channels share their
-coefficients (a grey fit, or a RelightLab / OpenLIME ``mrgb`` layout read back) is tiled with
-``K`` coefficients per pixel instead of ``3·K`` (``shared`` in the manifest).
+page computes the model's weights over the training lights ``w(l)``
+(:mod:`ps_lab.appearance.smoothers`) and sums them times each channel's basis,
+``Σ_i w_i(l) B_c[i, k]``; the shader takes the dot product with the pixel's coefficients). An
+interpolating fit whose channels share their coefficients (a grey fit, or a RelightLab / OpenLIME
+``mrgb`` layout read back) is tiled with ``K`` coefficients per pixel instead of ``3·K``
+(``shared`` in the manifest).
 
 A fit in sRGB-encoded space (``meta["space"] == "srgb"``) predicts encoded values of the solver's
 units: its coefficients are tiled as they are (not divided by ``albedo_scale``), and the shader
