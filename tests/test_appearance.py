@@ -656,7 +656,7 @@ def test_linear_fit_equals_per_pixel_least_squares(rng, model):
 def test_streamed_colour_fit_does_not_depend_on_the_threads(tmp_path, rng, monkeypatch):
     from ps_lab.io.bands import ObservationStore, plan_bands
     from ps_lab.io.coding import float_coding
-    from ps_lab.reconstruct import appearance as appearance_module
+    from ps_lab.appearance import fit as appearance_module
 
     surface, lights, obs, mask = _glossy_scene(rng)
     obs = obs.astype(np.float32)
