@@ -33,7 +33,14 @@ from ps_lab.appearance.store import read_appearance
 from ps_lab.errors import DatasetError, OutputError
 from ps_lab.geometry import Camera, near_light_vectors, scene_points
 from ps_lab.io.encoding import linear_to_srgb
-from ps_lab.io.files import fsync_path, is_no_space, remove_stale_staging, remove_tree
+from ps_lab.io.files import (
+    fsync_path,
+    is_no_space,
+    missing_folders,
+    remove_created,
+    remove_stale_staging,
+    remove_tree,
+)
 from ps_lab.io.normal_maps import EXR_COMPRESSION
 from ps_lab.io.result import read_result_metrics
 
@@ -279,11 +286,7 @@ def relight_result(
         for text, position in zip(lights, given, strict=True):
             _check_above(text, position, points, source.normals)
     parent = paths[0].parent
-    created: list[Path] = []
-    folder = parent
-    while not folder.exists() and not folder.is_symlink():
-        created.append(folder)
-        folder = folder.parent
+    created = missing_folders(parent)
     stage = parent / f"{_STAGE}{os.getpid()}"
     current = paths[0]
     try:
@@ -312,11 +315,7 @@ def relight_result(
             raise OutputError(_write_line(out, failed, exc)) from None
     except BaseException:
         remove_tree(stage)
-        for path in created:
-            try:
-                path.rmdir()
-            except OSError:
-                break
+        remove_created(created)
         raise
     remove_tree(stage)
     return list(zip(paths, given, strict=True))
