@@ -3,7 +3,7 @@
 Builds the reconstruction's file-backed observation store of a synthetic capture (a glossy
 sphere, ``--megapixels`` × ``--lights``, banded by the default memory model of ``ps-lab
 reconstruct --memory-budget``) and the result's ``normals.npy`` / ``albedo.npy``, then runs the
-reconstruction's appearance stage (:func:`ps_lab.reconstruct.appearance.fit_appearance_bands`)
+reconstruction's appearance stage (:func:`ps_lab.appearance.fit.fit_appearance_bands`)
 exactly as the pipeline calls it, and reports its wall time, pixel rate and peak resident memory
 (``VmHWM`` of this process, reset with ``/proc/self/clear_refs`` after the store is built).
 ``--bands K`` fits only the first K bands' rows (the mask covers them alone; the coefficient file
@@ -30,9 +30,9 @@ from pathlib import Path
 
 import numpy as np
 
+from ps_lab.appearance.fit import fit_appearance_bands
 from ps_lab.io.bands import ObservationStore, plan_bands
 from ps_lab.io.files import allocate_npy, write_npy_rows
-from ps_lab.reconstruct.appearance import fit_appearance_bands
 from ps_lab.reconstruct.options import band_pixels, parse_memory_size
 
 

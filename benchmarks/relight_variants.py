@@ -13,7 +13,7 @@ import argparse, itertools, json, sys, time
 import numpy as np
 from pathlib import Path
 from PIL import Image
-from ps_lab.reconstruct import appearance_choice as ac
+from ps_lab.appearance import choice as ac
 from ps_lab.io.encoding import srgb_to_linear
 
 parser = argparse.ArgumentParser()

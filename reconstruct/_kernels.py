@@ -24,6 +24,8 @@ from dataclasses import dataclass
 import numpy as np
 from numba import njit
 
+from ps_lab.jit import INLINE, VECTOR
+
 from ._linalg import apply6, inverse6, outer6, solve3
 
 
@@ -43,16 +45,6 @@ def ls_tile(y, w, lights, *, outlier_threshold: float) -> TileResult:
     return TileResult(x, np.zeros(y.shape, bool), np.ones(y.shape[0], np.int64))
 
 
-# The loops over the lights are vectorised (4 lights per AVX2 instruction) when numba may
-# reassociate their sums and divides without Python's zero-division check: the sums then add in an
-# order that depends on the CPU's vector width (rounding-level differences between CPUs and between
-# two kernels; tests/helpers/tolerances.py derives how far they may go). No nnan/ninf:
-# comparisons keep their IEEE meaning. The loops read one light table and write one per-pixel
-# state array, so the compiler needs no aliasing checks between a dozen arrays (it gives up then).
-# The helpers are inlined into the kernels (a call that passes arrays costs about as much as the
-# loop over 40 lights), so the kernels carry the flags.
-VECTOR = {"fastmath": {"reassoc", "contract", "nsz", "arcp"}, "error_model": "numpy"}
-INLINE = {"inline": "always"}
 # Rows of the per-pixel state arrays.
 # observations, usable (1/0), SBL's noise variance and gamma, weights (L1) or d = w / (gamma + lam)
 # (SBL), SBL's corruption estimate of the last iteration

@@ -145,7 +145,7 @@ def _colour() -> None:
 def _appearance() -> None:
     # the ps appearance fit (ps-lab reconstruct --appearance ps): float32 from the observation
     # store, float64 from whole arrays (fit_appearance: ps-lab bench relight)
-    from ._appearance_fit import fit_block
+    from ps_lab.appearance.blocks import fit_block
 
     for dtype in (np.float32, np.float64):
         fit_block("ps", np.ones((3, 1, 3), dtype), np.eye(3), normals=np.array([[0.0, 0.0, 1.0]]),

@@ -14,8 +14,8 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
+from ps_lab.appearance.models import APPEARANCE_MODELS
 from ps_lab.errors import OutputError
-from ps_lab.io.appearance import APPEARANCE_MODELS
 from ps_lab.io.encoding import ENCODINGS
 from ps_lab.io.images import available_memory
 from ps_lab.io.normal_maps import CONVENTIONS
@@ -209,8 +209,8 @@ class ReconstructOptions:
         (:func:`ps_lab.reconstruct.near.near_light_rounds`).
     appearance : {"auto", "ps", "ptm", "hsh2", "hsh3", "rbf", "bln", "gp", "none"}
         The appearance model fitted per pixel after the normals (``appearance.npz``;
-        :mod:`ps_lab.reconstruct.appearance`, docs/appearance.md); ``auto``: the model and fit
-        space of best cross-validated relighting (:mod:`ps_lab.reconstruct.appearance_choice`);
+        :mod:`ps_lab.appearance.fit`, docs/appearance.md); ``auto``: the model and fit
+        space of best cross-validated relighting (:mod:`ps_lab.appearance.choice`);
         ``none``: no fit.
     led_model : {"auto", "isotropic", "beam", "flat-field"}
         Near lights: the LEDs' emission. ``isotropic`` (the intensities at the origin and

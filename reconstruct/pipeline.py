@@ -33,6 +33,7 @@ from typing import Any
 
 import numpy as np
 
+from ps_lab.appearance.fit import fit_appearance_bands, solved_lights as _solved_lights
 from ps_lab.errors import DatasetError, OutputError
 from ps_lab.geometry import Camera
 from ps_lab.io.bands import ObservationStore, plan_bands
@@ -41,12 +42,11 @@ from ps_lab.io.coded_frames import frame_coding
 from ps_lab.io.dataset import LIGHT_POSITIONS, OBJECT_OUTLINE, DatasetHeader, open_dataset
 from ps_lab.io.encoding import frames_encoding
 from ps_lab.io.files import json_safe, staged_folder
+from ps_lab.io.led_model import FLAT_FIELD, LIGHT_AXES, read_flat_field, read_light_axes
 from ps_lab.io.result import METRICS, RESULT_FORMAT, foreign_entries, read_result_metrics
 from ps_lab.io.truth import open_normal_gt
 from ps_lab.reconstruct._bands import LocalBands
 from ps_lab.reconstruct._colour import grey_albedo
-from ps_lab.reconstruct._warm_up import start_warm_up
-from ps_lab.reconstruct.appearance import fit_appearance_bands, solved_lights as _solved_lights
 from ps_lab.reconstruct._outputs import (
     ERROR_BIN_DEG,
     _Histogram,
@@ -66,6 +66,7 @@ from ps_lab.reconstruct._passes import (
     solve_near_bands,
 )
 from ps_lab.reconstruct._noise import estimate_noise
+from ps_lab.reconstruct._warm_up import start_warm_up
 from ps_lab.reconstruct.depth import (
     DepthOptions,
     with_result_camera,
@@ -73,7 +74,6 @@ from ps_lab.reconstruct.depth import (
     write_normal_maps,
 )
 from ps_lab.reconstruct.integrate import IntegrationInputError
-from ps_lab.io.led_model import FLAT_FIELD, LIGHT_AXES, read_flat_field, read_light_axes
 from ps_lab.reconstruct.methods import solver
 from ps_lab.reconstruct.near import NearLights
 from ps_lab.reconstruct.options import (

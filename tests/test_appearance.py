@@ -13,10 +13,16 @@ from typer.testing import CliRunner
 
 from helpers.tolerances import EPS, EPS32
 from ps_lab import render
-from ps_lab.bench import relight as bench_relight
-from ps_lab.cli import app
-from ps_lab.errors import DatasetError
-from ps_lab.io.appearance import (
+from ps_lab.appearance.blocks import (
+    PS_RIDGE,
+    fit_linear,
+    fit_ps,
+    fit_rbf,
+    fit_visibility,
+    rbf_setup,
+)
+from ps_lab.appearance.fit import fit_appearance
+from ps_lab.appearance.models import (
     APPEARANCE_FILE,
     PS_TERMS,
     Appearance,
@@ -30,20 +36,13 @@ from ps_lab.io.appearance import (
     ps_visibility,
     ptm_basis,
     rbf_weights,
-    read_appearance,
-    write_appearance,
 )
+from ps_lab.appearance.store import read_appearance, write_appearance
+from ps_lab.bench import relight as bench_relight
+from ps_lab.cli import app
+from ps_lab.errors import DatasetError
 from ps_lab.io.images import read_exr
 from ps_lab.io.result import RESULT_FORMAT
-from ps_lab.reconstruct._appearance_fit import (
-    PS_RIDGE,
-    fit_linear,
-    fit_ps,
-    fit_rbf,
-    fit_visibility,
-    rbf_setup,
-)
-from ps_lab.reconstruct.appearance import fit_appearance
 
 runner = CliRunner()
 
@@ -451,7 +450,7 @@ def test_relight_near_result_by_led_position(tmp_path):
 @pytest.mark.parametrize("model", ["ps", "hsh3", "rbf"])
 def test_streamed_fit_equals_the_whole_array_fit(tmp_path, rng, model):
     from ps_lab.io.bands import ObservationStore, plan_bands
-    from ps_lab.reconstruct.appearance import fit_appearance_bands
+    from ps_lab.appearance.fit import fit_appearance_bands
 
     surface, lights, obs, mask = _glossy_scene(rng)
     grey = obs.mean(axis=2).astype(np.float32)  # (n, P): one channel, as the store holds now
@@ -487,7 +486,7 @@ def test_streamed_fit_equals_the_whole_array_fit(tmp_path, rng, model):
 
 def _reference_visibility(obs, directions, normals, albedo):
     """fit_visibility's maths pixel by pixel with numpy's solve (the implementation before 37)."""
-    from ps_lab.reconstruct._appearance_fit import VIS_LABEL, VIS_MARGIN, VIS_RIDGE, VIS_ROUNDS
+    from ps_lab.appearance.blocks import VIS_LABEL, VIS_MARGIN, VIS_RIDGE, VIS_ROUNDS
 
     n, p, _ = obs.shape
     rho = albedo.mean(axis=1) if albedo.ndim == 2 else albedo
@@ -609,7 +608,7 @@ def test_ps_fit_equals_the_per_pixel_reference(rng, per_pixel, terms):
 def test_ps_block_from_float32_with_a_scale_equals_the_reference(rng):
     # the reconstruction's path: the store's float32 observations, each light's divisor, the
     # fused visibility and ps fit; unsolved pixels get V = 1 and no coefficients
-    from ps_lab.reconstruct._appearance_fit import fit_block
+    from ps_lab.appearance.blocks import fit_block
 
     obs, d, normals, albedo = _shadowed_block(rng, pixels=200)
     stored = obs.astype(np.float32)
@@ -657,7 +656,7 @@ def test_linear_fit_equals_per_pixel_least_squares(rng, model):
 def test_streamed_colour_fit_does_not_depend_on_the_threads(tmp_path, rng, monkeypatch):
     from ps_lab.io.bands import ObservationStore, plan_bands
     from ps_lab.io.coding import float_coding
-    from ps_lab.reconstruct import appearance as appearance_module
+    from ps_lab.appearance import fit as appearance_module
 
     surface, lights, obs, mask = _glossy_scene(rng)
     obs = obs.astype(np.float32)
@@ -695,8 +694,8 @@ def test_the_warm_up_compiles_every_type_the_ps_fits_pass(rng):
     # The install step's two versions of the kernel (float32 from the store, float64) are all
     # that the fits ever call: grey or colour, C or sliced or read-only observations, other
     # dtypes, per-pixel directions, a given visibility, missing values, a divisor.
-    from ps_lab.reconstruct import _ps_kernel, _ps_terms
-    from ps_lab.reconstruct._appearance_fit import fit_block
+    from ps_lab.appearance import _ps_kernel, _ps_terms
+    from ps_lab.appearance.blocks import fit_block
     from ps_lab.reconstruct._warm_up import GROUPS
 
     GROUPS["appearance"].run()
@@ -723,7 +722,7 @@ def test_the_warm_up_compiles_every_type_the_ps_fits_pass(rng):
 def test_masked_projection_is_the_least_squares_of_the_finite_observations():
     # the smoothers' path (Woodbury over the missing rows of the basis) against the per-pixel
     # normal equations on the finite observations (_masked_solve, same ridge)
-    from ps_lab.reconstruct._appearance_fit import _masked_solve, masked_projection
+    from ps_lab.appearance.blocks import _masked_solve, masked_projection
 
     rng = np.random.default_rng(43)
     n, k, q = 40, 12, 300

@@ -7,22 +7,17 @@ import json
 import numpy as np
 import pytest
 
-from ps_lab.errors import DatasetError
-from ps_lab.io.appearance import (
-    evaluate_appearance,
-    hsh_basis,
-    ptm_basis,
-    read_appearance,
-    write_appearance,
-)
-from ps_lab.io.encoding import linear_to_srgb, srgb_to_linear
-from ps_lab.io.smoothers import bln_weights, gp_solve, gp_weights, grid_nodes
-from ps_lab.reconstruct.appearance import fit_appearance
-from ps_lab.reconstruct.appearance_choice import (
+from ps_lab.appearance.choice import (
     choose_model,
     loo_weights,
     predict_weights,
 )
+from ps_lab.appearance.fit import fit_appearance
+from ps_lab.appearance.models import evaluate_appearance, hsh_basis, ptm_basis
+from ps_lab.appearance.smoothers import bln_weights, gp_solve, gp_weights, grid_nodes
+from ps_lab.appearance.store import read_appearance, write_appearance
+from ps_lab.errors import DatasetError
+from ps_lab.io.encoding import linear_to_srgb, srgb_to_linear
 
 
 @pytest.fixture

@@ -121,7 +121,8 @@ def test_a_read_only_parent_is_one_line(made, tmp_path):
 def test_a_moved_dataset_is_named_not_exported_without_lights(made, tmp_path):
     """A PTM export takes the captured lights from the dataset: gone, it is one error naming
     it (it wrote ``"lights": []`` before)."""
-    from ps_lab.io.appearance import Appearance, write_appearance
+    from ps_lab.appearance.models import Appearance
+    from ps_lab.appearance.store import write_appearance
 
     case, home = _case(tmp_path)
     data, result = case / "data", case / "result"

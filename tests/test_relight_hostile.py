@@ -39,23 +39,19 @@ from helpers.hostile import (  # noqa: E402 - the sweeps' runner
 )
 
 from ps_lab import render  # noqa: E402
-from ps_lab.cli import app  # noqa: E402
-from ps_lab.io.appearance import (  # noqa: E402
-    APPEARANCE_FILE,
-    appearance_basis,
-    read_appearance,
-    write_appearance,
-)
-from ps_lab.io.result import RESULT_FORMAT  # noqa: E402
-from ps_lab.reconstruct._appearance_design import (  # noqa: E402
+from ps_lab.appearance.blocks import fit_rbf  # noqa: E402
+from ps_lab.appearance.design import (  # noqa: E402
     SAME_LIGHT,
     determined_columns,
     determined_terms,
     distinct_lights,
     saturated_observations,
 )
-from ps_lab.reconstruct._appearance_fit import fit_rbf  # noqa: E402
-from ps_lab.reconstruct.appearance import fit_appearance  # noqa: E402
+from ps_lab.appearance.fit import fit_appearance  # noqa: E402
+from ps_lab.appearance.models import APPEARANCE_FILE, appearance_basis  # noqa: E402
+from ps_lab.appearance.store import read_appearance, write_appearance  # noqa: E402
+from ps_lab.cli import app  # noqa: E402
+from ps_lab.io.result import RESULT_FORMAT  # noqa: E402
 
 SIZE = 16
 runner = CliRunner()
@@ -511,7 +507,7 @@ def test_reconstruct_fits_every_model_without_the_saturated_observations(rng, tm
 
 def test_a_failed_move_puts_the_earlier_pictures_back(made, tmp_path, monkeypatch) -> None:
     from ps_lab.errors import OutputError
-    from ps_lab.io import relight as relight_module
+    from ps_lab.appearance import relight as relight_module
 
     (tmp_path / "pic_light01.png").write_bytes(b"old one")
     real = relight_module.os.replace
@@ -534,7 +530,7 @@ def test_a_failed_move_puts_the_earlier_pictures_back(made, tmp_path, monkeypatc
 
 
 def test_a_ring_leaves_the_ps_model_without_ambient_only(rng) -> None:
-    from ps_lab.io.appearance import PS_TERMS
+    from ps_lab.appearance.models import PS_TERMS
 
     keep, warning = determined_terms("ps", ring(12), PS_TERMS)
     # on one ring lz is the same for every light: ambient (1) is lz up to a factor

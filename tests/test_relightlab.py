@@ -12,20 +12,16 @@ import pytest
 from typer.testing import CliRunner
 
 from ps_lab import render
-from ps_lab.cli import app
-from ps_lab.io.appearance import (
-    Appearance,
-    appearance_basis,
-    evaluate_appearance,
-    write_appearance,
-)
-from ps_lab.io.relightlab import (
+from ps_lab.appearance.models import Appearance, appearance_basis, evaluate_appearance
+from ps_lab.appearance.relightlab import (
     export_error_bound,
     is_relightlab_folder,
     quantise_plane,
     read_relightlab,
     write_relightlab,
 )
+from ps_lab.appearance.store import write_appearance
+from ps_lab.cli import app
 from ps_lab.errors import DatasetError
 
 SHAPE = (40, 48)
@@ -135,7 +131,7 @@ def test_cli_exports_a_result_with_or_without_a_fit(tmp_path):
 
 def _ps_result(tmp_path, seed: int = 0):
     """A result with a ps fit: glossy lobes and a visibility, seeded coefficients."""
-    from ps_lab.io.appearance import PS_TERMS
+    from ps_lab.appearance.models import PS_TERMS
 
     surface, lights, _ = _fit("ptm", seed)
     result = _result(tmp_path, surface, lights)
@@ -154,8 +150,8 @@ def _ps_result(tmp_path, seed: int = 0):
 def test_rbf_layout_reads_back_as_written(tmp_path):
     """quantise_rbf_basis + write_relightlab_rbf + read_relightlab: the model read back is
     the decoded basis times the quantised planes, exactly as rbf_predict relights it."""
-    from ps_lab.io.relightlab import quantise_rbf_basis, write_relightlab_rbf
-    from ps_lab.view.export_rbf import dome, pca_basis, rbf_predict
+    from ps_lab.appearance.relightlab import quantise_rbf_basis, write_relightlab_rbf
+    from ps_lab.appearance.rbf_conversion import dome, pca_basis, rbf_predict
 
     rng = np.random.default_rng(1)
     lights = dome(40, 0.3)
@@ -186,8 +182,8 @@ def test_default_result_converts_and_relightlab_relights_the_export(tmp_path):
     """A ps fit exported with --format relight: RelightLab's rbf layout; the PSNR printed is
     the written planes' against the model; RelightLab's own relight-cli renders the folder as
     ps-lab reads it (within a level of rounding)."""
-    from ps_lab.io.relight import read_relight_source, relight_picture
-    from ps_lab.view.export_rbf import grey_psnr
+    from ps_lab.appearance.relight import read_relight_source, relight_picture
+    from ps_lab.appearance.rbf_conversion import grey_psnr
 
     surface, lights, result = _ps_result(tmp_path)
     out = tmp_path / "openlime"
@@ -206,7 +202,7 @@ def test_default_result_converts_and_relightlab_relights_the_export(tmp_path):
     read, _ = read_relightlab(out)
     source = read_relight_source(result)
     exposure = info["ps_lab"]["exposure"]
-    from ps_lab.view.export_rbf import TEST_LIGHTS, dome
+    from ps_lab.appearance.rbf_conversion import TEST_LIGHTS, dome
 
     z_min = float(np.min(lights[:, 2] / np.linalg.norm(lights, axis=1)))
     test = dome(TEST_LIGHTS, z_min, offset=0.25)

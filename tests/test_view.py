@@ -121,7 +121,7 @@ def test_pyramid_levels_average_and_tiles_round_trip():
 def test_appearance_tiles_follow_the_layer_pyramid_and_rbf_is_tiled():
     # hsh3 coefficients on a 1100 x 700 plane: the same levels as the layers, a tile's planes
     # are the level's coefficients term-major (3k + c) over the albedo scale; rbf is not tiled.
-    from ps_lab.io.appearance import Appearance
+    from ps_lab.appearance.models import Appearance
     from ps_lab.view.appearance_tiles import appearance_entry, appearance_tiles
 
     h, w = 700, 1100
@@ -570,7 +570,8 @@ def test_colour_relight_in_chromium_shows_the_albedo_colour(browser, colour_resu
 def _with_appearance(result: Path, folder: Path, model: str) -> Path:
     """A copy of ``result`` with an appearance fit: an HSH 3, an sRGB-space PTM, a gp or a bln
     fit of its Lambertian renders plus a gloss, or ps / rbf with seeded coefficients."""
-    from ps_lab.io.appearance import PS_TERMS, Appearance, appearance_basis, write_appearance
+    from ps_lab.appearance.models import PS_TERMS, Appearance, appearance_basis
+    from ps_lab.appearance.store import write_appearance
     from ps_lab.io.encoding import linear_to_srgb
 
     shutil.copytree(result, folder)
@@ -584,14 +585,14 @@ def _with_appearance(result: Path, folder: Path, model: str) -> Path:
     gloss = 0.5 * shade ** 8
     images = albedo[..., None, :] * (shade + gloss)[..., None]  # (H, W, n, 3)
     if model in ("gp", "bln"):  # fitted (parameters and space chosen) on the glossy renders
-        from ps_lab.reconstruct.appearance import fit_appearance
+        from ps_lab.appearance.fit import fit_appearance
 
         mask = np.all(np.isfinite(normals), axis=2)
         fit = fit_appearance(model, np.moveaxis(images[mask], 1, 0), lights, mask)
         write_appearance(folder, fit)
         return folder
     if model in ("gp-srgb", "bln-srgb"):  # in sRGB space, the parameters set (not chosen)
-        from ps_lab.reconstruct.appearance_choice import Choice, smoother_setup
+        from ps_lab.appearance.choice import Choice, smoother_setup
 
         model = model[:-5]
         params = {"sigma": 0.3, "ridge": 0.01} if model == "gp" else {"sigma": 0.2,
@@ -646,7 +647,8 @@ def test_appearance_relight_in_chromium_matches_the_model(browser, colour_result
     fit: its coefficients unscaled, the decoded prediction divided by ``albedo_scale``), within
     2 levels (the half-float rounding of the coefficients, under 2^-11 relative, times the sRGB
     curve's slope, plus the 8-bit rounding)."""
-    from ps_lab.io.appearance import Appearance, evaluate_appearance, read_appearance
+    from ps_lab.appearance.models import Appearance, evaluate_appearance
+    from ps_lab.appearance.store import read_appearance
 
     result = _with_appearance(colour_result, tmp_path / model, model)
     view = load_result(result)
@@ -711,8 +713,8 @@ def test_appearance_relight_in_chromium_matches_the_model(browser, colour_result
 
 def test_a_relightlab_export_relights_in_chromium(browser, colour_result, tmp_path):
     """ps-lab view opens RelightLab's web layout (its own export) and relights it as its fit."""
-    from ps_lab.io.appearance import Appearance, evaluate_appearance
-    from ps_lab.io.relightlab import read_relightlab
+    from ps_lab.appearance.models import Appearance, evaluate_appearance
+    from ps_lab.appearance.relightlab import read_relightlab
     from ps_lab.view.relightlab import load_view_result
 
     result = _with_appearance(colour_result, tmp_path / "fit", "hsh3")
@@ -755,8 +757,9 @@ def test_a_default_result_exported_for_openlime_relights_in_chromium_as_the_expo
     """A default result (model ps) exported with --format relight (converted to RelightLab's
     rbf layout): ps-lab view of the export shows what the export relights (the numpy read of
     its planes, as OpenLIME reads them), within 2 levels."""
-    from ps_lab.io.appearance import Appearance, evaluate_appearance, read_appearance
-    from ps_lab.io.relightlab import read_relightlab
+    from ps_lab.appearance.models import Appearance, evaluate_appearance
+    from ps_lab.appearance.store import read_appearance
+    from ps_lab.appearance.relightlab import read_relightlab
     from ps_lab.view.relightlab import load_view_result
 
     assert read_appearance(colour_result).model == "ps"

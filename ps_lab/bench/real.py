@@ -26,6 +26,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ps_lab.bench.report import simple_table
 from ps_lab.io.dataset import load_dataset
 from ps_lab.reconstruct import angular_errors_deg, error_summary, light_noise_factors, solve
 from ps_lab.reconstruct._shadows import black_threshold
@@ -217,13 +218,7 @@ def format_table(rows: list[RealRow], *, markdown: bool = False) -> str:
             psnr = f" {c['psnr']:.1f} dB" if "psnr" in c else ""
             cells.append(f"{c['mean']:.2f}/{c['median']:.2f} ({c['seconds']:.1f} s){psnr}")
         lines.append(cells)
-    if markdown:
-        out = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
-        out += ["| " + " | ".join(cells) + " |" for cells in lines]
-        return "\n".join(out)
-    widths = [max(len(r[k]) for r in [head, *lines]) for k in range(len(head))]
-    rows = [head, *lines]
-    return "\n".join("  ".join(c.rjust(w) for c, w in zip(r, widths, strict=True)) for r in rows)
+    return simple_table(head, lines, markdown=markdown)
 
 
 def results_as_dict(rows: list[RealRow]) -> list[dict]:

@@ -8,7 +8,7 @@ import numpy as np
 
 from ps_lab.bench.paper import METHOD_LABELS, Cell, ErrorTable, PaperResults, RefinementTable
 
-__all__ = ["format_markdown", "format_text", "results_as_dict"]
+__all__ = ["format_markdown", "format_text", "results_as_dict", "simple_table"]
 
 
 
@@ -182,3 +182,14 @@ def results_as_dict(results: PaperResults) -> dict:
 
 # --------------------------------------------------------------------------------------------
 # Script entry point
+
+
+def simple_table(head: list[str], rows: list[list[str]], *, markdown: bool = False) -> str:
+    """One table of text cells: right-aligned columns two spaces apart, or markdown."""
+    if markdown:
+        out = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+        out += ["| " + " | ".join(cells) + " |" for cells in rows]
+        return "\n".join(out)
+    widths = [max(len(r[k]) for r in [head, *rows]) for k in range(len(head))]
+    return "\n".join("  ".join(c.rjust(w) for c, w in zip(r, widths, strict=True))
+                     for r in [head, *rows])

@@ -9,7 +9,7 @@ from typing import Annotated
 import typer
 
 from ps_lab._cli_util import lab_command
-from ps_lab.io.relight import relight_result
+from ps_lab.appearance.relight import relight_result
 
 
 class RelightMode(str, Enum):  # noqa: UP042 - typer needs str-valued choices

@@ -13,8 +13,9 @@ from typing import Annotated
 import typer
 
 from ps_lab._cli_util import EXIT_INTERRUPTED, fail, interrupted_line, lab_command
+from ps_lab.appearance.export import export_relightlab
 from ps_lab.view import ViewSite, export_site, serve
-from ps_lab.view.relightlab import export_relightlab, load_view_result
+from ps_lab.view.relightlab import load_view_result
 
 
 class ExportFormat(str, Enum):  # noqa: UP042 - typer needs str-valued choices

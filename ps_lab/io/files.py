@@ -176,7 +176,8 @@ def preallocate(handle: Any, offset: int, length: int) -> None:
         os.ftruncate(fd, max(os.fstat(fd).st_size, offset + length))
 
 
-def _fsync_dir(path: Path) -> None:
+def fsync_path(path: Path) -> None:
+    """fsync the file or folder ``path`` (a folder: the names in it)."""
     fd = os.open(path, os.O_RDONLY)
     try:
         os.fsync(fd)
@@ -193,7 +194,7 @@ def write_bytes_atomic(path: Path, data: bytes) -> None:
         f.flush()
         os.fsync(f.fileno())
     os.replace(tmp, path)
-    _fsync_dir(path.parent)
+    fsync_path(path.parent)
 
 
 def publish_file(temp: Path, final: Path) -> None:
@@ -208,7 +209,7 @@ def publish_file(temp: Path, final: Path) -> None:
     finally:
         os.close(fd)
     os.replace(temp, final)
-    _fsync_dir(Path(final).parent)
+    fsync_path(Path(final).parent)
 
 
 def write_json_atomic(path: Path, obj: Any) -> None:
@@ -355,7 +356,7 @@ def staged_folder(
             shutil.rmtree(stage)
         stage.mkdir()
     except OSError as exc:
-        _remove_created(created)
+        remove_created(created)
         if is_no_space(exc):
             raise error(_no_space_line(out, no_space_error(exc))) from None
         raise error(f"{out}: cannot create the output folder ({exc.strerror})") from None
@@ -375,14 +376,24 @@ def staged_folder(
         remove_tree(retired)
     except BaseException as exc:
         remove_tree(stage)
-        _remove_created(created)
+        remove_created(created)
         if is_no_space(exc):
             raise error(_no_space_line(out, no_space_error(exc))) from None
         raise
 
 
-def _remove_created(created: list[Path]) -> None:
-    """Remove the (empty) parent folders a staging helper created, innermost first."""
+def missing_folders(folder: Path) -> list[Path]:
+    """``folder`` and its parents that do not exist (no link either), innermost first: what
+    creating ``folder`` creates, for :func:`remove_created` to remove again."""
+    created: list[Path] = []
+    while not folder.exists() and not folder.is_symlink():
+        created.append(folder)
+        folder = folder.parent
+    return created
+
+
+def remove_created(created: list[Path]) -> None:
+    """Remove the (empty) parent folders a staging helper created (:func:`missing_folders`), innermost first."""
     for folder in created:
         try:
             folder.rmdir()
@@ -410,11 +421,7 @@ def staged_files(
     out = Path(out)
     if check is not None:
         check(out)
-    created: list[Path] = []
-    folder = out
-    while not folder.exists() and not folder.is_symlink():
-        created.append(folder)
-        folder = folder.parent
+    created = missing_folders(out)
     staging = out / f"{prefix}partial-{os.getpid()}"
     try:
         out.mkdir(parents=True, exist_ok=True)
@@ -433,7 +440,7 @@ def staged_files(
             os.replace(path, out / path.name)
     except BaseException as exc:
         remove_tree(staging)
-        _remove_created(created)
+        remove_created(created)
         if error is not None and is_no_space(exc):
             raise error(_no_space_line(out, no_space_error(exc))) from None
         raise

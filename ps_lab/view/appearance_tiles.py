@@ -11,18 +11,19 @@ plane and the planes stacked one under the other (a tile is one
 :mod:`ps_lab.view.tiles` (2 × 2 blocks averaged over their mask pixels: the linear models'
 relit picture of a block is the block's mean picture).
 
-The page's shader (``static/render.js``) evaluates the bases of :mod:`ps_lab.io.appearance`:
+The page's shader (``static/render.js``) evaluates the bases of :mod:`ps_lab.appearance.models`:
 ``ptm``, ``hsh2``, ``hsh3`` (weights of the light computed once per frame), ``ps`` (per pixel,
 with the tile's normal) and the interpolating models ``rbf``, ``bln``, ``gp`` (per frame, the
-page computes the model's weights over the training lights ``w(l)`` (:mod:`ps_lab.io.smoothers`)
-and sums them times each channel's basis, ``Σ_i w_i(l) B_c[i, k]``; the shader takes the dot
-product with the pixel's coefficients). An interpolating fit whose channels share their
-coefficients (a grey fit, or a RelightLab / OpenLIME ``mrgb`` layout read back) is tiled with
-``K`` coefficients per pixel instead of ``3·K`` (``shared`` in the manifest).
+page computes the model's weights over the training lights ``w(l)``
+(:mod:`ps_lab.appearance.smoothers`) and sums them times each channel's basis,
+``Σ_i w_i(l) B_c[i, k]``; the shader takes the dot product with the pixel's coefficients). An
+interpolating fit whose channels share their coefficients (a grey fit, or a RelightLab / OpenLIME
+``mrgb`` layout read back) is tiled with ``K`` coefficients per pixel instead of ``3·K``
+(``shared`` in the manifest).
 
 A fit in sRGB-encoded space (``meta["space"] == "srgb"``) predicts encoded values of the solver's
 units: its coefficients are tiled as they are (not divided by ``albedo_scale``), and the shader
-decodes the prediction as :func:`ps_lab.io.appearance.evaluate_appearance` does (clipped to
+decodes the prediction as :func:`ps_lab.appearance.models.evaluate_appearance` does (clipped to
 [0, 1], then sRGB to linear) and multiplies it by ``gain = 1 / albedo_scale`` (the manifest's
 ``space`` and ``gain``). Its coarser levels average the encoded coefficients (the decoded
 picture of a block is then close to, not exactly, the block's mean picture).
@@ -30,12 +31,10 @@ picture of a block is then close to, not exactly, the block's mean picture).
 
 from __future__ import annotations
 
-from collections.abc import Iterator
-
 import numpy as np
 
-from ps_lab.io.appearance import BASIS_TERMS, SMOOTHER_MODELS, Appearance
-from ps_lab.view.tiles import TILE
+from ps_lab.appearance.models import BASIS_TERMS, SMOOTHER_MODELS, Appearance
+from ps_lab.view.tiles import TILE, Pyramid, block_sum, half_float, pad_even
 
 __all__ = ["VIEW_MODELS", "AppearanceTiles", "appearance_entry", "appearance_tiles"]
 
@@ -47,41 +46,14 @@ MAX_TERMS = 16
 MAX_RBF_TERMS = 32
 
 
-class AppearanceTiles:
+class AppearanceTiles(Pyramid):
     """The levels of one result's coefficients, float16 (H_k, W_k, 3K), with tile access."""
 
     def __init__(self, levels: list[np.ndarray], gain: float = 1.0) -> None:
-        self.levels = levels
+        super().__init__(levels)
         #: What the page multiplies an sRGB-space fit's decoded prediction by (1 for linear fits,
         #: whose coefficients carry the scale).
         self.gain = gain
-
-    @property
-    def planes(self) -> int:
-        """RGBA planes per tile."""
-        return -(-self.levels[0].shape[2] // 4)
-
-    def tile(self, level: int, col: int, row: int) -> bytes | None:
-        """One tile's bytes: ``planes`` RGBA16F planes of ``w × h`` one after the other."""
-        if not 0 <= level < len(self.levels):
-            return None
-        data = self.levels[level]
-        h, w = data.shape[:2]
-        if not (0 <= col and col * TILE < w and 0 <= row and row * TILE < h):
-            return None
-        block = data[row * TILE : (row + 1) * TILE, col * TILE : (col + 1) * TILE]
-        padded = np.zeros((*block.shape[:2], 4 * self.planes), np.float16)
-        padded[..., : block.shape[2]] = block
-        planes = [padded[..., 4 * p : 4 * p + 4].ravel() for p in range(self.planes)]
-        return np.concatenate(planes).astype("<f2").tobytes()
-
-    def tiles(self) -> Iterator[tuple[int, int, int]]:
-        """Every ``(level, col, row)``."""
-        for level, data in enumerate(self.levels):
-            h, w = data.shape[:2]
-            for row in range(-(-h // TILE)):
-                for col in range(-(-w // TILE)):
-                    yield level, col, row
 
 
 def appearance_tiles(
@@ -120,11 +92,11 @@ def appearance_tiles(
     vis = appearance.extra.get("visibility") if appearance.model == "ps" else None
     if vis is not None:  # V = clamp(w·[l, 1], 0, 1), shared by the channels, unscaled
         flat = np.concatenate([flat, np.asarray(vis, np.float32)], axis=2)
-    levels = [_half(flat)]
+    levels = [half_float(flat)]
     current, inside = flat, mask.astype(np.float32)
     while max(current.shape[:2]) > TILE:
         current, inside = _halve(current, inside)
-        levels.append(_half(current))
+        levels.append(half_float(current))
     return AppearanceTiles(levels, 1.0 / float(albedo_scale) if srgb else 1.0)
 
 
@@ -181,24 +153,9 @@ def appearance_entry(appearance: Appearance | None, tiles: AppearanceTiles | Non
     return entry
 
 
-def _half(values: np.ndarray) -> np.ndarray:
-    top = float(np.finfo(np.float16).max)
-    return np.clip(values, -top, top).astype(np.float16)
-
-
 def _halve(values: np.ndarray, inside: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """2 × 2 blocks averaged over their mask pixels; a block is inside when half of it is."""
-    h, w, c = values.shape
-    if h % 2 or w % 2:
-        padded = np.zeros((h + h % 2, w + w % 2, c), np.float32)
-        padded[:h, :w] = values
-        mask = np.zeros(padded.shape[:2], np.float32)
-        mask[:h, :w] = inside
-        values, inside = padded, mask
-
-    def block_sum(x):
-        return x[0::2, 0::2] + x[1::2, 0::2] + x[0::2, 1::2] + x[1::2, 1::2]
-
+    values, inside = pad_even(values), pad_even(inside)
     count = block_sum(inside)
     out = block_sum(values * inside[..., None]) / np.maximum(count, 1)[..., None]
     keep = count >= 2

@@ -9,7 +9,7 @@ things per result, each optional:
 - ``data/r{i}/a/{level}/{col}_{row}.bin``: its appearance fit's coefficients
   (:mod:`ps_lab.view.appearance_tiles`);
 - in the manifest, per result: ``colour`` (bool), ``appearance`` (model, terms, planes, note) and
-  ``captured_lights`` (the light disc's dots; :func:`ps_lab.view.relightlab.result_lights`).
+  ``captured_lights`` (the light disc's dots; :func:`ps_lab.appearance.export.result_lights`).
 """
 
 from __future__ import annotations
@@ -20,10 +20,11 @@ from collections.abc import Iterator
 
 import numpy as np
 
+from ps_lab.appearance.export import result_lights
 from ps_lab.errors import DatasetError
 from ps_lab.view.appearance_tiles import AppearanceTiles, appearance_entry, appearance_tiles
 from ps_lab.view.readers import present, read_array
-from ps_lab.view.relightlab import result_appearance, result_lights
+from ps_lab.view.relightlab import result_appearance
 from ps_lab.view.result import ViewResult
 from ps_lab.view.tiles import Pyramid, pyramid
 

@@ -28,9 +28,12 @@ from ps_lab.view.result import CHANNELS, ViewResult
 __all__ = [
     "TILE",
     "Pyramid",
+    "block_sum",
+    "half_float",
     "manifest",
     "mesh_address",
     "mesh_bytes",
+    "pad_even",
     "pyramid",
     "tile_address",
 ]
@@ -73,10 +76,17 @@ def mesh_address(path: str) -> int | None:
 
 
 class Pyramid:
-    """The levels of one result, float16 (H_k, W_k, 8), with tile access."""
+    """Levels of float16 (H_k, W_k, C) planes, each cut into :data:`TILE` x :data:`TILE` tiles of
+    ``ceil(C / 4)`` RGBA16F planes: a result's layers (C = 8, :func:`pyramid`), its colour layers
+    and its appearance coefficients (:mod:`ps_lab.view.appearance_tiles`)."""
 
     def __init__(self, levels: list[np.ndarray]) -> None:
         self.levels = levels
+
+    @property
+    def planes(self) -> int:
+        """RGBA planes per tile."""
+        return -(-self.levels[0].shape[2] // 4)
 
     def level_sizes(self) -> list[dict[str, int]]:
         """Per level: ``width``, ``height``, ``cols``, ``rows`` (tiles)."""
@@ -87,7 +97,8 @@ class Pyramid:
         return sizes
 
     def tile(self, level: int, col: int, row: int) -> bytes | None:
-        """The bytes of one tile (two RGBA16F planes), or None when it does not exist."""
+        """One tile's bytes, or None when it does not exist: its ``planes`` RGBA16F planes of
+        ``w × h`` one after the other (channels ``4p .. 4p + 3`` in plane ``p``, zero-padded)."""
         if not 0 <= level < len(self.levels):
             return None
         data = self.levels[level]
@@ -95,8 +106,10 @@ class Pyramid:
         if not (0 <= col and col * TILE < w and 0 <= row and row * TILE < h):
             return None
         block = data[row * TILE : (row + 1) * TILE, col * TILE : (col + 1) * TILE]
-        planes = np.concatenate([block[..., :4].ravel(), block[..., 4:].ravel()])
-        return planes.astype("<f2").tobytes()
+        padded = np.zeros((*block.shape[:2], 4 * self.planes), np.float16)
+        padded[..., : block.shape[2]] = block
+        planes = [padded[..., 4 * p : 4 * p + 4].ravel() for p in range(self.planes)]
+        return np.concatenate(planes).astype("<f2").tobytes()
 
     def tiles(self) -> Iterator[tuple[int, int, int]]:
         """Every ``(level, col, row)``."""
@@ -113,44 +126,52 @@ def pyramid(result: ViewResult) -> Pyramid:
         layers[..., channel] = np.where(
             np.isfinite(layers[..., channel]), layers[..., channel], MISSING
         )
-    levels = [_half(layers)]
+    levels = [half_float(layers)]
     current = layers
     while max(current.shape[:2]) > TILE:
         current = _halve(current)
-        levels.append(_half(current))
+        levels.append(half_float(current))
     return Pyramid(levels)
 
 
-def _half(layers: np.ndarray) -> np.ndarray:
+def half_float(values: np.ndarray) -> np.ndarray:
+    """``values`` as float16, clipped to its finite range."""
     top = float(np.finfo(np.float16).max)
-    return np.clip(layers, -top, top).astype(np.float16)
+    return np.clip(values, -top, top).astype(np.float16)
 
 
-def _block_sum(x: np.ndarray) -> np.ndarray:
+def block_sum(x: np.ndarray) -> np.ndarray:
     """Sums over the 2 x 2 blocks of an array with even height and width (first two axes)."""
     return x[0::2, 0::2] + x[1::2, 0::2] + x[0::2, 1::2] + x[1::2, 1::2]
 
 
+def pad_even(values: np.ndarray) -> np.ndarray:
+    """``values`` (H, W, ...) zero-padded to an even height and width (itself when they are)."""
+    h, w = values.shape[:2]
+    if not (h % 2 or w % 2):
+        return values
+    padded = np.zeros((h + h % 2, w + w % 2, *values.shape[2:]), np.float32)
+    padded[:h, :w] = values
+    return padded
+
+
 def _halve(layers: np.ndarray) -> np.ndarray:
     """One pyramid step: 2 x 2 blocks averaged over their mask pixels (valid values only)."""
-    h, w, c = layers.shape
-    if h % 2 or w % 2:
-        padded = np.zeros((h + h % 2, w + w % 2, c), np.float32)
-        padded[:h, :w] = layers
-        layers = padded
+    layers = pad_even(layers)
+    c = layers.shape[2]
     n = layers[..., :3]
     inside = np.einsum("...k,...k->...", n, n) > 0.25
-    count = _block_sum(inside.astype(np.float32))
+    count = block_sum(inside.astype(np.float32))
     keep = count >= 2  # a block is inside when at least half its pixels are
     out = np.empty((layers.shape[0] // 2, layers.shape[1] // 2, c), np.float32)
     # Normals, albedo and outlier share are zero outside the mask: a plain sum over it.
-    out[..., :5] = _block_sum(layers[..., :5]) / np.maximum(count, 1)[..., None]
+    out[..., :5] = block_sum(layers[..., :5]) / np.maximum(count, 1)[..., None]
     # Error and relief may be missing (MISSING), depth NaN: averaged over the valid ones.
     for k in range(5, c):
         values = layers[..., k]
         valid = inside & (np.isfinite(values) if k == 7 else values != MISSING)
-        kept = _block_sum(valid.astype(np.float32))
-        summed = _block_sum(np.where(valid, values, np.float32(0)))
+        kept = block_sum(valid.astype(np.float32))
+        summed = block_sum(np.where(valid, values, np.float32(0)))
         empty = MISSING if k < 7 else np.nan
         out[..., k] = np.where(keep & (kept > 0), summed / np.maximum(kept, 1), empty)
     normals = out[..., :3]

@@ -3,7 +3,7 @@
 RelightLab's layout holds PTM, HSH, RBF and bilinear fits; ps-lab's default model (``ps``: the
 normal and albedo plus gloss terms) and its other models are none of these. On export such a
 model is **relit** at a set of light directions and the pictures are stored as OpenLIME's RBF
-interpolation reads them (:mod:`ps_lab.io.relightlab`): a mean picture and ``P`` principal
+interpolation reads them (:mod:`ps_lab.appearance.relightlab`): a mean picture and ``P`` principal
 components over the lights, each pixel ``P`` coefficients, relit at a light ``l`` as
 ``Σ_i w_i(l) (μ_i + Σ_p x_p E_{p,i})`` with normalised Gaussian weights of width σ.
 
@@ -25,8 +25,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ps_lab.appearance.relightlab import quantise_rbf_basis
 from ps_lab.io.encoding import linear_to_srgb
-from ps_lab.io.relightlab import quantise_rbf_basis
 
 __all__ = [
     "PLANES",

@@ -1,5 +1,5 @@
 """The ``ps`` model's cross-validated score for ``--appearance auto``
-(:func:`ps_lab.reconstruct.appearance_choice.resolve_model`'s ``ps_scorer``).
+(:func:`ps_lab.appearance.choice.resolve_model`'s ``ps_scorer``).
 
 ``ps`` is not a linear smoother: it is refitted ``PS_FOLDS`` times on the pixel sample, each time
 without the lights of index ``i % PS_FOLDS == fold``, and predicts those (the normals stay those
@@ -10,9 +10,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from ps_lab.io.appearance import PS_TERMS, Appearance, evaluate_appearance
-from ps_lab.reconstruct._appearance_fit import fit_block
-from ps_lab.reconstruct.appearance_choice import grey_srgb, psnr_per_light
+from ps_lab.appearance.blocks import fit_block
+from ps_lab.appearance.choice import grey_srgb, psnr_per_light
+from ps_lab.appearance.models import PS_TERMS, Appearance, evaluate_appearance
 
 __all__ = ["PS_FOLDS", "ps_cv_score"]
 

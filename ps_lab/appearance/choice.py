@@ -9,8 +9,8 @@ every pixel (:func:`loo_weights`), in closed form where the model is a least-squ
 - ``ptm``/``hsh``: with the hat matrix ``H = X (XᵀX)⁻¹ Xᵀ``, the held-out residual is
   ``e_i / (1 − H_ii)``, so ``W = I − diag(1 − H_ii)⁻¹ (I − H)``;
 - ``gp`` (penalised least squares, fixed ``σ`` and ``λ``): with ``A`` the top-left ``n × n`` block
-  of the inverse system matrix (:func:`ps_lab.io.smoothers.gp_solve`), the fit is ``ŷ = y − λAy``
-  and the held-out residual ``(Ay)_i / A_ii``, so ``W = I − diag(A_ii)⁻¹ A``;
+  of the inverse system matrix (:func:`ps_lab.appearance.smoothers.gp_solve`), the fit is
+  ``ŷ = y − λAy`` and the held-out residual ``(Ay)_i / A_ii``, so ``W = I − diag(A_ii)⁻¹ A``;
 - ``rbf``: the normalised Gaussian weights with the light's own weight removed;
 - ``bln``: its weights recomputed without each light in turn (``n`` small matrices).
 
@@ -34,16 +34,16 @@ from typing import Any
 
 import numpy as np
 
-from ps_lab.errors import DatasetError
-from ps_lab.io.appearance import BASIS_TERMS, appearance_basis
-from ps_lab.io.encoding import linear_to_srgb, srgb_to_linear
-from ps_lab.io.smoothers import (
+from ps_lab.appearance.models import BASIS_TERMS, appearance_basis
+from ps_lab.appearance.smoothers import (
     bln_weights,
     gaussian_weights,
     gp_solve,
     gp_weights,
     grid_nodes,
 )
+from ps_lab.errors import DatasetError
+from ps_lab.io.encoding import linear_to_srgb, srgb_to_linear
 
 __all__ = [
     "AUTO_MODELS",

@@ -1,7 +1,7 @@
 """``ps-lab relight``: a result folder's object under any light, as EXR (linear) or PNG (sRGB).
 
 :func:`relight_picture` is the pure part (normals, albedo and an optional fitted
-:class:`ps_lab.io.appearance.Appearance` → a linear (H, W, C) picture);
+:class:`ps_lab.appearance.models.Appearance` → a linear (H, W, C) picture);
 :func:`relight_result` reads a result folder, evaluates every requested light and writes the
 files, all or none. Light directions are in the dataset's light frame (x right, y up, z toward
 the camera), the values in the solver's units (decoded, each channel divided by its light's
@@ -28,17 +28,19 @@ import cv2
 import numpy as np
 import OpenEXR
 
+from ps_lab.appearance.models import MAX_STORED, Appearance, evaluate_appearance, lambertian
+from ps_lab.appearance.store import read_appearance
 from ps_lab.errors import DatasetError, OutputError
 from ps_lab.geometry import Camera, near_light_vectors, scene_points
-from ps_lab.io.appearance import (
-    MAX_STORED,
-    Appearance,
-    evaluate_appearance,
-    lambertian,
-    read_appearance,
-)
 from ps_lab.io.encoding import linear_to_srgb
-from ps_lab.io.files import is_no_space, remove_stale_staging, remove_tree
+from ps_lab.io.files import (
+    fsync_path,
+    is_no_space,
+    missing_folders,
+    remove_created,
+    remove_stale_staging,
+    remove_tree,
+)
 from ps_lab.io.normal_maps import EXR_COMPRESSION
 from ps_lab.io.result import read_result_metrics
 
@@ -153,7 +155,7 @@ def read_relight_source(folder: Path, mode: str = "fitted") -> RelightSource:
     Every array is checked before use: the normals (H, W, 3) real, each pixel's either zero or
     not finite (unsolved) or of unit length (within :data:`UNIT_TOLERANCE`), the albedo
     (H, W) or (H, W, 1|3) real and finite where the normal is solved, the appearance model as
-    :func:`ps_lab.io.appearance.read_appearance` validates it.
+    :func:`ps_lab.appearance.store.read_appearance` validates it.
 
     Raises
     ------
@@ -284,11 +286,7 @@ def relight_result(
         for text, position in zip(lights, given, strict=True):
             _check_above(text, position, points, source.normals)
     parent = paths[0].parent
-    created: list[Path] = []
-    folder = parent
-    while not folder.exists() and not folder.is_symlink():
-        created.append(folder)
-        folder = folder.parent
+    created = missing_folders(parent)
     stage = parent / f"{_STAGE}{os.getpid()}"
     current = paths[0]
     try:
@@ -310,18 +308,14 @@ def relight_result(
                 _write_picture(staged[-1], picture)
             for path, final in zip(staged, paths, strict=True):
                 current = final
-                _fsync(path)
+                fsync_path(path)
             _publish(stage, staged, paths)
         except OSError as exc:
             failed = Path(exc.filename) if exc.filename in {str(p) for p in paths} else current
             raise OutputError(_write_line(out, failed, exc)) from None
     except BaseException:
         remove_tree(stage)
-        for path in created:
-            try:
-                path.rmdir()
-            except OSError:
-                break
+        remove_created(created)
         raise
     remove_tree(stage)
     return list(zip(paths, given, strict=True))
@@ -333,14 +327,6 @@ def _write_line(out: Path, path: Path, exc: OSError) -> str:
     reason = reason[:1].lower() + reason[1:]
     remedy = "; free some space and run again" if is_no_space(exc) else ""
     return f"--out {path}: cannot write, {reason}; no picture written{remedy}"
-
-
-def _fsync(path: Path) -> None:
-    fd = os.open(path, os.O_RDONLY)
-    try:
-        os.fsync(fd)
-    finally:
-        os.close(fd)
 
 
 def _publish(stage: Path, staged: list[Path], paths: list[Path]) -> Path:

@@ -1,6 +1,6 @@
 """Per-pixel least-squares fits of the appearance models (pure functions on arrays).
 
-The models and their bases are defined in :mod:`ps_lab.io.appearance`. Every fit takes the
+The models and their bases are defined in :mod:`ps_lab.appearance.models`. Every fit takes the
 training observations of a block of pixels in colour, ``(n, P, C)`` in the solver's units (each
 channel divided by its light's intensity; the fits also take the observations as stored and the
 per-light divisor ``scale``, so that no divided copy is made), and returns coefficients
@@ -9,7 +9,7 @@ per-light divisor ``scale``, so that no divided copy is made), and returns coeff
 - ``ptm``, ``hsh2``, ``hsh3``: as the RTI tools fit them, linear least squares of every finite
   observation on the light-only basis (one pseudo-inverse shared by all pixels whose
   observations are all finite: one matrix product; per-pixel normal equations for the others),
-  on the terms the lights determine (:mod:`._appearance_design`; the others 0);
+  on the terms the lights determine (:mod:`.design`; the others 0);
 - ``rbf``: the observations projected on a per-channel basis of the training lights
   (:func:`rbf_setup`: an uncentred PCA of a pixel sample, one vector per distinct light at
   most, and the Gaussian width chosen by leave-one-light-out prediction on that sample);
@@ -38,15 +38,15 @@ from functools import lru_cache
 import numpy as np
 from numba import njit
 
-from ps_lab.io.appearance import (
+from ps_lab.appearance.models import (
     BASIS_TERMS,
     PS_TERMS,
     appearance_basis,
     is_direct,
 )
 
-from ._appearance_design import determined_terms, distinct_lights
-from .appearance_choice import encode
+from .design import determined_terms, distinct_lights
+from .choice import encode
 from ._ps_kernel import (  # noqa: F401 (the constants are read from here too)
     PS_FLOOR,
     PS_RIDGE,
@@ -101,7 +101,7 @@ def fit_linear(
 ) -> np.ndarray:
     """PTM / HSH coefficients by least squares on every finite observation.
 
-    Only the terms the lights determine are fitted (:func:`._appearance_design.determined_terms`);
+    Only the terms the lights determine are fitted (:func:`.design.determined_terms`);
     the others are 0.
 
     A pixel whose observations are all finite gets ``pinv(B) y`` (one matrix product for all
@@ -459,7 +459,7 @@ def fit_block(
     scale : ndarray of shape (n,) or None
         Each light's divisor of the observations (None: 1).
     space : {"linear", "srgb"}
-        The fit space: the observations are encoded (:func:`.appearance_choice.encode`; a
+        The fit space: the observations are encoded (:func:`.choice.encode`; a
         missing one stays missing) and fitted as in linear; ``bln`` and ``gp`` project on their
         basis as ``rbf`` does.
 

@@ -1,7 +1,7 @@
 """The ps appearance model's fit as numba kernels (``reconstruct --appearance ps``).
 
 :func:`_fit_ps_block` fits the visibility half-space and the ridge least squares of the visible
-Lambertian residual (the maths of :mod:`._appearance_fit`, whose ``fit_visibility``, ``fit_ps``
+Lambertian residual (the maths of :mod:`.blocks`, whose ``fit_visibility``, ``fit_ps``
 and ``fit_block`` call it) for groups of :data:`LANES` pixels side by side: float32
 observations read once, float64 sums, the small systems solved in registers. Also the
 observation helpers both modules share.
@@ -14,9 +14,9 @@ import math
 import numpy as np
 from numba import njit
 
-from ps_lab.io.appearance import PS_TERMS
+from ps_lab.appearance.models import PS_TERMS
+from ps_lab.jit import INLINE, VECTOR
 
-from ._kernels import INLINE, VECTOR
 from ._ps_terms import (
     _HSH,
     _DX,

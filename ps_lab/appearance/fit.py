@@ -5,8 +5,8 @@
 bands (the bands the normals were solved on, in blocks of :data:`FIT_CHUNK` pixels so that the
 fit stays within the band's memory), reads the result's normals and albedo row by row, writes the
 coefficients into a temporary ``.npy`` in the staged result folder and then ``appearance.npz``
-(:func:`ps_lab.io.appearance.write_appearance`). The models are defined in
-:mod:`ps_lab.io.appearance`, the fits in :mod:`._appearance_fit`.
+(:func:`ps_lab.appearance.store.write_appearance`). The models are defined in
+:mod:`ps_lab.appearance.models`, the fits in :mod:`.blocks`.
 """
 
 from __future__ import annotations
@@ -20,25 +20,25 @@ from typing import Any
 
 import numpy as np
 
-from ps_lab.io.appearance import (
-    APPEARANCE_MODELS,
-    BASIS_TERMS,
-    PS_TERMS,
-    VISIBILITY_TERMS,
-    Appearance,
-    write_appearance,
-)
-from ps_lab.io.bands import ObservationStore
-from ps_lab.io.files import allocate_npy, write_npy_rows
-from ps_lab.reconstruct._appearance_design import (
+from ps_lab.appearance._ps_cv import ps_cv_score
+from ps_lab.appearance.blocks import RBF_TERMS, fit_block, rbf_setup
+from ps_lab.appearance.choice import CHOSEN_MODELS, resolve_model
+from ps_lab.appearance.design import (
     TERM_NAMES,
     determined_terms,
     distinct_lights,
     saturated_observations,
 )
-from ps_lab.reconstruct._appearance_fit import RBF_TERMS, fit_block, rbf_setup
-from ps_lab.reconstruct._ps_cv import ps_cv_score
-from ps_lab.reconstruct.appearance_choice import CHOSEN_MODELS, resolve_model
+from ps_lab.appearance.models import (
+    APPEARANCE_MODELS,
+    BASIS_TERMS,
+    PS_TERMS,
+    VISIBILITY_TERMS,
+    Appearance,
+)
+from ps_lab.appearance.store import write_appearance
+from ps_lab.io.bands import ObservationStore
+from ps_lab.io.files import allocate_npy, write_npy_rows
 
 __all__ = [
     "APPEARANCE_MODELS",
@@ -90,7 +90,7 @@ def check_lights(model: str, directions: np.ndarray) -> tuple[int, list[str] | N
     """What the training lights determine of ``model``, said once as a ``warning:`` line.
 
     Returns the count of distinct lights and, for ``ps``, the terms it fits (None: the
-    model's own). The rule (:func:`ps_lab.reconstruct._appearance_design.determined_terms`):
+    model's own). The rule (:func:`ps_lab.appearance.design.determined_terms`):
     terms the design at the distinct lights does not determine are not fitted (``ptm``/``hsh*``:
     stored as 0; ``ps``: left out of its terms; ``rbf``: one basis vector per distinct light).
     """
@@ -124,7 +124,7 @@ def fit_appearance(
     Parameters
     ----------
     model : {"auto", "ps", "ptm", "hsh2", "hsh3", "rbf", "bln", "gp", "none"}
-        ``auto``: chosen by cross-validation (:mod:`.appearance_choice`); ``bln``, ``gp``: their
+        ``auto``: chosen by cross-validation (:mod:`.choice`); ``bln``, ``gp``: their
         parameters and fit space chosen so.
     observations : ndarray of shape (n, P, C) or (n, P)
         Training observations of the P mask pixels (row-major), solver units.

@@ -16,7 +16,7 @@ Colour space ``rgb``: plane ``p = 3k + c`` is the coefficient of basis term ``k`
 8 bits by its own scale and bias, ``byte = round((coefficient / scale + bias) · 255)``, and read
 back as OpenLIME's shader does, ``coefficient = (byte / 255 − bias) · scale``, with
 ``scale = max − min`` and ``bias = −min / scale`` over the plane. The basis terms are those of
-:mod:`ps_lab.io.appearance` (RelightLab's order and normalisation). The coefficients are
+:mod:`ps_lab.appearance.models` (RelightLab's order and normalisation). The coefficients are
 ps-lab's linear fit times ``exposure`` (so the brightest relit pixels are near 1 on screen);
 :func:`read_relightlab` divides it out again.
 """
@@ -30,8 +30,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from ps_lab.appearance.models import Appearance, appearance_basis
 from ps_lab.errors import DatasetError, OutputError
-from ps_lab.io.appearance import Appearance, appearance_basis
 
 __all__ = [
     "EXPORT_MODELS",
@@ -42,6 +42,7 @@ __all__ = [
     "rbf_appearance",
     "read_info",
     "read_relightlab",
+    "relightlab_lights",
     "write_relightlab",
     "write_relightlab_rbf",
 ]
@@ -500,3 +501,18 @@ def export_error_bound(info: dict, light: np.ndarray, levels: float = 1.0) -> np
     return (basis[:, None] * scales).sum(axis=0) * levels / 255.0 / exposure
 
 
+def relightlab_lights(root: Path) -> np.ndarray | None:
+    """A RelightLab folder's lights (``info.json``'s ``lights``), or None (not such a folder,
+    or no lights).
+
+    Raises
+    ------
+    DatasetError
+        A malformed ``info.json`` (naming it and the field).
+
+    """
+    root = Path(root)
+    if not is_relightlab_folder(root):
+        return None
+    lights = np.asarray(read_info(root).get("lights", []), np.float64).reshape(-1, 3)
+    return lights if lights.size else None

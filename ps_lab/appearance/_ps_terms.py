@@ -14,9 +14,8 @@ from functools import lru_cache
 import numpy as np
 from numba import njit
 
-from ps_lab.io.appearance import is_direct
-
-from ._kernels import INLINE, VECTOR
+from ps_lab.appearance.models import is_direct
+from ps_lab.jit import INLINE, VECTOR
 
 # Term kinds of the kernel (``_term_codes``).
 _LAMBERT, _AMBIENT, _LX, _LY, _LZ, _LOBE, _LOBEX, _LOBEY, _HSH = range(9)
@@ -51,7 +50,7 @@ def _term_codes(terms: tuple[str, ...]) -> tuple[np.ndarray, np.ndarray, np.ndar
     Raises
     ------
     ValueError
-        An unknown term (as :func:`ps_lab.io.appearance.ps_term`).
+        An unknown term (as :func:`ps_lab.appearance.models.ps_term`).
 
     """
     kinds, params = [], []
@@ -83,7 +82,7 @@ def _term_code(term: str) -> tuple[int, float]:
 def _fill_table(dirs, col, tab, need_hsh):
     """``tab`` (TABLE_ROWS, n) from the light vectors ``dirs[:, col]`` ((n, ·, 3)).
 
-    As :func:`ps_lab.io.appearance.ps_basis` forms them: ``l̂ = l / |l|`` (``l`` where
+    As :func:`ps_lab.appearance.models.ps_basis` forms them: ``l̂ = l / |l|`` (``l`` where
     ``|l| = 0``), ``h = normalise(l̂ + (0, 0, 1))``, and HSH of ``l̂``.
     """
     for i in range(dirs.shape[0]):

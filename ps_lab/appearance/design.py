@@ -1,6 +1,6 @@
 """What the training lights determine of an appearance model (pure functions on arrays).
 
-The appearance fits (:mod:`._appearance_fit`) fit only the terms the lights determine:
+The appearance fits (:mod:`.blocks`) fit only the terms the lights determine:
 :func:`distinct_lights` counts directions closer than :data:`SAME_LIGHT` once,
 :func:`determined_columns` keeps a design's columns in order while each raises its numerical
 rank, :func:`determined_terms` applies both to a model and words the one warning line.
@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ps_lab.io.appearance import BASIS_TERMS, appearance_basis, ps_basis
+from ps_lab.appearance.models import BASIS_TERMS, appearance_basis, ps_basis
 
 __all__ = [
     "PS_PROBE",

@@ -1,6 +1,6 @@
 """Interpolating appearance models as weights over the training lights (pure functions).
 
-The ``rbf``, ``bln`` and ``gp`` models of :mod:`ps_lab.io.appearance` predict a pixel under a
+The ``rbf``, ``bln`` and ``gp`` models of :mod:`ps_lab.appearance.models` predict a pixel under a
 light ``l`` as a weighted sum of its training observations: ``I(l) = w(l)ᵀ y`` with weights
 ``w(l)`` (n,) that depend only on the ``n`` training lights ``L_i`` and the model's parameters
 (the same for every pixel). This module computes ``w(l)``:
