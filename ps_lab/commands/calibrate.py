@@ -20,7 +20,7 @@ from ps_lab.calibration import (
     with_led_model,
     write_calibration,
 )
-from ps_lab.commands.reconstruct import Encoding, EncodingOption
+from ps_lab.commands._options import Encoding, EncodingOption
 from ps_lab.errors import CalibrationError
 from ps_lab.io.camera import camera_record, undistort_frame
 from ps_lab.io.dataset import Frames, load_frames
