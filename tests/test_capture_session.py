@@ -21,7 +21,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from ps_lab.capture.connect import build_simulation
+from ps_lab.capture.simulated.simulation import build_simulation
 from ps_lab.capture.rig import load_rig
 from ps_lab.capture.session import CaptureSession, make_plan
 from ps_lab.capture.simulated import camera as cameras

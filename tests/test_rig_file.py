@@ -9,7 +9,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from ps_lab.capture.connect import build_simulation, nominal_directions
+from ps_lab.capture.connect import nominal_directions
+from ps_lab.capture.simulated.simulation import build_simulation
 from ps_lab.capture.rig import (
     apply_overrides,
     comparable_snapshot,
