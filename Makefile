@@ -23,7 +23,7 @@ launcher: $(STAMP)
 # Compile the numba kernels once, at install, into numba's cache (__pycache__ next to the
 # sources): with an empty cache the first reconstruct would compile for a minute or more. Numba
 # keys an entry by its source file's mtime, so an edited or pulled kernel source warms again.
-KERNEL_SOURCES := $(wildcard reconstruct/*.py) ps_lab/render/near.py ps_lab/io/_coding_kernel.py
+KERNEL_SOURCES := $(wildcard reconstruct/*.py) ps_lab/render/near_shading.py ps_lab/io/_coding_kernel.py
 WARM := $(VENV)/.kernels-compiled
 $(WARM): $(STAMP) $(KERNEL_SOURCES)
 	$(BIN)/python -m ps_lab.reconstruct._warm_up

@@ -31,10 +31,10 @@ from typing import Any
 
 import numpy as np
 
-from ps_lab.capture import cameras, gphoto2_camera, lights
+from ps_lab.capture import camera_devices, gphoto2_camera, light_controllers
 from ps_lab.capture._rig_lens import simulated_lens
 from ps_lab.capture.faults import Fault
-from ps_lab.capture.lights import LightState
+from ps_lab.capture.light_controllers import LightState
 from ps_lab.capture.rig import Rig, local_ptpip_port
 from ps_lab.errors import CameraError, PsLabError, RigError
 
@@ -248,7 +248,7 @@ def _open_controller(rig: Rig, opened: OpenRig) -> Callable[[], Any] | None:
         port = cfg.port
         assert port is not None
         _check_port(port)
-    controller = _make_controller(lights, port, rig)
+    controller = _make_controller(light_controllers, port, rig)
     opened.controller = controller
     opened._closers.append(controller.close)
     return light_state
@@ -327,7 +327,7 @@ def _open_camera(
         )
     elif cfg.driver == "folder":
         assert cfg.folder is not None
-        camera = cameras.FolderCamera(
+        camera = camera_devices.FolderCamera(
             Path(cfg.folder),
             timeout_s=cfg.timeout_s,
             pattern=cfg.pattern,
@@ -373,7 +373,7 @@ def _camera_state_file(rig: Rig, opened: OpenRig) -> Path | None:
 
 def _simulated_camera(rig: Rig, simulation: Any, light_state: Any, **extra: Any) -> Any:
     """The rig's scene seen by its [camera] sensor (black and white level, gain, noise, seed)."""
-    from ps_lab.capture.simulated.camera import SimulatedCamera
+    from ps_lab.capture.simulated.simulated_camera import SimulatedCamera
 
     cfg = rig.camera
     return SimulatedCamera(

@@ -45,7 +45,7 @@ from ps_lab.errors import CameraError, DatasetError, PsLabError, RigError
 from ps_lab.io.camera import CAMERA_FILE
 from ps_lab.io.codecs import imread
 from ps_lab.io.files import PARTIAL_PREFIX, json_safe, publish_file, sha256, write_bytes_atomic
-from ps_lab.io.lights import light_table_bytes
+from ps_lab.io.light_files import light_table_bytes
 from ps_lab.io.raw import is_raw_file, load_raw
 from ps_lab.io.run import (
     FRAMES_DIR,

@@ -133,12 +133,13 @@ timeout_s = 10.0
         check=True,
     )
     loaded = set(json.loads(out.stdout.splitlines()[-1]))
-    assert {"ps_lab.capture.session", "ps_lab.capture.cameras"} <= loaded
+    assert {"ps_lab.capture.session", "ps_lab.capture.camera_devices"} <= loaded
     forbidden = {
         m
         for m in loaded
-        if m == "numba" or m.startswith(("numba.", "ps_lab.render", "ps_lab.capture.simulated.camera",
-                                         "ps_lab.capture.simulated.simulation"))
+        if m == "numba"
+        or m.startswith(("numba.", "ps_lab.render", "ps_lab.capture.simulated.simulated_camera",
+                         "ps_lab.capture.simulated.simulation"))
     }
     assert not forbidden, sorted(forbidden)
     assert (run / "manifest.json").is_file() and not (run / "simulation").exists()

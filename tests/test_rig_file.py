@@ -10,7 +10,6 @@ import numpy as np
 import pytest
 
 from ps_lab.capture.connect import nominal_directions
-from ps_lab.capture.simulated.simulation import build_simulation
 from ps_lab.capture.rig import (
     apply_overrides,
     comparable_snapshot,
@@ -18,6 +17,7 @@ from ps_lab.capture.rig import (
     parse_light_selection,
     snapshot_differences,
 )
+from ps_lab.capture.simulated.simulation import build_simulation
 from ps_lab.errors import RigError
 
 RIGS = Path(__file__).resolve().parents[1] / "rigs"

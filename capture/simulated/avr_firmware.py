@@ -30,7 +30,7 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
-from ps_lab.capture.lights import LightState
+from ps_lab.capture.light_controllers import LightState
 from ps_lab.capture.simulated.pty_server import serve_until_interrupted
 from ps_lab.errors import RigError
 from ps_lab.io.files import staged_folder

@@ -18,7 +18,7 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-from ps_lab.capture.lights import LightState
+from ps_lab.capture.light_controllers import LightState
 from ps_lab.capture.simulated.firmware import LineAssembler, Reply, SimulatedFirmware, _Outbox
 from ps_lab.errors import RigError
 

@@ -22,7 +22,7 @@ import numpy as np
 from ps_lab import render
 from ps_lab.errors import DatasetError, RigError
 from ps_lab.io.files import write_bytes_atomic
-from ps_lab.io.lights import light_table_bytes
+from ps_lab.io.light_files import light_table_bytes
 from ps_lab.io.run import SIMULATION_DIR
 
 

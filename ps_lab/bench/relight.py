@@ -29,7 +29,7 @@ import numpy as np
 from ps_lab.io.appearance import coefficients_per_pixel, evaluate_appearance, lambertian
 from ps_lab.io.dataset import load_dataset
 from ps_lab.io.encoding import linear_to_srgb
-from ps_lab.io.lights import find_lp
+from ps_lab.io.light_files import find_lp
 from ps_lab.reconstruct import light_noise_factors, solve
 from ps_lab.reconstruct._shadows import black_threshold
 from ps_lab.reconstruct._solve import NOISE_SAMPLE_PIXELS

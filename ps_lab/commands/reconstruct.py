@@ -10,7 +10,7 @@ from typing import Annotated
 import typer
 
 from ps_lab._cli_util import lab_command, progress_bar
-from ps_lab.commands._options import Encoding, EncodingOption
+from ps_lab.commands._shared_options import Encoding, EncodingOption
 from ps_lab.errors import DatasetError
 from ps_lab.io.frames import FolderOfDatasetsError
 from ps_lab.reconstruct.pipeline import (

@@ -23,7 +23,7 @@ from ps_lab.capture.connect import (
     serve_simulator,
 )
 from ps_lab.capture.faults import parse_camera_faults, parse_faults
-from ps_lab.capture.lights import SerialLightController, walk_lights
+from ps_lab.capture.light_controllers import SerialLightController, walk_lights
 from ps_lab.capture.rig import load_rig, parse_light_selection
 from ps_lab.errors import PsLabError, RigError
 

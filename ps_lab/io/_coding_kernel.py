@@ -9,7 +9,6 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-
 #: Codes per table up to which each light's products and quotients are tabulated first (8-bit):
 #: a band's samples are then three lookups and two additions each.
 SMALL_TABLE = 4096

@@ -21,7 +21,7 @@ from ps_lab.errors import DatasetError, OutputError, PsLabError
 from ps_lab.io.appearance import Appearance, evaluate_appearance, read_appearance
 from ps_lab.io.encoding import srgb_to_linear
 from ps_lab.io.files import output_target, staged_folder
-from ps_lab.io.lights import find_lp, read_light_directions, read_lp
+from ps_lab.io.light_files import find_lp, read_light_directions, read_lp
 from ps_lab.io.relight import read_relight_source, relight_picture
 from ps_lab.io.relightlab import (
     EXPORT_MODELS,
