@@ -112,6 +112,16 @@ class CameraConfig:
     dn_per_electron: float = 0.5
     seed: int = 0
 
+    def sensor(self) -> dict[str, Any]:
+        """The simulated sensor's settings (:data:`SENSOR_SETTINGS`), as keyword arguments."""
+        return {key: getattr(self, key) for key in SENSOR_SETTINGS}
+
+
+#: The simulated sensor's ``[camera]`` keys, in the order a run's manifest records them.
+SENSOR_SETTINGS = (
+    "black_level", "white_level", "gain", "read_noise_dn", "shot_noise", "dn_per_electron", "seed"
+)
+
 
 @dataclass(frozen=True)
 class CalibrationConfig:
@@ -252,15 +262,7 @@ class Rig:
         if cam.driver == "gphoto2" and cam.settings:
             settings["settings"] = dict(cam.settings)
         if cam.driver == "simulated":
-            settings.update(
-                black_level=cam.black_level,
-                white_level=cam.white_level,
-                gain=cam.gain,
-                read_noise_dn=cam.read_noise_dn,
-                shot_noise=cam.shot_noise,
-                dn_per_electron=cam.dn_per_electron,
-                seed=cam.seed,
-            )
+            settings.update(cam.sensor())
         return settings
 
 
@@ -450,16 +452,7 @@ def _pins(t: _Table, lights: int) -> tuple[int, ...] | None:
     return pins
 
 
-_SENSOR_KEYS = {
-    "black_level",
-    "white_level",
-    "gain",
-    "read_noise_dn",
-    "shot_noise",
-    "dn_per_electron",
-    "seed",
-    "light_state_file",
-}
+_SENSOR_KEYS = {*SENSOR_SETTINGS, "light_state_file"}
 _CAMERA_KEYS = {
     "simulated": _SENSOR_KEYS,
     # and, on a [scene] (the PTP/IP camera simulator), the simulated sensor's keys
