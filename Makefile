@@ -24,7 +24,7 @@ launcher: $(STAMP)
 # sources): with an empty cache the first reconstruct would compile for a minute or more. Numba
 # keys an entry by its source file's mtime, so an edited or pulled kernel source warms again.
 KERNEL_SOURCES := $(wildcard reconstruct/*.py) $(wildcard ps_lab/appearance/*.py) \
-	ps_lab/render/near.py ps_lab/io/coding.py ps_lab/jit.py
+	ps_lab/render/near_shading.py ps_lab/io/_coding_kernel.py ps_lab/jit.py
 WARM := $(VENV)/.kernels-compiled
 $(WARM): $(STAMP) $(KERNEL_SOURCES)
 	$(BIN)/python -m ps_lab.reconstruct._warm_up

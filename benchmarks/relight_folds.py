@@ -28,7 +28,7 @@ import numpy as np
 
 from ps_lab.bench.relight import evaluate_capture, find_captures
 from ps_lab.io.encoding import linear_to_srgb, srgb_to_linear
-from ps_lab.io.lights import find_lp
+from ps_lab.io.light_files import find_lp
 
 TOOL = Path(__file__).resolve().parents[1].parent / "shared" / "tools" / "relightlab" / "run"
 CONTENDERS = [(m, s) for m in ("ptm", "hsh", "rbf", "bln") for s in ("linear", "srgb")]

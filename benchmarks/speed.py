@@ -248,7 +248,7 @@ def make_capture(work: Path, plan: dict) -> dict:
 
 
 def _lp_rows(folder: Path) -> list[tuple[Path, np.ndarray]]:
-    from ps_lab.io.lights import find_lp, read_lp
+    from ps_lab.io.light_files import find_lp, read_lp
 
     lp = find_lp(folder)
     names, directions = read_lp(lp)

@@ -1,6 +1,6 @@
 """Light calibration from a chrome sphere (and intensities from a matte sphere).
 
-Camera intrinsics and lens distortion from a board (:mod:`._camera`,
+Camera intrinsics and lens distortion from a board (:mod:`._camera_calibration`,
 :func:`calibrate_camera_files` behind ``ps-lab calibrate-camera``; the camera file and undistortion
 live in :mod:`ps_lab.io.camera`, re-exported here). Pure functions on arrays; :func:`calibrate` runs the whole chain (sphere outline → highlights →
 mirror-law directions → matte-sphere intensities) and :func:`write_calibration` writes the
@@ -8,7 +8,14 @@ DiLiGenT light tables, ``calibration.json`` and ``calibration.png``. See ``docs/
 """
 
 from ps_lab.calibration._calibrate import Calibration, calibrate
-from ps_lab.calibration._camera import (
+from ps_lab.calibration._calibration_outputs import (
+    OUTPUT_FILES,
+    calibration_picture,
+    calibration_record,
+    write_calibration,
+    zenith_azimuth_deg,
+)
+from ps_lab.calibration._camera_calibration import (
     BoardSpec,
     CameraCalibration,
     Detection,
@@ -29,22 +36,15 @@ from ps_lab.calibration._circle import (
     refine_circle,
     summary_image,
 )
-from ps_lab.calibration._geometry import (
-    highlights_from_light_directions,
-    light_directions_from_highlights,
-)
 from ps_lab.calibration._highlight import Highlight, locate_highlight
 from ps_lab.calibration._intensity import fit_light_intensities, led_intensities_at_origin
 from ps_lab.calibration._leds import LedModel, calibrate_leds, with_led_model
+from ps_lab.calibration._mirror_geometry import (
+    highlights_from_light_directions,
+    light_directions_from_highlights,
+)
 from ps_lab.calibration._positions import Triangulation, reflected_rays, triangulate_lights
 from ps_lab.calibration._probes import combine_probes
-from ps_lab.calibration._report import (
-    OUTPUT_FILES,
-    calibration_picture,
-    calibration_record,
-    write_calibration,
-    zenith_azimuth_deg,
-)
 from ps_lab.calibration._rig_spheres import (
     rig_anisotropy,
     rig_chrome_spheres,

@@ -7,17 +7,16 @@ preview.
 
 from __future__ import annotations
 
-from typing import Any
-
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field, replace
+from typing import Any
 
 import numpy as np
 
 from ps_lab.calibration._circle import Circle, circle_inside_image, refine_circle, summary_image
-from ps_lab.calibration._geometry import light_directions_from_highlights
 from ps_lab.calibration._highlight import Highlight, locate_highlight, share_source_radius
 from ps_lab.calibration._intensity import fit_light_intensities, led_intensities_at_origin
+from ps_lab.calibration._mirror_geometry import light_directions_from_highlights
 from ps_lab.calibration._positions import (
     MIN_RAY_ANGLE_DEG,
     Triangulation,

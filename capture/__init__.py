@@ -2,7 +2,7 @@
 
 - light controllers: :class:`LightController`, :class:`SerialLightController` (protocol v1 over
   pyserial; importing this package registers the ``pslabsim://`` URL of the simulated controller);
-- cameras: :class:`Camera`, :class:`FolderCamera`,
+- cameras: :class:`CameraDevice`, :class:`FolderCamera`,
   :class:`~ps_lab.capture.gphoto2_camera.Gphoto2Camera` (optional extra ``ps-lab[gphoto2]``);
 - linear RAW (re-exported from :mod:`ps_lab.io`): :func:`load_raw`, :func:`write_dng`;
 - rig files and capture sessions: :func:`load_rig`, :class:`CaptureSession`.
@@ -12,8 +12,8 @@ handler, the simulated camera) are imported only by :mod:`ps_lab.capture.connect
 file selects them.
 """
 
-from ps_lab.capture.cameras import Camera, CapturedFrame, FolderCamera
-from ps_lab.capture.lights import LightController, LightState, SerialLightController
+from ps_lab.capture.camera_devices import CameraDevice, CapturedFrame, FolderCamera
+from ps_lab.capture.light_controllers import LightController, LightState, SerialLightController
 from ps_lab.capture.rig import Rig, load_rig
 from ps_lab.capture.session import CaptureSession
 from ps_lab.io.dng import write_dng
@@ -21,7 +21,7 @@ from ps_lab.io.raw import RAW_SUFFIXES, RawImage, load_raw
 
 __all__ = [
     "RAW_SUFFIXES",
-    "Camera",
+    "CameraDevice",
     "CaptureSession",
     "CapturedFrame",
     "FolderCamera",

@@ -25,7 +25,6 @@ from typing import Any
 from ps_lab.capture._rig_table import _Table
 from ps_lab.errors import PsLabError, RigError
 from ps_lab.io.camera import CameraModel, check_frame_size, read_camera_file
-from ps_lab.render.board import CharucoTarget, write_board_frames
 
 
 @dataclass(frozen=True)
@@ -116,38 +115,3 @@ def with_lens_camera(rig: Any, camera_file: Path) -> Any:
     except RigError as exc:
         raise RigError(str(exc).replace("--camera: [lens] camera: ", "--camera ")) from None
     return dataclasses.replace(rig, lens=lens)
-
-
-def write_rig_board_frames(rig: Any, out: Path, views: int = 12, seed: int = 0) -> list[Path]:
-    """Board frames a simulated rig's camera records: a ChArUco board at seeded poses.
-
-    The board (:func:`board_target`) is rendered through the rig's ``[lens]`` (its focal length,
-    principal point and distortion; an ideal lens of focal length = scene width without one) at
-    the loaded frames' size, what ``ps-lab calibrate-camera`` then calibrates.
-
-    Raises
-    ------
-    RigError
-        The rig's camera is not simulated (a real camera photographs a real board).
-    """
-    if rig.scene is None or not rig.simulated_camera:
-        raise RigError(f"{rig.source or rig.name}: board frames are rendered for a simulated "
-                       "camera only (photograph a printed board with a real one)")
-    width, height = rig.scene.width, rig.scene.height
-    camera = simulated_lens(rig.lens, width, height) or CameraModel(
-        float(width), float(width), (width - 1) / 2.0, (height - 1) / 2.0,
-        image_size=(width, height),
-    )
-    return write_board_frames(Path(out), board_target(width), camera, views, seed=seed)
-
-
-def board_target(width: int) -> CharucoTarget:
-    """The simulated rigs' board for frames ``width`` pixels wide.
-
-    9 x 6 squares of 20 mm with 15 mm DICT_5X5_100 markers from 320 px up; on smaller frames
-    6 x 4 squares with 16 mm DICT_4X4_50 markers, so that a marker's bit still spans ~3 pixels
-    (the ArUco decoder's limit is about 2).
-    """
-    if width >= 320:
-        return CharucoTarget(9, 6, 20.0, 15.0, "DICT_5X5_100")
-    return CharucoTarget(6, 4, 20.0, 16.0, "DICT_4X4_50")

@@ -1,8 +1,8 @@
 """The byte level of the light-controller protocol: line framing over a pyserial port.
 
-Private: :class:`ps_lab.capture.lights.SerialLightController` owns one :class:`SerialLink` and
-speaks in lights; everything that touches bytes is here. All traffic is logged at debug level
-(``ps-lab -vv``).
+Private: :class:`ps_lab.capture.light_controllers.SerialLightController` owns one
+:class:`SerialLink` and speaks in lights; everything that touches bytes is here. All traffic is
+logged at debug level (``ps-lab -vv``).
 """
 
 from __future__ import annotations
@@ -14,7 +14,7 @@ from typing import Any
 
 from ps_lab.errors import RigError
 
-log = logging.getLogger("ps_lab.capture.lights")
+log = logging.getLogger("ps_lab.capture.light_controllers")
 
 #: How long one ``read`` call on the port may block; short, so a reply deadline is kept precisely.
 POLL_S = 0.01

@@ -9,10 +9,13 @@ For ``driver = "firmware"`` the controller is the compiled Arduino sketch runnin
 emulated MCU drives. A gphoto2 camera on ``ptpip:127.0.0.1`` with a ``[scene]`` is the PTP/IP
 camera simulator (:mod:`~ps_lab.capture.simulated.ptpip_camera`), started in its own process and
 told the lit lights through a state file; the driver reaches it through the real libgphoto2.
-:func:`build_simulation` builds the renderer scene and true lights behind a simulated rig.
+A simulated rig's true scene and lights (:mod:`~ps_lab.capture.simulated.simulation`) come with
+the opened rig, as the hook :attr:`OpenRig.write_truth` that writes them into a run.
 
 This is the one production module that imports :mod:`ps_lab.capture.simulated` (an import-linter
-contract); the simulators run only when a rig file selects them.
+contract), each simulator inside the function that starts it: a real rig loads neither the
+simulators nor the renderer (another contract keeps :mod:`ps_lab.render` out of the rest of
+capture).
 """
 
 from __future__ import annotations
@@ -22,106 +25,91 @@ import math
 import multiprocessing
 import shutil
 import tempfile
-from collections.abc import Callable, Iterable
-from dataclasses import dataclass
+from collections.abc import Callable, Iterable, Sequence
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from ps_lab import render
-from ps_lab.capture import cameras, gphoto2_camera, lights
+from ps_lab.capture import camera_devices, gphoto2_camera, light_controllers
 from ps_lab.capture._rig_lens import simulated_lens
 from ps_lab.capture.faults import Fault
-from ps_lab.capture.lights import LightState
+from ps_lab.capture.light_controllers import LightState
 from ps_lab.capture.rig import Rig, local_ptpip_port
-from ps_lab.capture.simulated import firmware as sim_lights
-from ps_lab.capture.simulated.avr_firmware import EmulatedFirmware, serve_firmware
-from ps_lab.capture.simulated.camera import SimulatedCamera
-from ps_lab.capture.simulated.firmware import parse_faults
-from ps_lab.capture.simulated.ptpip_camera import DEFAULT_PORT, PtpIpCamera, dng_shooter
-from ps_lab.capture.simulated.pty_server import (
-    PtyServer,
-    serve_simulator,
-    serve_until_interrupted,
-    state_file_reader,
-    write_state_file,
-)
 from ps_lab.errors import CameraError, PsLabError, RigError
 
 log = logging.getLogger("ps_lab.capture.rig")
 
 __all__ = [
     "OpenRig",
-    "Simulation",
-    "build_simulation",
     "nominal_directions",
     "open_rig",
-    # A simulated controller served on its own pty (``ps-lab rig serve-sim``): the simulators are
-    # reached through this module only.
-    "parse_faults",
+    # The simulators are reached through this module only, each imported when it is used (a real
+    # rig loads neither them nor the renderer). A simulated controller served on its own pty
+    # (``ps-lab rig serve-sim``; its faults: ``capture.faults.parse_faults``):
     "serve_simulator",
     # The compiled sketch in simavr on its own pty (``ps-lab rig serve-firmware``).
     "serve_firmware",
     # The PTP/IP camera simulator (``ps-lab rig serve-camera``).
     "serve_camera",
+    # A simulated camera's board frames (``ps-lab rig board-frames``).
+    "render_board_frames",
 ]
 
 # --------------------------------------------------------------------------------------------
-# Simulated scene
+# Simulators, imported when a rig selects one
 # --------------------------------------------------------------------------------------------
 
 
-@dataclass(frozen=True)
-class Simulation:
-    """The true scene and lights behind a simulated rig."""
+def serve_simulator(**options: Any) -> None:
+    """Serve the simulated controller on a pty until Ctrl-C (``ps-lab rig serve-sim``).
 
-    scene: Any  # ps_lab.render.Scene
-    light_directions: np.ndarray  # (N, 3) true unit directions (from the scene origin for LEDs)
-    light_intensities: np.ndarray  # (N, 3) true per-channel intensities (at the scene origin)
-    point_lights: Any = None  # ps_lab.render.PointLights (N LEDs) on a near-light rig, else None
+    ``options``: those of :func:`ps_lab.capture.simulated.pty_server.serve_simulator`.
+    """
+    from ps_lab.capture.simulated.pty_server import serve_simulator as serve
 
-
-def build_simulation(rig: Rig) -> Simulation:
-    """Build the renderer scene and the true light layout of a simulated rig."""
-    if rig.scene is None:
-        raise RigError(f"rig {rig.name!r} has no [scene] to simulate")
-    sc = rig.scene
-    scene = render.Scene(
-        width=sc.width,
-        height=sc.height,
-        objects=sc.objects,
-        background=sc.background,
-    )
-    n = rig.n_lights
-    layout = sc.lights
-    if layout.directions is not None:
-        directions = np.asarray(layout.directions, dtype=np.float64)
-    else:
-        directions = render.random_light_directions(
-            n, np.random.default_rng(layout.seed), max_zenith_deg=layout.max_zenith_deg
-        )
-    point_lights = None
-    if layout.dome_radius is not None:
-        point_lights = render.PointLights(
-            layout.dome_radius * directions, rig.controller.anisotropy, layout.led_radius
-        )
-    if layout.intensities is not None:
-        intensities = np.asarray(layout.intensities, dtype=np.float64)
-    else:
-        rng = np.random.default_rng([layout.seed, 1])
-        scale = 1.0 + layout.intensity_spread * rng.uniform(-1.0, 1.0, size=(n, 1))
-        color = 1.0 + layout.color_spread * rng.uniform(-1.0, 1.0, size=(n, 3))
-        intensities = scale * color
-    return Simulation(
-        scene=scene,
-        light_directions=directions,
-        light_intensities=intensities,
-        point_lights=point_lights,
-    )
+    serve(**options)
 
 
-def nominal_directions(rig: Rig, simulation: Simulation | None = None) -> np.ndarray | None:
+def serve_firmware(**options: Any) -> None:
+    """Serve the compiled sketch in simavr on a pty until Ctrl-C (``ps-lab rig serve-firmware``).
+
+    ``options``: those of :func:`ps_lab.capture.simulated.avr_firmware.serve_firmware`.
+    """
+    from ps_lab.capture.simulated.avr_firmware import serve_firmware as serve
+
+    serve(**options)
+
+
+def render_board_frames(
+    rig: Rig, out: Path, views: int = 12, seed: int = 0
+) -> tuple[list[Path], Any]:
+    """A simulated rig's board frames, and the board (``ps-lab rig board-frames``).
+
+    Returns the written frames and the :class:`~ps_lab.render.board.CharucoTarget` they show
+    (:func:`ps_lab.capture.simulated.board_frames.write_rig_board_frames`).
+    """
+    from ps_lab.capture.simulated.board_frames import board_target, write_rig_board_frames
+
+    written = write_rig_board_frames(rig, out, views, seed)
+    return written, board_target(rig.scene.width if rig.scene is not None else 0)
+
+
+def _simulation(rig: Rig, opened: OpenRig) -> Any:
+    """The rig's true scene and lights; the session then writes them into the run."""
+    from ps_lab.capture.simulated.simulation import build_simulation, write_truth
+
+    simulation = build_simulation(rig)
+    opened.simulation = simulation
+
+    def truth(run_dir: Path, plan_lights: Sequence[int]) -> None:
+        write_truth(simulation, run_dir, plan_lights)
+
+    opened.write_truth = truth
+    return simulation
+
+
+def nominal_directions(rig: Rig, simulation: Any = None) -> np.ndarray | None:
     """Return the rig's nominal light directions (N, 3), if it has any.
 
     For a simulated rig without ``[controller] directions``, the nominal directions are the true
@@ -160,9 +148,13 @@ class OpenRig:
         self.rig = rig
         self.controller: Any = None
         self.camera: Any = None
-        self.simulation: Simulation | None = None
+        #: A simulated rig's true scene and lights (``capture.simulated.simulation.Simulation``)
+        #: and the hook that writes them into a run (``write_truth(run_dir, plan_lights)``);
+        #: None on a real rig.
+        self.simulation: Any = None
+        self.write_truth: Callable[[Path, Sequence[int]], None] | None = None
         self.firmware: Any = None  # the simulated controller's firmware, when simulated
-        self.board: EmulatedFirmware | None = None  # the emulated MCU, for driver = "firmware"
+        self.board: Any = None  # the emulated MCU (EmulatedFirmware), for driver = "firmware"
         #: The PTP/IP camera simulator's frames (``ServedFrame``: handle, name, sha256, size),
         #: known once the rig is closed, for a gphoto2 camera on a simulated scene.
         self.served_frames: list[Any] | None = None
@@ -229,6 +221,9 @@ def _open_controller(rig: Rig, opened: OpenRig) -> Callable[[], Any] | None:
     light_state: Callable[[], Any] | None = None
     state_file = _camera_state_file(rig, opened)
     if cfg.driver == "simulated":
+        from ps_lab.capture.simulated import firmware as sim_lights
+        from ps_lab.capture.simulated.pty_server import PtyServer, write_state_file
+
         firmware = _make_firmware(sim_lights, rig)
         if state_file is not None:  # for the PTP/IP camera simulator in its own process
             firmware.add_listener(lambda state: write_state_file(state_file, state))
@@ -241,6 +236,8 @@ def _open_controller(rig: Rig, opened: OpenRig) -> Callable[[], Any] | None:
         log.info("simulated controller on %s", port)
     elif cfg.driver == "firmware":
         # The compiled sketch in simavr: the camera sees the lights whose pins are driven.
+        from ps_lab.capture.simulated.avr_firmware import EmulatedFirmware
+
         board = EmulatedFirmware(cfg.elf, pins=cfg.pins, state_file=state_file).start()
         opened._closers.append(board.stop)
         assert board.path is not None
@@ -251,7 +248,7 @@ def _open_controller(rig: Rig, opened: OpenRig) -> Callable[[], Any] | None:
         port = cfg.port
         assert port is not None
         _check_port(port)
-    controller = _make_controller(lights, port, rig)
+    controller = _make_controller(light_controllers, port, rig)
     opened.controller = controller
     opened._closers.append(controller.close)
     return light_state
@@ -317,20 +314,20 @@ def _open_camera(
     cfg = rig.camera
     if cfg.driver == "simulated":
         if light_state is None:
+            from ps_lab.capture.simulated.pty_server import state_file_reader
+
             assert cfg.light_state_file is not None
             light_state = state_file_reader(Path(cfg.light_state_file))
-        simulation = build_simulation(rig)
-        opened.simulation = simulation
         camera: Any = _simulated_camera(
             rig,
-            simulation,
+            _simulation(rig, opened),
             light_state,
             timeout_s=cfg.timeout_s,
             faults=[{"kind": f.kind, "at": f.at} for f in rig.faults.camera],
         )
     elif cfg.driver == "folder":
         assert cfg.folder is not None
-        camera = cameras.FolderCamera(
+        camera = camera_devices.FolderCamera(
             Path(cfg.folder),
             timeout_s=cfg.timeout_s,
             pattern=cfg.pattern,
@@ -341,7 +338,7 @@ def _open_camera(
         port = cfg.port
         if rig.scene is not None:  # the PTP/IP camera simulator, in its own process
             port = _start_camera_process(rig, opened)
-            opened.simulation = build_simulation(rig)  # the run's ground truth
+            _simulation(rig, opened)  # the run's ground truth
         camera = gphoto2_camera.Gphoto2Camera(
             port,
             settings=dict(cfg.settings),
@@ -376,6 +373,8 @@ def _camera_state_file(rig: Rig, opened: OpenRig) -> Path | None:
 
 def _simulated_camera(rig: Rig, simulation: Any, light_state: Any, **extra: Any) -> Any:
     """The rig's scene seen by its [camera] sensor (black and white level, gain, noise, seed)."""
+    from ps_lab.capture.simulated.simulated_camera import SimulatedCamera
+
     cfg = rig.camera
     return SimulatedCamera(
         simulation.scene,
@@ -383,13 +382,7 @@ def _simulated_camera(rig: Rig, simulation: Any, light_state: Any, **extra: Any)
         simulation.light_intensities,
         light_state,
         exposure_s=cfg.exposure_s,
-        black_level=cfg.black_level,
-        white_level=cfg.white_level,
-        gain=cfg.gain,
-        read_noise_dn=cfg.read_noise_dn,
-        shot_noise=cfg.shot_noise,
-        dn_per_electron=cfg.dn_per_electron,
-        seed=cfg.seed,
+        **cfg.sensor(),
         point_lights=simulation.point_lights,
         lens=simulated_lens(rig.lens, rig.scene.width, rig.scene.height) if rig.scene else None,
         **extra,
@@ -399,14 +392,14 @@ def _simulated_camera(rig: Rig, simulation: Any, light_state: Any, **extra: Any)
 def serve_camera(
     rig: Rig,
     *,
-    port: int = DEFAULT_PORT,
+    port: int | None = None,
     state_file: Path | str | None = None,
     lit: Iterable[int] = (),
     level: int = 255,
     faults: Iterable[Fault] | None = None,
     keep_dir: Path | str | None = None,
     slow_s: float = 2.0,
-    on_ready: Callable[[PtpIpCamera], None] | None = None,
+    on_ready: Callable[[Any], None] | None = None,
 ) -> None:
     """Serve the rig's scene as a PTP/IP camera until Ctrl-C or SIGTERM (``rig serve-camera``).
 
@@ -414,8 +407,12 @@ def serve_camera(
     controller, ``ps-lab rig serve-sim --state-file``) or, without one, under lights ``lit`` at
     ``level``, with the rig's [camera] sensor (black and white level, gain, noise, seed).
     ``faults`` default to the rig's ``[faults] camera``. ``on_ready(server)`` is called once
-    the port listens.
+    the port listens; ``port`` defaults to PTP/IP's 15740.
     """
+    from ps_lab.capture.simulated.ptpip_camera import DEFAULT_PORT, PtpIpCamera, dng_shooter
+    from ps_lab.capture.simulated.pty_server import serve_until_interrupted, state_file_reader
+    from ps_lab.capture.simulated.simulation import build_simulation
+
     if rig.scene is None:
         raise RigError(f"rig {rig.name!r} has no [scene] for the camera to see")
     if state_file is not None:
@@ -430,7 +427,7 @@ def serve_camera(
     camera = _simulated_camera(rig, build_simulation(rig), light_state)
     server = PtpIpCamera(
         dng_shooter(camera),
-        port=port,
+        port=DEFAULT_PORT if port is None else port,
         faults=rig.faults.camera if faults is None else faults,
         exposure_s=cfg.exposure_s,
         iso=cfg.iso or 100,
@@ -444,9 +441,9 @@ def serve_camera(
 
 def _camera_child(rig: Rig, state_file: str, port: int, pipe: Any) -> None:
     """In a spawned process: serve the camera, send its port, and its frames when stopped."""
-    served: list[PtpIpCamera] = []
+    served: list[Any] = []  # the PtpIpCamera
 
-    def ready(server: PtpIpCamera) -> None:
+    def ready(server: Any) -> None:
         served.append(server)
         pipe.send(server.port)
 
@@ -464,6 +461,8 @@ def _start_camera_process(rig: Rig, opened: OpenRig) -> str:
     Its own process, as a real camera is its own device: python-gphoto2 holds the GIL during
     some libgphoto2 calls (``get_summary``), which would stall a simulator in the same process.
     """
+    from ps_lab.capture.simulated.ptpip_camera import PtpIpCamera
+
     port = local_ptpip_port(rig.camera.port)
     assert port is not None  # parse_rig requires a local ptpip port with a [scene]
     state_file = getattr(opened, "_state_file", None) or rig.camera.light_state_file

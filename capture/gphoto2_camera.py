@@ -23,7 +23,7 @@ from pathlib import Path
 from types import ModuleType
 from typing import Any
 
-from ps_lab.capture.cameras import Camera
+from ps_lab.capture.camera_devices import CameraDevice
 from ps_lab.errors import CameraError
 from ps_lab.io.raw import RAW_SUFFIXES
 
@@ -156,7 +156,7 @@ def _match_choice(name: str, value: object, choices: list[str]) -> str | None:
     return None
 
 
-class Gphoto2Camera(Camera):
+class Gphoto2Camera(CameraDevice):
     """A USB-tethered camera through libgphoto2.
 
     Parameters

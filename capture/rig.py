@@ -28,7 +28,6 @@ from ps_lab.capture.faults import FAULT_KINDS as CONTROLLER_FAULT_KINDS
 from ps_lab.errors import RigError
 from ps_lab.geometry import Circle
 from ps_lab.io.files import json_safe
-from ps_lab.render.scene import OBJECT_KINDS, SceneObject
 
 log = logging.getLogger(__name__)
 
@@ -38,6 +37,8 @@ CAMERA_DRIVERS = ("simulated", "gphoto2", "folder")
 # A rig file's objects are grey card-like (0.8) unless they say otherwise; the renderer's own
 # default albedo is 1.
 RIG_ALBEDO = (0.8, 0.8, 0.8)
+#: ``[[scene.objects]] kind``: the kinds the renderer draws (``ps_lab.render.scene.OBJECT_KINDS``).
+OBJECT_KINDS = ("sphere", "relief", "chrome", "matte")
 FILE_TYPES = ("dng", "cr2", "cr3", "nef", "arw", "tif", "tiff", "png")
 
 #: Settings that cannot change what a frame contains: where a device is plugged in (a re-plugged
@@ -111,6 +112,16 @@ class CameraConfig:
     dn_per_electron: float = 0.5
     seed: int = 0
 
+    def sensor(self) -> dict[str, Any]:
+        """The simulated sensor's settings (:data:`SENSOR_SETTINGS`), as keyword arguments."""
+        return {key: getattr(self, key) for key in SENSOR_SETTINGS}
+
+
+#: The simulated sensor's ``[camera]`` keys, in the order a run's manifest records them.
+SENSOR_SETTINGS = (
+    "black_level", "white_level", "gain", "read_noise_dn", "shot_noise", "dn_per_electron", "seed"
+)
+
 
 @dataclass(frozen=True)
 class CalibrationConfig:
@@ -148,12 +159,31 @@ class LightLayoutConfig:
 
 
 @dataclass(frozen=True)
+class SceneObjectConfig:
+    """``[[scene.objects]]``: one object of the simulated scene, as the rig file describes it.
+
+    Plain data: the simulator (:mod:`ps_lab.capture.simulated.simulation`) turns it into the
+    renderer's ``SceneObject`` (the same fields); ``kind`` is one of :data:`OBJECT_KINDS`,
+    ``center`` and ``radius`` in pixels, ``albedo`` per channel, ``specular`` and ``roughness``
+    the Cook-Torrance lobe, ``seed`` a relief's layout.
+    """
+
+    kind: str
+    center: tuple[float, float]
+    radius: float
+    albedo: tuple[float, float, float] = RIG_ALBEDO
+    specular: float = 0.0
+    roughness: float = 0.3
+    seed: int = 0
+
+
+@dataclass(frozen=True)
 class SceneConfig:
     """``[scene]``: what the simulated camera sees."""
 
     width: int
     height: int
-    objects: tuple[SceneObject, ...]  # the renderer's own type, parsed from the rig file
+    objects: tuple[SceneObjectConfig, ...]
     lights: LightLayoutConfig = field(default_factory=LightLayoutConfig)
     background: float = 0.0
 
@@ -232,15 +262,7 @@ class Rig:
         if cam.driver == "gphoto2" and cam.settings:
             settings["settings"] = dict(cam.settings)
         if cam.driver == "simulated":
-            settings.update(
-                black_level=cam.black_level,
-                white_level=cam.white_level,
-                gain=cam.gain,
-                read_noise_dn=cam.read_noise_dn,
-                shot_noise=cam.shot_noise,
-                dn_per_electron=cam.dn_per_electron,
-                seed=cam.seed,
-            )
+            settings.update(cam.sensor())
         return settings
 
 
@@ -430,16 +452,7 @@ def _pins(t: _Table, lights: int) -> tuple[int, ...] | None:
     return pins
 
 
-_SENSOR_KEYS = {
-    "black_level",
-    "white_level",
-    "gain",
-    "read_noise_dn",
-    "shot_noise",
-    "dn_per_electron",
-    "seed",
-    "light_state_file",
-}
+_SENSOR_KEYS = {*SENSOR_SETTINGS, "light_state_file"}
 _CAMERA_KEYS = {
     "simulated": _SENSOR_KEYS,
     # and, on a [scene] (the PTP/IP camera simulator), the simulated sensor's keys
@@ -534,7 +547,7 @@ def _parse_scene(t: _Table, n_lights: int) -> SceneConfig:
     background = t.float("background", 0.0, lo=0.0)
     objects = []
     for ot in t.tables("objects"):
-        obj = SceneObject(
+        obj = SceneObjectConfig(
             kind=ot.str("kind", required=True, choices=OBJECT_KINDS),
             center=ot.vector("center", 2, required=True),
             radius=ot.float("radius", required=True, lo=1.0),

@@ -24,7 +24,6 @@ controller error stops the run (the driver already retried what the protocol all
 from __future__ import annotations
 
 import contextlib
-import io
 import logging
 import os
 import re
@@ -37,18 +36,16 @@ from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any, Protocol
 
-import cv2
-import numpy as np
-
 from ps_lab import __version__
 from ps_lab.capture._rig_lens import lens_camera_file
-from ps_lab.capture.connect import OpenRig, build_simulation, nominal_directions, open_rig
+from ps_lab.capture.connect import OpenRig, nominal_directions, open_rig
 from ps_lab.capture.plan import CapturePlan, PlannedFrame, make_plan
 from ps_lab.capture.rig import Rig, comparable_snapshot, snapshot_differences
 from ps_lab.errors import CameraError, DatasetError, PsLabError, RigError
 from ps_lab.io.camera import CAMERA_FILE
 from ps_lab.io.codecs import imread
 from ps_lab.io.files import PARTIAL_PREFIX, json_safe, publish_file, sha256, write_bytes_atomic
+from ps_lab.io.light_files import light_table_bytes
 from ps_lab.io.raw import is_raw_file, load_raw
 from ps_lab.io.run import (
     FRAMES_DIR,
@@ -56,11 +53,9 @@ from ps_lab.io.run import (
     NOMINAL_DIRECTIONS,
     RUN_FORMAT,
     RUN_VERSION,
-    SIMULATION_DIR,
     read_manifest,
     write_manifest,
 )
-from ps_lab.render import scene_ground_truth
 
 log = logging.getLogger(__name__)
 
@@ -420,8 +415,8 @@ class CaptureSession:
         frame: PlannedFrame | None = None
         try:
             self._prepare_folder(opened)
-            if opened.simulation is not None:
-                self._write_simulation(opened)
+            if opened.write_truth is not None:  # a simulator's ground truth (simulation/)
+                opened.write_truth(self.run_dir, self.plan.lights)
             self._write_nominal_directions(opened)
             # Within session(), SIGTERM unwinds like Ctrl-C, so the lights go off either way.
             with opened.controller.session():
@@ -493,36 +488,12 @@ class CaptureSession:
                                f"{exc.strerror or exc}") from None
         write_manifest(run, self.manifest)
 
-    def _write_simulation(self, opened: OpenRig) -> None:
-        """Write the simulator's ground truth (normals, depth, mask, true lights in plan order)."""
-        sim = opened.simulation if opened.simulation is not None else build_simulation(self.rig)
-        folder = self.run_dir / SIMULATION_DIR
-        folder.mkdir(exist_ok=True)
-        truth = scene_ground_truth(sim.scene)
-        rows = [i - 1 for i in self.plan.lights]
-        buf = _npy_bytes(np.asarray(truth["normals"], dtype=np.float64))
-        write_bytes_atomic(folder / "normal_gt.npy", buf)
-        depth = np.asarray(truth["depth"], dtype=np.float32)
-        write_bytes_atomic(folder / "depth_gt.npy", _npy_bytes(depth))
-        ok, png = cv2.imencode(".png", np.where(truth["mask"], 255, 0).astype(np.uint8))
-        if not ok:  # pragma: no cover - OpenCV always encodes a uint8 image
-            raise DatasetError("cannot encode the ground-truth mask")
-        write_bytes_atomic(folder / "mask.png", png.tobytes())
-        write_bytes_atomic(folder / "light_directions_true.txt", _table(sim.light_directions[rows]))
-        write_bytes_atomic(
-            folder / "light_intensities_true.txt", _table(sim.light_intensities[rows])
-        )
-        if sim.point_lights is not None:
-            # the frame and units of light_positions.txt (scene frame, pixel units)
-            positions = np.asarray(sim.point_lights.positions)[rows]
-            write_bytes_atomic(folder / "light_positions_true.txt", _table(positions))
-
     def _write_nominal_directions(self, opened: OpenRig) -> None:
         """Write ``light_directions_nominal.txt`` (plan order) when the rig knows them."""
         nominal = nominal_directions(self.rig, opened.simulation)
         if nominal is not None:
             rows = [i - 1 for i in self.plan.lights]
-            write_bytes_atomic(self.run_dir / NOMINAL_DIRECTIONS, _table(nominal[rows]))
+            write_bytes_atomic(self.run_dir / NOMINAL_DIRECTIONS, light_table_bytes(nominal[rows]))
 
     def _shoot(self, opened: OpenRig, frame: PlannedFrame) -> None:
         controller, camera = opened.controller, opened.camera
@@ -622,13 +593,3 @@ def _ranges(values: Sequence[int]) -> str:
         parts.append(str(values[i]) if i == j else f"{values[i]}-{values[j]}")
         i = j + 1
     return ",".join(parts)
-
-
-def _table(rows: np.ndarray) -> bytes:
-    return "".join(" ".join(f"{v:.9f}" for v in row) + "\n" for row in np.asarray(rows)).encode()
-
-
-def _npy_bytes(array: np.ndarray) -> bytes:
-    buf = io.BytesIO()
-    np.save(buf, array)
-    return buf.getvalue()

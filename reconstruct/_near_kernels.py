@@ -5,7 +5,7 @@ shape (m, n, 3): pixel p's own light vectors ``lights[p]``. Each pixel's light t
 products ``a_i a_i^T`` and ``a_i``, (9, n)) is formed once when the pixel starts; then the very
 per-pixel iteration of the directional kernels runs on it (:func:`._kernels._l1_pixel`,
 :func:`._kernels._sbl_pixel`, inlined), so both solve a pixel with the same operations and an
-iteration costs what the directional one does plus the table (``benchmarks/near.py speed``).
+iteration costs what the directional one does plus the table (``benchmarks/near_lights.py speed``).
 """
 
 from __future__ import annotations

@@ -21,7 +21,7 @@ import numpy as np
 
 from ps_lab.errors import DatasetError, OutputError
 from ps_lab.io.files import allocate_npy, write_npy_rows
-from ps_lab.io.lights import write_light_table
+from ps_lab.io.light_files import write_light_table
 from ps_lab.reconstruct._bands import reduce_solution
 from ps_lab.reconstruct._colour import colour_albedo_picture, write_albedo_exr
 from ps_lab.reconstruct.metrics import angular_errors_deg

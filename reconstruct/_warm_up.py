@@ -106,7 +106,7 @@ def _near() -> None:
 
 def _render() -> None:
     # the near-light renderer's shadow march (ps-lab simulate, the simulated camera)
-    from ps_lab.render.near import _march_point_lights
+    from ps_lab.render.near_shading import _march_point_lights
 
     one = np.zeros(1)
     _march_point_lights(np.zeros((2, 2)), np.ones((2, 2), bool), np.ones((1, 2, 2), bool), one,

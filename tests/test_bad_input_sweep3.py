@@ -38,9 +38,11 @@ from helpers.hostile import (  # noqa: E402 - the sweeps' runner
     Result,
     assert_one_error_line,
     assert_quiet,
-    run as _run,
     snapshot,
     temporary_leftovers,
+)
+from helpers.hostile import (
+    run as _run,
 )
 from test_bad_input import SMALL_RIG, png_chunk  # noqa: E402 - the first sweep's rig
 
@@ -49,7 +51,7 @@ from ps_lab.io import encoding as encoding_module  # noqa: E402
 from ps_lab.io import images as images_module  # noqa: E402
 from ps_lab.io.encoding import image_encoding, linear_to_srgb, srgb_to_linear  # noqa: E402
 from ps_lab.io.images import is_supported, read_image  # noqa: E402
-from ps_lab.io.lights import lp_directions_for, lp_image_files, read_lp_rows  # noqa: E402
+from ps_lab.io.light_files import lp_directions_for, lp_image_files, read_lp_rows  # noqa: E402
 
 
 def run(args: list[str], cwd: Path, home: Path, timeout: float = 120) -> Result:

@@ -8,7 +8,7 @@ import cv2
 import numpy as np
 import pytest
 
-import ps_lab.calibration._report as report
+import ps_lab.calibration._calibration_outputs as report
 from ps_lab.calibration import (
     Circle,
     calibrate,

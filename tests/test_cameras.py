@@ -20,9 +20,9 @@ from helpers.gphoto2_double import (
 )
 
 from ps_lab import render
-from ps_lab.capture.cameras import Camera, CapturedFrame, FolderCamera
+from ps_lab.capture.camera_devices import CameraDevice, CapturedFrame, FolderCamera
 from ps_lab.capture.simulated import firmware as sim_lights
-from ps_lab.capture.simulated.camera import SimulatedCamera
+from ps_lab.capture.simulated.simulated_camera import SimulatedCamera
 from ps_lab.errors import CameraError, DatasetError
 from ps_lab.io.dng import write_dng
 from ps_lab.io.raw import load_raw
@@ -300,7 +300,7 @@ def test_bad_camera_parameters(rng):
         SimulatedCamera(scene, np.ones((3, 2)), None, Switch(), exposure_s=0.1)
 
 
-class ScriptedCamera(Camera):
+class ScriptedCamera(CameraDevice):
     driver = "scripted"
 
     def __init__(self, action):

@@ -21,11 +21,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from ps_lab.capture.connect import build_simulation
 from ps_lab.capture.rig import load_rig
 from ps_lab.capture.session import CaptureSession, make_plan
-from ps_lab.capture.simulated import camera as cameras
+from ps_lab.capture.simulated import simulated_camera as cameras
 from ps_lab.capture.simulated.pty_server import PtyServer
+from ps_lab.capture.simulated.simulation import build_simulation
 from ps_lab.errors import CameraError, DatasetError, PsLabError, RigError
 from ps_lab.io.dataset import load_frames
 from ps_lab.io.dng import write_dng

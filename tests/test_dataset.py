@@ -17,7 +17,7 @@ from ps_lab.errors import DatasetError
 from ps_lab.io.dataset import load_dataset, load_frames
 from ps_lab.io.dng import write_dng
 from ps_lab.io.images import read_image, read_pfm, write_pfm
-from ps_lab.io.lights import read_light_directions
+from ps_lab.io.light_files import read_light_directions
 
 
 def write_png_rgb(path: Path, rgb: np.ndarray) -> None:

@@ -13,11 +13,11 @@ from plyfile import PlyData
 from typer.testing import CliRunner
 
 from ps_lab.cli import app
-from ps_lab.io.lights import lp_directions_for, read_lp, write_lp
+from ps_lab.errors import DatasetError
+from ps_lab.io.light_files import lp_directions_for, read_lp, write_lp
 from ps_lab.io.mesh import depth_mesh, write_ply
 from ps_lab.io.normal_maps import normal16_picture, read_normals_exr, write_normals_exr
 from ps_lab.reconstruct.metrics import depth_error
-from ps_lab.errors import DatasetError
 
 runner = CliRunner()
 

@@ -24,7 +24,7 @@ from ps_lab.cli import app
 from ps_lab.errors import DatasetError
 from ps_lab.io.dataset import load_dataset, open_dataset
 from ps_lab.io.images import read_image
-from ps_lab.io.lights import read_light_directions, read_lp, write_dome
+from ps_lab.io.light_files import read_light_directions, read_lp, write_dome
 from ps_lab.io.normal_maps import read_normals_exr
 from ps_lab.render.simulate import SimulationSettings, write_simulated_dataset
 

@@ -1,6 +1,6 @@
 """The package layout. Import direction is declared once, as import-linter contracts in
 pyproject.toml (`make test` runs `lint-imports`); what is checked here is what a static import
-graph cannot see: which modules a real `ps-lab reconstruct` run loads."""
+graph cannot see: which modules a real `ps-lab reconstruct` run, and a real rig's capture, load."""
 
 from __future__ import annotations
 
@@ -79,6 +79,70 @@ def test_reading_a_dataset_for_reconstruct_loads_no_capture_code(make, tmp_path)
         or m.startswith(("serial.", "ps_lab.capture", "ps_lab.render", "ps_lab.calibration"))
     }
     assert not forbidden, sorted(forbidden)
+
+
+# A real rig's capture: a serial controller (the in-process pslabsim:// URL) and a folder camera
+# whose operator "presses the shutter" by dropping a DNG into the watched folder.
+_REAL_CAPTURE_RUN = """
+import json, sys
+from pathlib import Path
+import numpy as np
+from ps_lab.capture.rig import load_rig
+from ps_lab.capture.session import CaptureSession
+from ps_lab.io.dng import write_dng
+tether, rig_path, run = map(Path, sys.argv[1:4])
+rng = np.random.default_rng(5)
+shots = []
+def operator(message):
+    shots.append(message)
+    hidden = tether / f".shot{len(shots)}.dng"
+    write_dng(hidden, rng.integers(600, 4000, (32, 48)).astype(np.uint16), black_level=512,
+              white_level=16383, exposure_s=0.01)
+    hidden.rename(tether / f"IMG_{len(shots):04d}.dng")
+result = CaptureSession(load_rig(rig_path), run, prompt=operator).run()
+assert result.frames_captured == 3, result
+print(json.dumps(sorted(sys.modules)))
+"""
+
+
+def test_a_real_rig_capture_loads_no_renderer_and_writes_no_truth(tmp_path):
+    tether = tmp_path / "tether"
+    tether.mkdir()
+    rig_path = tmp_path / "real.toml"
+    rig_path.write_text(
+        f"""
+[controller]
+driver = "serial"
+port = "pslabsim://layout-test?lights=2"
+lights = 2
+timeout_s = 0.2
+[camera]
+driver = "folder"
+folder = "{tether}"
+pattern = "*.dng"
+prompt = true
+exposure_s = 0.01
+timeout_s = 10.0
+"""
+    )
+    run = tmp_path / "run"
+    out = subprocess.run(
+        [sys.executable, "-c", _REAL_CAPTURE_RUN, str(tether), str(rig_path), str(run)],
+        capture_output=True,
+        text=True,
+        check=True,
+    )
+    loaded = set(json.loads(out.stdout.splitlines()[-1]))
+    assert {"ps_lab.capture.session", "ps_lab.capture.camera_devices"} <= loaded
+    forbidden = {
+        m
+        for m in loaded
+        if m == "numba"
+        or m.startswith(("numba.", "ps_lab.render", "ps_lab.capture.simulated.simulated_camera",
+                         "ps_lab.capture.simulated.simulation"))
+    }
+    assert not forbidden, sorted(forbidden)
+    assert (run / "manifest.json").is_file() and not (run / "simulation").exists()
 
 
 def test_sub_packages_live_in_the_top_level_folders() -> None:

@@ -19,7 +19,7 @@ import threading
 import pytest
 from helpers.lights_doubles import CLOSE, LIGHTS, ExpectedProtocolPort, expected_protocol, handshake
 
-from ps_lab.capture.lights import LightState, SerialLightController
+from ps_lab.capture.light_controllers import LightState, SerialLightController
 from ps_lab.capture.simulated.avr_firmware import EmulatedFirmware
 from ps_lab.capture.simulated.firmware import (
     ManualClock,
@@ -270,7 +270,7 @@ def test_light_count_must_match_the_rig(backend):
 
 @exchanges((b"ON 3\n", b"OK ON 3\n"))
 def test_serial_traffic_is_logged_at_debug_level(backend, caplog):
-    with caplog.at_level(logging.DEBUG, logger="ps_lab.capture.lights"):
+    with caplog.at_level(logging.DEBUG, logger="ps_lab.capture.light_controllers"):
         with backend.open() as controller:
             controller.switch(3)
     assert "-> ON 3" in caplog.text

@@ -22,7 +22,7 @@ import serial
 from helpers.lights_doubles import CLOSE, expected_protocol, handshake
 from typer.testing import CliRunner
 
-from ps_lab.capture.lights import LightState, SerialLightController
+from ps_lab.capture.light_controllers import LightState, SerialLightController
 from ps_lab.capture.simulated.firmware import (
     Fault,
     LineAssembler,

@@ -20,7 +20,7 @@ import pytest
 import serial
 from typer.testing import CliRunner
 
-from ps_lab.capture.lights import LightState, SerialLightController
+from ps_lab.capture.light_controllers import LightState, SerialLightController
 from ps_lab.capture.simulated import avr_firmware
 from ps_lab.capture.simulated.avr_firmware import EmulatedFirmware, sketch_pins
 from ps_lab.capture.simulated.pty_server import state_file_reader

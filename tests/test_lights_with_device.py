@@ -11,7 +11,7 @@ import os
 
 import pytest
 
-from ps_lab.capture.lights import LightState, SerialLightController, walk_lights
+from ps_lab.capture.light_controllers import LightState, SerialLightController, walk_lights
 from ps_lab.errors import RigError
 
 

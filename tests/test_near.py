@@ -27,7 +27,7 @@ from ps_lab.calibration import (
 )
 from ps_lab.cli import app
 from ps_lab.geometry import near_light_vectors, scene_points
-from ps_lab.io.lights import read_light_positions
+from ps_lab.io.light_files import read_light_positions
 from ps_lab.reconstruct import angular_errors_deg, solve
 from ps_lab.reconstruct._linalg import pixel_scale
 from ps_lab.reconstruct._tiles import sbl_lambda

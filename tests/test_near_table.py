@@ -25,10 +25,10 @@ from ps_lab.capture.rig import load_rig
 from ps_lab.cli import app
 from ps_lab.errors import CalibrationError, RigError
 from ps_lab.geometry import Camera, near_light_vectors, scene_points
-from ps_lab.io.lights import read_light_positions
+from ps_lab.io.light_files import read_light_positions
 from ps_lab.reconstruct import SolverInputError
 from ps_lab.reconstruct.near import fit_near_intensities
-from ps_lab.render.lights import random_light_directions
+from ps_lab.render.light_sets import random_light_directions
 from ps_lab.render.table_rig import TableRig, write_table_rig
 
 RIGS = Path(__file__).resolve().parents[1] / "rigs"

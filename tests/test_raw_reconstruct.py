@@ -11,7 +11,7 @@ import pytest
 from typer.testing import CliRunner
 
 from ps_lab import render
-from ps_lab.capture.simulated.camera import SimulatedCamera
+from ps_lab.capture.simulated.simulated_camera import SimulatedCamera
 from ps_lab.cli import app
 from ps_lab.io.raw import load_raw
 

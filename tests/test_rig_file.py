@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 from pathlib import Path
@@ -9,7 +10,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from ps_lab.capture.connect import build_simulation, nominal_directions
+from ps_lab.capture.connect import nominal_directions
 from ps_lab.capture.rig import (
     apply_overrides,
     comparable_snapshot,
@@ -17,6 +18,7 @@ from ps_lab.capture.rig import (
     parse_light_selection,
     snapshot_differences,
 )
+from ps_lab.capture.simulated.simulation import build_simulation
 from ps_lab.errors import RigError
 
 RIGS = Path(__file__).resolve().parents[1] / "rigs"
@@ -277,6 +279,23 @@ def test_simulation_is_seeded_and_follows_the_layout(tmp_path: Path) -> None:
     other = load_rig(write(tmp_path, text.replace("seed = 5", "seed = 6")))
     assert not np.allclose(build_simulation(other).light_directions, a.light_directions)
     assert math.isclose(rig.scene.lights.max_zenith_deg, 40.0)
+
+
+def test_scene_objects_are_plain_data_the_simulator_renders_as_given(tmp_path: Path) -> None:
+    # The rig keeps [[scene.objects]] as its own plain data (no renderer import); the simulation
+    # hands the renderer the same kinds and fields.
+    from ps_lab.capture import rig as rig_module
+    from ps_lab.render import scene as render_scene
+
+    assert rig_module.OBJECT_KINDS == render_scene.OBJECT_KINDS
+    config_fields = [f.name for f in dataclasses.fields(rig_module.SceneObjectConfig)]
+    assert config_fields == [f.name for f in dataclasses.fields(render_scene.SceneObject)]
+    rig = load_rig(write(tmp_path, MINIMAL))
+    scene = build_simulation(rig).scene
+    assert len(scene.objects) == len(rig.scene.objects) >= 1
+    for given, rendered in zip(rig.scene.objects, scene.objects, strict=True):
+        assert isinstance(rendered, render_scene.SceneObject)
+        assert dataclasses.astuple(rendered) == dataclasses.astuple(given)
 
 
 def test_fault_forms_and_gphoto2_settings(tmp_path: Path) -> None:

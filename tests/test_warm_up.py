@@ -6,13 +6,13 @@ import numpy as np
 from numba import njit
 from numba.core import event
 
-from ps_lab.io import coding
+from ps_lab.io import _coding_kernel, coding
 from ps_lab.io.bands import ObservationStore, plan_bands
 from ps_lab.reconstruct import _kernels, _near_kernels, _pl_kernels, _tiles, solve
 from ps_lab.reconstruct._warm_up import METHOD_GROUPS, CompileNotice, warm_all
 
 KERNELS = (_kernels._l1_kernel, _kernels._sbl_kernel, _pl_kernels._pl_kernel,
-           _near_kernels._l1_kernel_pp, _near_kernels._sbl_kernel_pp, coding._observe,
+           _near_kernels._l1_kernel_pp, _near_kernels._sbl_kernel_pp, _coding_kernel._observe,
            _tiles._prepare_kernel, _tiles._store_kernel, _tiles._ls_direct)
 
 

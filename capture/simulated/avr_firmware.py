@@ -15,7 +15,6 @@ table in the sketch that disagrees with the wiring shows up in the images.
 from __future__ import annotations
 
 import hashlib
-import json
 import logging
 import os
 import re
@@ -30,8 +29,8 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
-from ps_lab.capture.lights import LightState
-from ps_lab.capture.simulated.pty_server import serve_until_interrupted
+from ps_lab.capture.light_controllers import LightState
+from ps_lab.capture.simulated.pty_server import read_state_file, serve_until_interrupted
 from ps_lab.errors import RigError
 from ps_lab.io.files import staged_folder
 
@@ -239,19 +238,16 @@ class PinState:
 
 
 def _read_pin_state(path: Path) -> PinState:
-    try:
-        data = json.loads(path.read_text())
-        return PinState(
+    return read_state_file(
+        path,
+        lambda data: PinState(
             frozenset(int(i) for i in data["lit"]),
             tuple(int(v) for v in data["levels"]),
             tuple(float(v) for v in data["duty"]),
-        )
-    except FileNotFoundError:
-        raise RigError(
-            f"pin state file {path} does not exist: is the emulated firmware running?"
-        ) from None
-    except (OSError, ValueError, KeyError, TypeError) as exc:
-        raise RigError(f"cannot read pin state file {path}: {exc}") from None
+        ),
+        "pin state file",
+        "the emulated firmware",
+    )
 
 
 class EmulatedFirmware:

@@ -31,7 +31,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from ps_lab.capture.faults import FAULT_KINDS, Fault, parse_faults
-from ps_lab.capture.lights import (
+from ps_lab.capture.light_controllers import (
     DEFAULT_WATCHDOG_MS,
     MAX_LEVEL,
     MAX_LINE,

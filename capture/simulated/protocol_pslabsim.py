@@ -1,7 +1,7 @@
 """pyserial URL handler for ``pslabsim://``: a simulated light controller inside this process.
 
 pyserial resolves ``scheme://`` URLs by importing ``protocol_<scheme>`` from the packages listed in
-``serial.protocol_handler_packages``; importing :mod:`ps_lab.capture.lights` adds
+``serial.protocol_handler_packages``; importing :mod:`ps_lab.capture.light_controllers` adds
 ``ps_lab.capture.simulated`` to that list. URL options are described in
 :func:`ps_lab.capture.simulated.firmware.firmware_from_url`.
 

@@ -120,7 +120,7 @@ def _nearest(values: Iterable[int], target: float) -> int:
 
 
 def dng_shooter(camera: Any) -> Shooter:
-    """Turn a :class:`~ps_lab.capture.simulated.camera.SimulatedCamera` into a shooter.
+    """Turn a :class:`~ps_lab.capture.simulated.simulated_camera.SimulatedCamera` into a shooter.
 
     Each call sets the camera's exposure and gain (``gain_scale`` times the rig's, from ISO and
     f-number), renders the frame under the lights lit now, and returns the DNG's bytes.

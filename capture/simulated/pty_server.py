@@ -18,7 +18,7 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-from ps_lab.capture.lights import LightState
+from ps_lab.capture.light_controllers import LightState
 from ps_lab.capture.simulated.firmware import LineAssembler, Reply, SimulatedFirmware, _Outbox
 from ps_lab.errors import RigError
 
@@ -44,6 +44,20 @@ def write_state_file(path: Path | str, state: LightState) -> None:
     os.replace(temporary, path)
 
 
+def read_state_file(path: Path, parse: Callable[[Any], Any], what: str, writer: str) -> Any:
+    """``parse`` of the JSON in a simulator's state file ``path`` (``what``, written by ``writer``).
+
+    Raises :class:`RigError` naming the file: missing (is ``writer`` running?), unreadable, or
+    not what ``parse`` expects (a ``ValueError``, ``KeyError`` or ``TypeError``).
+    """
+    try:
+        return parse(json.loads(path.read_text()))
+    except FileNotFoundError:
+        raise RigError(f"{what} {path} does not exist: is {writer} running?") from None
+    except (OSError, ValueError, KeyError, TypeError) as exc:
+        raise RigError(f"cannot read {what} {path}: {exc}") from None
+
+
 def state_file_reader(path: Path | str) -> Callable[[], LightState]:
     """Return a function that reads the simulator's current :class:`LightState` from ``path``.
 
@@ -53,17 +67,12 @@ def state_file_reader(path: Path | str) -> Callable[[], LightState]:
     path = Path(path)
 
     def read() -> LightState:
-        try:
-            data = json.loads(path.read_text())
-            lit = frozenset(int(i) for i in data["lit"])
-            level = int(data["level"])
-        except FileNotFoundError:
-            raise RigError(
-                f"light state file {path} does not exist: is `ps-lab rig serve-sim` running?"
-            ) from None
-        except (OSError, ValueError, KeyError, TypeError) as exc:
-            raise RigError(f"cannot read light state file {path}: {exc}") from None
-        return LightState(lit, level)
+        return read_state_file(
+            path,
+            lambda data: LightState(frozenset(int(i) for i in data["lit"]), int(data["level"])),
+            "light state file",
+            "`ps-lab rig serve-sim`",
+        )
 
     return read
 

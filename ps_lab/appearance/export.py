@@ -32,7 +32,7 @@ from ps_lab.appearance.relightlab import (
 from ps_lab.appearance.store import read_appearance
 from ps_lab.errors import DatasetError, OutputError, PsLabError
 from ps_lab.io.files import output_target, staged_folder
-from ps_lab.io.lights import find_lp, read_light_directions, read_lp
+from ps_lab.io.light_files import find_lp, read_light_directions, read_lp
 
 __all__ = ["captured_lights", "check_export_folder", "export_relightlab", "result_lights"]
 

@@ -31,7 +31,7 @@ from ps_lab.appearance.models import coefficients_per_pixel, evaluate_appearance
 from ps_lab.bench.report import simple_table
 from ps_lab.io.dataset import load_dataset
 from ps_lab.io.encoding import linear_to_srgb
-from ps_lab.io.lights import find_lp
+from ps_lab.io.light_files import find_lp
 from ps_lab.reconstruct import light_noise_factors, solve
 from ps_lab.reconstruct._shadows import black_threshold
 from ps_lab.reconstruct._noise import NOISE_SAMPLE_PIXELS

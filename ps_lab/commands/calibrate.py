@@ -20,13 +20,13 @@ from ps_lab.calibration import (
     with_led_model,
     write_calibration,
 )
-from ps_lab.commands.reconstruct import Encoding, EncodingOption
+from ps_lab.commands._shared_options import Encoding, EncodingOption
 from ps_lab.errors import CalibrationError
 from ps_lab.io.camera import camera_record, undistort_frame
 from ps_lab.io.dataset import Frames, load_frames
 from ps_lab.io.encoding import frames_encoding
 from ps_lab.io.images import read_image
-from ps_lab.io.lights import read_led_intensities
+from ps_lab.io.light_files import read_led_intensities
 
 
 def circle_in_image(circle: tuple[float, ...], width: int, height: int) -> bool:

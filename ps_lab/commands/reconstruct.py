@@ -10,6 +10,7 @@ from typing import Annotated
 import typer
 
 from ps_lab._cli_util import lab_command, progress_bar
+from ps_lab.commands._shared_options import Encoding, EncodingOption
 from ps_lab.errors import DatasetError
 from ps_lab.io.frames import FolderOfDatasetsError
 from ps_lab.reconstruct.methods import DEFAULT_METHOD, METHODS, method_help
@@ -110,23 +111,6 @@ ShadowThresholdOption = Annotated[
 ]
 
 
-class Encoding(str, Enum):  # noqa: UP042
-    """How integer pixel values map to light."""
-
-    auto = "auto"
-    linear = "linear"
-    srgb = "srgb"
-
-
-EncodingOption = Annotated[
-    Encoding,
-    typer.Option(
-        case_sensitive=False,
-        help="How 8-bit frames map to light: auto (the files' ICC/EXIF/PNG metadata; JPEG "
-        "without any is sRGB; 16-bit files and 8-bit PNG/TIFF without metadata are linear), "
-        "linear, or srgb."
-    ),
-]
 ChannelOption = Annotated[
     Channel,
     typer.Option(

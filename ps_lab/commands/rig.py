@@ -16,10 +16,14 @@ from ps_lab._cli_util import (
     lab_command,
     progress_bar,
 )
-from ps_lab.capture._rig_lens import board_target, write_rig_board_frames
-from ps_lab.capture.connect import parse_faults, serve_camera, serve_firmware, serve_simulator
-from ps_lab.capture.faults import parse_camera_faults
-from ps_lab.capture.lights import SerialLightController, walk_lights
+from ps_lab.capture.connect import (
+    render_board_frames,
+    serve_camera,
+    serve_firmware,
+    serve_simulator,
+)
+from ps_lab.capture.faults import parse_camera_faults, parse_faults
+from ps_lab.capture.light_controllers import SerialLightController, walk_lights
 from ps_lab.capture.rig import load_rig, parse_light_selection
 from ps_lab.errors import PsLabError, RigError
 
@@ -229,8 +233,7 @@ def board_frames(
     The frames a real rig's camera would take of a printed board, for `ps-lab calibrate-camera`.
     """
     config = load_rig(rig)
-    written = write_rig_board_frames(config, out, views, seed)
-    target = board_target(config.scene.width if config.scene is not None else 0)
+    written, target = render_board_frames(config, out, views, seed)
     typer.echo(f"wrote {len(written)} board frames to {out}")
     typer.echo(
         f"next: ps-lab calibrate-camera {out}/board_*.png --board charuco:{target.cols}x"

@@ -4,7 +4,7 @@
 - :mod:`~ps_lab.io.images`: image readers and writers (PNG, TIFF, PFM, .npy, RAW)
 - :mod:`~ps_lab.io.raw`: linear RAW loading (rawpy), black/white levels, saturation mask
 - :mod:`~ps_lab.io.dng`: a minimal linear DNG writer (the simulated camera's files)
-- :mod:`~ps_lab.io.lights`: light-direction and light-intensity tables (DiLiGenT text files)
+- :mod:`~ps_lab.io.light_files`: light-direction and light-intensity tables (DiLiGenT text files)
 - :mod:`~ps_lab.io.run`: the run format (``manifest.json``, ``"ps-lab-run"``): names, read, write
 - :mod:`~ps_lab.io.result`: the result format (``metrics.json``, ``"ps-lab-reconstruction"``)
 - :mod:`~ps_lab.io.frames`: which files are the frames of an image folder or a capture run

@@ -7,7 +7,8 @@ observation store (:mod:`ps_lab.io.bands`) keeps a capture as its codes (one or 
 sample, the source's size) and turns a band into the solvers' observations only when it is read,
 with :func:`observe_block`: per light, the colour rule (each channel divided by the light's
 intensity for it, then the channels averaged or one kept), the validity rule (not saturated; above
-the shadow threshold when one is given) and the colour observations, in one pass (numba).
+the shadow threshold when one is given) and the colour observations, in one pass (numba, in
+:mod:`ps_lab.io._coding_kernel`, imported on the first call: reading frames needs no numba).
 
 :func:`combine` is the same colour rule on whole frames (numpy), written as the same float32
 operations in the same order, so a frame observed here or in the store gives the same bits.
@@ -18,7 +19,6 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from numba import njit
 
 __all__ = ["CHANNEL_MODES", "Coded", "Coding", "code_table", "combine", "observe_block",
            "observe_rule"]
@@ -223,109 +223,10 @@ def observe_block(values: np.ndarray, saturated: np.ndarray | None, coding: Codi
     table = coding.table if coding.table is not None else np.zeros((1, c), np.float32)
     sat = saturated if saturated is not None else np.zeros((0, 0), np.bool_)
     if n and p:
+        from ps_lab.io._coding_kernel import _observe  # numba: loaded when observing
+
         _observe(np.ascontiguousarray(values), sat, coding.table is not None, table,
                  int(coding.clip), rule.divisors, rule.weights, rule.grey, rule.mode,
                  np.float32(rule.threshold), rule.use_threshold,
                  np.ascontiguousarray(lights, np.int64), obs, valid, want, out)
     return obs, valid, (out if want else None)
-
-
-#: Codes per table up to which each light's products and quotients are tabulated first (8-bit):
-#: a band's samples are then three lookups and two additions each.
-SMALL_TABLE = 4096
-
-
-@njit(nogil=True, cache=True, error_model="numpy")
-def _observe(values, saturated, coded, table, clip, divisors, weights, grey, mode, threshold,
-             use_threshold, lights, obs, valid, want_colour, colour):
-    n, p, c = values.shape
-    size = table.shape[0]
-    small = coded and size <= SMALL_TABLE
-    # per light, the float32 operations of the rule on every code (the same bits as on a pixel)
-    quot = np.empty((3, size if small else 1), np.float32)  # v_c / d_c (colour; one channel)
-    prod = np.empty((3, size if small else 1), np.float32)  # v_c * w_c (mean of three)
-    for a in range(n):
-        light = lights[a]
-        g = grey[light]
-        d0, d1, d2 = divisors[light, 0], divisors[light, 1], divisors[light, 2]
-        w0, w1, w2 = weights[light, 0], weights[light, 1], weights[light, 2]
-        if small:
-            for k in range(size):
-                if c == 3:
-                    quot[0, k] = table[k, 0] / d0
-                    quot[1, k] = table[k, 1] / d1
-                    quot[2, k] = table[k, 2] / d2
-                    prod[0, k] = table[k, 0] * w0
-                    prod[1, k] = table[k, 1] * w1
-                    prod[2, k] = table[k, 2] * w2
-                else:
-                    quot[0, k] = table[k, 0] / g
-            for q in range(p):
-                k0 = int(values[a, q, 0])
-                if c == 3:
-                    k1 = int(values[a, q, 1])
-                    k2 = int(values[a, q, 2])
-                    if mode < 0:
-                        o = (prod[0, k0] + prod[1, k1]) + prod[2, k2]
-                    elif mode == 0:
-                        o = quot[0, k0]
-                    elif mode == 1:
-                        o = quot[1, k1]
-                    else:
-                        o = quot[2, k2]
-                    ok = k0 < clip and k1 < clip and k2 < clip
-                    if want_colour:
-                        colour[a, q, 0] = quot[0, k0]
-                        colour[a, q, 1] = quot[1, k1]
-                        colour[a, q, 2] = quot[2, k2]
-                else:
-                    o = quot[0, k0]
-                    ok = k0 < clip
-                obs[a, q] = o
-                if use_threshold:
-                    ok = ok and o > threshold
-                valid[a, q] = ok
-            continue
-        for q in range(p):
-            bad = False
-            if coded:
-                k0 = int(values[a, q, 0])
-                v0 = table[k0, 0]
-                bad = k0 >= clip
-                if c == 3:
-                    k1 = int(values[a, q, 1])
-                    k2 = int(values[a, q, 2])
-                    v1 = table[k1, 1]
-                    v2 = table[k2, 2]
-                    bad = bad or k1 >= clip or k2 >= clip
-                else:
-                    v1 = v0
-                    v2 = v0
-            else:
-                v0 = np.float32(values[a, q, 0])
-                if c == 3:
-                    v1 = np.float32(values[a, q, 1])
-                    v2 = np.float32(values[a, q, 2])
-                else:
-                    v1 = v0
-                    v2 = v0
-                bad = saturated[a, q]
-            if c == 1:
-                o = v0 / g
-            elif mode < 0:
-                o = (v0 * w0 + v1 * w1) + v2 * w2
-            elif mode == 0:
-                o = v0 / d0
-            elif mode == 1:
-                o = v1 / d1
-            else:
-                o = v2 / d2
-            obs[a, q] = o
-            ok = not bad
-            if use_threshold:
-                ok = ok and o > threshold
-            valid[a, q] = ok
-            if want_colour:
-                colour[a, q, 0] = v0 / d0
-                colour[a, q, 1] = v1 / d1
-                colour[a, q, 2] = v2 / d2

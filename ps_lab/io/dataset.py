@@ -17,7 +17,7 @@ the file.
 
 For captures too large for memory, :func:`open_dataset` checks a folder without reading pixels,
 :mod:`ps_lab.io.bands` cuts it into row bands and stages its observations band by band; light
-tables are read and written by :mod:`ps_lab.io.lights`; the run format is :mod:`ps_lab.io.run`.
+tables are read and written by :mod:`ps_lab.io.light_files`; the run format is :mod:`ps_lab.io.run`.
 """
 
 from __future__ import annotations
@@ -48,7 +48,7 @@ from ps_lab.io.images import (
     read_image_size,
     read_png_bytes,
 )
-from ps_lab.io.lights import (
+from ps_lab.io.light_files import (
     find_lp,
     lp_directions_for,
     read_camera,

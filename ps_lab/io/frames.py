@@ -27,7 +27,7 @@ from ps_lab.errors import DatasetError
 from ps_lab.io.camera import CAMERA_FILE, CameraModel, read_camera_file
 from ps_lab.io.files import sha256
 from ps_lab.io.images import ENCODINGS, SUPPORTED_SUFFIXES, check_is_file, is_supported
-from ps_lab.io.lights import find_lp, lp_image_files, read_lp_rows
+from ps_lab.io.light_files import find_lp, lp_image_files, read_lp_rows
 from ps_lab.io.result import is_result_folder, read_result_metrics
 from ps_lab.io.run import MANIFEST_NAME, is_run, read_manifest
 

@@ -16,8 +16,8 @@ import numpy as np
 from scipy import ndimage
 
 from ps_lab.errors import DatasetError
-from ps_lab.io.lights import MAX_COORDINATE
-from ps_lab.io.lights import _read_table as read_table
+from ps_lab.io.light_files import MAX_COORDINATE
+from ps_lab.io.light_files import _read_table as read_table
 
 __all__ = ["FlatField", "read_flat_field", "read_light_axes", "write_flat_field"]
 

@@ -4,19 +4,24 @@ Used by ``ps-lab simulate``, the simulated camera, the benchmarks and the tests;
 stage packages (capture, calibration, reconstruct) and above ``ps_lab.io``. See
 ``docs/renderer.md``.
 
-- :mod:`~ps_lab.render.lights`: random and perturbed light directions
+- :mod:`~ps_lab.render.light_sets`: random and perturbed light directions
 - :mod:`~ps_lab.render.surfaces`: :class:`Surface`, :func:`sphere_surface`, :func:`relief_surface`
 - :mod:`~ps_lab.render.shading`: :func:`render` (Lambert + Cook-Torrance, cast shadows),
   :func:`render_chrome_sphere`
 - :mod:`~ps_lab.render.scene`: :class:`SceneObject`, :class:`Scene`, :func:`render_scene`,
   :func:`scene_ground_truth` (the simulated rig's scene)
-- :mod:`~ps_lab.render.near`: LEDs at a finite distance (:class:`PointLights`, :func:`render_near`,
-  :func:`render_chrome_near`, :func:`dome_light_positions`)
+- :mod:`~ps_lab.render.near_shading`: LEDs at a finite distance (:class:`PointLights`,
+  :func:`render_near`, :func:`render_chrome_near`, :func:`dome_light_positions`)
 - :mod:`~ps_lab.render.simulate`: :func:`write_simulated_dataset` behind ``ps-lab simulate``
 """
 
-from ps_lab.render.lights import perturb_light_directions, random_light_directions
-from ps_lab.render.near import PointLights, dome_light_positions, render_chrome_near, render_near
+from ps_lab.render.light_sets import perturb_light_directions, random_light_directions
+from ps_lab.render.near_shading import (
+    PointLights,
+    dome_light_positions,
+    render_chrome_near,
+    render_near,
+)
 from ps_lab.render.scene import Scene, SceneObject, render_scene, scene_ground_truth
 from ps_lab.render.shading import render, render_chrome_sphere
 from ps_lab.render.simulate import (

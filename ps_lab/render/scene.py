@@ -7,7 +7,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ps_lab.render.near import PointLights, render_chrome_near, render_near
+from ps_lab.render.near_shading import PointLights, render_chrome_near, render_near
 from ps_lab.render.shading import _chrome_coverage, render, render_chrome_sphere
 from ps_lab.render.surfaces import Surface, relief_surface, sphere_surface
 

@@ -11,12 +11,12 @@ import numpy as np
 import tifffile
 
 from ps_lab.errors import DatasetError
-from ps_lab.io.codecs import imwrite
 from ps_lab.io.camera import CameraModel, write_camera
+from ps_lab.io.codecs import imwrite
 from ps_lab.io.files import staged_folder
 from ps_lab.render.board import CharucoTarget, write_board_frames
 from ps_lab.render.lens import distort_image
-from ps_lab.render.lights import random_light_directions
+from ps_lab.render.light_sets import random_light_directions
 from ps_lab.render.shading import render
 from ps_lab.render.surfaces import relief_surface, sphere_surface
 

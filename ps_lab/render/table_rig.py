@@ -1,8 +1,8 @@
 """A second near-light rig, apart from the rest of the renderer: LEDs, spheres, object, table.
 
-This module shares no geometry with :mod:`ps_lab.render.near` or :mod:`ps_lab.geometry`: it has
-its own world frame, its own sphere, shadow and mirror code, and writes a plain image folder of
-16-bit PNGs, so the near-light path can be checked on a scene it was not written against.
+This module shares no geometry with :mod:`ps_lab.render.near_shading` or :mod:`ps_lab.geometry`:
+it has its own world frame, its own sphere, shadow and mirror code, and writes a plain image
+folder of 16-bit PNGs, so the near-light path can be checked on a scene it was not written against.
 
 World frame (pixel units): the table is the plane ``z = 0``, z points up toward the camera, x to
 the image's right, y to the image's top; the world origin lies on the table below the pixel

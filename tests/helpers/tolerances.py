@@ -23,7 +23,7 @@ from ps_lab.reconstruct._solve import LAMBDA_FLOOR
 
 EPS = float(np.finfo(np.float64).eps)
 EPS32 = float(np.finfo(np.float32).eps)
-# Light tables are written with 9 decimals (ps_lab.io.lights.write_light_table).
+# Light tables are written with 9 decimals (ps_lab.io.light_files.write_light_table).
 LIGHT_TABLE_ROUNDING = 5e-10
 # A solvable pixel has det(A^T A) >= SOLVABLE_REL_DET (tr/3)^3, so the smallest eigenvalue of
 # A^T A is >= det / tr^2 >= SOLVABLE_REL_DET tr / 27 and cond(A)^2 <= 27 / SOLVABLE_REL_DET.

@@ -33,13 +33,13 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from ps_lab.errors import CalibrationError, PsLabError
 from ps_lab.calibration._camera_views import (
     ViewVerdict,
     judge_views,
     repeated_views,
     tilt_spread_deg,
 )
+from ps_lab.errors import CalibrationError, PsLabError
 from ps_lab.io.camera import (
     CAMERA_FILE,
     CameraModel,

@@ -228,6 +228,14 @@ def write_light_table(path: Path, rows: np.ndarray) -> None:
     np.savetxt(path, rows, fmt="%.9f")
 
 
+def light_table_bytes(rows: np.ndarray) -> bytes:
+    """The text of :func:`write_light_table` (one row of 9-decimal numbers a line), as bytes.
+
+    For writers that publish the file atomically (a capture run's light files).
+    """
+    return "".join(" ".join(f"{v:.9f}" for v in row) + "\n" for row in np.asarray(rows)).encode()
+
+
 def _read_table(path: Path, widths: tuple[int, ...], *, allow_nan: bool = False) -> np.ndarray:
     """Parse a whitespace (or comma) separated numeric table; ``#`` starts a comment."""
     try:

@@ -1,13 +1,13 @@
 """Cameras behind one base class, and the watched-folder camera.
 
-The simulated camera (renders, writes DNG) is :mod:`ps_lab.capture.simulated.camera`.
+The simulated camera (renders, writes DNG) is :mod:`ps_lab.capture.simulated.simulated_camera`.
 
 Every camera is used the same way::
 
     with camera:
         frame = camera.capture(run / "frames" / "0001-L01-r0.dng", frame_index=1)
 
-:meth:`Camera.capture` is a template method: it validates the target, logs, times the shot,
+:meth:`CameraDevice.capture` is a template method: it validates the target, logs, times the shot,
 calls the driver's ``_do_capture`` hook and checks that a non-empty file arrived. Drivers raise
 :class:`~ps_lab.errors.CameraError` with a one-line reason on any failure or timeout.
 
@@ -35,7 +35,7 @@ from ps_lab.io.raw import RAW_SUFFIXES, read_exposure
 
 __all__ = [
     "FAULT_KINDS",
-    "Camera",
+    "CameraDevice",
     "CapturedFrame",
     "FolderCamera",
 ]
@@ -65,7 +65,7 @@ class CapturedFrame:
     finished: float
 
 
-class Camera(ABC):
+class CameraDevice(ABC):
     """Abstract camera: :meth:`capture` validates and times, ``_do_capture`` shoots.
 
     Parameters
@@ -159,7 +159,7 @@ class Camera(ABC):
             self._closed = True
             self._do_close()
 
-    def __enter__(self) -> Camera:
+    def __enter__(self) -> CameraDevice:
         return self
 
     def __exit__(
@@ -195,7 +195,7 @@ class Camera(ABC):
 # ------------------------------------------------------------------------------------------
 
 
-class FolderCamera(Camera):
+class FolderCamera(CameraDevice):
     """A camera seen through a folder: tethering software or a card reader drops files there.
 
     Each capture (optionally) prompts the operator, then waits for the next new file in

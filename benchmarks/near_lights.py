@@ -2,12 +2,12 @@
 
 Usage (from the repository root):
 
-    .venv/bin/python benchmarks/near.py sweep [--ratios 2 3 5 10 20]
-    .venv/bin/python benchmarks/near.py speed
-    .venv/bin/python benchmarks/near.py table [--focal-px 1500]
-    .venv/bin/python benchmarks/near.py outline
-    .venv/bin/python benchmarks/near.py ablation [--sphere-radius 25]
-    .venv/bin/python benchmarks/near.py leds [--mu 0 1 2 3]
+    .venv/bin/python benchmarks/near_lights.py sweep [--ratios 2 3 5 10 20]
+    .venv/bin/python benchmarks/near_lights.py speed
+    .venv/bin/python benchmarks/near_lights.py table [--focal-px 1500]
+    .venv/bin/python benchmarks/near_lights.py outline
+    .venv/bin/python benchmarks/near_lights.py ablation [--sphere-radius 25]
+    .venv/bin/python benchmarks/near_lights.py leds [--mu 0 1 2 3]
 
 ``table`` renders the second rig (``ps_lab.render.table_rig``: identical LEDs, spheres and object
 on one table, no matte sphere, 16-bit PNG, and its far twin), runs ``ps-lab calibrate`` with the
@@ -55,7 +55,7 @@ from ps_lab import render
 from ps_lab.calibration import calibrate
 from ps_lab.cli import app
 from ps_lab.geometry import Circle
-from ps_lab.io.lights import read_light_positions
+from ps_lab.io.light_files import read_light_positions
 from ps_lab.reconstruct import angular_errors_deg, solve
 from ps_lab.reconstruct._kernels import sbl_tile
 from ps_lab.reconstruct._near_kernels import sbl_tile_pp

@@ -15,7 +15,7 @@ import numpy as np
 from numba import njit
 
 from ps_lab.geometry import frame_origin, near_light_vectors, scene_points
-from ps_lab.render.lights import random_light_directions
+from ps_lab.render.light_sets import random_light_directions
 from ps_lab.render.shading import (
     _SHADOW_BIAS,
     _VIEW,

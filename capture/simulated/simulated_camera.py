@@ -14,16 +14,16 @@ from typing import Any, Protocol
 
 import numpy as np
 
-from ps_lab.capture.cameras import FAULT_KINDS, Camera
+from ps_lab.capture.camera_devices import FAULT_KINDS, CameraDevice
 from ps_lab.errors import CameraError
-from ps_lab.io.dng import write_dng
 from ps_lab.io.camera import CameraModel
+from ps_lab.io.dng import write_dng
 from ps_lab.render import PointLights, render_scene
 from ps_lab.render.lens import distort_image
 
 __all__ = ["SimulatedCamera"]
 
-log = logging.getLogger("ps_lab.capture.cameras")
+log = logging.getLogger("ps_lab.capture.camera_devices")
 
 
 class LightStateLike(Protocol):
@@ -66,7 +66,7 @@ def _parse_faults(faults: Iterable[Mapping[str, Any]]) -> dict[int, str]:
     return by_count
 
 
-class SimulatedCamera(Camera):
+class SimulatedCamera(CameraDevice):
     """A simulated RAW camera looking at a rendered scene, lit by the simulated controller.
 
     Each capture asks ``light_state()`` which lights are lit and at which PWM level, renders

@@ -18,7 +18,7 @@ from ps_lab.errors import CalibrationError
 from ps_lab.io.codecs import imwrite
 from ps_lab.io.files import staged_files
 from ps_lab.io.led_model import FLAT_FIELD, LIGHT_AXES, write_flat_field
-from ps_lab.io.lights import write_dome, write_lp
+from ps_lab.io.light_files import write_dome, write_lp
 
 CALIBRATION_FORMAT = "ps-lab-calibration"
 OUTPUT_FILES = (
@@ -34,7 +34,7 @@ POSITION_FILES = (
     "light_positions.txt", "light_anisotropy.txt", "object_outline.txt", "camera.txt",
     LIGHT_AXES, FLAT_FIELD,
 )
-#: The LED positions as a RelightLab dome (``ps_lab.io.lights.write_dome``).
+#: The LED positions as a RelightLab dome (``ps_lab.io.light_files.write_dome``).
 DOME_FILE = "lights.dome"
 _RAY_COLOURS = ((255, 170, 60), (60, 170, 255), (200, 90, 230), (90, 230, 200))
 

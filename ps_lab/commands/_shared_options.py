@@ -1,0 +1,31 @@
+"""Command-line options shared by commands, kept apart from any command's heavy imports.
+
+``ps-lab calibrate`` and ``ps-lab reconstruct`` both read frames with ``--encoding``; the option
+lives here so that loading one command does not load the other (reconstruct's solvers need numba).
+"""
+
+from __future__ import annotations
+
+from enum import Enum
+from typing import Annotated
+
+import typer
+
+
+class Encoding(str, Enum):  # noqa: UP042
+    """How integer pixel values map to light."""
+
+    auto = "auto"
+    linear = "linear"
+    srgb = "srgb"
+
+
+EncodingOption = Annotated[
+    Encoding,
+    typer.Option(
+        case_sensitive=False,
+        help="How 8-bit frames map to light: auto (the files' ICC/EXIF/PNG metadata; JPEG "
+        "without any is sRGB; 16-bit files and 8-bit PNG/TIFF without metadata are linear), "
+        "linear, or srgb."
+    ),
+]
