@@ -32,6 +32,14 @@ $(WARM): $(STAMP) $(KERNEL_SOURCES)
 
 warm-up: $(WARM)
 
+# The same kernels compiled for a generic x86-64 (the second pytest run below): like the host's,
+# at the install step, not inside the timed tests. Run after the host's, never beside it: both
+# write the same cache index files.
+WARM_GENERIC := $(VENV)/.kernels-compiled-generic
+$(WARM_GENERIC): $(WARM)
+	NUMBA_CPU_NAME=generic $(BIN)/python -m ps_lab.reconstruct._warm_up
+	@touch $(WARM_GENERIC)
+
 demo: $(WARM)
 	$(BIN)/python -m ps_lab.demo
 	@sh tools/launcher.sh check $(LAUNCHER)
@@ -50,11 +58,15 @@ NUMERICAL_TESTS := tests/test_solvers.py tests/test_pl_solvers.py tests/test_nea
 	tests/test_refine.py tests/test_streaming.py tests/test_distributed.py
 
 # Import contracts first, then the tests, then the numerical ones for the second CPU target.
-# Each pytest run compiles (or loads) every kernel for its CPU target before its first test
-# (tests/conftest.py), so no test pays the compile against its timeout.
-test: lint-imports $(WARM)
-	$(BIN)/python -m pytest -q
-	NUMBA_CPU_NAME=generic $(BIN)/python -m pytest -q $(NUMERICAL_TESTS)
+# The tests run on every core (pytest-xdist, one test file per worker at a time: a file's
+# module fixtures are built once); PYTEST_WORKERS=0 runs them in this process. Each worker loads
+# every kernel for its CPU target before its first test (tests/conftest.py; compiled by the
+# warm-up steps above), so no test pays a compile against its timeout.
+PYTEST_WORKERS ?= auto
+PYTEST := $(BIN)/python -m pytest -q -n $(PYTEST_WORKERS) --maxprocesses=8 --dist loadfile
+test: lint-imports $(WARM) $(WARM_GENERIC)
+	$(PYTEST)
+	NUMBA_CPU_NAME=generic $(PYTEST) $(NUMERICAL_TESTS)
 
 test-slow: $(STAMP)
 	$(BIN)/python -m pytest -q -m slow
