@@ -9,8 +9,7 @@ import typer
 
 from ps_lab._cli_util import (
     EXIT_INTERRUPTED,
-    HELP_SETTINGS,
-    HelpGroup,
+    command_group,
     fail,
     interrupted_line,
     lab_command,
@@ -23,12 +22,9 @@ from ps_lab.capture.lights import SerialLightController, walk_lights
 from ps_lab.capture.rig import load_rig, parse_light_selection
 from ps_lab.errors import PsLabError, RigError
 
-rig_app = typer.Typer(
-    help="Light-controller tools: a simulated controller or the compiled sketch in simavr on a "
-    "pseudo-terminal, and a rig check.",
-    no_args_is_help=True,
-    cls=HelpGroup,
-    **HELP_SETTINGS,
+rig_app = command_group(
+    "Light-controller tools: a simulated controller or the compiled sketch in simavr on a "
+    "pseudo-terminal, and a rig check."
 )
 
 
