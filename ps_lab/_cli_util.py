@@ -18,6 +18,7 @@ code 130. The pieces:
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import logging
 import math
@@ -28,8 +29,9 @@ import sys
 import tempfile
 import time
 import traceback
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Collection, Iterator, Mapping
 from contextlib import contextmanager
+from enum import Enum
 from pathlib import Path
 from typing import Any, TypeVar
 
@@ -57,6 +59,7 @@ except ImportError:  # pragma: no cover - older typer on top of click
     from click.exceptions import Abort, Exit
 
 F = TypeVar("F", bound=Callable[..., Any])
+D = TypeVar("D")
 log = logging.getLogger("ps_lab")
 
 EXIT_USER_ERROR = 2
@@ -115,6 +118,37 @@ def lab_command(func: F) -> F:
             raise fail(bug_line(exc)) from None
 
     return wrapper  # type: ignore[return-value]
+
+
+def choices(name: str, values: str, doc: str) -> type[Enum]:
+    """The ``str`` Enum of a choice option: ``choices("Lights", "auto near directional", ...)``.
+
+    One line of values where a class would write each name twice; typer offers the values
+    (space-separated in ``values``), and member names are the values with ``-`` as ``_``
+    (``flat-field`` is ``.flat_field``). ``doc`` becomes the Enum's docstring.
+    """
+    members = [(value.replace("-", "_"), value) for value in values.split()]
+    choice = Enum(name, members, type=str, module=sys._getframe(1).f_globals["__name__"])
+    choice.__doc__ = doc
+    return choice
+
+
+def from_params(
+    cls: type[D], params: Mapping[str, Any], *, leave: Collection[str] = (), **given: Any
+) -> D:
+    """The settings dataclass ``cls`` of a command's parameters (``locals()`` on entry).
+
+    The command's signature is the one table: every parameter named as a field of ``cls`` sets
+    it, a choice (Enum) by its value; ``given`` sets fields whose value the command converts
+    (or whose option has another name); ``leave`` names parameters the command uses otherwise.
+    """
+    fields = {field.name for field in dataclasses.fields(cls)} - set(leave)
+    values = {
+        name: value.value if isinstance(value, Enum) else value
+        for name, value in params.items()
+        if name in fields
+    }
+    return cls(**{**values, **given})
 
 
 def parse_numbers(
@@ -457,6 +491,14 @@ class HelpGroup(TyperGroup):
         if rows:
             with formatter.section("Commands"):
                 formatter.write_dl(rows)
+
+
+def command_group(help: str, **settings: Any) -> typer.Typer:
+    """A group of commands under the app (``ps-lab rig ...``): bare, it prints its help.
+
+    ``settings``: more ``typer.Typer`` arguments (``name``).
+    """
+    return typer.Typer(help=help, no_args_is_help=True, cls=HelpGroup, **HELP_SETTINGS, **settings)
 
 
 class LabGroup(HelpGroup):

@@ -281,6 +281,20 @@ def _average(cells: list[tuple[float, float, float]]) -> Cell:
     return Cell(mean=mean, median=median, seconds=seconds)
 
 
+def _score(config, observations, lights, valid, normal_gt, evaluated, per_method, progress):
+    """Solve one light set with each of ``config.methods``; append (mean, median, seconds).
+
+    ``evaluated``: the pixels whose errors count (None: all); ``per_method``: method -> list.
+    """
+    keep = slice(None) if evaluated is None else evaluated
+    for method in config.methods:
+        solution, seconds = _solve(observations, lights, method, valid)
+        errors = _metrics.angular_errors_deg(solution.normals[keep], normal_gt[keep])
+        summary = _metrics.error_summary(errors)
+        per_method[method].append((summary["mean"], summary["median"], seconds))
+        _tick(progress)
+
+
 def _tick(progress: Progress) -> None:
     if progress is not None:
         progress(1)
@@ -318,14 +332,7 @@ def table_images(
                     valid = None
                     evaluated = np.ones(obs.shape[1], dtype=bool)
                 shares.append(float(evaluated.mean()))
-                for method in config.methods:
-                    solution, seconds = _solve(obs, lights, method, valid)
-                    errors = _metrics.angular_errors_deg(
-                        solution.normals[evaluated], scene.normals[evaluated]
-                    )
-                    summary = _metrics.error_summary(errors)
-                    per_method[method].append((summary["mean"], summary["median"], seconds))
-                    _tick(progress)
+                _score(config, obs, lights, valid, scene.normals, evaluated, per_method, progress)
             for method in config.methods:
                 cells[(scene.name, count, method)] = _average(per_method[method])
             coverage[(scene.name, count)] = float(np.mean(shares))
@@ -388,12 +395,8 @@ def table_noise(
                 )
                 obs = masked_observations(images, scene.surface.mask)
                 shares.append(float(np.mean(obs != light_set.observations)))
-                for method in config.methods:
-                    solution, seconds = _solve(obs, light_set.light_directions, method)
-                    errors = _metrics.angular_errors_deg(solution.normals, scene.normals)
-                    summary = _metrics.error_summary(errors)
-                    per_method[method].append((summary["mean"], summary["median"], seconds))
-                    _tick(progress)
+                _score(config, obs, light_set.light_directions, None, scene.normals, None,
+                       per_method, progress)
             for method in config.methods:
                 cells[(scene.name, density, method)] = _average(per_method[method])
             coverage[(scene.name, density)] = 1.0

@@ -95,15 +95,42 @@ def load_object(path: Path, every: int = 1, lights: np.ndarray | None = None) ->
     obs = data.images[pick][:, mask]
     unsaturated = data.valid[pick][:, mask]
     factors = light_noise_factors(data.light_intensities[pick])
-    # the reconstruction's default shadow rule, on the same kind of evenly spaced sample
-    sample = np.unique(np.linspace(0, obs.shape[1] - 1, min(obs.shape[1], NOISE_SAMPLE_PIXELS))
-                       .round().astype(np.int64))
-    black = black_threshold(obs[:, sample], unsaturated[:, sample], factors,
-                            light_directions=data.light_directions[pick])
-    valid = unsaturated if black is None else unsaturated & (obs > black[:, None])
+    valid = shadow_free(obs, unsaturated, factors, data.light_directions[pick])
     gt = np.asarray(data.normal_gt, dtype=np.float64)[mask][::every]
     return RealObject(Path(path).name, obs[:, ::every], valid[:, ::every],
                       data.light_directions[pick], gt, factors, unsaturated[:, ::every])
+
+
+def shadow_free(
+    observations: np.ndarray,
+    unsaturated: np.ndarray,
+    light_noise: np.ndarray,
+    light_directions: np.ndarray,
+) -> np.ndarray:
+    """The reconstruction's default shadow rule: ``unsaturated`` less what is black.
+
+    The black threshold (:func:`ps_lab.reconstruct._shadows.black_threshold`) is measured on
+    the same evenly spaced sample of at most ``NOISE_SAMPLE_PIXELS`` pixels as the
+    reconstruction takes.
+
+    Parameters
+    ----------
+    observations : ndarray of shape (n, m)
+        Divided by the light intensities.
+    unsaturated : ndarray of shape (n, m), bool
+    light_noise : ndarray of shape (n,)
+        Each light's relative noise (:func:`ps_lab.reconstruct.light_noise_factors`).
+    light_directions : ndarray of shape (n, 3)
+
+    Returns
+    -------
+    ndarray of shape (n, m), bool
+    """
+    m = observations.shape[1]
+    sample = np.unique(np.linspace(0, m - 1, min(m, NOISE_SAMPLE_PIXELS)).round().astype(np.int64))
+    black = black_threshold(observations[:, sample], unsaturated[:, sample], light_noise,
+                            light_directions=light_directions)
+    return unsaturated if black is None else unsaturated & (observations > black[:, None])
 
 
 def relight_split(obj: RealObject) -> tuple[RealObject, np.ndarray]:
@@ -117,11 +144,7 @@ def relight_split(obj: RealObject) -> tuple[RealObject, np.ndarray]:
     obs = obj.observations[fit]
     unsaturated = obj.unsaturated[fit] if obj.unsaturated is not None else obj.valid[fit]
     factors = light_noise_factors_subset(obj.light_noise[fit])
-    sample = np.unique(np.linspace(0, obs.shape[1] - 1, min(obs.shape[1], NOISE_SAMPLE_PIXELS))
-                       .round().astype(np.int64))
-    black = black_threshold(obs[:, sample], unsaturated[:, sample], factors,
-                            light_directions=obj.light_directions[fit])
-    valid = unsaturated if black is None else unsaturated & (obs > black[:, None])
+    valid = shadow_free(obs, unsaturated, factors, obj.light_directions[fit])
     return RealObject(obj.name, obs, valid, obj.light_directions[fit], obj.normal_gt, factors,
                       unsaturated), held
 

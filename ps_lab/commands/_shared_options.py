@@ -6,18 +6,13 @@ lives here so that loading one command does not load the other (reconstruct's so
 
 from __future__ import annotations
 
-from enum import Enum
 from typing import Annotated
 
 import typer
 
+from ps_lab._cli_util import choices
 
-class Encoding(str, Enum):  # noqa: UP042
-    """How integer pixel values map to light."""
-
-    auto = "auto"
-    linear = "linear"
-    srgb = "srgb"
+Encoding = choices("Encoding", "auto linear srgb", "How integer pixel values map to light.")
 
 
 EncodingOption = Annotated[

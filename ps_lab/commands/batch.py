@@ -25,10 +25,10 @@ from ps_lab.commands.reconstruct import (
     SigmaX2Option,
     TolOption,
     _terminal_bars,
+    options_from,
 )
 from ps_lab.reconstruct.batch import failure_line, run_batch, summary_table
 from ps_lab.reconstruct.methods import DEFAULT_METHOD
-from ps_lab.reconstruct.pipeline import ReconstructOptions, parse_memory_budget
 
 
 @lab_command
@@ -85,20 +85,7 @@ def batch(
     A result already in OUT_ROOT made with the same options is skipped; one made with other
     options is kept, and a warning names the dataset and the options (--overwrite replaces it).
     """
-    options = ReconstructOptions(
-        method=method.value,
-        channel=channel.value,
-        shadow_threshold=shadow_threshold,
-        refine_lights=refine_lights,
-        fixed_intensities=fixed_intensities,
-        memory_budget=parse_memory_budget(memory_budget),
-        lights=lights.value,
-        lam=lam,
-        sigma_x2=sigma_x2,
-        max_iter=max_iter,
-        tol=tol,
-        depth=None if depth is None else depth.value,
-    )
+    options = options_from(locals(), leave=("scheduler",))  # the cluster's, not each dataset's
     rows = run_batch(
         datasets,
         out_root,

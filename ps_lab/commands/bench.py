@@ -9,7 +9,7 @@ from typing import Annotated, Any
 
 import typer
 
-from ps_lab._cli_util import HELP_SETTINGS, HelpGroup, lab_command, progress_bar
+from ps_lab._cli_util import command_group, lab_command, progress_bar
 from ps_lab.bench import paper as bench_paper
 from ps_lab.bench import real as bench_real
 from ps_lab.bench import relight as bench_relight
@@ -91,13 +91,7 @@ def check_light_counts(paths: list[Path], minimum: int, reason: str) -> None:
             raise DatasetError(f"{path}: {n} lights; {reason} needs at least {minimum}")
 
 
-bench_app = typer.Typer(
-    name="bench",
-    help="Benchmarks on rendered scenes (the paper's tables).",
-    no_args_is_help=True,
-    cls=HelpGroup,
-    **HELP_SETTINGS,
-)
+bench_app = command_group("Benchmarks on rendered scenes (the paper's tables).", name="bench")
 
 
 @bench_app.command("paper")

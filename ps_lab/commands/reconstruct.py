@@ -3,13 +3,14 @@
 from __future__ import annotations
 
 import sys
+from collections.abc import Collection, Mapping
 from enum import Enum
 from pathlib import Path
-from typing import Annotated
+from typing import Annotated, Any
 
 import typer
 
-from ps_lab._cli_util import lab_command, progress_bar
+from ps_lab._cli_util import choices, from_params, lab_command, progress_bar
 from ps_lab.commands._shared_options import Encoding, EncodingOption
 from ps_lab.errors import DatasetError
 from ps_lab.io.frames import FolderOfDatasetsError
@@ -26,16 +27,11 @@ from ps_lab.reconstruct.pipeline import (
 Method = Enum("Method", [(name, name) for name in METHODS], type=str)  # type: ignore[misc]
 
 
-class AppearanceModel(str, Enum):  # noqa: UP042
-    auto = "auto"
-    ps = "ps"
-    ptm = "ptm"
-    hsh2 = "hsh2"
-    hsh3 = "hsh3"
-    rbf = "rbf"
-    bln = "bln"
-    gp = "gp"
-    none = "none"
+AppearanceModel = choices(
+    "AppearanceModel",
+    "auto ps ptm hsh2 hsh3 rbf bln gp none",
+    "Appearance models fitted per pixel (``ps_lab.reconstruct.appearance``).",
+)
 
 
 AppearanceOption = Annotated[
@@ -51,37 +47,22 @@ AppearanceOption = Annotated[
 ]
 
 
-class Lights(str, Enum):  # noqa: UP042
-    """Light model: LEDs at a finite distance or lights at infinity."""
-
-    auto = "auto"
-    near = "near"
-    directional = "directional"
-
-
-class LedModel(str, Enum):  # noqa: UP042
-    """Near lights: the LEDs' emission model."""
-
-    auto = "auto"
-    isotropic = "isotropic"
-    beam = "beam"
-    flat_field = "flat-field"
-
-
-class Channel(str, Enum):  # noqa: UP042
-    """How colour observations become one value per light and pixel."""
-
-    mean = "mean"
-    r = "r"
-    g = "g"
-    b = "b"
-
-
-class DepthMethod(str, Enum):  # noqa: UP042
-    """Normal integration methods (see ``ps_lab.reconstruct.integrate``)."""
-
-    poisson = "poisson"
-    bilateral = "bilateral"
+Lights = choices(
+    "Lights",
+    "auto near directional",
+    "Light model: LEDs at a finite distance or lights at infinity.",
+)
+LedModel = choices(
+    "LedModel", "auto isotropic beam flat-field", "Near lights: the LEDs' emission model."
+)
+Channel = choices(
+    "Channel", "mean r g b", "How colour observations become one value per light and pixel."
+)
+DepthMethod = choices(
+    "DepthMethod",
+    "poisson bilateral",
+    "Normal integration methods (see ``ps_lab.reconstruct.integrate``).",
+)
 
 
 # Every choice is case-insensitive (`--method SBL`), as a lab user types it.
@@ -162,11 +143,9 @@ TolOption = Annotated[
 ]
 
 
-class NormalMap(str, Enum):  # noqa: UP042 - typer needs str-valued choices
-    """Normal-map conventions (``ps_lab.io.normal_maps``)."""
-
-    opengl = "opengl"
-    directx = "directx"
+NormalMap = choices(
+    "NormalMap", "opengl directx", "Normal-map conventions (``ps_lab.io.normal_maps``)."
+)
 
 
 DepthOption = Annotated[
@@ -246,28 +225,8 @@ def reconstruct(
     appearance: AppearanceOption = AppearanceModel.auto,
 ) -> None:
     """Estimate surface normals and albedo; write normals.npy, normal.png, albedo, metrics.json."""
+    options = options_from(locals())
     out = out if out is not None else dataset / "recon" / method.value
-    options = ReconstructOptions(
-        method=method.value,
-        channel=channel.value,
-        shadow_threshold=shadow_threshold,
-        threads=threads,
-        refine_lights=refine_lights,
-        fixed_intensities=fixed_intensities,
-        memory_budget=parse_memory_budget(memory_budget),
-        lights=lights.value,
-        led_model=led_model.value,
-        scheduler=scheduler,
-        lam=lam,
-        sigma_x2=sigma_x2,
-        max_iter=max_iter,
-        tol=tol,
-        depth=None if depth is None else depth.value,
-        encoding=encoding.value,
-        normal_map=normal_map.value,
-        segments=segments,
-        appearance=appearance.value,
-    )
     try:
         result = reconstruct_to_folder(dataset, out, options, progress_bars=_terminal_bars)
     except FolderOfDatasetsError as exc:
@@ -309,6 +268,16 @@ def reconstruct(
             "per pixel (appearance.npz)"
         )
     typer.echo(f"results: {out}")
+
+
+def options_from(params: Mapping[str, Any], leave: Collection[str] = ()) -> ReconstructOptions:
+    """The :class:`ReconstructOptions` of a command's parameters (``locals()`` on entry).
+
+    As :func:`ps_lab._cli_util.from_params`, ``--memory-budget`` parsed
+    (:func:`parse_memory_budget`): shared by ``ps-lab reconstruct`` and ``ps-lab batch``.
+    """
+    budget = parse_memory_budget(params["memory_budget"])
+    return from_params(ReconstructOptions, params, leave=leave, memory_budget=budget)
 
 
 def batch_hint(folder: Path) -> str:

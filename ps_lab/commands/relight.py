@@ -2,19 +2,16 @@
 
 from __future__ import annotations
 
-from enum import Enum
 from pathlib import Path
 from typing import Annotated
 
 import typer
 
-from ps_lab._cli_util import lab_command
+from ps_lab._cli_util import choices, lab_command
 from ps_lab.appearance.relight import relight_result
 
 
-class RelightMode(str, Enum):  # noqa: UP042 - typer needs str-valued choices
-    fitted = "fitted"
-    lambertian = "lambertian"
+RelightMode = choices("RelightMode", "fitted lambertian", "How the object is shaded.")
 
 
 @lab_command

@@ -9,8 +9,7 @@ import typer
 
 from ps_lab._cli_util import (
     EXIT_INTERRUPTED,
-    HELP_SETTINGS,
-    HelpGroup,
+    command_group,
     fail,
     interrupted_line,
     lab_command,
@@ -27,12 +26,9 @@ from ps_lab.capture.light_controllers import SerialLightController, walk_lights
 from ps_lab.capture.rig import load_rig, parse_light_selection
 from ps_lab.errors import PsLabError, RigError
 
-rig_app = typer.Typer(
-    help="Light-controller tools: a simulated controller or the compiled sketch in simavr on a "
-    "pseudo-terminal, and a rig check.",
-    no_args_is_help=True,
-    cls=HelpGroup,
-    **HELP_SETTINGS,
+rig_app = command_group(
+    "Light-controller tools: a simulated controller or the compiled sketch in simavr on a "
+    "pseudo-terminal, and a rig check."
 )
 
 
@@ -67,13 +63,11 @@ def serve_sim(
     faults = parse_faults(",".join(fault or []))
 
     def announce(server) -> None:
-        typer.echo(server.path)
-        typer.echo(
+        _ready(
+            server.path,
             f"simulated light controller: {lights} lights on {server.path}"
             + (f", faults {', '.join(map(str, faults))}" if faults else "")
-            + (f", state in {state_file}" if state_file else "")
-            + "; Ctrl-C stops",
-            err=True,
+            + (f", state in {state_file}" if state_file else ""),
         )
 
     serve_simulator(
@@ -108,12 +102,10 @@ def serve_firmware_command(
     """Print the device path of the compiled sketch running in simavr and serve until Ctrl-C."""
 
     def announce(board) -> None:
-        typer.echo(board.path)
-        typer.echo(
+        _ready(
+            board.path,
             f"emulated firmware {board.elf}: {board.lights} lights on {board.path}"
-            + (f", state in {state_file}" if state_file else "")
-            + "; Ctrl-C stops",
-            err=True,
+            + (f", state in {state_file}" if state_file else ""),
         )
 
     serve_firmware(elf=elf, state_file=state_file, pins=pins, on_ready=announce)
@@ -163,13 +155,11 @@ def serve_camera_command(
         raise RigError(str(exc).replace("--lights", "--lit", 1)) from None
 
     def announce(server) -> None:
-        typer.echo(server.address)
-        typer.echo(
+        _ready(
+            server.address,
             f"simulated PTP/IP camera ({loaded.name}) on 127.0.0.1:{server.port}"
             + (f", lights from {state_file}" if state_file else f", lights lit: {lit or 'none'}")
-            + (f", faults {', '.join(map(str, faults))}" if faults else "")
-            + "; Ctrl-C stops",
-            err=True,
+            + (f", faults {', '.join(map(str, faults))}" if faults else ""),
         )
 
     serve_camera(
@@ -239,6 +229,12 @@ def board_frames(
         f"next: ps-lab calibrate-camera {out}/board_*.png --board charuco:{target.cols}x"
         f"{target.rows}:{target.square:g}:{target.marker:g}:{target.dictionary} --out {out}"
     )
+
+
+def _ready(address: str, serving: str) -> None:
+    """A server is ready: its address alone on stdout (for scripts), what it serves on stderr."""
+    typer.echo(address)
+    typer.echo(f"{serving}; Ctrl-C stops", err=True)
 
 
 def register(app: typer.Typer) -> None:

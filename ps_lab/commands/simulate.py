@@ -2,31 +2,21 @@
 
 from __future__ import annotations
 
-from enum import Enum
 from pathlib import Path
 from typing import Annotated
 
 import typer
 
-from ps_lab._cli_util import lab_command, progress_bar
+from ps_lab._cli_util import choices, from_params, lab_command, progress_bar
 from ps_lab.errors import DatasetError
 from ps_lab.render import SimulationSettings, check_new_dataset_folder, write_simulated_dataset
 from ps_lab.render.simulate import board_spec, simulated_board
 
 
-class SceneKind(str, Enum):
-    """Rendered objects."""
-
-    sphere = "sphere"
-    relief = "relief"
-
-
-class ImageFormat(str, Enum):
-    """Image file formats of the written dataset."""
-
-    png16 = "png16"
-    tiff32 = "tiff32"
-    npy = "npy"
+SceneKind = choices("SceneKind", "sphere relief", "Rendered objects.")
+ImageFormat = choices(
+    "ImageFormat", "png16 tiff32 npy", "Image file formats of the written dataset."
+)
 
 
 @lab_command
@@ -96,21 +86,11 @@ def simulate(
     Writes the images, filenames.txt, light_directions.txt, light_intensities.txt, mask.png,
     normal_gt.npy and depth_gt.npy.
     """
-    settings = SimulationSettings(
-        scene=scene.value,
-        lights=lights,
-        size=size,
-        seed=seed,
-        specular=specular,
-        roughness=roughness,
-        noise_fraction=noise_fraction,
-        noise_sigma=noise_sigma,
-        cast_shadows=cast_shadows,
+    settings = from_params(
+        SimulationSettings,
+        locals(),
         max_zenith_deg=max_zenith,
-        image_format=image_format.value,
         lens=None if lens is None else _lens(lens),
-        focal_length=focal_length,
-        board_frames=board_frames,
     )
     settings.validate()
     check_new_dataset_folder(out)

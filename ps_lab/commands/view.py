@@ -6,21 +6,20 @@ import os
 import sys
 import threading
 import webbrowser
-from enum import Enum
 from pathlib import Path
 from typing import Annotated
 
 import typer
 
-from ps_lab._cli_util import EXIT_INTERRUPTED, fail, interrupted_line, lab_command
+from ps_lab._cli_util import EXIT_INTERRUPTED, choices, fail, interrupted_line, lab_command
 from ps_lab.appearance.export import export_relightlab
 from ps_lab.view import ViewSite, export_site, serve
 from ps_lab.view.relightlab import load_view_result
 
 
-class ExportFormat(str, Enum):  # noqa: UP042 - typer needs str-valued choices
-    site = "site"
-    relight = "relight"
+ExportFormat = choices(
+    "ExportFormat", "site relight", "What --export writes (--format): the viewer or RelightLab's."
+)
 
 
 @lab_command

@@ -27,6 +27,7 @@ Other keys (per-frame RMS, refused frames, the board) are kept as written and no
 from __future__ import annotations
 
 import json
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from functools import lru_cache
 from pathlib import Path
@@ -445,11 +446,7 @@ def distort_points(camera: CameraModel, points: np.ndarray) -> np.ndarray:
     -------
     ndarray of shape (m, 2)
     """
-    p = np.asarray(points, dtype=np.float64).reshape(-1, 2)
-    x = (p[:, 0] - camera.cx) / camera.fx
-    y = (p[:, 1] - camera.cy) / camera.fy
-    xd, yd = distort_normalised(x, y, camera.coefficients)
-    return np.column_stack([xd * camera.fx + camera.cx, yd * camera.fy + camera.cy])
+    return _in_normalised(camera, points, distort_normalised)
 
 
 def distort_normalised(
@@ -508,8 +505,27 @@ def undistort_points(camera: CameraModel, points: np.ndarray) -> np.ndarray:
     -------
     ndarray of shape (m, 2)
     """
+    return _in_normalised(camera, points, undistort_normalised)
+
+
+def _in_normalised(
+    camera: CameraModel,
+    points: np.ndarray,
+    mapping: Callable[[np.ndarray, np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray]],
+) -> np.ndarray:
+    """Apply ``mapping`` (x, y, coefficients) -> (x', y') of normalised coordinates to pixels.
+
+    Parameters
+    ----------
+    points : ndarray of shape (m, 2) or anything that reshapes to it
+        (column, row) pixel positions.
+
+    Returns
+    -------
+    ndarray of shape (m, 2)
+    """
     p = np.asarray(points, dtype=np.float64).reshape(-1, 2)
-    xd = (p[:, 0] - camera.cx) / camera.fx
-    yd = (p[:, 1] - camera.cy) / camera.fy
-    x, y = undistort_normalised(xd, yd, camera.coefficients)
+    x, y = mapping(
+        (p[:, 0] - camera.cx) / camera.fx, (p[:, 1] - camera.cy) / camera.fy, camera.coefficients
+    )
     return np.column_stack([x * camera.fx + camera.cx, y * camera.fy + camera.cy])
