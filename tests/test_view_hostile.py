@@ -36,6 +36,8 @@ import numpy as np
 import pytest
 from typer.testing import CliRunner
 
+from helpers.bad_input import CaseTable, check_outcome
+
 from ps_lab.cli import app
 from ps_lab.view import ViewSite, load_result
 from ps_lab.view.site import REQUEST_TIMEOUT, ViewServer
@@ -864,3 +866,26 @@ def test_a_client_sending_a_byte_at_a_time_is_disconnected(quick_server, capfd):
 
 def test_the_default_timeout_is_short_enough_to_free_a_connection():
     assert 1 <= REQUEST_TIMEOUT <= 30
+
+
+# --- bad input: a folder that is not a result (the table's engine: tests/helpers/bad_input.py) ----
+
+
+BAD_INPUT = CaseTable()
+case = BAD_INPUT.case
+
+
+@case("x-view-not-a-result", lambda w: (str(w.ds), "normals.npy"))
+def _(w):
+    return ["view", str(w.png()), "--no-browser"]
+
+
+#: The cases CI runs; ``pytest -m slow`` runs every case of the table.
+BAD_INPUT_CI = {
+    "x-view-not-a-result",
+}
+
+
+@pytest.mark.parametrize("case", BAD_INPUT.params(BAD_INPUT_CI))
+def test_bad_input(case, bad_input_outcomes) -> None:
+    check_outcome(case, bad_input_outcomes)
