@@ -12,18 +12,7 @@ import socket
 import time
 from collections.abc import Callable
 
-import pytest
-
-from helpers.bad_input import (
-    NOT_UTF8,
-    CaseTable,
-    Workspace,
-    check_outcome,
-    finish,
-    has,
-    run,
-    succeeded,
-)
+from helpers.bad_input import NOT_UTF8, CaseTable, Workspace, finish, has, run, succeeded
 from helpers.hostile import Result, assert_one_error_line, start, temporary_leftovers, wait_until
 
 
@@ -131,8 +120,4 @@ CI_CASES = {
     "s6-batch-scheduler-port-not-a-number",
     "s6-batch-scheduler-unreachable",
 }
-
-
-@pytest.mark.parametrize("case", CASES.params(CI_CASES))
-def test_bad_input(case, bad_input_outcomes) -> None:
-    check_outcome(case, bad_input_outcomes)
+test_bad_input = CASES.test(CI_CASES)

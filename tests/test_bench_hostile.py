@@ -19,7 +19,7 @@ from pathlib import Path
 import pytest
 
 sys.path.insert(0, str(Path(__file__).parent))
-from helpers.bad_input import CaseTable, check_outcome  # noqa: E402
+from helpers.bad_input import CaseTable  # noqa: E402
 from helpers.hostile import (  # noqa: E402 - the sweeps' runner
     Result,
     assert_one_error_line,
@@ -154,8 +154,4 @@ def _(w):
 BAD_INPUT_CI = {
     "g2-bench-unknown-table",
 }
-
-
-@pytest.mark.parametrize("case", BAD_INPUT.params(BAD_INPUT_CI))
-def test_bad_input(case, bad_input_outcomes) -> None:
-    check_outcome(case, bad_input_outcomes)
+test_bad_input = BAD_INPUT.test(BAD_INPUT_CI)

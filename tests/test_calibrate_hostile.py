@@ -22,7 +22,6 @@ import pytest
 from helpers.bad_input import (
     NOT_UTF8,
     CaseTable,
-    check_outcome,
     ds_name,
     finish,
     has,
@@ -211,8 +210,4 @@ CI_CASES = {
     "s6-calibrate-near-rig-second-sphere-absent",
     "s6-calibrate-sphere-on-bare-table",
 }
-
-
-@pytest.mark.parametrize("case", CASES.params(CI_CASES))
-def test_bad_input(case, bad_input_outcomes) -> None:
-    check_outcome(case, bad_input_outcomes)
+test_bad_input = CASES.test(CI_CASES)

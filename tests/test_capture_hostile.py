@@ -14,9 +14,9 @@ from pathlib import Path
 import pytest
 
 from helpers.bad_input import (
+    SERIAL_PORTS,
     CaseTable,
     Workspace,
-    check_outcome,
     finish,
     has,
     named_port,
@@ -116,12 +116,7 @@ def _serial_rig(w) -> Path:
     return rig
 
 
-for _port_label, _port_text in (
-    ("dev-null", "/dev/null"),
-    ("missing", "/nonexistent/ttyACM9"),
-    ("regular-file", "@file"),
-    ("folder", "@folder"),
-):
+for _port_label, _port_text in SERIAL_PORTS:
 
     @case(f"x-capture-port-{_port_label}", named_port, timeout=60)
     def _(w, port=_port_text):
@@ -185,8 +180,4 @@ CI_CASES = {
     "g6-controller-silent",
     "x-capture-port-dev-null",
 }
-
-
-@pytest.mark.parametrize("case", CASES.params(CI_CASES))
-def test_bad_input(case, bad_input_outcomes) -> None:
-    check_outcome(case, bad_input_outcomes)
+test_bad_input = CASES.test(CI_CASES)

@@ -12,7 +12,7 @@ import pytest
 import typer.main
 from typer.testing import CliRunner
 
-from helpers.bad_input import CaseTable, check_outcome
+from helpers.bad_input import CaseTable
 from helpers.hostile import environment
 
 from ps_lab import cli
@@ -279,8 +279,4 @@ BAD_INPUT_CI = {
     "g5-unknown-command",
     "g5-unknown-option",
 }
-
-
-@pytest.mark.parametrize("case", BAD_INPUT.params(BAD_INPUT_CI))
-def test_bad_input(case, bad_input_outcomes) -> None:
-    check_outcome(case, bad_input_outcomes)
+test_bad_input = BAD_INPUT.test(BAD_INPUT_CI)

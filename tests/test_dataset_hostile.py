@@ -17,14 +17,12 @@ from pathlib import Path
 
 import cv2
 import numpy as np
-import pytest
 import tifffile
 
 from helpers.bad_input import (
     NOT_UTF8,
     CaseTable,
     MiB,
-    check_outcome,
     ds_name,
     fill_images,
     forge_png_size,
@@ -507,8 +505,4 @@ CI_CASES = {
     "x-symlink-loop-image",
     "x-tiff-five-channels",
 }
-
-
-@pytest.mark.parametrize("case", CASES.params(CI_CASES))
-def test_bad_input(case, bad_input_outcomes) -> None:
-    check_outcome(case, bad_input_outcomes)
+test_bad_input = CASES.test(CI_CASES)

@@ -8,7 +8,6 @@ temporary file left. Skips where ``unshare -rm`` is not allowed.
 from __future__ import annotations
 
 import json
-import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -16,26 +15,17 @@ from pathlib import Path
 import pytest
 
 from helpers.bad_input import Workspace, run
-from helpers.hostile import PS_LAB, Result, assert_one_error_line, environment, temporary_leftovers
+from helpers.hostile import (
+    PS_LAB,
+    Result,
+    assert_one_error_line,
+    environment,
+    temporary_leftovers,
+    tmpfs_prefix,
+)
 
 
 # --- a full disk: a 256 KiB tmpfs in a private mount namespace -----------------------------------
-
-
-def _tmpfs_prefix(mountpoint: Path) -> tuple[str, ...] | None:
-    """``unshare`` arguments that run a command with a 256 KiB tmpfs on ``mountpoint``."""
-    unshare = shutil.which("unshare")
-    if unshare is None:
-        return None
-    mountpoint.mkdir(exist_ok=True)
-    script = 'mount -t tmpfs -o size=256k tmpfs "$0" && exec "$@"'
-    probe = subprocess.run(
-        [unshare, "-rm", "sh", "-c", script, str(mountpoint), "true"], capture_output=True,
-        check=False,
-    )
-    if probe.returncode != 0:
-        return None
-    return (unshare, "-rm", "sh", "-c", script, str(mountpoint))
 
 
 DISK_FILLERS = {
@@ -69,7 +59,7 @@ def test_full_disk_is_one_line_and_leaves_nothing(command, templates, big, tmp_p
     w.root.mkdir()
     w.home.mkdir()
     full = w.root / "full"
-    prefix = _tmpfs_prefix(full)
+    prefix = tmpfs_prefix(full)
     if prefix is None:
         pytest.skip("cannot mount a tmpfs here (unshare -rm not allowed): full disk not tested")
     for name in ("png", "run", "big", "bigresult"):

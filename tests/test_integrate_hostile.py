@@ -20,7 +20,6 @@ from helpers.bad_input import (
     NOT_UTF8,
     CaseTable,
     Workspace,
-    check_outcome,
     finish,
     lacks,
     succeeded,
@@ -181,8 +180,4 @@ CI_CASES = {
     "s5-normals-back-facing",
     "s5-normals-complex",
 }
-
-
-@pytest.mark.parametrize("case", CASES.params(CI_CASES))
-def test_bad_input(case, bad_input_outcomes) -> None:
-    check_outcome(case, bad_input_outcomes)
+test_bad_input = CASES.test(CI_CASES)

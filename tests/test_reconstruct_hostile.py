@@ -23,7 +23,6 @@ from helpers.bad_input import (
     NOT_UTF8,
     CaseTable,
     Workspace,
-    check_outcome,
     ds_name,
     equals,
     finish,
@@ -264,8 +263,4 @@ CI_CASES = {
     "x-out-is-a-file",
     "x-out-is-the-dataset",
 }
-
-
-@pytest.mark.parametrize("case", CASES.params(CI_CASES))
-def test_bad_input(case, bad_input_outcomes) -> None:
-    check_outcome(case, bad_input_outcomes)
+test_bad_input = CASES.test(CI_CASES)

@@ -18,9 +18,9 @@ from pathlib import Path
 import pytest
 
 from helpers.bad_input import (
+    SERIAL_PORTS,
     CaseTable,
     Workspace,
-    check_outcome,
     finish,
     named_port,
     run,
@@ -60,12 +60,7 @@ def _(w):
     return ["rig", "check", "--lights", "4"]
 
 
-for _port_label, _port_text in (
-    ("dev-null", "/dev/null"),
-    ("missing", "/nonexistent/ttyACM9"),
-    ("regular-file", "@file"),
-    ("folder", "@folder"),
-):
+for _port_label, _port_text in SERIAL_PORTS:
 
     @case(f"x-rig-check-port-{_port_label}", named_port, timeout=60)
     def _(w, port=_port_text):
@@ -172,8 +167,4 @@ CI_CASES = {
     "s6-serve-firmware-elf-arm",
     "s6-serve-firmware-elf-empty",
 }
-
-
-@pytest.mark.parametrize("case", CASES.params(CI_CASES))
-def test_bad_input(case, bad_input_outcomes) -> None:
-    check_outcome(case, bad_input_outcomes)
+test_bad_input = CASES.test(CI_CASES)

@@ -2,10 +2,7 @@
 
 from __future__ import annotations
 
-
-import pytest
-
-from helpers.bad_input import NOT_UTF8, CaseTable, check_outcome, succeeded
+from helpers.bad_input import NOT_UTF8, CaseTable, succeeded
 
 
 CASES = CaseTable()
@@ -60,8 +57,4 @@ CI_CASES = {
     "g2-simulate--size-100000",
     "x-simulate-seed-negative",
 }
-
-
-@pytest.mark.parametrize("case", CASES.params(CI_CASES))
-def test_bad_input(case, bad_input_outcomes) -> None:
-    check_outcome(case, bad_input_outcomes)
+test_bad_input = CASES.test(CI_CASES)

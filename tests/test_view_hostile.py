@@ -36,7 +36,7 @@ import numpy as np
 import pytest
 from typer.testing import CliRunner
 
-from helpers.bad_input import CaseTable, check_outcome
+from helpers.bad_input import CaseTable
 
 from ps_lab.cli import app
 from ps_lab.view import ViewSite, load_result
@@ -884,8 +884,4 @@ def _(w):
 BAD_INPUT_CI = {
     "x-view-not-a-result",
 }
-
-
-@pytest.mark.parametrize("case", BAD_INPUT.params(BAD_INPUT_CI))
-def test_bad_input(case, bad_input_outcomes) -> None:
-    check_outcome(case, bad_input_outcomes)
+test_bad_input = BAD_INPUT.test(BAD_INPUT_CI)

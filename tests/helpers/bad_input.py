@@ -285,6 +285,16 @@ def named(*parts: str) -> Callable[[Workspace], tuple[str, ...]]:
     return lambda w: (str(w.root.joinpath(*parts)),)
 
 
+#: Ports that are no serial device (label, port; ``@file`` and ``@folder`` are made by
+#: :func:`serial_port`).
+SERIAL_PORTS = (
+    ("dev-null", "/dev/null"),
+    ("missing", "/nonexistent/ttyACM9"),
+    ("regular-file", "@file"),
+    ("folder", "@folder"),
+)
+
+
 def serial_port(w: Workspace, port: str) -> str:
     """``port`` itself, or a regular file (``@file``) or a folder (``@folder``) made for it."""
     if port == "@file":
@@ -356,6 +366,18 @@ class CaseTable:
         def _(w):
             target = [str(w.copy(where))] if where else []
             return [*command, *target, option, value]
+
+    def test(self, ci: set[str]):
+        """The table's test: each case checked by :func:`check_outcome` (``test_bad_input = ...``).
+
+        The cases in ``ci`` run in CI, the rest with ``-m slow``.
+        """
+
+        @pytest.mark.parametrize("case", self.params(ci))
+        def test_bad_input(case: Case, bad_input_outcomes: dict[str, Outcome]) -> None:
+            check_outcome(case, bad_input_outcomes)
+
+        return test_bad_input
 
     def params(self, ci: set[str]) -> list:
         """Every case as a pytest param: those in ``ci`` run in CI, the rest with ``-m slow``."""
