@@ -320,8 +320,8 @@ class Case:
     ``names(w)``: what the error line may name (one of them must appear); ``check(w, result,
     line)``: further checks (``line`` is None when ``code`` is 0: a case that must succeed, which
     ``check`` then judges alone). ``keeps_run``: a failed capture keeps its complete frames in
-    ``--out`` for ``--resume``; ``leftovers``: no temporary file may be left in ``TMPDIR``;
-    ``quiet_stdout``: nothing on stdout.
+    ``--out`` for ``--resume``; ``leftovers`` (on unless turned off): no temporary file may be
+    left in ``TMPDIR``; ``quiet_stdout``: nothing on stdout.
     """
 
     id: str
@@ -332,7 +332,7 @@ class Case:
     root_ok: bool = True  # False: needs a non-root user (file permissions)
     timeout: float = 120
     keeps_run: bool = False
-    leftovers: bool = False
+    leftovers: bool = True
     quiet_stdout: bool = False
 
 
