@@ -8,9 +8,16 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from helpers.bad_input import Case, Outcome, Templates, Workspace, run_cases
+# The shared checks (tests/helpers/) report failures as the tests' own asserts do.
+pytest.register_assert_rewrite("helpers")
 
-from ps_lab.capture.simulated.avr_firmware import build_harness, build_sketch, missing_packages
+from helpers.bad_input import Case, Outcome, Templates, Workspace, run_cases  # noqa: E402
+
+from ps_lab.capture.simulated.avr_firmware import (  # noqa: E402
+    build_harness,
+    build_sketch,
+    missing_packages,
+)
 
 
 def pytest_addoption(parser: pytest.Parser) -> None:
