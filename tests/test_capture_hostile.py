@@ -12,7 +12,6 @@ import signal
 from pathlib import Path
 
 import pytest
-
 from helpers.bad_input import (
     SERIAL_PORTS,
     CaseTable,

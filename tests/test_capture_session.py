@@ -20,7 +20,6 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-
 from helpers.capture_runs import N_FRAMES, N_LIGHTS, frame_hashes, write_rig
 
 from ps_lab.capture.connect import build_simulation

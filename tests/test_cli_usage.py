@@ -10,10 +10,9 @@ from pathlib import Path
 
 import pytest
 import typer.main
-from typer.testing import CliRunner
-
 from helpers.bad_input import CaseTable
 from helpers.hostile import environment
+from typer.testing import CliRunner
 
 from ps_lab import cli
 from ps_lab.cli import app

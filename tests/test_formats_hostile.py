@@ -23,7 +23,6 @@ import numpy as np
 import OpenEXR
 import pytest
 import tifffile
-
 from helpers.bad_input import CaseTable, Workspace, named, png_chunk
 from helpers.hostile import Result, temporary_leftovers
 

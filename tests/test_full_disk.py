@@ -13,7 +13,6 @@ import sys
 from pathlib import Path
 
 import pytest
-
 from helpers.bad_input import Workspace, run
 from helpers.hostile import (
     PS_LAB,

@@ -15,7 +15,6 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-
 from helpers.bad_input import (
     NOT_UTF8,
     CaseTable,

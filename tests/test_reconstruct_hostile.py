@@ -18,7 +18,6 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
-
 from helpers.bad_input import (
     NOT_UTF8,
     CaseTable,

@@ -16,7 +16,6 @@ from contextlib import contextmanager
 from pathlib import Path
 
 import pytest
-
 from helpers.bad_input import (
     SERIAL_PORTS,
     CaseTable,

@@ -34,9 +34,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from typer.testing import CliRunner
-
 from helpers.bad_input import CaseTable
+from typer.testing import CliRunner
 
 from ps_lab.cli import app
 from ps_lab.view import ViewSite, load_result
