@@ -18,8 +18,7 @@ from ._rpca import solve_rpca
 from ._noise import _noise_floor, _noise_level, _noise_residuals, pl_noise_level
 from ._solution import ALBEDO_DEFINITION, Solution, SolverInputError, _albedo_rows
 from ._solution import check_inputs as _check_inputs
-from ._tiles import DEFAULT_TILE_SIZE, LAMBDA_FLOOR, solve_tiles, tile_pixels  # noqa: F401
-# (LAMBDA_FLOOR: tests/helpers/tolerances.py reads it here)
+from ._tiles import DEFAULT_TILE_SIZE, solve_tiles, tile_pixels
 from .methods import SBL_MAX_ITER, SOLVERS, solver
 
 # Defaults of each method's parameters (in units of the pixel's robust scale, see `pixel_scale`):

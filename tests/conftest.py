@@ -8,7 +8,16 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from ps_lab.capture.simulated.avr_firmware import build_harness, build_sketch, missing_packages
+# The shared checks (tests/helpers/) report failures as the tests' own asserts do.
+pytest.register_assert_rewrite("helpers")
+
+from helpers.bad_input import Case, Outcome, Templates, Workspace, run_cases  # noqa: E402
+
+from ps_lab.capture.simulated.avr_firmware import (  # noqa: E402
+    build_harness,
+    build_sketch,
+    missing_packages,
+)
 
 
 def pytest_addoption(parser: pytest.Parser) -> None:
@@ -81,3 +90,38 @@ def firmware_cache(tmp_path_factory) -> Path:
     build_sketch(build_dir=cache / "firmware")
     build_harness(build_dir=cache / "firmware")
     return cache
+
+
+# --- the bad-input tables (tests/helpers/bad_input.py) -------------------------------------------
+
+
+@pytest.fixture(scope="session")
+def templates(tmp_path_factory) -> Templates:
+    """The small inputs the bad-input cases copy, each made once, when first asked for."""
+    return Templates(tmp_path_factory.mktemp("templates"), tmp_path_factory.mktemp("home"))
+
+
+@pytest.fixture
+def workspace(tmp_path, templates) -> Workspace:
+    home = tmp_path / "home"
+    home.mkdir()
+    root = tmp_path / "case"
+    root.mkdir()
+    return Workspace(root, home, templates)
+
+
+@pytest.fixture(scope="session")
+def bad_input_outcomes(request, templates, tmp_path_factory) -> dict[str, Outcome]:
+    """Run every selected case of every bad-input table at once, a few commands in parallel.
+
+    Each command is a separate process that mostly imports and reads; running them side by side
+    keeps the tables' wall time near their CPU time divided by the cores.
+    """
+    chosen = [
+        value
+        for item in request.session.items
+        if hasattr(item, "callspec") and not item.get_closest_marker("skip")
+        for value in item.callspec.params.values()
+        if isinstance(value, Case)
+    ]
+    return run_cases(chosen, templates, tmp_path_factory)

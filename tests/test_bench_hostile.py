@@ -19,6 +19,7 @@ from pathlib import Path
 import pytest
 
 sys.path.insert(0, str(Path(__file__).parent))
+from helpers.bad_input import CaseTable  # noqa: E402
 from helpers.hostile import (  # noqa: E402 - the sweeps' runner
     Result,
     assert_one_error_line,
@@ -125,3 +126,32 @@ def test_bench_relight_json_is_strict(captures: Path, tmp_path: Path) -> None:
 def test_finite_json_turns_nan_and_infinity_into_null() -> None:
     value = {"a": [math.nan, 1.5, (math.inf, -math.inf)], "b": {"c": 2, "d": "x"}}
     assert finite_json(value) == {"a": [None, 1.5, [None, None]], "b": {"c": 2, "d": "x"}}
+
+
+# --- bad input: ``bench paper`` options refused (the table's engine: tests/helpers/bad_input.py) -
+
+
+BAD_INPUT = CaseTable()
+case = BAD_INPUT.case
+
+
+@case("g2-bench-unknown-table", ("--tables",))
+def _(w):
+    return ["bench", "paper", "--quick", "--tables", "9"]
+
+
+@case("g2-bench-size-huge", ("--size",))
+def _(w):
+    return ["bench", "paper", "--quick", "--size", "1000000"]
+
+
+@case("x-bench-seed-negative", ("--seed",))
+def _(w):
+    return ["bench", "paper", "--quick", "--seed", "-1"]
+
+
+#: The cases CI runs; ``pytest -m slow`` runs every case of the table.
+BAD_INPUT_CI = {
+    "g2-bench-unknown-table",
+}
+test_bad_input = BAD_INPUT.test(BAD_INPUT_CI)

@@ -8,7 +8,7 @@ from pathlib import Path
 
 import pytest
 import serial
-from test_capture_session import N_FRAMES, frame_hashes, write_rig
+from helpers.capture_runs import N_FRAMES, frame_hashes, write_rig
 from typer.testing import CliRunner
 
 from ps_lab.cli import app

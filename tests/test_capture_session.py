@@ -20,6 +20,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from helpers.capture_runs import N_FRAMES, N_LIGHTS, frame_hashes, write_rig
 
 from ps_lab.capture.rig import load_rig
 from ps_lab.capture.session import CaptureSession, make_plan
@@ -34,76 +35,9 @@ from ps_lab.io.raw import load_raw
 from ps_lab.io.run import MANIFEST_NAME, read_manifest
 from ps_lab.render import render_scene
 
-N_LIGHTS = 8
-N_FRAMES = N_LIGHTS + 1
 # Commands the controller receives in a clean session: handshake ID, WATCHDOG, LEVEL, OFF; the
 # session's OFF; STATE after the dark frame; ON, STATE, OFF per light.
 N_COMMANDS = 4 + 1 + 1 + 3 * N_LIGHTS
-
-TINY_RIG = """
-name = "tiny"
-[controller]
-driver = "simulated"
-lights = {lights}
-watchdog_ms = 1500
-timeout_s = 0.1
-settle_ms = {settle_ms}
-
-[camera]
-driver = "simulated"
-exposure_s = 0.05
-timeout_s = 0.1
-retries = {retries}
-seed = 11
-
-[calibration.chrome_sphere]
-center = [16.0, 16.0]
-radius = 12.0
-
-[scene]
-width = 64
-height = 48
-
-[scene.lights]
-seed = 3
-max_zenith_deg = 50.0
-intensity_spread = 0.1
-
-[[scene.objects]]
-kind = "chrome"
-center = [16.0, 16.0]
-radius = 12.0
-
-[[scene.objects]]
-kind = "sphere"
-center = [44.0, 26.0]
-radius = 18.0
-albedo = [0.7, 0.6, 0.5]
-{faults}
-"""
-
-
-def write_rig(
-    folder: Path,
-    *,
-    faults: str = "",
-    retries: int = 1,
-    settle_ms: int = 0,
-    lights: int = N_LIGHTS,
-    name="rig.toml",
-) -> Path:
-    path = folder / name
-    path.write_text(
-        TINY_RIG.format(faults=faults, retries=retries, settle_ms=settle_ms, lights=lights)
-    )
-    return path
-
-
-def frame_hashes(run: Path) -> dict[str, str]:
-    return {
-        p.name: hashlib.sha256(p.read_bytes()).hexdigest()
-        for p in sorted((run / "frames").iterdir())
-    }
 
 
 def assert_consistent(run: Path) -> dict:

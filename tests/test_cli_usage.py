@@ -4,9 +4,14 @@ from __future__ import annotations
 
 import json
 import re
+import subprocess
+import sys
+from pathlib import Path
 
 import pytest
 import typer.main
+from helpers.bad_input import CaseTable
+from helpers.hostile import environment
 from typer.testing import CliRunner
 
 from ps_lab import cli
@@ -197,3 +202,80 @@ def test_calibrate_on_a_folder_of_datasets_asks_for_one(lab_folder):
 def test_a_folder_of_results_is_named_as_such(lab_folder):
     line = one_error_line(runner.invoke(app, ["reconstruct", str(lab_folder / "a" / "recon")]))
     assert "its subfolders are ps-lab reconstruct results (sbl)" in line
+
+
+# --- bad input through the ps-lab process: typer's rejections, a bug (helpers/bad_input.py) ---
+
+
+BAD_INPUT = CaseTable()
+case = BAD_INPUT.case
+
+
+@case("g5-unknown-option", ("--frobnicate",))
+def _(w):
+    return ["reconstruct", str(w.png()), "--frobnicate"]
+
+
+@case("g5-extra-argument", ("surplus",))
+def _(w):
+    return ["reconstruct", str(w.png()), "surplus"]
+
+
+@case("g5-missing-dataset-argument", ("DATASET", "dataset"))
+def _(w):
+    return ["reconstruct"]
+
+
+@case("g5-unknown-command", ("recontruct",))
+def _(w):
+    return ["recontruct", "x"]
+
+
+BUG = (
+    "import sys\n"
+    "import ps_lab.render.simulate as simulate\n"
+    "def broken(*args, **kwargs):\n"
+    "    raise ZeroDivisionError('injected bug')\n"
+    "simulate.write_simulated_dataset = broken\n"
+    "import ps_lab.commands.simulate as command\n"
+    "command.write_simulated_dataset = broken\n"
+    "from ps_lab.cli import main\n"
+    "sys.argv[0] = 'ps-lab'\n"
+    "main()\n"
+)
+
+
+@pytest.mark.parametrize("verbose", [[], ["-vv"]], ids=["quiet", "vv"])
+def test_a_bug_is_one_line_naming_the_log(verbose, workspace) -> None:
+    """An exception that is not a PsLabError: one line saying it is a bug and where the log is."""
+    out = workspace.root / "new"
+    result = subprocess.run(
+        [sys.executable, "-c", BUG, *verbose, "simulate", str(out), "--size", "16"],
+        cwd=workspace.root,
+        capture_output=True,
+        text=True,
+        env=environment(workspace.home),
+        timeout=120,
+    )
+    assert result.returncode == 2, result.stderr
+    lines = [line for line in result.stderr.splitlines() if line.strip()]
+    line = lines[-1]
+    assert line.startswith("error: internal error (a bug in ps-lab"), result.stderr
+    assert "ZeroDivisionError: injected bug" in line
+    log_file = Path(line.split("traceback in ", 1)[1].split(";", 1)[0])
+    assert log_file.is_file() and "Traceback" in log_file.read_text()
+    assert log_file.is_relative_to(workspace.home)
+    if verbose:
+        assert "Traceback" in result.stderr
+    else:
+        assert len(lines) == 1 and "Traceback" not in result.stderr
+    assert not out.exists()
+
+
+#: The cases CI runs; ``pytest -m slow`` runs every case of the table.
+BAD_INPUT_CI = {
+    "g5-missing-dataset-argument",
+    "g5-unknown-command",
+    "g5-unknown-option",
+}
+test_bad_input = BAD_INPUT.test(BAD_INPUT_CI)

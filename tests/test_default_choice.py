@@ -278,7 +278,7 @@ def test_the_last_choice_equals_its_oracle_where_least_squares_is_taken():
     """The default against the per-pixel oracle (helpers/solver_oracles.py: each model refitted
     without each observation) on a scene where the last choice takes least squares: Lambertian
     data with a noise variance given larger than the noise (measured: LS on 61 of 376 pixels)."""
-    from test_solvers import assert_equals_oracle
+    from helpers.solver_checks import assert_equals_oracle
 
     obs, lights, _, rng = _scene(shape=(24, 24), n_lights=20, seed=1)
     noisy = obs + rng.normal(0.0, 0.002, obs.shape)

@@ -37,7 +37,7 @@ from ps_lab.errors import ClusterError
 from ps_lab.io.dataset import load_dataset
 from ps_lab.reconstruct import distributed as ps_distributed
 from ps_lab.reconstruct._outputs import ERROR_BIN_DEG
-from ps_lab.reconstruct._solve import DEFAULTS
+from ps_lab.reconstruct.methods import solver
 from ps_lab.reconstruct.batch import BatchRow, run_batch, summary_table
 from ps_lab.reconstruct.pipeline import ReconstructOptions, reconstruct_to_folder
 
@@ -102,7 +102,7 @@ def normal_bound(method: str, dataset: Path) -> float:
     if method == "rpca":
         data = load_dataset(dataset)
         data_norm = scaled_norm(data.images[:, data.mask], data.valid[:, data.mask])
-        rpca = DEFAULTS["rpca"]
+        rpca = solver("rpca").defaults
         sigma_min = light_conditioning(data.light_directions)[0][0]
         return stored_float32(rpca_stop(rpca["tol"], rpca["rho"], data_norm, sigma_min))
     return 0.0

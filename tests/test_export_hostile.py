@@ -27,6 +27,7 @@ from tests.helpers.hostile import (
     run,
     snapshot,
     temporary_leftovers,
+    tmpfs_prefix,
 )
 
 runner = CliRunner()
@@ -215,24 +216,10 @@ def test_the_export_opens_as_a_result(made, tmp_path):
 # ---- a full disk -------------------------------------------------------------------------------
 
 
-def _tmpfs_prefix(mountpoint: Path) -> tuple[str, ...] | None:
-    """``unshare`` arguments that run a command with a 256 KiB tmpfs on ``mountpoint``."""
-    unshare = shutil.which("unshare")
-    if unshare is None:
-        return None
-    mountpoint.mkdir(exist_ok=True)
-    script = 'mount -t tmpfs -o size=256k tmpfs "$0" && exec "$@"'
-    probe = subprocess.run([unshare, "-rm", "sh", "-c", script, str(mountpoint), "true"],
-                           capture_output=True, check=False)
-    if probe.returncode != 0:
-        return None
-    return (unshare, "-rm", "sh", "-c", script, str(mountpoint))
-
-
 def test_a_full_disk_names_the_users_folder_not_a_staging_one(made, tmp_path):
     case, home = _case(tmp_path)
     full = case / "full"
-    prefix = _tmpfs_prefix(full)
+    prefix = tmpfs_prefix(full)
     if prefix is None:
         pytest.skip("cannot mount a tmpfs here (unshare -rm not allowed): full disk not tested")
     out = full / "export"

@@ -175,3 +175,25 @@ def test_no_module_is_over_the_generous_bound() -> None:
         if (n := len(p.read_text(encoding="utf-8").splitlines())) > MAX_MODULE_LINES
     }
     assert long == {}
+
+
+def test_no_test_module_imports_another() -> None:
+    """What tests share lives in tests/helpers/ (one module per concept) or tests/conftest.py."""
+    import ast
+
+    tests = ROOT / "tests"
+    test_modules = {p.stem for p in tests.glob("test_*.py")}
+    assert len(test_modules) > 40
+    imports: dict[str, list[str]] = {}
+    for path in sorted([*tests.glob("*.py"), *(tests / "helpers").glob("*.py")]):
+        for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"))):
+            if isinstance(node, ast.ImportFrom) and node.level == 0 and node.module:
+                names = [node.module]
+            elif isinstance(node, ast.Import):
+                names = [alias.name for alias in node.names]
+            else:
+                continue
+            found = [n for n in names if n.removeprefix("tests.").split(".")[0] in test_modules]
+            if found:
+                imports.setdefault(str(path.relative_to(ROOT)), []).extend(found)
+    assert imports == {}

@@ -8,17 +8,13 @@ Commands are counted from 1 since the simulated controller was created; opening 
 from __future__ import annotations
 
 import itertools
-import os
-import select
-import signal
 import socket
-import subprocess
-import sys
 import threading
 import time
 
 import pytest
 import serial
+from helpers.device_servers import switch_through_served_device
 from helpers.lights_doubles import CLOSE, expected_protocol, handshake
 from typer.testing import CliRunner
 
@@ -33,7 +29,7 @@ from ps_lab.capture.simulated.firmware import (
     parse_faults,
     register_firmware,
 )
-from ps_lab.capture.simulated.pty_server import PtyServer, state_file_reader
+from ps_lab.capture.simulated.pty_server import PtyServer
 from ps_lab.cli import app
 from ps_lab.errors import RigError
 
@@ -318,41 +314,11 @@ def test_url_options_reach_the_firmware():
 
 
 def test_serve_sim_serves_a_pty_until_sigterm(tmp_path):
-
-    state_file = tmp_path / "lights.json"
-    process = subprocess.Popen(
-        [
-            sys.executable,
-            "-m",
-            "ps_lab",
-            "rig",
-            "serve-sim",
-            "--lights",
-            "4",
-            "--state-file",
-            str(state_file),
-            "--fault",
-            "garble@5",
-        ],
-        stdout=subprocess.PIPE,
-        stderr=subprocess.PIPE,
-        text=True,
+    # command 5 (the switch) gets a garbled reply, retried
+    read_state = switch_through_served_device(
+        ["serve-sim", "--lights", "4", "--fault", "garble@5"], tmp_path / "lights.json", 4, PTY,
+        wait_s=30,
     )
-    try:
-        ready, _, _ = select.select([process.stdout], [], [], 30)
-        assert ready, "serve-sim printed no device path"
-        path = process.stdout.readline().strip()
-        assert path.startswith("/dev/") and os.path.exists(path)
-        read_state = state_file_reader(state_file)
-        with SerialLightController(path, 4, **PTY) as controller:
-            controller.switch(2)  # command 5: garbled reply, retried
-            assert read_state() == LightState(frozenset({2}), 255)
-        assert read_state().lit == frozenset()
-    finally:
-        process.send_signal(signal.SIGTERM)
-        _, err = process.communicate(timeout=30)
-    assert process.returncode == 0, err
-    assert not state_file.exists()
     with pytest.raises(RigError, match="serve-sim"):
         read_state()
 

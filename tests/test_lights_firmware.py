@@ -10,20 +10,16 @@ packages; `.ci/run` installs them.
 from __future__ import annotations
 
 import os
-import select
-import signal
-import subprocess
-import sys
 import time
 
 import pytest
 import serial
+from helpers.device_servers import switch_through_served_device
 from typer.testing import CliRunner
 
 from ps_lab.capture.light_controllers import LightState, SerialLightController
 from ps_lab.capture.simulated import avr_firmware
 from ps_lab.capture.simulated.avr_firmware import EmulatedFirmware, sketch_pins
-from ps_lab.capture.simulated.pty_server import state_file_reader
 from ps_lab.cli import app
 from ps_lab.errors import RigError
 
@@ -171,30 +167,10 @@ def test_driver_recovers_when_the_board_resets_between_commands(board):
 
 
 def test_serve_firmware_prints_the_device_path_and_serves_until_sigterm(firmware_cache, tmp_path):
-    state_file = tmp_path / "pins.json"
-    env = {**os.environ, "PS_LAB_CACHE": str(firmware_cache)}
-    process = subprocess.Popen(
-        [sys.executable, "-m", "ps_lab", "rig", "serve-firmware", "--state-file", str(state_file)],
-        stdout=subprocess.PIPE,
-        stderr=subprocess.PIPE,
-        text=True,
-        env=env,
+    switch_through_served_device(
+        ["serve-firmware"], tmp_path / "pins.json", LIGHTS, DRIVER, wait_s=60,
+        env={**os.environ, "PS_LAB_CACHE": str(firmware_cache)},
     )
-    try:
-        ready, _, _ = select.select([process.stdout], [], [], 60)
-        assert ready, "serve-firmware printed no device path"
-        path = process.stdout.readline().strip()
-        assert path.startswith("/dev/") and os.path.exists(path)
-        read_state = state_file_reader(state_file)
-        with SerialLightController(path, LIGHTS, **DRIVER) as controller:
-            controller.switch(2)
-            assert read_state() == LightState(frozenset({2}), 255)
-        assert read_state().lit == frozenset()
-    finally:
-        process.send_signal(signal.SIGTERM)
-        _, err = process.communicate(timeout=30)
-    assert process.returncode == 0, err
-    assert not state_file.exists()
 
 
 def test_missing_toolchain_is_one_error_line_naming_the_packages(monkeypatch):

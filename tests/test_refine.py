@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from helpers.solver_scenes import lights_upper, scene
 from helpers.tolerances import angles_deg, assert_within, least_squares
-from test_solvers import lights_upper, scene
 
 from ps_lab.reconstruct import (
     SolverInputError,

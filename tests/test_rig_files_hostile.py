@@ -23,6 +23,7 @@ import numpy as np
 import pytest
 
 sys.path.insert(0, str(Path(__file__).parent))
+from helpers.bad_input import CaseTable  # noqa: E402
 from helpers.hostile import (  # noqa: E402 - the sweeps' runner
     Result,
     assert_one_error_line,
@@ -357,3 +358,85 @@ def test_frames_that_are_not_a_board_are_refused(near, tmp_path) -> None:
     assert_quiet(result)
     assert snapshot(ds.parent) == before
 
+
+# --- bad input: rig files ``capture`` cannot use (the table's engine: tests/helpers/bad_input.py)
+
+
+BAD_INPUT = CaseTable()
+case = BAD_INPUT.case
+
+
+@case("x-rig-not-utf8", ("small.toml",))
+def _(w):
+    rig = w.copy("rig") / "small.toml"
+    rig.write_bytes(rig.read_bytes() + b"\n# caf\xe9\n")
+    return ["capture", "--rig", str(rig), "--out", str(w.root / "out"), "-q"]
+
+
+def rig_case(id: str, names, text: Callable[[str], str] | str, extra=()):
+    @case(id, names)
+    def _(w):
+        rig = w.copy("rig") / "small.toml"
+        rig.write_text(text(rig.read_text()) if callable(text) else text)
+        return ["capture", "--rig", str(rig), "--out", str(w.root / "out"), "-q", *extra]
+
+
+rig_case(
+    "x-rig-lights-a-word",
+    ("lights", "small.toml"),
+    lambda t: t.replace("lights = 6", 'lights = "many"'),
+)
+rig_case(
+    "x-rig-lights-negative",
+    ("lights", "small.toml"),
+    lambda t: t.replace("lights = 6", "lights = -3"),
+)
+rig_case(
+    "x-rig-exposure-nan",
+    ("exposure_s", "small.toml"),
+    lambda t: t.replace("exposure_s = 0.05", "exposure_s = nan"),
+)
+rig_case(
+    "x-rig-exposure-inf",
+    ("exposure_s", "small.toml"),
+    lambda t: t.replace("exposure_s = 0.05", "exposure_s = inf"),
+)
+rig_case(
+    "x-rig-timeout-zero",
+    ("timeout_s", "small.toml"),
+    lambda t: t.replace("timeout_s = 0.3", "timeout_s = 0"),
+)
+rig_case(
+    "x-rig-radius-nan",
+    ("radius", "small.toml"),
+    lambda t: t.replace("radius = 32.0", "radius = nan", 1),
+)
+rig_case(
+    "x-rig-unknown-key",
+    ("colour", "small.toml"),
+    lambda t: t.replace("[camera]", "[camera]\ncolour = 1"),
+)
+rig_case("x-rig-not-toml", ("small.toml",), "this is = = not toml [")
+rig_case(
+    "x-rig-scene-huge",
+    ("width", "small.toml"),
+    lambda t: t.replace("width = 160", "width = 400000").replace("height = 120", "height = 300000"),
+)
+
+
+@case("x-rig-file-missing", lambda w: (str(w.root / "nope.toml"),))
+def _(w):
+    return ["capture", "--rig", str(w.root / "nope.toml"), "--out", str(w.root / "out")]
+
+
+@case("x-rig-file-is-a-folder", lambda w: (str(w.root / "rig"),))
+def _(w):
+    return ["capture", "--rig", str(w.copy("rig")), "--out", str(w.root / "out")]
+
+
+#: The cases CI runs; ``pytest -m slow`` runs every case of the table.
+BAD_INPUT_CI = {
+    "x-rig-exposure-nan",
+    "x-rig-unknown-key",
+}
+test_bad_input = BAD_INPUT.test(BAD_INPUT_CI)

@@ -4,15 +4,9 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from helpers.solver_oracles import solve_oracle
-from helpers.tolerances import (
-    assert_flags_agree,
-    assert_within,
-    least_squares,
-    light_conditioning,
-    PL_ALBEDO,
-    solver_bounds,
-)
+from helpers.solver_checks import assert_equals_oracle
+from helpers.solver_scenes import lights_upper, scene
+from helpers.tolerances import assert_within, least_squares, light_conditioning
 
 from ps_lab.errors import DatasetError
 from ps_lab.reconstruct import (
@@ -27,36 +21,6 @@ from ps_lab.reconstruct import (
 from ps_lab.reconstruct._noise import _noise_residuals, _stable_order, light_noise_factors
 from ps_lab.reconstruct._solution import check_inputs as _check_inputs
 from ps_lab.reconstruct._tiles import sbl_lambda
-from ps_lab.render import random_light_directions, relief_surface, render, sphere_surface
-
-ORACLE_PARAMS = ("max_iter", "tol", "delta", "outlier_threshold", "sigma_x2", "gamma_floor",
-                 "gamma_start", "lam_sparse", "rho", "segments", "sbl_max_iter", "gate_noise",
-                 "gate_false_alarm")
-
-
-def lights_upper(n, rng, max_zenith_deg=60.0):
-    return random_light_directions(n, rng, max_zenith_deg=max_zenith_deg)
-
-
-def scene(kind, shape, lights, rng, *, specular=0.0):
-    """Observations (n, P) of the masked pixels, true normals (P, 3), albedo (P,)."""
-    surface = sphere_surface(shape) if kind == "sphere" else relief_surface(shape, seed=3)
-    images = render(surface, lights, specular=specular, rng=rng)
-    albedo = surface.albedo if surface.albedo.ndim == 2 else surface.albedo.mean(axis=-1)
-    return images[:, surface.mask], surface.normals[surface.mask], albedo[surface.mask]
-
-
-def oracle_params(sol):
-    p = {k: v for k, v in sol.params.items() if k in ORACLE_PARAMS}
-    if "lambda" in sol.params:
-        p["lam"] = sol.params["lambda"]
-        if p["lam"] is None:  # SBL's per-pixel default
-            p["noise_sigma"] = sol.params["noise_sigma"]
-            p["noise_floor"] = sol.params["noise_floor"]
-            p["light_noise"] = sol.params["light_noise"]
-            if "noise_sigma_pl" in sol.params:
-                p["noise_sigma_pl"] = sol.params["noise_sigma_pl"]
-    return p
 
 
 @pytest.fixture(scope="module")
@@ -69,26 +33,6 @@ def corrupted():
     y[hit] += rng.uniform(0.2, 1.0, hit.sum())
     valid = rng.random(y.shape) > 0.08
     return y, lights, valid, normals
-
-
-def assert_equals_oracle(sol, y, lights, valid, method):
-    """The solution against the per-pixel oracle run with the solution's parameters."""
-    normals, albedo, outliers, iterations, statistic = solve_oracle(
-        y, lights, method, valid, statistic=True, **oracle_params(sol))
-    same = sol.iterations == iterations
-    # rounding of the other sums (QR and n x n matrices in the oracle), plus the stopping rule
-    # where the iteration counts differ: helpers/tolerances.py, solver_bounds
-    bound, margin = solver_bounds(method, sol.params, y, lights, valid, albedo, same)
-    assert_within(sol.normals, normals, bound)
-    pl = method in ("plls", "plsbl", "auto")
-    # |d|x|| <= |dx|; the PL models' albedo also divides by the secant slope (PL_ALBEDO)
-    assert_within(sol.albedo, albedo, (PL_ALBEDO if pl else 0.5 * bound) * albedo, "albedo")
-    # The same stopping rule: counts differ only where a pixel's deciding step falls within
-    # the paths' rounding of tol (those pixels have the stopping bound above).
-    assert np.mean(same) > 0.99
-    assert_flags_agree(sol.outliers, outliers, statistic, sol.params.get("outlier_threshold"),
-                       margin)
-    return iterations
 
 
 @pytest.mark.parametrize("method", METHODS)

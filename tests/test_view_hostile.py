@@ -34,6 +34,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from helpers.bad_input import CaseTable
 from typer.testing import CliRunner
 
 from ps_lab.cli import app
@@ -864,3 +865,22 @@ def test_a_client_sending_a_byte_at_a_time_is_disconnected(quick_server, capfd):
 
 def test_the_default_timeout_is_short_enough_to_free_a_connection():
     assert 1 <= REQUEST_TIMEOUT <= 30
+
+
+# --- bad input: a folder that is not a result (the table's engine: tests/helpers/bad_input.py) ----
+
+
+BAD_INPUT = CaseTable()
+case = BAD_INPUT.case
+
+
+@case("x-view-not-a-result", lambda w: (str(w.ds), "normals.npy"))
+def _(w):
+    return ["view", str(w.png()), "--no-browser"]
+
+
+#: The cases CI runs; ``pytest -m slow`` runs every case of the table.
+BAD_INPUT_CI = {
+    "x-view-not-a-result",
+}
+test_bad_input = BAD_INPUT.test(BAD_INPUT_CI)

@@ -30,7 +30,7 @@ Method = Enum("Method", [(name, name) for name in METHODS], type=str)  # type: i
 AppearanceModel = choices(
     "AppearanceModel",
     "auto ps ptm hsh2 hsh3 rbf bln gp none",
-    "Appearance models fitted per pixel (``ps_lab.reconstruct.appearance``).",
+    "Appearance models fitted per pixel (``ps_lab.appearance.fit``).",
 )
 
 

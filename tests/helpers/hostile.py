@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import os
 import re
+import shutil
 import subprocess
 import sys
 import time
@@ -133,3 +134,19 @@ def wait_until(predicate: Callable[[], bool], proc: subprocess.Popen, timeout: f
         assert _alive(proc.pid), "the command ended before the signal could be sent"
         assert time.monotonic() < deadline, "timed out waiting for the command to get going"
         time.sleep(0.005)
+
+
+def tmpfs_prefix(mountpoint: Path) -> tuple[str, ...] | None:
+    """``unshare`` arguments that run a command with a 256 KiB tmpfs on ``mountpoint``."""
+    unshare = shutil.which("unshare")
+    if unshare is None:
+        return None
+    mountpoint.mkdir(exist_ok=True)
+    script = 'mount -t tmpfs -o size=256k tmpfs "$0" && exec "$@"'
+    probe = subprocess.run(
+        [unshare, "-rm", "sh", "-c", script, str(mountpoint), "true"], capture_output=True,
+        check=False,
+    )
+    if probe.returncode != 0:
+        return None
+    return (unshare, "-rm", "sh", "-c", script, str(mountpoint))

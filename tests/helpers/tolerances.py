@@ -19,7 +19,7 @@ from __future__ import annotations
 import numpy as np
 
 from ps_lab.reconstruct._linalg import SOLVABLE_REL_DET, pixel_scale
-from ps_lab.reconstruct._solve import LAMBDA_FLOOR
+from ps_lab.reconstruct._tiles import LAMBDA_FLOOR
 
 EPS = float(np.finfo(np.float64).eps)
 EPS32 = float(np.finfo(np.float32).eps)

@@ -1,18 +1,11 @@
-"""The third hostile sweep (issue 34): metadata, OpenEXR frames, ``.lp`` files, outline frames.
+"""Damaged image metadata, OpenEXR frames and ``.lp`` light files (the formats labs bring).
 
-The promise is the README's "Failure behaviour", as in ``tests/test_bad_input.py`` and
-``tests/test_bad_input_sweep2.py`` (whose runner and checks this reuses): exit code 2, exactly
-one line on stderr, starting with ``error:``, naming the file, nothing on stdout, no traceback,
-nothing created or changed in the case's folder and no temporary file left. Damaged colour
-metadata is not an error: the format's documented default applies (a JPEG is sRGB) with one
-``warning:`` line naming the file.
-
-Groups: ``m-`` metadata (damaged EXIF and ICC blocks, ICC curves that cannot be tone curves),
-``e-`` OpenEXR (truncated, forged data windows), ``l-`` ``.lp`` light files (names that match
-several files or rows, rows that overflow or have the wrong count), ``o-`` ``calibrate
---outline-frame``. The table runs the CLI; below it, the same surfaces called in one process
-with many more variants. The PTP/IP responder's hostile initiators are in
-``tests/test_ptpip_camera.py``.
+Damaged colour metadata is not an error: the format's documented default applies (a JPEG is
+sRGB) with one ``warning:`` line naming the file. A truncated or forged OpenEXR frame is refused
+before OpenEXR reads it; a ``.lp`` name that matches several files or rows, a row that overflows
+or has the wrong count, is named with its line. The surfaces are called in one process with many
+variants, and through ``ps-lab reconstruct`` (the table) as a user runs it. The PTP/IP
+responder's hostile initiators are in ``tests/test_ptpip_camera.py``.
 """
 
 from __future__ import annotations
@@ -21,44 +14,28 @@ import json
 import logging
 import shutil
 import struct
-import sys
 import zlib
 from collections.abc import Callable
-from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass, field
 from pathlib import Path
 
 import cv2
 import numpy as np
 import OpenEXR
 import pytest
+import tifffile
+from helpers.bad_input import CaseTable, Workspace, named, png_chunk
+from helpers.hostile import Result, temporary_leftovers
 
-sys.path.insert(0, str(Path(__file__).parent))
-from helpers.hostile import (  # noqa: E402 - the sweeps' runner
-    Result,
-    assert_one_error_line,
-    assert_quiet,
-    snapshot,
-    temporary_leftovers,
-)
-from helpers.hostile import (
-    run as _run,
-)
-from test_bad_input import SMALL_RIG, png_chunk  # noqa: E402 - the first sweep's rig
-
-from ps_lab.errors import DatasetError  # noqa: E402
-from ps_lab.io import encoding as encoding_module  # noqa: E402
-from ps_lab.io import images as images_module  # noqa: E402
-from ps_lab.io.encoding import image_encoding, linear_to_srgb, srgb_to_linear  # noqa: E402
-from ps_lab.io.images import is_supported, read_image  # noqa: E402
-from ps_lab.io.light_files import lp_directions_for, lp_image_files, read_lp_rows  # noqa: E402
+from ps_lab.errors import DatasetError
+from ps_lab.io import encoding as encoding_module
+from ps_lab.io import images as images_module
+from ps_lab.io.encoding import image_encoding, srgb_to_linear
+from ps_lab.io.images import is_supported, read_image
+from ps_lab.io.light_files import lp_directions_for, lp_image_files, read_lp_rows
 
 
-def run(args: list[str], cwd: Path, home: Path, timeout: float = 120) -> Result:
-    """Every CLI run of the sweep: no numpy warning or traceback, whatever the exit code."""
-    result = _run(args, cwd, home, timeout)
-    assert_quiet(result)
-    return result
+CASES = CaseTable(timeout=180, quiet_stdout=True)
+case = CASES.case
 
 
 # --- damaged metadata, built byte by byte ------------------------------------------------------
@@ -384,90 +361,22 @@ def test_lp_matches_by_path_and_names_the_line(name, tmp_path):
         np.testing.assert_allclose(resolve(), LP_DIRECTIONS[list(expected)], atol=1e-12)
 
 
-# --- the table of commands ---------------------------------------------------------------------
-
-
-@pytest.fixture(scope="session")
-def made(tmp_path_factory) -> dict[str, Path]:
-    """A 16x16 dataset as JPEG, EXR and .lp variants, and a small capture run (made once)."""
-    root = tmp_path_factory.mktemp("sweep3")
-    home = tmp_path_factory.mktemp("sweep3-home")
-    png = root / "png"
-    assert run(["simulate", str(png), "--size", "16", "--lights", "8"], root, home).code == 0
-    names = (png / "filenames.txt").read_text().split()
-    jpeg, exr, lp = root / "jpeg", root / "exr", root / "lp"
-    for folder, suffix in ((jpeg, ".jpg"), (exr, ".exr")):
-        folder.mkdir()
-        shutil.copy(png / "light_directions.txt", folder)
-        shutil.copy(png / "mask.png", folder)
-        (folder / "filenames.txt").write_text("".join(Path(n).stem + suffix + "\n" for n in names))
-    for name in names:
-        linear = read_image(png / name).data
-        encoded = np.round(linear_to_srgb(linear) * 255).astype(np.uint8)
-        ok, data = cv2.imencode(".jpg", encoded, [cv2.IMWRITE_JPEG_QUALITY, 100])
-        assert ok
-        (jpeg / f"{Path(name).stem}.jpg").write_bytes(data.tobytes())
-        rgb = np.repeat(linear, 3, axis=2) if linear.shape[2] == 1 else linear
-        channels = {c: np.ascontiguousarray(rgb[..., k].astype(np.float16))
-                    for k, c in enumerate("RGB")}  # fmt: skip
-        with OpenEXR.File({"type": OpenEXR.scanlineimage}, channels) as file:
-            file.write(str(exr / f"{Path(name).stem}.exr"))
-    shutil.copytree(png, lp)
-    directions = np.loadtxt(png / "light_directions.txt")
-    rows = [f"{n} {x:.6f} {y:.6f} {z:.6f}" for n, (x, y, z) in zip(names, directions, strict=True)]
-    (lp / "light_directions.txt").unlink()
-    (lp / "filenames.txt").unlink()
-    (lp / "dirs.lp").write_text(f"{len(rows)}\n" + "\n".join(rows) + "\n")
-    rig = root / "rig.toml"
-    rig.write_text(SMALL_RIG)
-    captured = run(["capture", "--rig", str(rig), "--out", str(root / "run"), "-q"], root, home)
-    assert captured.code == 0, captured.stderr
-    return {"png": png, "jpeg": jpeg, "exr": exr, "lp": lp, "run": root / "run"}
-
-
-@dataclass
-class W:
-    """One case's folder (``root``, snapshotted) and home (cache, TMPDIR)."""
-
-    root: Path
-    home: Path
-    made: dict[str, Path]
-    notes: dict = field(default_factory=dict)
-
-    def copy(self, name: str) -> Path:
-        target = self.root / name
-        shutil.copytree(self.made[name], target, symlinks=True)
-        return target
-
-
-@dataclass
-class Case:
-    id: str
-    build: Callable[[W], list[str]]
-    names: Callable[[W], tuple[str, ...]]
-    code: int = 2
-
-
-CASES: list[Case] = []
-
-
-def case(id, names, *, code=2):
-    def register(build):
-        CASES.append(Case(id, build, names if callable(names) else (lambda w, n=names: tuple(n)),
-                          code))  # fmt: skip
-        return build
-
-    return register
-
-
-def _named(*parts: str) -> Callable[[W], tuple[str, ...]]:
-    return lambda w: (str(w.root.joinpath(*parts)),)
-
-
 # m: damaged metadata decodes as the documented default, with one warning naming the file
 
 
-def _damage_first_jpeg(w: W, damage: str) -> Path:
+def _srgb_with_one_warning(w: Workspace, result: Result, line: str | None) -> None:
+    """A result, decoded as sRGB, and one warning line naming the damaged JPEG."""
+    assert not temporary_leftovers(w.home), "temporary files left behind"
+    assert result.code == 0, result.stderr
+    assert "Traceback" not in result.stderr
+    warnings = [line for line in result.lines if line.startswith("warning:")]
+    assert len(warnings) == 1 and len(result.lines) == 1, result.stderr
+    assert str(w.root / "jpeg" / "001.jpg") in warnings[0], warnings[0]
+    metrics = json.loads((w.root / "out" / "metrics.json").read_text())
+    assert metrics["encoding"].startswith("srgb"), metrics["encoding"]
+
+
+def _damage_first_jpeg(w: Workspace, damage: str) -> Path:
     ds = w.copy("jpeg")
     first = ds / "001.jpg"
     first.write_bytes(with_segments(first.read_bytes(), *DAMAGED_JPEG[damage]))
@@ -477,7 +386,7 @@ def _damage_first_jpeg(w: W, damage: str) -> Path:
 for _damage in ("exif-truncated-ifd", "exif-empty", "icc-truncated-tag-table", "icc-zero-slope",
                 "icc-negative-gamma"):  # fmt: skip
 
-    @case(f"m-jpeg-{_damage}", _named("jpeg", "001.jpg"), code=0)
+    @case(f"m-jpeg-{_damage}", named("jpeg", "001.jpg"), code=0, check=_srgb_with_one_warning)
     def _(w, damage=_damage):
         return ["reconstruct", str(_damage_first_jpeg(w, damage)), "--method", "ls", "--out",
                 str(w.root / "out")]  # fmt: skip
@@ -486,13 +395,13 @@ for _damage in ("exif-truncated-ifd", "exif-empty", "icc-truncated-tag-table", "
 # e: OpenEXR frames
 
 
-@case("e-exr-truncated", _named("exr", "003.exr"))
+@case("e-exr-truncated", named("exr", "003.exr"))
 def _(w):
     _exr_cut(w.copy("exr") / "003.exr", 2 / 3)
     return ["reconstruct", str(w.root / "exr"), "--method", "ls", "--out", str(w.root / "out")]
 
 
-@case("e-exr-forged-data-window", _named("exr", "002.exr"))
+@case("e-exr-forged-data-window", named("exr", "002.exr"))
 def _(w):
     forge_data_window(w.copy("exr") / "002.exr", (0, 0, 999_999, 999_999))
     return ["reconstruct", str(w.root / "exr"), "--method", "ls", "--out", str(w.root / "out")]
@@ -501,21 +410,21 @@ def _(w):
 # l: .lp light files
 
 
-def _lp_rows(w: W, edit: Callable[[list[str]], list[str]]) -> Path:
+def _lp_rows(w: Workspace, edit: Callable[[list[str]], list[str]]) -> Path:
     ds = w.copy("lp")
     lines = (ds / "dirs.lp").read_text().splitlines()
     (ds / "dirs.lp").write_text("\n".join(edit(lines)) + "\n")
     return ds
 
 
-@case("l-lp-two-rows-one-image", _named("lp", "dirs.lp"))
+@case("l-lp-two-rows-one-image", named("lp", "dirs.lp"))
 def _(w):
     ds = _lp_rows(w, lambda lines: [lines[0], lines[1], lines[1].replace("001.png", "001.jpg", 1),
                                     *lines[3:]])  # fmt: skip
     return ["reconstruct", str(ds), "--method", "ls", "--out", str(w.root / "out")]
 
 
-@case("l-lp-stem-matches-two-files", _named("lp", "dirs.lp"))
+@case("l-lp-stem-matches-two-files", named("lp", "dirs.lp"))
 def _(w):
     ds = _lp_rows(w, lambda lines: [lines[0], lines[1].replace("001.png", "001.jpg", 1),
                                     *lines[2:]])  # fmt: skip
@@ -523,135 +432,16 @@ def _(w):
     return ["reconstruct", str(ds), "--method", "ls", "--out", str(w.root / "out")]
 
 
-@case("l-lp-row-overflows", _named("lp", "dirs.lp"))
+@case("l-lp-row-overflows", named("lp", "dirs.lp"))
 def _(w):
     ds = _lp_rows(w, lambda lines: [*lines[:3], "003.png 1e200 1e200 1e200", *lines[4:]])
     return ["reconstruct", str(ds), "--method", "ls", "--out", str(w.root / "out")]
 
 
-@case("l-lp-row-four-numbers", _named("lp", "dirs.lp"))
+@case("l-lp-row-four-numbers", named("lp", "dirs.lp"))
 def _(w):
     ds = _lp_rows(w, lambda lines: [*lines[:2], lines[2] + " 0.5", *lines[3:]])
     return ["reconstruct", str(ds), "--method", "ls", "--out", str(w.root / "out")]
-
-
-# o: calibrate --outline-frame
-
-
-def _outline_case(id: str, write: Callable[[Path], None]):
-    @case(id, _named("outline.png"))
-    def _(w):
-        run_folder = w.copy("run")
-        write(w.root / "outline.png")
-        return ["calibrate", str(run_folder), "--outline-frame", str(w.root / "outline.png"),
-                "--out", str(w.root / "out")]  # fmt: skip
-
-
-_outline_case("o-outline-frame-black", lambda p: cv2.imwrite(str(p), np.zeros((120, 160), np.uint8)))
-_outline_case("o-outline-frame-dark-noise", lambda p: cv2.imwrite(
-    str(p), np.random.default_rng(1).integers(0, 3, (120, 160)).astype(np.uint8)))
-_outline_case("o-outline-frame-wrong-size", lambda p: cv2.imwrite(
-    str(p), np.full((60, 80), 128, np.uint8)))
-_outline_case("o-outline-frame-unreadable", lambda p: p.write_bytes(b"\x89PNG\r\n\x1a\n" + bytes(9)))
-
-
-@dataclass
-class Outcome:
-    w: W
-    result: Result | None = None
-    before: dict | None = None
-    error: BaseException | None = None
-
-
-def _run_case(c: Case, w: W) -> Outcome:
-    outcome = Outcome(w)
-    try:
-        args = c.build(w)
-        outcome.before = snapshot(w.root)
-        outcome.result = run(args, w.root, w.home, timeout=180)
-    except Exception as exc:  # noqa: BLE001 - reported by the case's own test
-        outcome.error = exc
-    return outcome
-
-
-@pytest.fixture(scope="session")
-def table(request, made, tmp_path_factory) -> dict[str, Outcome]:
-    """Run the selected cases, two at a time (each is a separate ``ps-lab`` process)."""
-    chosen = [item.callspec.params["c"] for item in request.session.items
-              if getattr(item, "originalname", "") == "test_sweep3"
-              and not item.get_closest_marker("skip")]  # fmt: skip
-    spaces = []
-    for c in chosen:
-        folder = tmp_path_factory.mktemp(c.id)
-        (folder / "home").mkdir()
-        (folder / "case").mkdir()
-        spaces.append(W(folder / "case", folder / "home", made))
-    with ThreadPoolExecutor(max_workers=2) as pool:
-        outcomes = list(pool.map(_run_case, chosen, spaces))
-    return {c.id: o for c, o in zip(chosen, outcomes, strict=True)}
-
-
-# `make test` runs these (one or two per group; the variants are checked in one process below);
-# `make test-slow` the whole table.
-CI_CASES = {
-    "m-jpeg-exif-truncated-ifd",
-    "m-jpeg-icc-zero-slope",
-    "e-exr-truncated",
-    "e-exr-forged-data-window",
-    "l-lp-two-rows-one-image",
-    "l-lp-row-overflows",
-    "o-outline-frame-black",
-}
-
-
-def _params() -> list:
-    unknown = CI_CASES - {c.id for c in CASES}
-    assert not unknown, unknown
-    return [pytest.param(c, id=c.id, marks=() if c.id in CI_CASES else pytest.mark.slow)
-            for c in CASES]  # fmt: skip
-
-
-@pytest.mark.parametrize("c", _params())
-def test_sweep3(c: Case, table: dict[str, Outcome]) -> None:
-    outcome = table[c.id]
-    if outcome.error is not None:
-        raise outcome.error
-    result = outcome.result
-    assert result is not None
-    assert not temporary_leftovers(outcome.w.home), "temporary files left behind"
-    if c.code == 0:  # damaged metadata: a result, and one warning line naming the file
-        assert result.code == 0, result.stderr
-        assert "Traceback" not in result.stderr
-        warnings = [line for line in result.lines if line.startswith("warning:")]
-        assert len(warnings) == 1 and len(result.lines) == 1, result.stderr
-        assert c.names(outcome.w)[0] in warnings[0], warnings[0]
-        metrics = json.loads((outcome.w.root / "out" / "metrics.json").read_text())
-        assert metrics["encoding"].startswith("srgb"), metrics["encoding"]
-        return
-    assert_one_error_line(result, c.names(outcome.w), c.code)
-    assert result.stdout == "", result.stdout
-    assert snapshot(outcome.w.root) == outcome.before, "files created or changed"
-
-
-# --- the outline frame, in one process -----------------------------------------------------------
-
-
-def test_outline_frame_is_used_when_sound_and_named_when_not(rng):
-    from ps_lab.calibration import calibrate, summary_image
-    from ps_lab.errors import CalibrationError
-    from ps_lab.render import random_light_directions, render_chrome_sphere
-
-    shape, centre, radius = (120, 160), (60.3, 58.1), 40.0
-    lights = random_light_directions(8, rng, max_zenith_deg=40.0)
-    frames = render_chrome_sphere(shape, centre, radius, lights, ambient=1.0)
-    sound = calibrate(frames, outline=summary_image(frames), outline_name="ref.png")
-    assert sound.outline_source == "outline frame"
-    assert np.hypot(sound.circle.x - centre[0], sound.circle.y - centre[1]) < 0.5
-    for frame, reason in ((np.zeros(shape), " is black"), (np.full(shape, 0.3), " is blank"),
-                          (rng.uniform(0, 0.01, shape), ": ")):  # fmt: skip
-        with pytest.raises(CalibrationError) as refused:
-            calibrate(frames, outline=frame, outline_name="ref.png")
-        assert str(refused.value).startswith(f"ref.png{reason}"), str(refused.value)
 
 
 @pytest.mark.parametrize(
@@ -670,3 +460,15 @@ def test_tiff_profile_damage_keeps_the_tiff_rule_and_warns(profile, label, warne
     assert image_encoding(path).label == label
     messages = [r.getMessage() for r in warnings_logged.records]
     assert len(messages) == int(warned) and all(m.startswith(f"{path}: ") for m in messages)
+
+
+#: The cases CI runs; ``pytest -m slow`` runs every case of the table.
+CI_CASES = {
+    "e-exr-forged-data-window",
+    "e-exr-truncated",
+    "l-lp-row-overflows",
+    "l-lp-two-rows-one-image",
+    "m-jpeg-exif-truncated-ifd",
+    "m-jpeg-icc-zero-slope",
+}
+test_bad_input = CASES.test(CI_CASES)
