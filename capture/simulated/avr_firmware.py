@@ -31,6 +31,7 @@ from pathlib import Path
 
 from ps_lab.capture.light_controllers import LightState
 from ps_lab.capture.simulated.pty_server import read_state_file, serve_until_interrupted
+from ps_lab.capture.simulated.serving import ServedSimulator
 from ps_lab.errors import RigError
 from ps_lab.io.files import staged_folder
 
@@ -250,7 +251,7 @@ def _read_pin_state(path: Path) -> PinState:
     )
 
 
-class EmulatedFirmware:
+class EmulatedFirmware(ServedSimulator):
     """The compiled sketch running in simavr on a pty (the simavr harness as a child process).
 
     Parameters
@@ -415,21 +416,16 @@ class EmulatedFirmware:
             self._own_state_dir = None
             self.state_file = None
 
-    def serve_forever(self) -> None:
-        """Block until the harness ends or Ctrl-C; then stop."""
-        try:
-            assert self._process is not None
-            status = self._process.wait()
-            if status != 0:
-                raise RigError(f"the simavr harness stopped with status {status}")
-        finally:
-            self.stop()
+    @property
+    def serving(self) -> bool:
+        return self._process is not None
 
-    def __enter__(self) -> EmulatedFirmware:
-        return self.start() if self._process is None else self
-
-    def __exit__(self, *exc_info: object) -> None:
-        self.stop()
+    def _wait(self) -> None:
+        """Until the harness ends; a non-zero status is a failure."""
+        assert self._process is not None
+        status = self._process.wait()
+        if status != 0:
+            raise RigError(f"the simavr harness stopped with status {status}")
 
 
 #: ``e_machine`` of an Atmel AVR ELF file (the Uno's ATmega328P).

@@ -44,6 +44,7 @@ from typing import Any
 
 from ps_lab.capture.faults import PTPIP_FAULT_KINDS, Fault
 from ps_lab.capture.simulated import ptp
+from ps_lab.capture.simulated.serving import ServedSimulator, join_thread
 from ps_lab.errors import RigError
 
 __all__ = ["DEFAULT_PORT", "PtpIpCamera", "ServedFrame", "dng_shooter"]
@@ -139,7 +140,7 @@ def dng_shooter(camera: Any) -> Shooter:
     return shoot
 
 
-class PtpIpCamera:
+class PtpIpCamera(ServedSimulator):
     """A PTP/IP responder serving frames from ``shoot`` on ``host:port``.
 
     Parameters
@@ -295,19 +296,12 @@ class PtpIpCamera:
             worker.join(timeout=30.0)
         self._workers.clear()
 
-    def serve_forever(self) -> None:
-        """Block until interrupted (Ctrl-C) or stopped."""
-        try:
-            while self._thread is not None and self._thread.is_alive():
-                self._thread.join(timeout=0.2)
-        finally:
-            self.stop()
+    @property
+    def serving(self) -> bool:
+        return self._thread is not None
 
-    def __enter__(self) -> PtpIpCamera:
-        return self.start() if self._thread is None else self
-
-    def __exit__(self, *exc_info: object) -> None:
-        self.stop()
+    def _wait(self) -> None:
+        join_thread(self._thread)
 
     # -- connections ------------------------------------------------------------------------
     def _accept(self) -> None:

@@ -20,6 +20,7 @@ from typing import Any
 
 from ps_lab.capture.light_controllers import LightState
 from ps_lab.capture.simulated.firmware import LineAssembler, Reply, SimulatedFirmware, _Outbox
+from ps_lab.capture.simulated.serving import ServedSimulator, join_thread
 from ps_lab.errors import RigError
 
 log = logging.getLogger("ps_lab.capture.simulated.firmware")
@@ -77,7 +78,7 @@ def state_file_reader(path: Path | str) -> Callable[[], LightState]:
     return read
 
 
-class PtyServer:
+class PtyServer(ServedSimulator):
     """Serve a simulated controller on a pseudo-terminal, so drivers open it as a serial device.
 
     Parameters
@@ -160,13 +161,16 @@ class PtyServer:
                     pass
         self._master = self._slave = None
 
+    @property
+    def serving(self) -> bool:
+        return self._thread is not None
+
+    def _wait(self) -> None:
+        join_thread(self._thread)
+
     def serve_forever(self) -> None:
         """Block until interrupted (Ctrl-C) or until the server thread fails; then stop."""
-        try:
-            while self._thread is not None and self._thread.is_alive():
-                self._thread.join(timeout=0.2)
-        finally:
-            self.stop()
+        super().serve_forever()
         if self._error is not None:
             raise RigError(f"simulated controller stopped: {self._error}")
 

@@ -139,23 +139,11 @@ function coefficientTexture(result, entry, buffer, planes) {
 }
 
 function uploadTile(result, entry, buffer) {
-  const size = result.levels[entry.level];
-  const t = result.tile;
-  const w = Math.min(t, size.width - entry.col * t), h = Math.min(t, size.height - entry.row * t);
-  const halves = new Uint16Array(buffer);
-  entry.w = w; entry.h = h; entry.data = halves;
-  entry.textures = [0, 1].map((plane) => {
-    const texture = gl.createTexture();
-    gl.bindTexture(gl.TEXTURE_2D, texture);
-    gl.pixelStorei(gl.UNPACK_ALIGNMENT, 1);
-    gl.texImage2D(gl.TEXTURE_2D, 0, gl.RGBA16F, w, h, 0, gl.RGBA, gl.HALF_FLOAT,
-      halves.subarray(plane * w * h * 4, (plane + 1) * w * h * 4));
-    gl.texParameteri(gl.TEXTURE_2D, gl.TEXTURE_MIN_FILTER, gl.LINEAR);
-    gl.texParameteri(gl.TEXTURE_2D, gl.TEXTURE_MAG_FILTER, entry.level === 0 ? gl.NEAREST : gl.LINEAR);
-    gl.texParameteri(gl.TEXTURE_2D, gl.TEXTURE_WRAP_S, gl.CLAMP_TO_EDGE);
-    gl.texParameteri(gl.TEXTURE_2D, gl.TEXTURE_WRAP_T, gl.CLAMP_TO_EDGE);
-    return texture;
-  });
+  const size = result.levels[entry.level], t = result.tile;
+  entry.w = Math.min(t, size.width - entry.col * t);
+  entry.h = Math.min(t, size.height - entry.row * t);
+  entry.data = new Uint16Array(buffer);
+  entry.textures = textures(result, entry, buffer);
   entry.ready = true;
   stats.tilesLoaded++;
 }
