@@ -44,7 +44,7 @@ uniform float u_basis[16];   // the basis at the light (ptm / hsh, and ps's hsh 
 // lit side (lx, ly, lz: the light's component), 5 lobex:P / lobey:P (u_basis: h's component)
 uniform int u_kind[16];
 uniform float u_power[16];   // ps lobes: the exponent P
-uniform bool u_vis;          // ps visibility: coefficients 3K .. 3K + 3 hold w (io/appearance.py)
+uniform bool u_vis;          // ps visibility: coefficients 3K .. 3K + 3 hold w (appearance/models.py)
 uniform vec3 u_rbf[32];      // rbf, bln, gp: sum_i w_i(l) B_c[i, k], channel c in x, y, z
 uniform bool u_shared;       // rbf, bln, gp: one coefficient per term (index k), else 3k + c
 uniform bool u_srgb;         // a fit in sRGB-encoded space: its prediction decoded to linear
@@ -69,7 +69,7 @@ float coefficient(ivec2 px, int i) {
 vec3 linear(vec3 c) {      // io/encoding.py: srgb_to_linear
   return mix(c / 12.92, pow((c + 0.055) / 1.055, vec3(2.4)), step(0.04045, c));
 }
-vec3 prediction(vec3 n, vec3 albedo) {    // io/appearance.py: evaluate_appearance, per pixel
+vec3 prediction(vec3 n, vec3 albedo) {    // appearance/models.py: evaluate_appearance, per pixel
   ivec2 px = clamp(ivec2(v_uv * vec2(u_tsize)), ivec2(0), u_tsize - 1);
   float nl = dot(n, u_light);
   vec3 h = normalize(u_light + vec3(0.0, 0.0, 1.0));
@@ -103,7 +103,7 @@ vec3 prediction(vec3 n, vec3 albedo) {    // io/appearance.py: evaluate_appearan
         float p = u_power[k] - 1.0;
         b = nl > 0.0 ? (p > 0.0 ? pow(nh, p) : 1.0) * u_basis[k] : 0.0;
       }
-      if (kind == 0 || kind == 2 || kind == 4 || kind == 5) b *= V;   // io/appearance.py: is_direct
+      if (kind == 0 || kind == 2 || kind == 4 || kind == 5) b *= V;   // appearance/models.py: is_direct
     }
     c += b * vec3(coefficient(px, 3 * k), coefficient(px, 3 * k + 1), coefficient(px, 3 * k + 2));
   }
@@ -170,7 +170,7 @@ void main() {
   o = vec4(pow(clamp(c, 0.0, 1.0), vec3(1.0 / 2.2)), 1.0);
 }`;
 
-// ---- appearance bases (ps_lab/io/appearance.py) --------------------------------------------------
+// ---- appearance bases (ps_lab/appearance/models.py) --------------------------------------------------
 function unitVector(l) { const n = Math.hypot(...l) || 1; return l.map((x) => x / n); }
 
 function hshBasis(l) {    // Gautron et al. 2004 as RTIBuilder / RelightLab define them, 9 terms
@@ -184,7 +184,7 @@ function hshBasis(l) {    // Gautron et al. 2004 as RTIBuilder / RelightLab defi
   ];
 }
 
-// The interpolating models' weights over the n training lights (io/smoothers.py), float64.
+// The interpolating models' weights over the n training lights (appearance/smoothers.py), float64.
 function gaussianWeights(lights, sigma, u) {    // gaussian_weights: normalised, of a unit u
   const n = lights.length / 3, w = new Float64Array(n);
   let top = -Infinity, total = 0;
@@ -224,7 +224,7 @@ function gpWeights(lights, sigma, solve, u) {    // gp_weights: [k(l, L), ptm(l)
   return w;
 }
 
-// rbf, bln, gp (io/appearance.py: smoother_weights, evaluate_appearance): per channel c and term
+// rbf, bln, gp (appearance/models.py: smoother_weights, evaluate_appearance): per channel c and term
 // k, sum_i w_i(l) B_c[i, k].
 function rbfUniforms(fit, l) {
   const out = new Float32Array(96);
@@ -255,7 +255,7 @@ function appearanceUniforms(fit, l) {
   const [x, y] = unitVector(l);
   if (fit.model === "ptm") basis.set([1, x, y, x * x, x * y, y * y]);
   else if (fit.model === "hsh2" || fit.model === "hsh3") basis.set(hshBasis(l).slice(0, fit.K));
-  else {   // io/appearance.py: ps_term
+  else {   // appearance/models.py: ps_term
     const hsh = hshBasis(l), u = unitVector(l), h = unitVector([u[0], u[1], u[2] + 1]);
     fit.terms.forEach((term, k) => {
       const [name, arg] = term.split(":");
