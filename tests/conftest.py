@@ -110,17 +110,21 @@ def workspace(tmp_path, templates) -> Workspace:
     return Workspace(root, home, templates)
 
 
-@pytest.fixture(scope="session")
+@pytest.fixture(scope="module")
 def bad_input_outcomes(request, templates, tmp_path_factory) -> dict[str, Outcome]:
-    """Run every selected case of every bad-input table at once, a few commands in parallel.
+    """Run every selected case of this test module's bad-input tables at once, a few commands in
+    parallel.
 
     Each command is a separate process that mostly imports and reads; running them side by side
-    keeps the tables' wall time near their CPU time divided by the cores.
+    keeps the tables' wall time near their CPU time divided by the cores. Per module, not per
+    session: with the tests spread over processes (pytest-xdist, a file to a worker), each
+    worker runs the cases of the files it was given, not every file's.
     """
     chosen = [
         value
         for item in request.session.items
-        if hasattr(item, "callspec") and not item.get_closest_marker("skip")
+        if getattr(item, "module", None) is request.module
+        and hasattr(item, "callspec") and not item.get_closest_marker("skip")
         for value in item.callspec.params.values()
         if isinstance(value, Case)
     ]
