@@ -1,13 +1,18 @@
-"""The one 3x3 symmetric inverse (closed form, by cofactors), scalar and vectorised over pixels.
+"""Small dense linear algebra of the per-pixel kernels, inlined into them, and its vectorised forms.
 
+The one 3x3 symmetric inverse (closed form, by cofactors), scalar and vectorised over pixels.
 A symmetric 3x3 matrix is stored as its six unique entries in the order
 ``(xx, yy, zz, xy, xz, yz)`` so that the per-pixel normal matrices ``sum_i w_i a_i a_i^T`` of a
 whole tile are one matrix product ``w @ outer6(A)``. One rule for a singular matrix everywhere:
 ``det <= rel_eps (trace / 3)^3`` (or ``trace <= 0``), with ``rel_eps`` at least
 :data:`SINGULAR_REL_DET`; its inverse is then zeros and ``ok`` False (callers choose what an
 unsolvable fit means to them). :func:`inverse3` / :func:`solve3` are the numba scalar forms
-(inlined into the kernels), :func:`inverse6` the numpy one. Also the robust per-pixel scale
-(:func:`pixel_scale`) that every solver divides by.
+(inlined into the kernels; :func:`weighted_sums3` forms their normal equations from a light
+table), :func:`inverse6` the numpy one. For the piecewise-linear kernel: the 5x5 symmetric
+inverse by blocks (:func:`inverse5`), the Cholesky inverse of a small symmetric positive
+definite matrix (:func:`cholesky_inverse`) and a selection (:func:`select_kth`, an order
+statistic without a sort). Also the robust per-pixel scale (:func:`pixel_scale`) that every
+solver divides by.
 """
 
 from __future__ import annotations
@@ -63,6 +68,31 @@ def solve3(xx, yy, zz, xy, xz, yz, t0, t1, t2):
     ok, i00, i11, i22, i01, i02, i12 = inverse3(xx, yy, zz, xy, xz, yz, SINGULAR_REL_DET)
     return (i00 * t0 + i01 * t1 + i02 * t2, i01 * t0 + i11 * t1 + i12 * t2,
             i02 * t0 + i12 * t1 + i22 * t2, i00, i11, i22, i01, i02, i12)
+
+
+@njit(inline="always")
+def weighted_sums3(v, y, tab, n):
+    """Normal equations of a weighted 3-unknown fit: ``sum_i v_i a_i a_i^T`` (6) and
+    ``sum_i v_i y_i a_i`` (3), ``(xx, yy, zz, xy, xz, yz, t0, t1, t2)``.
+
+    ``v``, ``y`` (n,) the weights and targets; ``tab`` (9, n) the light table of the kernels:
+    ``a_i a_i^T`` on rows 0-5 (as :func:`outer6`), ``a_i`` on rows 6-8.
+    """
+    xx = yy = zz = xy = xz = yz = 0.0
+    t0 = t1 = t2 = 0.0
+    for i in range(n):
+        vi = v[i]
+        xx += vi * tab[0, i]
+        yy += vi * tab[1, i]
+        zz += vi * tab[2, i]
+        xy += vi * tab[3, i]
+        xz += vi * tab[4, i]
+        yz += vi * tab[5, i]
+        vy = vi * y[i]
+        t0 += vy * tab[6, i]
+        t1 += vy * tab[7, i]
+        t2 += vy * tab[8, i]
+    return xx, yy, zz, xy, xz, yz, t0, t1, t2
 
 
 @njit(inline="always")

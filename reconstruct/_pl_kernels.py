@@ -62,14 +62,11 @@ from ._pl_model import (
     _SEG,
     _T,
     STATE_ROWS,
-    MIN_PER_SEGMENT,
     SLOPE_FLOOR,
     TAU_FLOOR,
     CHOICE_Z,
     GATE_FALSE_ALARM,
-    _usable,
-    _lit,
-    _breaks,
+    _break_points,
     _design3,
     _design,
     _normal_equations,
@@ -225,37 +222,14 @@ def _pl_pixel(y, w, lights, p, k_max, lam_row, ridge, learn_tau, max_iter, tol, 
     failed solve, a segment holding observations with a slope <= 0), else 0.
     """
     n = y.shape[1]
-    cnt = _usable(y, w, p, n, vals)
-    # at least MIN_PER_SEGMENT observations per segment (a segment's slope is fitted on its own
-    # observations: with fewer, it can bend to fit a corrupted one)
-    k = k_max if k_max < cnt // MIN_PER_SEGMENT else cnt // MIN_PER_SEGMENT
-    k = k if k > 1 else 1
+    k = _break_points(y, w, lights, p, n, k_max, fit, use_fit, vals, breaks)
     u = k + 2
-    # interior break points from the observations the Lambertian fit sees lit (_lit; all usable
-    # ones without that fit or with fewer than MIN_PER_SEGMENT a segment); b_K the largest usable
-    top = breaks[0]
-    if use_fit and k > 1:
-        top = vals[0]
-        for i in range(1, cnt):
-            top = vals[i] if vals[i] > top else top
-    lit = _lit(y, w, lights, p, n, fit[0], fit[1], fit[2], vals) if use_fit and k > 1 else 0
-    if lit < k * MIN_PER_SEGMENT:
-        _usable(y, w, p, n, vals)
-        lit = cnt
-    _breaks(vals, lit, k, breaks)
-    breaks[k] = top if lit < cnt else breaks[k]
     tau2 = 1.0
     scale2 = 1.0 / (k * k)
     if k == 3:
         _design3(y, w, lights, p, lam_row, scale2, start * scale2, sbl, st, tab, breaks)
     else:
-        _design(y, w, lights, p, k, st, tab, breaks)
-        for i in range(n):
-            st[_LAM0, i] = lam_row[i]
-            st[_LAM, i] = lam_row[i] * scale2
-            st[_G, i] = start * scale2
-            st[_D, i] = st[_W, i] / ((st[_G, i] if sbl else 0.0) + st[_LAM, i])
-            st[_Z, i] = 0.0
+        _design(y, w, lights, p, k, lam_row, scale2, start, sbl, st, tab, breaks)
     if use_g0 and sbl:
         # the EM starts from the Lambertian model's robust fit (SBL's final gamma, in f's units)
         for i in range(n):
@@ -531,8 +505,8 @@ def pl_tile(y, w, lights, *, segments: int, lam, sigma_x2: float = 1e6, max_iter
     choose : bool
         Solve each pixel with ``K = 1`` (SBL, at most ``sbl_max_iter`` iterations) too and keep
         the ``K``-segment model only where it predicts the pixel's observations better, left out
-        in turn, by more than ``choice_z`` standard errors (:func:`._pl_model._choose`); ``evidence`` is
-        then that margin (> 0 where PL was kept).
+        in turn, by more than ``choice_z`` standard errors (:func:`._pl_model._choose`);
+        ``evidence`` is then that margin (> 0 where PL was kept).
     choice_z : float
         The margin of the choice, in standard errors of the leave-one-out gain.
 

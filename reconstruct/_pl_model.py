@@ -37,7 +37,7 @@ from scipy.special import chdtri  # chi^2 upper quantile: scipy.stats costs 0.7 
 from ps_lab.jit import INLINE
 
 from . import _kernels
-from ._linalg import SINGULAR_REL_DET, cholesky_inverse, inverse3, select_kth
+from ._linalg import SINGULAR_REL_DET, cholesky_inverse, inverse3, select_kth, weighted_sums3
 
 # Rows of the per-pixel state: usable (1/0), observation noise in y units, in f units, gamma,
 # d = w / (gamma + lambda), corruption estimate of the last iteration, residual, a^T M^-1 a,
@@ -120,6 +120,33 @@ def _breaks(vals, cnt, k, breaks):
 
 
 @njit(**INLINE)
+def _break_points(y, w, lights, p, n, k_max, fit, use_fit, vals, breaks):
+    """Pixel p's segments (up to ``k_max``) and their break points (``breaks[:k + 1]``); ``k``.
+
+    At least ``MIN_PER_SEGMENT`` usable observations per segment (a segment's slope is fitted
+    on its own observations: with fewer, it can bend to fit a corrupted one). The interior break
+    points from the observations the Lambertian fit ``fit`` sees lit (:func:`_lit`, where
+    ``use_fit``; all usable ones without that fit or with fewer than ``MIN_PER_SEGMENT`` a
+    segment); ``b_K`` the largest usable observation.
+    """
+    cnt = _usable(y, w, p, n, vals)
+    k = k_max if k_max < cnt // MIN_PER_SEGMENT else cnt // MIN_PER_SEGMENT
+    k = k if k > 1 else 1
+    top = breaks[0]
+    if use_fit and k > 1:
+        top = vals[0]
+        for i in range(1, cnt):
+            top = vals[i] if vals[i] > top else top
+    lit = _lit(y, w, lights, p, n, fit[0], fit[1], fit[2], vals) if use_fit and k > 1 else 0
+    if lit < k * MIN_PER_SEGMENT:
+        _usable(y, w, p, n, vals)
+        lit = cnt
+    _breaks(vals, lit, k, breaks)
+    breaks[k] = top if lit < cnt else breaks[k]
+    return k
+
+
+@njit(**INLINE)
 def _design3(y, w, lights, p, lam_row, scale2, gamma, sbl, st, tab, breaks):
     """:func:`_design` and the start of the state for three segments, one vectorised pass.
 
@@ -165,8 +192,9 @@ def _design3(y, w, lights, p, lam_row, scale2, gamma, sbl, st, tab, breaks):
 
 
 @njit(**INLINE)
-def _design(y, w, lights, p, k, st, tab, breaks):
-    """Design rows and products of pixel p for ``k`` segments (``breaks``: :func:`_breaks`)."""
+def _design(y, w, lights, p, k, lam_row, scale2, start, sbl, st, tab, breaks):
+    """Design rows and products of pixel p for ``k`` segments (``breaks``: :func:`_breaks`) and
+    the start of the state (as :func:`_design3`, ``gamma = start scale2``)."""
     n = y.shape[1]
     u = k + 2
     ns = k - 1
@@ -203,6 +231,12 @@ def _design(y, w, lights, p, k, st, tab, breaks):
             for i in range(n):
                 tab[e, i] = tab[r, i] * tab[c, i]
             e += 1
+    for i in range(n):
+        st[_LAM0, i] = lam_row[i]
+        st[_LAM, i] = lam_row[i] * scale2
+        st[_G, i] = start * scale2
+        st[_D, i] = st[_W, i] / ((st[_G, i] if sbl else 0.0) + st[_LAM, i])
+        st[_Z, i] = 0.0
 
 
 @njit(**INLINE)
@@ -329,20 +363,7 @@ def _loo_lambertian(y, fw, sw, tab, n, ridge, out):
     terms in ``out`` (n,; 0 where ``sw`` is 0); NaN when ``M`` is singular, infinity when a scored
     ``h_i`` is 1.
     """
-    xx = yy = zz = xy = xz = yz = 0.0
-    t0 = t1 = t2 = 0.0
-    for i in range(n):
-        v = fw[i]
-        xx += v * tab[0, i]
-        yy += v * tab[1, i]
-        zz += v * tab[2, i]
-        xy += v * tab[3, i]
-        xz += v * tab[4, i]
-        yz += v * tab[5, i]
-        vy = v * y[i]
-        t0 += vy * tab[6, i]
-        t1 += vy * tab[7, i]
-        t2 += vy * tab[8, i]
+    xx, yy, zz, xy, xz, yz, t0, t1, t2 = weighted_sums3(fw, y, tab, n)
     ok, i00, i11, i22, i01, i02, i12 = inverse3(xx + ridge, yy + ridge, zz + ridge, xy, xz, yz,
                                                 SINGULAR_REL_DET)
     if not ok:
