@@ -379,18 +379,21 @@ def _pl_kernel(y, w, lights, per_pixel, lam, lam_pl, k_max, choose, sbl, ridge, 
     for p in range(m):
         lp = lights[p] if per_pixel else lights[0]
         lam_row = lam[p]
-        if choose:
-            # the Lambertian model (K = 1: SBL, its own kernel) first; kept unless K segments
-            # predict the pixel's kept observations better (_choose)
+        if choose or start_sbl:
+            # the Lambertian model (K = 1: SBL, its own kernel) first: the choice keeps it unless
+            # K segments predict the pixel's kept observations better (_choose); PL-SBL alone
+            # starts its EM from its robust fit
             if per_pixel:
                 _light_table(lp, sbl_tab)
             for i in range(n):
                 sbl_st[_kernels._Y, i] = y[p, i]
                 sbl_st[_kernels._W, i] = w[p, i]
                 sbl_st[_kernels._LAM, i] = lam_row[i]
-            if run_sbl:
+            if run_sbl or start_sbl:
                 _sbl_pixel(sbl_st, sbl_tab, n, ridge, sbl_max_iter, tol, floor, start, threshold,
                            x_out, outliers, iters, p)
+        if choose:
+            if run_sbl:
                 segments_out[p] = 1
                 for i in range(n):
                     v_io[p, i] = sbl_st[_kernels._V, i]
@@ -407,16 +410,6 @@ def _pl_kernel(y, w, lights, per_pixel, lam, lam_pl, k_max, choose, sbl, ridge, 
                     continue
             if not run_pl:
                 continue
-        elif start_sbl:
-            # PL-SBL alone: the Lambertian model's robust fit (SBL) first, to start its EM from
-            if per_pixel:
-                _light_table(lp, sbl_tab)
-            for i in range(n):
-                sbl_st[_kernels._Y, i] = y[p, i]
-                sbl_st[_kernels._W, i] = w[p, i]
-                sbl_st[_kernels._LAM, i] = lam_row[i]
-            _sbl_pixel(sbl_st, sbl_tab, n, ridge, sbl_max_iter, tol, floor, start, threshold,
-                       x_out, outliers, iters, p)
         fit[0], fit[1], fit[2] = x_out[p, 0], x_out[p, 1], x_out[p, 2]  # SBL's, if it ran
         full = start_sbl or not choose  # the log evidence itself, not only its -inf cases
         k, it, ev, tau2 = _pl_pixel(y, w, lp, p, k_max, lam_pl[p], ridge, learn_tau, max_iter,
