@@ -69,6 +69,9 @@ GATE_NOISE = 0.05 / 3.0
 GATE_CLIP = 3.0
 
 
+# --- the design: usable observations, break points, design rows and the state's start ------
+
+
 @njit(**INLINE)
 def _usable(y, w, p, n, vals):
     """Pack pixel p's usable observations into ``vals[:count]`` (no branch); their count."""
@@ -239,6 +242,9 @@ def _design(y, w, lights, p, k, lam_row, scale2, start, sbl, st, tab, breaks):
         st[_Z, i] = 0.0
 
 
+# --- the fit's algebra: prior, normal equations, slopes, log evidence ----------------------
+
+
 @njit(**INLINE)
 def _prior(k, tau2, ridge, prior, prior_rhs):
     """Prior precision of x: ``(I + 11^T) / tau2`` on the free slopes, ``ridge`` on the normal."""
@@ -257,6 +263,11 @@ def _prior(k, tau2, ridge, prior, prior_rhs):
 
 @njit(**INLINE)
 def _normal_equations(st, tab, n, u, mat, rhs, prior, prior_rhs):
+    """``mat = prior + sum_i d_i a_i a_i^T`` and ``rhs = prior_rhs + sum_i d_i t_i a_i`` (u x u, u).
+
+    From the state's weights ``d`` and targets ``t`` and the design's rows and products
+    (:func:`_design`); ``prior``, ``prior_rhs``: :func:`_prior`.
+    """
     e = u
     for r in range(u):
         acc = 0.0
@@ -274,6 +285,7 @@ def _normal_equations(st, tab, n, u, mat, rhs, prior, prior_rhs):
 
 @njit(**INLINE)
 def _slopes(x, k, slopes):
+    """The ``k`` slopes of ``x``: its ``k - 1`` free ones and the last, ``1 -`` their sum."""
     last = 1.0
     for j in range(k - 1):
         slopes[j] = x[j]
@@ -282,8 +294,26 @@ def _slopes(x, k, slopes):
 
 
 @njit(**INLINE)
+def _sum_log(st, w_row, a_row, b_row, n):
+    """``sum_i log(st[a_row, i] + st[b_row, i])`` over the usable observations.
+
+    As the log of running products, renormalised before they leave [1e-150, 1e150]: a log per
+    observation would cost more than an SBL iteration.
+    """
+    acc = 0.0
+    prod = 1.0
+    for i in range(n):
+        if st[w_row, i] > 0.0:
+            prod *= st[a_row, i] + st[b_row, i]
+            if prod > 1e150 or prod < 1e-150:
+                acc += math.log(prod)
+                prod = 1.0
+    return acc + math.log(prod)
+
+
+@njit(**INLINE)
 def _log_evidence(st, n, k, u, x, slopes, ridge, tau2, logdet, full, vals):
-    """Log evidence of pixel p's final PL-SBL fit in the space of ``y`` (the state's rows).
+    """Log evidence of the final PL-SBL fit (the state's rows) in the space of ``y``.
 
     The Gaussian marginal of ``t`` at the learned ``gamma``, ``tau2`` (``logdet``: ``log det M``
     of the final normal equations) plus the log Jacobian ``sum_i log s_{k(i)}`` of ``y -> f(y)``.
@@ -331,22 +361,7 @@ def _log_evidence(st, n, k, u, x, slopes, ridge, tau2, logdet, full, vals):
     return -0.5 * (logc + logdet - logdet_p + quad) + jac
 
 
-@njit(**INLINE)
-def _sum_log(st, w_row, a_row, b_row, n):
-    """``sum_i log(st[a_row, i] + st[b_row, i])`` over the usable observations.
-
-    As the log of running products, renormalised before they leave [1e-150, 1e150]: a log per
-    observation would cost more than an SBL iteration.
-    """
-    acc = 0.0
-    prod = 1.0
-    for i in range(n):
-        if st[w_row, i] > 0.0:
-            prod *= st[a_row, i] + st[b_row, i]
-            if prod > 1e150 or prod < 1e-150:
-                acc += math.log(prod)
-                prod = 1.0
-    return acc + math.log(prod)
+# --- the scores: leave-one-out, the default's choice, the score test ------------------------
 
 
 @njit(**INLINE)
