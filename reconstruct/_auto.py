@@ -5,7 +5,7 @@ Two passes (docs/solvers.md, "The default `auto`", rule 0):
 
 1. every pixel is solved by SBL (its own kernel, iterations and tolerance) and its fit is tested
    against the bent response of the PL model by a robust score test
-   (:func:`._pl_algebra._bend_score`: chi^2 with ``K - 1`` degrees of freedom), weighted by the
+   (:func:`._pl_model._bend_score`: chi^2 with ``K - 1`` degrees of freedom), weighted by the
    noise variance of the larger model (the PL model's noise, never below ``GATE_NOISE``): a
    test of fit measures the smaller model's misfit against the pure error, not against its own
    residuals, which hold that misfit. The PL noise is not known yet, so this pass tests with its
@@ -13,7 +13,7 @@ Two passes (docs/solvers.md, "The default `auto`", rule 0):
 2. only if some pixels fail, the PL model's noise is measured on a sample of *them*
    (:func:`._noise.pl_noise_level`), and those pixels are tested again at that noise and,
    where they still fail, fitted by PL-SBL and compared with SBL by their left-out residuals
-   (:func:`._pl_kernels._choose`). SBL's fit of the first pass is reused, not repeated, and so
+   (:func:`._pl_model._choose`). SBL's fit of the first pass is reused, not repeated, and so
    are the test's break points (order statistics of SBL's fitted values: ``gate_breaks``).
    Then every pixel's SBL fit is compared with least squares (:func:`last_choice`: truncated
    left-out residuals, both in closed form), and LS is kept where it predicts better by more
@@ -37,9 +37,9 @@ import math
 import numpy as np
 from numba import njit
 
-from . import _pl_kernels
+from . import _pl_kernels, _pl_model
 from ._linalg import SINGULAR_REL_DET, inverse3
-from ._pl_algebra import GATE_NOISE, gate_variance
+from ._pl_model import GATE_NOISE, gate_variance
 from ._tiles import _finish_solution, _prepare_tile, _store_tile, sbl_lambda
 
 
@@ -100,7 +100,7 @@ def auto_tiles(obs, lights, usable, params, used, starts, tile, mapper, progress
     dome = rings >= DOME_SHARE  # PL-SBL is not used (module docstring)
     failing = [np.flatnonzero(t[5] & (t[6].gate > 0.0)) for t in tiles]
     count = int(sum(f.size for f in failing))
-    used["gate_false_alarm"] = _pl_kernels.GATE_FALSE_ALARM
+    used["gate_false_alarm"] = _pl_model.GATE_FALSE_ALARM
     used["gate_noise"] = GATE_NOISE
     used["pixels_failing_lambertian_test"] = count
     if dome:
@@ -170,14 +170,14 @@ def auto_tiles(obs, lights, usable, params, used, starts, tile, mapper, progress
 CHOICE_CLIP = 3.0
 # Least squares replaces SBL (the incumbent: 3 unknowns each) only where it predicts better by
 # more than this many standard errors of the paired gain (the one-standard-error rule, as in
-# _pl_kernels._choose): with SBL preferred at no margin, LS took 4-6 % of DiLiGenT's pixels and
+# _pl_model._choose): with SBL preferred at no margin, LS took 4-6 % of DiLiGenT's pixels and
 # cost goblet 0.2 deg.
 CHOICE_Z = 1.0
 # Models of the default's last choice (``Solution.params["pixels_per_model"]``).
 MODELS = ("ls", "sbl", "plsbl")
 # PL-SBL replaces SBL where its left-out gain exceeds this many standard errors
-# (_pl_kernels._choose)
-PL_CHOICE_Z = _pl_kernels.CHOICE_Z
+# (_pl_model._choose)
+PL_CHOICE_Z = _pl_model.CHOICE_Z
 # Lights in rings of equal elevation (an RTI dome: SynthRTI's 49 lights in 5 rings): a light is in
 # a ring with RING_MIN_LIGHTS or more lights within RING_TOLERANCE_DEG of its elevation; with at
 # least DOME_SHARE of the lights in rings, PL-SBL is not used (module docstring).
@@ -312,7 +312,7 @@ def last_choice(y, w, lights, lam, x_sbl, d, x_pl, pl, *,
     SBL is kept unless least squares' truncated left-out score is lower by more than ``z``
     standard errors of the paired differences (:func:`_gain`; :func:`_loo_terms`, SBL as the
     weighted least squares of its final ``d``); PL-SBL, where the PL
-    stage chose it over SBL (:func:`._pl_kernels._choose`), replaces SBL where SBL was chosen.
+    stage chose it over SBL (:func:`._pl_model._choose`), replaces SBL where SBL was chosen.
     (Scoring PL-SBL's normal as a Lambertian image instead rejected it on DiLiGenT, where it is
     6-8 deg better than SBL: docs/solvers.md.)
     """

@@ -26,7 +26,7 @@ from numba import njit
 
 from ps_lab.jit import INLINE, VECTOR
 
-from ._linalg import apply6, inverse6, outer6, solve3
+from ._linalg import apply6, inverse6, outer6, solve3, weighted_sums3
 
 
 @dataclass
@@ -74,29 +74,9 @@ def _light_table(lights, tab):
 
 
 @njit(**INLINE)
-def _weighted_sums(st, tab, n):
-    """Normal equations ``sum_i v_i a_i a_i^T`` (6) and ``sum_i v_i y_i a_i`` (3), v = st[_V]."""
-    xx = yy = zz = xy = xz = yz = 0.0
-    t0 = t1 = t2 = 0.0
-    for i in range(n):
-        vi = st[_V, i]
-        xx += vi * tab[0, i]
-        yy += vi * tab[1, i]
-        zz += vi * tab[2, i]
-        xy += vi * tab[3, i]
-        xz += vi * tab[4, i]
-        yz += vi * tab[5, i]
-        vy = vi * st[_Y, i]
-        t0 += vy * tab[6, i]
-        t1 += vy * tab[7, i]
-        t2 += vy * tab[8, i]
-    return xx, yy, zz, xy, xz, yz, t0, t1, t2
-
-
-@njit(**INLINE)
 def _weighted_fit(st, tab, n):
     """Return x minimising ``sum_i v_i (y_i - a_i.x)^2`` (v = st[_V], y = st[_Y])."""
-    xx, yy, zz, xy, xz, yz, t0, t1, t2 = _weighted_sums(st, tab, n)
+    xx, yy, zz, xy, xz, yz, t0, t1, t2 = weighted_sums3(st[_V], st[_Y], tab, n)
     s = solve3(xx, yy, zz, xy, xz, yz, t0, t1, t2)
     return s[0], s[1], s[2]
 
@@ -210,7 +190,7 @@ def _sbl_pixel(st, tab, n, ridge, max_iter, tol, floor, start, threshold, x_out,
     it = 0
     while True:
         # M = ridge I + A^T D A with D = (Gamma + lam I)^-1 (0 for dropped observations)
-        xx, yy, zz, xy, xz, yz, t0, t1, t2 = _weighted_sums(st, tab, n)
+        xx, yy, zz, xy, xz, yz, t0, t1, t2 = weighted_sums3(st[_V], st[_Y], tab, n)
         x0, x1, x2, i00, i11, i22, i01, i02, i12 = solve3(
             xx + ridge, yy + ridge, zz + ridge, xy, xz, yz, t0, t1, t2)
         if done or it == max_iter:

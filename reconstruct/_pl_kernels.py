@@ -1,15 +1,9 @@
 """Tile kernels of the piecewise-linear models: PL-LS, PL-SBL and the per-pixel choice (numba).
 
-Ikehata, Wipf, Matsushita & Aizawa (TPAMI 2014): the diffuse intensity is an unknown monotonic
-function of ``n.l``; turned around, ``n.l = f(y)`` with ``f`` piecewise linear in the observed
-intensity ``y``, ``K`` segments with break points from the pixel's own usable observations
-(``b_0 = 0``, ``b_k`` = the ``floor(k u / K)``-th smallest of the ``u`` usable ones, ``b_K`` the
-largest). With ``phi_k(y) = clip(y - b_k, 0, b_{k+1} - b_k)`` and slopes ``s``,
-``f(y) = sum_k s_k phi_k(y)``. The slopes sum to 1 (the scale); the constraint is eliminated,
-``s_{K-1} = 1 - sum_{k<K-1} s_k``, so the unknowns are ``x = (s_0 .. s_{K-2}, n)`` (``U = K + 2``)
-and observation i reads ``t_i = a_i . x + e_i`` with ``a_i = (phi_k - phi_{K-1} (k < K-1), -l_i)``
-and ``t_i = -phi_{K-1}(y_i)``. ``K = 1`` is exactly the Lambertian model of SBL (``t = -y``,
-``a = -l``).
+The model of Ikehata, Wipf, Matsushita & Aizawa (TPAMI 2014), ``n.l = f(y)`` with ``f`` piecewise
+linear in the observed intensity, its design, the algebra of its fit and its scores, is
+:mod:`._pl_model`; here each pixel's fit is iterated (:func:`_pl_pixel`, written out for three
+segments in :func:`_iterate3`) and a tile's pixels are run (:func:`_pl_kernel`, :func:`pl_tile`).
 
 The sparse errors ``e`` are learned with the SBL of Ikehata et al. 2012 (see :mod:`._kernels`):
 one variance ``gamma_i`` per observation, ``gamma <- z^2 + u``. Here the normal equations are
@@ -37,7 +31,7 @@ Cholesky. Beyond the paper (docs/solvers.md has the measurements):
 - the ``auto`` kernel solves every pixel with ``K = 1`` (SBL, its own kernel and iterations);
   where SBL's fit fails a chi^2 score test towards K segments it fits them too, and keeps PL
   only where it predicts the pixel's observations better (closed-form leave-one-out residuals
-  by more than one standard error of the gain: :func:`_choose`, docs/solvers.md).
+  by more than one standard error of the gain: :func:`._pl_model._choose`, docs/solvers.md).
 
 Inputs are those of :mod:`._kernels` (``y`` (m, n) scaled, ``w`` (m, n) 1/0, lights (n, 3) or,
 for near lights, (m, n, 3)).
@@ -51,9 +45,12 @@ from dataclasses import dataclass
 import numpy as np
 from numba import njit
 
+from ps_lab.jit import INLINE, VECTOR
+
 from . import _kernels
-from ._kernels import INLINE, VECTOR, TileResult, _light_table, _sbl_pixel
-from ._pl_design import (  # noqa: F401 (MAX_SEGMENTS and the rows are read from here too)
+from ._kernels import TileResult, _light_table, _sbl_pixel
+from ._linalg import cholesky_inverse, inverse5
+from ._pl_model import (
     _W,
     _LAM0,
     _LAM,
@@ -65,38 +62,21 @@ from ._pl_design import (  # noqa: F401 (MAX_SEGMENTS and the rows are read from
     _SEG,
     _T,
     STATE_ROWS,
-    MAX_SEGMENTS,
-    MIN_PER_SEGMENT,
     SLOPE_FLOOR,
     TAU_FLOOR,
-    _usable,
-    _lit,
-    _breaks,
+    CHOICE_Z,
+    GATE_FALSE_ALARM,
+    _break_points,
     _design3,
     _design,
     _normal_equations,
     _prior,
     _slopes,
-    _loo_pl3,
-    _finish,
+    _log_evidence,
     _choose,
-    CHOICE_PER_UNKNOWN,
-)
-from ._pl_algebra import (
     _bend_score,
-    _cholesky_inverse,
-    _inverse5,
-    _select,
-    _sum_log,
     chi2_quantiles,
 )
-
-# The default's choice: PL-SBL replaces SBL where its leave-one-out gain exceeds this many standard
-# errors of the gain (the one-standard-error rule of model selection, docs/solvers.md).
-CHOICE_Z = 1.0
-# The Lambertian model's score test: PL-SBL (which nests it) is fitted and compared only
-# where the score statistic of SBL's fit exceeds its chi^2 quantile at this false-alarm rate.
-GATE_FALSE_ALARM = 0.01
 
 
 @njit(**INLINE)
@@ -106,10 +86,10 @@ def _iterate3(st, tab, n, ridge, learn_tau, max_iter, ftol, floor, sbl, inv, x, 
     The five unknowns' normal equations (15 products, 5 right-hand sides) are summed in one
     loop and the residual, ``a^T M^-1 a``, the gamma, lambda and d updates in a second one, so
     each loop runs over the lights once, vectorised (the generic path makes ~40 passes); ``M``
-    is inverted by :func:`._pl_algebra._inverse5` (blocks, in registers, no log per step).
+    is inverted by :func:`._linalg.inverse5` (blocks, in registers, no log per step).
     Same algebra as the generic path (rounding-level differences). Returns (iterations,
     log det M, tau2); log det is NaN when ``M`` is not positive definite. Leaves the final
-    ``M^-1`` in ``inv`` (for :func:`_loo_pl3`).
+    ``M^-1`` in ``inv`` (for :func:`._pl_model._loo_pl3`).
     """
     iters = max_iter if sbl else 1
     it = 0
@@ -152,7 +132,7 @@ def _iterate3(st, tab, n, ridge, learn_tau, max_iter, ftol, floor, sbl, inv, x, 
             m34 += da3 * a4
             m44 += d * a4 * a4
         it2 = 1.0 / tau2
-        det, iv = _inverse5(m00 + 2.0 * it2, m01 + it2, m02, m03, m04, m11 + 2.0 * it2, m12,
+        det, iv = inverse5(m00 + 2.0 * it2, m01 + it2, m02, m03, m04, m11 + 2.0 * it2, m12,
                             m13, m14, m22 + ridge, m23, m24, m33 + ridge, m34, m44 + ridge)
         if not det == det:
             return iters, det, tau2
@@ -170,7 +150,7 @@ def _iterate3(st, tab, n, ridge, learn_tau, max_iter, ftol, floor, sbl, inv, x, 
             for i in range(n):
                 st[_R, i] = st[_T, i] - (x0 * tab[0, i] + x1 * tab[1, i] + x2 * tab[2, i]
                                          + x3 * tab[3, i] + x4 * tab[4, i])
-            # the final M^-1 for the choice (_loo_pl3)
+            # the final M^-1 for the choice (_pl_model._loo_pl3)
             inv[0, 0], inv[1, 1], inv[2, 2], inv[3, 3], inv[4, 4] = i00, i11, i22, i33, i44
             inv[0, 1] = inv[1, 0] = i01
             inv[0, 2] = inv[2, 0] = i02
@@ -235,44 +215,21 @@ def _pl_pixel(y, w, lights, p, k_max, lam_row, ridge, learn_tau, max_iter, tol, 
     """One pixel with up to ``k_max`` segments (fewer when it has few observations).
 
     Leaves ``x`` (U), ``slopes`` (K) and the state rows of the final iteration (and, for three
-    segments, ``inv`` = the final ``M^-1``: :func:`_loo_pl3`); returns (segments used,
+    segments, ``inv`` = the final ``M^-1``: :func:`._pl_model._loo_pl3`); returns (segments used,
     iterations, log evidence, the slopes' prior variance). ``sbl`` False: one weighted
     least-squares solve (PL-LS: every observation weight 1, no noise model). ``evidence``
     False (the choice, which does not use it): the log evidence is only its ``-inf`` cases (a
     failed solve, a segment holding observations with a slope <= 0), else 0.
     """
     n = y.shape[1]
-    cnt = _usable(y, w, p, n, vals)
-    # at least MIN_PER_SEGMENT observations per segment (a segment's slope is fitted on its own
-    # observations: with fewer, it can bend to fit a corrupted one)
-    k = k_max if k_max < cnt // MIN_PER_SEGMENT else cnt // MIN_PER_SEGMENT
-    k = k if k > 1 else 1
+    k = _break_points(y, w, lights, p, n, k_max, fit, use_fit, vals, breaks)
     u = k + 2
-    # interior break points from the observations the Lambertian fit sees lit (_lit; all usable
-    # ones without that fit or with fewer than MIN_PER_SEGMENT a segment); b_K the largest usable
-    top = breaks[0]
-    if use_fit and k > 1:
-        top = vals[0]
-        for i in range(1, cnt):
-            top = vals[i] if vals[i] > top else top
-    lit = _lit(y, w, lights, p, n, fit[0], fit[1], fit[2], vals) if use_fit and k > 1 else 0
-    if lit < k * MIN_PER_SEGMENT:
-        _usable(y, w, p, n, vals)
-        lit = cnt
-    _breaks(vals, lit, k, breaks)
-    breaks[k] = top if lit < cnt else breaks[k]
     tau2 = 1.0
     scale2 = 1.0 / (k * k)
     if k == 3:
         _design3(y, w, lights, p, lam_row, scale2, start * scale2, sbl, st, tab, breaks)
     else:
-        _design(y, w, lights, p, k, st, tab, breaks)
-        for i in range(n):
-            st[_LAM0, i] = lam_row[i]
-            st[_LAM, i] = lam_row[i] * scale2
-            st[_G, i] = start * scale2
-            st[_D, i] = st[_W, i] / ((st[_G, i] if sbl else 0.0) + st[_LAM, i])
-            st[_Z, i] = 0.0
+        _design(y, w, lights, p, k, lam_row, scale2, start, sbl, st, tab, breaks)
     if use_g0 and sbl:
         # the EM starts from the Lambertian model's robust fit (SBL's final gamma, in f's units)
         for i in range(n):
@@ -297,7 +254,7 @@ def _pl_pixel(y, w, lights, p, k_max, lam_row, ridge, learn_tau, max_iter, tol, 
     while not (k == 3):
         _prior(k, tau2, ridge, prior, prior_rhs)
         _normal_equations(st, tab, n, u, mat, rhs, prior, prior_rhs)
-        logdet = _cholesky_inverse(mat, inv, low, u)
+        logdet = cholesky_inverse(mat, inv, low, u)
         if not logdet == logdet:
             for r in range(u):
                 x[r] = 0.0
@@ -364,46 +321,28 @@ def _pl_pixel(y, w, lights, p, k_max, lam_row, ridge, learn_tau, max_iter, tol, 
             done = True
     if not sbl:
         return k, 1, 0.0, tau2
-    if not evidence:
-        # only what makes the evidence -inf: the log Jacobian of a populated segment's slope <= 0
-        for j in range(k):
-            vals[j] = 0.0
-        for i in range(n):
-            vals[int(st[_SEG, i])] += st[_W, i]
-        for j in range(k):
-            if vals[j] > 0.0 and not slopes[j] > 0.0:
-                return k, iters, -math.inf, tau2
-        return k, iters, 0.0, tau2
-    # log evidence of y: -1/2 [sum log c + log|M| - log|P| + sum d r^2 + dx^T P dx] + log Jacobian
-    quad = 0.0
-    for i in range(n):
-        quad += st[_D, i] * st[_R, i] * st[_R, i]
-    logc = _sum_log(st, _W, _G, _LAM, n)
-    # log Jacobian: sum over observations of log(slope of their segment), one log per segment
-    for j in range(k):
-        vals[j] = 0.0
-    for i in range(n):
-        if st[_W, i] > 0.0:
-            vals[int(st[_SEG, i])] += 1.0
-    jac = 0.0
-    for j in range(k):
-        if vals[j] > 0.0:
-            jac += vals[j] * math.log(slopes[j]) if slopes[j] > 0.0 else -math.inf
+    return k, iters, _log_evidence(st, n, k, u, x, slopes, ridge, tau2, logdet, evidence,
+                                   vals), tau2
+
+
+@njit(**INLINE)
+def _finish(p, k, x, slopes, breaks, st, n, threshold, x_out, outliers, segments_out):
+    """Albedo-normal of pixel p (the normal times the secant slope ``b_K / f(b_K)``), flags."""
     ns = k - 1
-    logdet_p = 3.0 * math.log(ridge)
-    if ns > 0:
-        logdet_p += math.log(k) - ns * math.log(tau2)
-        dsum = 0.0
-        dsq = 0.0
-        for j in range(ns):
-            dv = x[j] - 1.0 / k
-            dsum += dv
-            dsq += dv * dv
-        quad += (dsq + dsum * dsum) / tau2
-    for r in range(ns, u):
-        quad += ridge * x[r] * x[r]
-    evidence = -0.5 * (logc + logdet - logdet_p + quad) + jac
-    return k, iters, evidence, tau2
+    fb = 0.0
+    for j in range(k):
+        fb += slopes[j] * (breaks[j + 1] - breaks[j])
+    gain = breaks[k] / fb if fb > 0.0 else 0.0
+    x_out[p, 0] = x[ns] * gain
+    x_out[p, 1] = x[ns + 1] * gain
+    x_out[p, 2] = x[ns + 2] * gain
+    segments_out[p] = k
+    for i in range(n):
+        sl = slopes[int(st[_SEG, i])]
+        sl = sl if sl > SLOPE_FLOOR / k else SLOPE_FLOOR / k
+        # the corruption in the pixel's units: e = Gamma S t = gamma d r, over the slope
+        e = st[_G, i] * st[_D, i] * st[_R, i] / sl
+        outliers[p, i] = st[_W, i] > 0.0 and abs(e) > threshold
 
 
 @njit(nogil=True, cache=True, **VECTOR)
@@ -440,18 +379,21 @@ def _pl_kernel(y, w, lights, per_pixel, lam, lam_pl, k_max, choose, sbl, ridge, 
     for p in range(m):
         lp = lights[p] if per_pixel else lights[0]
         lam_row = lam[p]
-        if choose:
-            # the Lambertian model (K = 1: SBL, its own kernel) first; kept unless K segments
-            # predict the pixel's kept observations better (_choose)
+        if choose or start_sbl:
+            # the Lambertian model (K = 1: SBL, its own kernel) first: the choice keeps it unless
+            # K segments predict the pixel's kept observations better (_choose); PL-SBL alone
+            # starts its EM from its robust fit
             if per_pixel:
                 _light_table(lp, sbl_tab)
             for i in range(n):
                 sbl_st[_kernels._Y, i] = y[p, i]
                 sbl_st[_kernels._W, i] = w[p, i]
                 sbl_st[_kernels._LAM, i] = lam_row[i]
-            if run_sbl:
+            if run_sbl or start_sbl:
                 _sbl_pixel(sbl_st, sbl_tab, n, ridge, sbl_max_iter, tol, floor, start, threshold,
                            x_out, outliers, iters, p)
+        if choose:
+            if run_sbl:
                 segments_out[p] = 1
                 for i in range(n):
                     v_io[p, i] = sbl_st[_kernels._V, i]
@@ -468,16 +410,6 @@ def _pl_kernel(y, w, lights, per_pixel, lam, lam_pl, k_max, choose, sbl, ridge, 
                     continue
             if not run_pl:
                 continue
-        elif start_sbl:
-            # PL-SBL alone: the Lambertian model's robust fit (SBL) first, to start its EM from
-            if per_pixel:
-                _light_table(lp, sbl_tab)
-            for i in range(n):
-                sbl_st[_kernels._Y, i] = y[p, i]
-                sbl_st[_kernels._W, i] = w[p, i]
-                sbl_st[_kernels._LAM, i] = lam_row[i]
-            _sbl_pixel(sbl_st, sbl_tab, n, ridge, sbl_max_iter, tol, floor, start, threshold,
-                       x_out, outliers, iters, p)
         fit[0], fit[1], fit[2] = x_out[p, 0], x_out[p, 1], x_out[p, 2]  # SBL's, if it ran
         full = start_sbl or not choose  # the log evidence itself, not only its -inf cases
         k, it, ev, tau2 = _pl_pixel(y, w, lp, p, k_max, lam_pl[p], ridge, learn_tau, max_iter,
@@ -566,8 +498,8 @@ def pl_tile(y, w, lights, *, segments: int, lam, sigma_x2: float = 1e6, max_iter
     choose : bool
         Solve each pixel with ``K = 1`` (SBL, at most ``sbl_max_iter`` iterations) too and keep
         the ``K``-segment model only where it predicts the pixel's observations better, left out
-        in turn, by more than ``choice_z`` standard errors (:func:`_choose`); ``evidence`` is
-        then that margin (> 0 where PL was kept).
+        in turn, by more than ``choice_z`` standard errors (:func:`._pl_model._choose`);
+        ``evidence`` is then that margin (> 0 where PL was kept).
     choice_z : float
         The margin of the choice, in standard errors of the leave-one-out gain.
 
@@ -581,7 +513,7 @@ def pl_tile(y, w, lights, *, segments: int, lam, sigma_x2: float = 1e6, max_iter
         With ``choose``: the one-segment model's iterations.
     lam_test : float or ndarray of shape (m, 1) or (m, n), optional
         With ``choose``: the noise variance of the Lambertian model's score test
-        (:func:`._pl_algebra._bend_score`); the ``K``-segment model is fitted and compared only
+        (:func:`._pl_model._bend_score`); the ``K``-segment model is fitted and compared only
         where the score statistic of SBL's fit exceeds the chi^2 quantile of
         ``1 - false_alarm`` (``gate`` of the result: that excess). None: no test.
     false_alarm : float

@@ -12,7 +12,7 @@ from contextlib import nullcontext
 
 import numpy as np
 
-from . import _pl_kernels
+from . import _pl_model
 from ._auto import auto_tiles
 from ._rpca import solve_rpca
 from ._noise import _noise_floor, _noise_level, _noise_residuals, pl_noise_level
@@ -24,7 +24,7 @@ from .methods import SBL_MAX_ITER, SOLVERS, solver
 # Defaults of each method's parameters (in units of the pixel's robust scale, see `pixel_scale`):
 # the solver table's (methods.py).
 DEFAULTS: dict[str, dict] = {row.name: dict(row.defaults) for row in SOLVERS}
-# Smallest outlier threshold (relative to the pixel scale); _pl_algebra.GATE_NOISE is its third.
+# Smallest outlier threshold (relative to the pixel scale); _pl_model.GATE_NOISE is its third.
 MIN_OUTLIER_THRESHOLD = 0.05
 # SBL's default tolerance: a change of the corruption estimate this small against the noise level
 # moves no normal (docs/solvers.md), and never tighter than SBL_TOL_MIN (noise-free data).
@@ -44,9 +44,9 @@ def _method_params(method: str, given: dict) -> dict:
     if "segments" in params:
         k = params["segments"]
         if isinstance(k, bool) or not isinstance(k, (int, np.integer)) or not (
-                1 <= k <= _pl_kernels.MAX_SEGMENTS):
+                1 <= k <= _pl_model.MAX_SEGMENTS):
             raise SolverInputError(f"segments must be a whole number from 1 to "
-                                   f"{_pl_kernels.MAX_SEGMENTS}, got {k!r}")
+                                   f"{_pl_model.MAX_SEGMENTS}, got {k!r}")
         params["segments"] = int(k)
     return params
 

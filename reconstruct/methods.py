@@ -19,7 +19,7 @@ from types import MappingProxyType
 import numpy as np
 
 from . import _kernels, _near_kernels, _pl_kernels
-from ._pl_algebra import gate_variance
+from ._pl_model import gate_variance
 from ._solution import SolverInputError
 from ._tiles import LAMBDA_FLOOR, ls_tiles
 

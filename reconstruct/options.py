@@ -91,7 +91,7 @@ SOLVER_OPTIONS = {
     for name, flag in (("lam", "--lambda"), ("sigma_x2", "--sigma-x2"), ("max_iter", "--max-iter"),
                        ("tol", "--tol"), ("segments", "--segments"))
 }
-# Most segments of the piecewise-linear models (reconstruct/_pl_kernels.py).
+# Most segments of the piecewise-linear models (reconstruct/_pl_model.py).
 MAX_SEGMENTS = 8
 
 

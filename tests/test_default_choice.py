@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from ps_lab.reconstruct import angular_errors_deg, solve
-from ps_lab.reconstruct._pl_algebra import _loo_lambertian, _loo_pl
+from ps_lab.reconstruct._pl_model import _loo_lambertian, _loo_pl
 from ps_lab.reconstruct._shadows import black_threshold
 from ps_lab.reconstruct._solution import lambertian_albedo
 from ps_lab.render import random_light_directions, relief_surface, render, sphere_surface
