@@ -28,13 +28,12 @@ import numpy as np
 
 from ps_lab.appearance.fit import fit_appearance
 from ps_lab.appearance.models import coefficients_per_pixel, evaluate_appearance, lambertian
+from ps_lab.bench.real import shadow_free
 from ps_lab.bench.report import simple_table
 from ps_lab.io.dataset import load_dataset
 from ps_lab.io.encoding import linear_to_srgb
 from ps_lab.io.light_files import find_lp
 from ps_lab.reconstruct import light_noise_factors, solve
-from ps_lab.reconstruct._shadows import black_threshold
-from ps_lab.reconstruct._noise import NOISE_SAMPLE_PIXELS
 
 DEFAULT_FOLDER = Path(__file__).resolve().parents[2].parent / "shared" / "data" / "diligent-8bit"
 MODELS = ("auto", "ps", "lambertian", "ptm", "hsh2", "hsh3", "rbf", "bln", "gp")
@@ -132,12 +131,7 @@ def _load_colour(path: Path):
 def _solver_normals(base, mask, train):
     obs, valid = base.images[train][:, mask], base.valid[train][:, mask]
     factors = light_noise_factors(base.light_intensities[train])
-    sample = np.unique(np.linspace(0, obs.shape[1] - 1, min(obs.shape[1], NOISE_SAMPLE_PIXELS))
-                       .round().astype(np.int64))
-    black = black_threshold(obs[:, sample], valid[:, sample], factors,
-                            light_directions=base.light_directions[train])
-    if black is not None:
-        valid = valid & (obs > black[:, None])
+    valid = shadow_free(obs, valid, factors, base.light_directions[train])
     solution = solve(obs, base.light_directions[train], valid=valid, light_noise=factors)
     return solution.normals, valid
 
