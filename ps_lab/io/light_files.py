@@ -245,14 +245,20 @@ def light_table_bytes(rows: np.ndarray) -> bytes:
     return "".join(" ".join(f"{v:.9f}" for v in row) + "\n" for row in np.asarray(rows)).encode()
 
 
-def _read_table(path: Path, widths: tuple[int, ...], *, allow_nan: bool = False) -> np.ndarray:
-    """Parse a whitespace (or comma) separated numeric table; ``#`` starts a comment."""
+def _read_text(path: Path) -> str:
+    """The text of a light file (UTF-8, a byte-order mark dropped); a :class:`DatasetError`
+    where it is missing or unreadable."""
     try:
-        text = path.read_text(encoding="utf-8-sig")
+        return path.read_text(encoding="utf-8-sig")
     except FileNotFoundError:
         raise DatasetError(f"{path}: file not found") from None
     except (OSError, UnicodeDecodeError) as exc:
         raise DatasetError(f"{path}: cannot read file ({exc})") from None
+
+
+def _read_table(path: Path, widths: tuple[int, ...], *, allow_nan: bool = False) -> np.ndarray:
+    """Parse a whitespace (or comma) separated numeric table; ``#`` starts a comment."""
+    text = _read_text(path)
     rows: list[list[float]] = []
     width: int | None = None
     for number, line in enumerate(text.splitlines(), start=1):
@@ -333,12 +339,7 @@ def read_lp_rows(path: Path) -> tuple[list[str], np.ndarray, list[int]]:
         cannot determine a normal (fewer than 3, collinear or coplanar); the message names the
         ``.lp`` file.
     """
-    try:
-        text = path.read_text(encoding="utf-8-sig")
-    except FileNotFoundError:
-        raise DatasetError(f"{path}: file not found") from None
-    except (OSError, UnicodeDecodeError) as exc:
-        raise DatasetError(f"{path}: cannot read file ({exc})") from None
+    text = _read_text(path)
     lines = [
         (number, line.strip())
         for number, line in enumerate(text.splitlines(), start=1)
