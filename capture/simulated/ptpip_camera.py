@@ -44,7 +44,7 @@ from typing import Any
 
 from ps_lab.capture.faults import PTPIP_FAULT_KINDS, Fault
 from ps_lab.capture.simulated import ptp
-from ps_lab.capture.simulated.serving import ServedSimulator, join_thread
+from ps_lab.capture.simulated.serving import ThreadServedSimulator
 from ps_lab.errors import RigError
 
 __all__ = ["DEFAULT_PORT", "PtpIpCamera", "ServedFrame", "dng_shooter"]
@@ -140,7 +140,7 @@ def dng_shooter(camera: Any) -> Shooter:
     return shoot
 
 
-class PtpIpCamera(ServedSimulator):
+class PtpIpCamera(ThreadServedSimulator):
     """A PTP/IP responder serving frames from ``shoot`` on ``host:port``.
 
     Parameters
@@ -289,19 +289,10 @@ class PtpIpCamera(ServedSimulator):
             if listener is not None:
                 listener.close()
                 setattr(self, attribute, None)
-        if self._thread is not None:
-            self._thread.join(timeout=5.0)
-            self._thread = None
+        self._end_thread()
         for worker in self._workers:
             worker.join(timeout=30.0)
         self._workers.clear()
-
-    @property
-    def serving(self) -> bool:
-        return self._thread is not None
-
-    def _wait(self) -> None:
-        join_thread(self._thread)
 
     # -- connections ------------------------------------------------------------------------
     def _accept(self) -> None:

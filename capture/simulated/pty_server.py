@@ -20,7 +20,7 @@ from typing import Any
 
 from ps_lab.capture.light_controllers import LightState
 from ps_lab.capture.simulated.firmware import LineAssembler, Reply, SimulatedFirmware, _Outbox
-from ps_lab.capture.simulated.serving import ServedSimulator, join_thread
+from ps_lab.capture.simulated.serving import ThreadServedSimulator
 from ps_lab.errors import RigError
 
 log = logging.getLogger("ps_lab.capture.simulated.firmware")
@@ -78,7 +78,7 @@ def state_file_reader(path: Path | str) -> Callable[[], LightState]:
     return read
 
 
-class PtyServer(ServedSimulator):
+class PtyServer(ThreadServedSimulator):
     """Serve a simulated controller on a pseudo-terminal, so drivers open it as a serial device.
 
     Parameters
@@ -150,9 +150,7 @@ class PtyServer(ServedSimulator):
         if self._detach is not None:
             self._detach()
             self._detach = None
-        if self._thread is not None:
-            self._thread.join(timeout=5.0)
-            self._thread = None
+        self._end_thread()
         for fd in (self._master, self._slave):
             if fd is not None:
                 try:
@@ -161,24 +159,11 @@ class PtyServer(ServedSimulator):
                     pass
         self._master = self._slave = None
 
-    @property
-    def serving(self) -> bool:
-        return self._thread is not None
-
-    def _wait(self) -> None:
-        join_thread(self._thread)
-
     def serve_forever(self) -> None:
         """Block until interrupted (Ctrl-C) or until the server thread fails; then stop."""
         super().serve_forever()
         if self._error is not None:
             raise RigError(f"simulated controller stopped: {self._error}")
-
-    def __enter__(self) -> PtyServer:
-        return self.start() if self._thread is None else self
-
-    def __exit__(self, *exc_info: object) -> None:
-        self.stop()
 
     def _serve(self, outbox: _Outbox) -> None:
         assert self._master is not None

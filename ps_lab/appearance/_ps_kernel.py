@@ -295,25 +295,22 @@ def _cholesky_lanes(g, r, k, channels, valid, d, scratch):
     for t in range(LANES):
         valid[t] = 1.0
     for j in range(k):
-        for t in range(LANES):
-            scratch[t] = g[j, j, t]
-        for m in range(j):
-            for t in range(LANES):
-                scratch[t] -= g[j, m, t] * g[j, m, t]
-        for t in range(LANES):
-            pivot = scratch[t]
-            valid[t] = valid[t] if pivot > 0.0 else 0.0
-            root = math.sqrt(pivot) if pivot > 0.0 else 1.0
-            g[j, j, t] = root
-            d[j, t] = 1.0 / root
-        for i in range(j + 1, k):
+        for i in range(j, k):  # column j: the pivot (i == j) first, then the rows below it
             for t in range(LANES):
                 scratch[t] = g[i, j, t]
             for m in range(j):
                 for t in range(LANES):
                     scratch[t] -= g[i, m, t] * g[j, m, t]
-            for t in range(LANES):
-                g[i, j, t] = scratch[t] * d[j, t]
+            if i == j:
+                for t in range(LANES):
+                    pivot = scratch[t]
+                    valid[t] = valid[t] if pivot > 0.0 else 0.0
+                    root = math.sqrt(pivot) if pivot > 0.0 else 1.0
+                    g[j, j, t] = root
+                    d[j, t] = 1.0 / root
+            else:
+                for t in range(LANES):
+                    g[i, j, t] = scratch[t] * d[j, t]
     for c in range(channels):
         for i in range(k):
             for m in range(i):

@@ -18,8 +18,6 @@ from __future__ import annotations
 
 import io
 import os
-import re
-import shutil
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -33,14 +31,7 @@ from ps_lab.appearance.store import read_appearance
 from ps_lab.errors import DatasetError, OutputError
 from ps_lab.geometry import Camera, near_light_vectors, scene_points
 from ps_lab.io.encoding import linear_to_srgb
-from ps_lab.io.files import (
-    fsync_path,
-    is_no_space,
-    missing_folders,
-    remove_created,
-    remove_stale_staging,
-    remove_tree,
-)
+from ps_lab.io.files import fsync_path, is_no_space, staging_folder
 from ps_lab.io.normal_maps import EXR_COMPRESSION
 from ps_lab.io.result import read_result_metrics
 
@@ -285,17 +276,9 @@ def relight_result(
     if points is not None:
         for text, position in zip(lights, given, strict=True):
             _check_above(text, position, points, source.normals)
-    parent = paths[0].parent
-    created = missing_folders(parent)
-    stage = parent / f"{_STAGE}{os.getpid()}"
     current = paths[0]
     try:
-        try:
-            parent.mkdir(parents=True, exist_ok=True)
-            remove_stale_staging(parent, rf"{re.escape(_STAGE)}(\d+)")
-            if stage.exists():
-                shutil.rmtree(stage)
-            stage.mkdir()
+        with staging_folder(paths[0].parent, _STAGE) as stage:
             staged = []
             for k, (path, light) in enumerate(zip(paths, given, strict=True)):
                 current = path
@@ -310,14 +293,9 @@ def relight_result(
                 current = final
                 fsync_path(path)
             _publish(stage, staged, paths)
-        except OSError as exc:
-            failed = Path(exc.filename) if exc.filename in {str(p) for p in paths} else current
-            raise OutputError(_write_line(out, failed, exc)) from None
-    except BaseException:
-        remove_tree(stage)
-        remove_created(created)
-        raise
-    remove_tree(stage)
+    except OSError as exc:
+        failed = Path(exc.filename) if exc.filename in {str(p) for p in paths} else current
+        raise OutputError(_write_line(out, failed, exc)) from None
     return list(zip(paths, given, strict=True))
 
 

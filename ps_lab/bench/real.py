@@ -26,7 +26,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ps_lab.bench.report import simple_table
+from ps_lab.bench.report import method_table
 from ps_lab.io.dataset import load_dataset
 from ps_lab.reconstruct import angular_errors_deg, error_summary, light_noise_factors, solve
 from ps_lab.reconstruct._shadows import black_threshold
@@ -229,19 +229,14 @@ def run_real(
 def format_table(rows: list[RealRow], *, markdown: bool = False) -> str:
     """One table: per object and column ``mean/median error in degrees (solve seconds)``, and
     for the methods at their defaults the held-out relighting PSNR (``... dB``)."""
-    if not rows:
-        return ""
-    names = list(rows[0].cells)
-    head = ["object", "pixels", *names]
-    lines = []
-    for row in rows:
-        cells = [row.name, str(row.pixels)]
-        for name in names:
-            c = row.cells[name]
-            psnr = f" {c['psnr']:.1f} dB" if "psnr" in c else ""
-            cells.append(f"{c['mean']:.2f}/{c['median']:.2f} ({c['seconds']:.1f} s){psnr}")
-        lines.append(cells)
-    return simple_table(head, lines, markdown=markdown)
+
+    def cell(row: RealRow, name: str, names: list[str]) -> str:
+        c = row.cells[name]
+        psnr = f" {c['psnr']:.1f} dB" if "psnr" in c else ""
+        return f"{c['mean']:.2f}/{c['median']:.2f} ({c['seconds']:.1f} s){psnr}"
+
+    return method_table(rows, ["object", "pixels"], lambda row: [row.name, str(row.pixels)], cell,
+                        markdown=markdown)
 
 
 def results_as_dict(rows: list[RealRow]) -> list[dict]:

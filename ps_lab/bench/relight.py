@@ -28,13 +28,12 @@ import numpy as np
 
 from ps_lab.appearance.fit import fit_appearance
 from ps_lab.appearance.models import coefficients_per_pixel, evaluate_appearance, lambertian
-from ps_lab.bench.report import simple_table
+from ps_lab.bench.real import shadow_free
+from ps_lab.bench.report import method_table
 from ps_lab.io.dataset import load_dataset
 from ps_lab.io.encoding import linear_to_srgb
 from ps_lab.io.light_files import find_lp
 from ps_lab.reconstruct import light_noise_factors, solve
-from ps_lab.reconstruct._shadows import black_threshold
-from ps_lab.reconstruct._noise import NOISE_SAMPLE_PIXELS
 
 DEFAULT_FOLDER = Path(__file__).resolve().parents[2].parent / "shared" / "data" / "diligent-8bit"
 MODELS = ("auto", "ps", "lambertian", "ptm", "hsh2", "hsh3", "rbf", "bln", "gp")
@@ -132,12 +131,7 @@ def _load_colour(path: Path):
 def _solver_normals(base, mask, train):
     obs, valid = base.images[train][:, mask], base.valid[train][:, mask]
     factors = light_noise_factors(base.light_intensities[train])
-    sample = np.unique(np.linspace(0, obs.shape[1] - 1, min(obs.shape[1], NOISE_SAMPLE_PIXELS))
-                       .round().astype(np.int64))
-    black = black_threshold(obs[:, sample], valid[:, sample], factors,
-                            light_directions=base.light_directions[train])
-    if black is not None:
-        valid = valid & (obs > black[:, None])
+    valid = shadow_free(obs, valid, factors, base.light_directions[train])
     solution = solve(obs, base.light_directions[train], valid=valid, light_noise=factors)
     return solution.normals, valid
 
@@ -252,25 +246,20 @@ def run_relight(
 def format_table(rows: list[RelightRow], *, markdown: bool = False) -> str:
     """Per capture and model: ``fold-mean PSNR dB / SSIM (coefficients per pixel)
     [worst fold]``; ``auto`` also its margin over the best other model ``{mean, min per fold}``."""
-    if not rows:
-        return ""
-    names = list(rows[0].cells)
-    head = ["capture", "train/held out", *names]
-    lines = []
-    for row in rows:
-        cells = [row.name, f"{row.train}/{row.test}"]
+
+    def cell(row: RelightRow, name: str, names: list[str]) -> str:
+        c = row.cells[name]
+        text = f"{c['psnr']:.2f} / {c['ssim']:.4f} ({c['coefficients']}) [{min(c['folds']):.2f}]"
         others = [m for m in names if m != "auto"]
-        for name in names:
-            c = row.cells[name]
-            text = f"{c['psnr']:.2f} / {c['ssim']:.4f} ({c['coefficients']}) [{min(c['folds']):.2f}]"
-            if name == "auto" and others:
-                folds = np.array([row.cells[m]["folds"] for m in others])
-                mean = c["psnr"] - folds.mean(axis=1).max()
-                worst = float(np.min(np.array(c["folds"]) - folds.max(axis=0)))
-                text += f" {{{mean:+.2f}, {worst:+.2f}}}"
-            cells.append(text)
-        lines.append(cells)
-    return simple_table(head, lines, markdown=markdown)
+        if name == "auto" and others:
+            folds = np.array([row.cells[m]["folds"] for m in others])
+            mean = c["psnr"] - folds.mean(axis=1).max()
+            worst = float(np.min(np.array(c["folds"]) - folds.max(axis=0)))
+            text += f" {{{mean:+.2f}, {worst:+.2f}}}"
+        return text
+
+    return method_table(rows, ["capture", "train/held out"],
+                        lambda row: [row.name, f"{row.train}/{row.test}"], cell, markdown=markdown)
 
 
 def results_as_dict(rows: list[RelightRow]) -> list[dict]:

@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+from collections.abc import Callable, Sequence
 from dataclasses import asdict
+from typing import Any
 
 import numpy as np
 
@@ -193,3 +195,21 @@ def simple_table(head: list[str], rows: list[list[str]], *, markdown: bool = Fal
     widths = [max(len(r[k]) for r in [head, *rows]) for k in range(len(head))]
     return "\n".join("  ".join(c.rjust(w) for c, w in zip(r, widths, strict=True))
                      for r in [head, *rows])
+
+
+def method_table(
+    rows: Sequence[Any],
+    head: list[str],
+    first: Callable[[Any], list[str]],
+    cell: Callable[[Any, str, list[str]], str],
+    *,
+    markdown: bool = False,
+) -> str:
+    """:func:`simple_table` of one line per row (an object with a ``cells`` dict by column
+    name): ``first(row)`` under ``head``, then ``cell(row, name, names)`` for each of the first
+    row's column names; "" for no rows."""
+    if not rows:
+        return ""
+    names = list(rows[0].cells)
+    lines = [[*first(row), *(cell(row, name, names) for name in names)] for row in rows]
+    return simple_table([*head, *names], lines, markdown=markdown)

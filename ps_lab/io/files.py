@@ -6,7 +6,8 @@
 - :func:`staged_folder`: a whole output folder built in a hidden sibling and renamed into place
   only when complete (``ps-lab reconstruct``, ``ps-lab simulate``);
 - :func:`staged_files`: files built in a hidden sub-folder, then each renamed into an existing
-  folder (``ps-lab calibrate`` writes into a capture run);
+  folder (``ps-lab calibrate`` writes into a capture run); :func:`staging_folder` is that
+  sub-folder alone, for writers that move their files themselves (``ps-lab relight``);
 - :func:`sha256` of a file, and :func:`json_safe` values for ``json.dumps``.
 
 Staging folders carry the writer's process id (``.OUT.partial-PID``); a run killed by SIGKILL
@@ -421,28 +422,42 @@ def staged_files(
     out = Path(out)
     if check is not None:
         check(out)
-    created = missing_folders(out)
-    staging = out / f"{prefix}partial-{os.getpid()}"
     try:
-        out.mkdir(parents=True, exist_ok=True)
-        remove_stale_staging(out, rf"{re.escape(prefix)}partial-(\d+)")
+        with staging_folder(out, f"{prefix}partial-") as staging:
+            yield staging
+            if check is not None:
+                check(out)
+            files = sorted(p for p in staging.iterdir() if p.is_file())
+            for path in files:
+                with open(path, "rb") as fh:
+                    os.fsync(fh.fileno())
+            for path in files:
+                os.replace(path, out / path.name)
+    except BaseException as exc:
+        if error is not None and is_no_space(exc):
+            raise error(_no_space_line(out, no_space_error(exc))) from None
+        raise
+
+
+@contextmanager
+def staging_folder(parent: Path, stem: str) -> Iterator[Path]:
+    """Yield a new empty hidden folder ``parent / (stem + process id)``, removed in every case.
+
+    ``parent`` is created if needed, and removed again (with any parent this created) when the
+    block fails; staging folders of ``stem`` left by processes that are gone are removed first.
+    """
+    created = missing_folders(parent)
+    staging = parent / f"{stem}{os.getpid()}"
+    try:
+        parent.mkdir(parents=True, exist_ok=True)
+        remove_stale_staging(parent, rf"{re.escape(stem)}(\d+)")
         if staging.exists():
             shutil.rmtree(staging)
         staging.mkdir()
         yield staging
-        if check is not None:
-            check(out)
-        files = sorted(p for p in staging.iterdir() if p.is_file())
-        for path in files:
-            with open(path, "rb") as fh:
-                os.fsync(fh.fileno())
-        for path in files:
-            os.replace(path, out / path.name)
-    except BaseException as exc:
+    except BaseException:
         remove_tree(staging)
         remove_created(created)
-        if error is not None and is_no_space(exc):
-            raise error(_no_space_line(out, no_space_error(exc))) from None
         raise
     else:
         remove_tree(staging)

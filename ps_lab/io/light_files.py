@@ -47,12 +47,7 @@ def read_light_directions(path: Path, count: int | None = None) -> np.ndarray:
         raise DatasetError(
             f"{path}: {len(rows)} light directions but the dataset has {count} images"
         )
-    norms = _lengths(rows)
-    for i, norm in enumerate(norms):
-        if norm < 1e-12:
-            raise DatasetError(f"{path}: light {i + 1} (row {i + 1}) has zero length")
-        if not np.isfinite(norm):
-            raise DatasetError(f"{path}: light {i + 1} (row {i + 1}): {_TOO_LONG}")
+    norms = _checked_lengths(path, rows, lambda k: f"light {k + 1} (row {k + 1})")
     off = np.abs(norms - 1.0) > _UNIT_TOLERANCE
     if off.any():
         log.warning(
@@ -61,20 +56,34 @@ def read_light_directions(path: Path, count: int | None = None) -> np.ndarray:
             int(off.sum()),
             ", ".join(str(i + 1) for i in np.flatnonzero(off)[:10]),
         )
+    return _normalised(path, rows, norms)
+
+
+def _checked_lengths(
+    path: Path, rows: np.ndarray, place: Callable[[int], str], subject: str = ""
+) -> np.ndarray:
+    """The lengths (n,) of ``rows`` (n, 3); a :class:`DatasetError` where row k has zero length
+    (``{path}: {place(k)}{subject} has zero length``) or overflows (``{path}: {place(k)}: ...``)."""
+    with np.errstate(over="ignore", invalid="ignore"):
+        norms = np.where(np.abs(rows).max(axis=1) > 1e150, np.inf, np.linalg.norm(rows, axis=1))
+    for k, norm in enumerate(norms):
+        if norm < 1e-12:
+            raise DatasetError(f"{path}: {place(k)}{subject} has zero length")
+        if not np.isfinite(norm):
+            raise DatasetError(
+                f"{path}: {place(k)}: light direction too long to normalise (a value beyond 1e150)"
+            )
+    return norms
+
+
+def _normalised(path: Path, rows: np.ndarray, norms: np.ndarray) -> np.ndarray:
+    """``rows`` divided by their lengths ``norms``; a :class:`DatasetError` where those unit
+    directions cannot determine the normals (:func:`light_geometry_problem`)."""
     unit = rows / norms[:, None]
     problem = light_geometry_problem(unit)
     if problem is not None:
         raise DatasetError(f"{path}: {problem}")
     return unit
-
-
-_TOO_LONG = "light direction too long to normalise (a value beyond 1e150)"
-
-
-def _lengths(rows: np.ndarray) -> np.ndarray:
-    """Row lengths; infinite where squaring a value overflows (never a numpy warning)."""
-    with np.errstate(over="ignore", invalid="ignore"):
-        return np.where(np.abs(rows).max(axis=1) > 1e150, np.inf, np.linalg.norm(rows, axis=1))
 
 
 # Smallest singular value over the largest of the unit light directions below which the lights
@@ -236,14 +245,20 @@ def light_table_bytes(rows: np.ndarray) -> bytes:
     return "".join(" ".join(f"{v:.9f}" for v in row) + "\n" for row in np.asarray(rows)).encode()
 
 
-def _read_table(path: Path, widths: tuple[int, ...], *, allow_nan: bool = False) -> np.ndarray:
-    """Parse a whitespace (or comma) separated numeric table; ``#`` starts a comment."""
+def _read_text(path: Path) -> str:
+    """The text of a light file (UTF-8, a byte-order mark dropped); a :class:`DatasetError`
+    where it is missing or unreadable."""
     try:
-        text = path.read_text(encoding="utf-8-sig")
+        return path.read_text(encoding="utf-8-sig")
     except FileNotFoundError:
         raise DatasetError(f"{path}: file not found") from None
     except (OSError, UnicodeDecodeError) as exc:
         raise DatasetError(f"{path}: cannot read file ({exc})") from None
+
+
+def _read_table(path: Path, widths: tuple[int, ...], *, allow_nan: bool = False) -> np.ndarray:
+    """Parse a whitespace (or comma) separated numeric table; ``#`` starts a comment."""
+    text = _read_text(path)
     rows: list[list[float]] = []
     width: int | None = None
     for number, line in enumerate(text.splitlines(), start=1):
@@ -324,12 +339,7 @@ def read_lp_rows(path: Path) -> tuple[list[str], np.ndarray, list[int]]:
         cannot determine a normal (fewer than 3, collinear or coplanar); the message names the
         ``.lp`` file.
     """
-    try:
-        text = path.read_text(encoding="utf-8-sig")
-    except FileNotFoundError:
-        raise DatasetError(f"{path}: file not found") from None
-    except (OSError, UnicodeDecodeError) as exc:
-        raise DatasetError(f"{path}: cannot read file ({exc})") from None
+    text = _read_text(path)
     lines = [
         (number, line.strip())
         for number, line in enumerate(text.splitlines(), start=1)
@@ -375,17 +385,8 @@ def read_lp_rows(path: Path) -> tuple[list[str], np.ndarray, list[int]]:
         if head and is_supported(Path(head)) and _is_number(last):  # 'a.png 1 0 1 5'
             raise DatasetError(f"{path}: line {number}: expected 'filename x y z', got 4 numbers")
         names.append(fields[0])
-    norms = _lengths(rows)
-    for k, norm in enumerate(norms):
-        if norm < 1e-12:
-            raise DatasetError(f"{path}: line {lines[k + 1][0]}: light direction has zero length")
-        if not np.isfinite(norm):
-            raise DatasetError(f"{path}: line {lines[k + 1][0]}: {_TOO_LONG}")
-    unit = rows / norms[:, None]
-    problem = light_geometry_problem(unit)
-    if problem is not None:
-        raise DatasetError(f"{path}: {problem}")
-    return names, unit, [number for number, _ in lines[1 : count + 1]]
+    norms = _checked_lengths(path, rows, lambda k: f"line {lines[k + 1][0]}", ": light direction")
+    return names, _normalised(path, rows, norms), [number for number, _ in lines[1 : count + 1]]
 
 
 def _is_number(text: str) -> bool:
