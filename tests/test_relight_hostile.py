@@ -33,9 +33,9 @@ from helpers.hostile import (  # noqa: E402 - the sweeps' runner
     assert_one_error_line,
     assert_quiet,
     environment,
+    refused,
     run,
-    snapshot,
-    temporary_leftovers,
+    tmpfs_prefix,
 )
 
 from ps_lab import render  # noqa: E402
@@ -260,16 +260,11 @@ def test_relight_refuses_in_one_line(case: Case, made, tmp_path) -> None:
     (root / "shots").mkdir()
     (root / "shots_light02.png").mkdir()
     (root / "notes.txt").write_text("mine")
-    before = snapshot(root)
     args = ["relight", str(result), "--out", str(root / case.out)]
     for light in case.lights:
         args.append(f"--light={light}")
-    done = run(args, root, home)
-    line = assert_one_error_line(done, case.names)
+    line = refused(args, root, home, case.names)
     assert ".relight-partial" not in line, line
-    assert_quiet(done)
-    assert snapshot(root) == before, "files created or changed"
-    assert not temporary_leftovers(home)
 
 
 def test_relight_several_lights_near_and_far_succeed_quietly(made, tmp_path) -> None:
@@ -306,26 +301,12 @@ def test_relight_overwrites_earlier_pictures_all_or_none(made, tmp_path) -> None
 # ---- full and read-only disks ---------------------------------------------------------------
 
 
-def _namespace(mountpoint: Path, options: str) -> tuple[str, ...] | None:
-    """``unshare`` arguments that run a command with a 256 KiB tmpfs on ``mountpoint``."""
-    unshare = shutil.which("unshare")
-    if unshare is None:
-        return None
-    mountpoint.mkdir(exist_ok=True)
-    script = f'mount -t tmpfs -o size=256k,{options} tmpfs "$0" && exec "$@"'
-    probe = subprocess.run([unshare, "-rm", "sh", "-c", script, str(mountpoint), "true"],
-                           capture_output=True, check=False)
-    if probe.returncode != 0:
-        return None
-    return (unshare, "-rm", "sh", "-c", script, str(mountpoint))
-
-
 @pytest.mark.parametrize("disk", ["full", "read-only"])
 def test_relight_on_a_full_or_read_only_disk_names_the_picture(disk, made, tmp_path) -> None:
     home = tmp_path / "home"
     home.mkdir()
     mount = tmp_path / "disk"
-    prefix = _namespace(mount, "ro" if disk == "read-only" else "rw")
+    prefix = tmpfs_prefix(mount, "ro" if disk == "read-only" else "rw")
     if prefix is None:
         pytest.skip("cannot mount a tmpfs here (unshare -rm not allowed)")
     out = mount / "pic.exr"
