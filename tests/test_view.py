@@ -28,6 +28,7 @@ import pytest
 from typer.testing import CliRunner
 
 from ps_lab.cli import app
+from ps_lab.io.encoding import linear_to_srgb
 from ps_lab.view import ViewSite, export_site, load_result
 from ps_lab.view.result import CHANNELS, decimate_mesh, vertex_normals
 from ps_lab.view.tiles import TILE, pyramid
@@ -284,7 +285,7 @@ def expected_shading(result: Path, light, exposure: float = 1.0, use_albedo: boo
         linear = np.clip(shade[..., None] * colour * exposure, 0, 1)
     else:
         linear = np.clip(shade * albedo * exposure, 0, 1)
-    srgb = np.where(linear <= 0.0031308, linear * 12.92, 1.055 * linear ** (1 / 2.4) - 0.055)
+    srgb = linear_to_srgb(linear)
     srgb = srgb.mean(axis=-1) if srgb.ndim == 3 else srgb
     return srgb * 255.0, mask
 
@@ -297,6 +298,12 @@ def shown_pixels(browser, panel: int, shape) -> tuple[np.ndarray, np.ndarray, np
     rows = np.floor(y0 + np.arange(h)).astype(int)
     cols = np.floor(x0 + np.arange(w)).astype(int)
     return rows, cols, picture
+
+
+def shown_rgb(browser, panel: int, shape) -> np.ndarray:
+    """Panel ``panel`` shown 1:1: its (h, w, 3) RGB levels (0..255, float64) on the screenshot."""
+    rows, cols, picture = shown_pixels(browser, panel, shape)
+    return picture[rows][:, cols].astype(np.float64)[..., :3]
 
 
 def interior(mask: np.ndarray) -> np.ndarray:
@@ -551,10 +558,8 @@ def test_colour_relight_in_chromium_shows_the_albedo_colour(browser, colour_resu
         mask = norm > 0.5
         shade = np.maximum((normals / np.where(mask, norm, 1)[..., None]) @ light, 0)
         linear = np.clip(shade[..., None] * colour, 0, 1)
-        expected = 255 * np.where(linear <= 0.0031308, linear * 12.92,
-                                  1.055 * linear ** (1 / 2.4) - 0.055)
-        rows, cols, picture = shown_pixels(browser, 0, view.shape)
-        shown = picture[rows][:, cols].astype(np.float64)[..., :3]
+        expected = 255 * linear_to_srgb(linear)
+        shown = shown_rgb(browser, 0, view.shape)
         inner = interior(mask)
         difference = np.abs(shown - expected)[inner]
         print("colour relight vs numpy (levels, per channel): mean",
@@ -572,7 +577,6 @@ def _with_appearance(result: Path, folder: Path, model: str) -> Path:
     fit of its Lambertian renders plus a gloss, or ps / rbf with seeded coefficients."""
     from ps_lab.appearance.models import PS_TERMS, Appearance, appearance_basis
     from ps_lab.appearance.store import write_appearance
-    from ps_lab.io.encoding import linear_to_srgb
 
     shutil.copytree(result, folder)
     normals = np.load(result / "normals.npy").astype(np.float64)
@@ -692,10 +696,8 @@ def test_appearance_relight_in_chromium_matches_the_model(browser, colour_result
             else:
                 linear = np.maximum(unit @ light, 0)[..., None] * albedo
             linear = np.clip(linear.astype(np.float64), 0, 1)
-            expected = 255 * np.where(linear <= 0.0031308, linear * 12.92,
-                                      1.055 * linear ** (1 / 2.4) - 0.055)
-            rows, cols, picture = shown_pixels(browser, 0, view.shape)
-            shown = picture[rows][:, cols].astype(np.float64)[..., :3]
+            expected = 255 * linear_to_srgb(linear)
+            shown = shown_rgb(browser, 0, view.shape)
             inner = interior(mask)
             difference = np.abs(shown - expected)[inner]
             numbers[key] = (float(difference.mean()), float(difference.max()))
@@ -739,10 +741,8 @@ def test_a_relightlab_export_relights_in_chromium(browser, colour_result, tmp_pa
         settle(browser)
         linear = np.clip(evaluate_appearance(rounded, np.asarray(light), view.layers[..., :3],
                                              np.zeros(view.shape)).astype(np.float64), 0, 1)
-        expected = 255 * np.where(linear <= 0.0031308, linear * 12.92,
-                                  1.055 * linear ** (1 / 2.4) - 0.055)
-        rows, cols, picture = shown_pixels(browser, 0, view.shape)
-        shown = picture[rows][:, cols].astype(np.float64)[..., :3]
+        expected = 255 * linear_to_srgb(linear)
+        shown = shown_rgb(browser, 0, view.shape)
         difference = np.abs(shown - expected)[interior(mask)]
         print("RelightLab folder relight vs numpy (levels): mean", float(difference.mean()),
               "max", float(difference.max()))
@@ -788,10 +788,8 @@ def test_a_default_result_exported_for_openlime_relights_in_chromium_as_the_expo
             settle(browser)
             linear = np.clip(evaluate_appearance(rounded, np.asarray(light), view.layers[..., :3],
                                                  np.zeros(view.shape)).astype(np.float64), 0, 1)
-            expected = 255 * np.where(linear <= 0.0031308, linear * 12.92,
-                                      1.055 * linear ** (1 / 2.4) - 0.055)
-            rows, cols, picture = shown_pixels(browser, 0, view.shape)
-            shown = picture[rows][:, cols].astype(np.float64)[..., :3]
+            expected = 255 * linear_to_srgb(linear)
+            shown = shown_rgb(browser, 0, view.shape)
             difference = np.abs(shown - expected)[interior(mask)]
             print("default result's OpenLIME export in the viewer vs numpy (levels): mean",
                   float(difference.mean()), "max", float(difference.max()))
