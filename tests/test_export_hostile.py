@@ -9,8 +9,6 @@ from __future__ import annotations
 
 import json
 import shutil
-import subprocess
-import sys
 from pathlib import Path
 
 import pytest
@@ -19,13 +17,11 @@ from typer.testing import CliRunner
 from ps_lab.cli import app
 from tests.helpers.hostile import (
     IS_ROOT,
-    PS_LAB,
-    Result,
     assert_one_error_line,
     assert_quiet,
-    environment,
     refused,
     run,
+    run_on_tmpfs,
     tmpfs_prefix,
 )
 
@@ -206,27 +202,8 @@ def test_a_full_disk_names_the_users_folder_not_a_staging_one(made, tmp_path):
     if prefix is None:
         pytest.skip("cannot mount a tmpfs here (unshare -rm not allowed): full disk not tested")
     out = full / "export"
-    listing = home / "listing.json"
-    script = (
-        "import json, os, subprocess\n"
-        f"full = {str(full)!r}\n"
-        "space = os.statvfs(full)\n"
-        "with open(os.path.join(full, 'filler'), 'wb') as filler:\n"
-        "    filler.write(bytes(max(0, space.f_bavail * space.f_frsize - 8192)))\n"
-        "def tree():\n"
-        "    return sorted(os.path.relpath(os.path.join(d, n), full) for d, ds, fs in "
-        "os.walk(full) for n in ds + fs)\n"
-        "before = tree()\n"
-        f"done = subprocess.run([{PS_LAB!r}, *{_export(made['result'], out)!r}], "
-        "capture_output=True)\n"
-        f"json.dump({{'before': before, 'after': tree(), 'code': done.returncode, "
-        f"'stderr': done.stderr.decode('utf-8', 'replace')}}, open({str(listing)!r}, 'w'))\n"
-    )
-    finished = subprocess.run([*prefix, sys.executable, "-c", script], env=environment(home),
-                              capture_output=True, timeout=300, check=False)
-    assert finished.returncode == 0, finished.stderr.decode(errors="replace")
-    record = json.loads(listing.read_text())
-    outcome = Result(record["code"], "", record["stderr"], 0)
+    outcome, before, after = run_on_tmpfs(prefix, full, _export(made["result"], out), home,
+                                          leave=8192)
     line = assert_one_error_line(outcome, (str(out),))
     assert "space" in line and ".partial" not in line, line
-    assert record["after"] == record["before"]
+    assert after == before

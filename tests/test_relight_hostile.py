@@ -15,7 +15,6 @@ import json
 import logging
 import math
 import shutil
-import subprocess
 import sys
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -28,13 +27,11 @@ from typer.testing import CliRunner
 
 sys.path.insert(0, str(Path(__file__).parent))
 from helpers.hostile import (  # noqa: E402 - the sweeps' runner
-    PS_LAB,
-    Result,
     assert_one_error_line,
     assert_quiet,
-    environment,
     refused,
     run,
+    run_on_tmpfs,
     tmpfs_prefix,
 )
 
@@ -311,23 +308,13 @@ def test_relight_on_a_full_or_read_only_disk_names_the_picture(disk, made, tmp_p
         pytest.skip("cannot mount a tmpfs here (unshare -rm not allowed)")
     out = mount / "pic.exr"
     # fill all but 4 KiB, then relight two lights of 12 KiB each (EXR of 16 x 16 floats)
-    fill = (
-        "import os, subprocess, sys\n"
-        f"mount = {str(mount)!r}\n"
-        f"if {disk == 'full'}:\n"
-        "    space = os.statvfs(mount)\n"
-        "    with open(os.path.join(mount, 'filler'), 'wb') as f:\n"
-        "        f.write(bytes(max(0, space.f_bavail * space.f_frsize - 4096)))\n"
-        f"done = subprocess.run([{PS_LAB!r}, 'relight', {str(made['ps'])!r}, '--out', {str(out)!r},"
-        " '--light=0,0,1', '--light=0.3,0.2,0.9'], capture_output=True)\n"
-        "left = sorted(n for n in os.listdir(mount) if n != 'filler')\n"
-        "sys.stdout.write(repr((done.returncode, done.stderr.decode(), left)))\n"
+    done, _, after = run_on_tmpfs(
+        prefix, mount, ["relight", str(made["ps"]), "--out", str(out), "--light=0,0,1",
+                        "--light=0.3,0.2,0.9"], home, leave=4096 if disk == "full" else None,
+        timeout=120,
     )
-    finished = subprocess.run([*prefix, sys.executable, "-c", fill], env=environment(home),
-                              capture_output=True, timeout=120, check=False)
-    assert finished.returncode == 0, finished.stderr.decode(errors="replace")
-    code, stderr, left = eval(finished.stdout.decode())  # noqa: S307 - our own repr
-    line = assert_one_error_line(Result(code, "", stderr, 0), (str(mount / "pic_light0"),))
+    left = [name for name in after if name != "filler"]
+    line = assert_one_error_line(done, (str(mount / "pic_light0"),))
     assert ".relight-partial" not in line and left == [], (line, left)
     assert ("space" in line) if disk == "full" else ("read-only" in line), line
 

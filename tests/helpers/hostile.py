@@ -10,6 +10,7 @@ nothing created or changed in the case's folder (:func:`snapshot`).
 
 from __future__ import annotations
 
+import json
 import os
 import re
 import shutil
@@ -178,3 +179,36 @@ def tmpfs_prefix(mountpoint: Path, options: str = "rw") -> tuple[str, ...] | Non
     if probe.returncode != 0:
         return None
     return (unshare, "-rm", "sh", "-c", script, str(mountpoint))
+
+
+def run_on_tmpfs(
+    prefix: tuple[str, ...], mount: Path, args: list[str], home: Path, leave: int | None = None,
+    timeout: float = 300,
+) -> tuple[Result, list[str], list[str]]:
+    """Run ``ps-lab args`` inside ``prefix`` (:func:`tmpfs_prefix` on ``mount``), first filling
+    the tmpfs (a file ``filler``) to all but ``leave`` bytes unless ``leave`` is None.
+
+    Returns the run's result (its stderr and exit code) and the paths under ``mount`` (the
+    filler's included) before and after the run; a file in ``home`` carries them out.
+    """
+    listing = home / "tmpfs-listing.json"
+    script = (
+        "import json, os, subprocess\n"
+        f"mount = {str(mount)!r}\n"
+        f"if {leave is not None}:\n"
+        "    space = os.statvfs(mount)\n"
+        "    with open(os.path.join(mount, 'filler'), 'wb') as filler:\n"
+        f"        filler.write(bytes(max(0, space.f_bavail * space.f_frsize - {leave or 0})))\n"
+        "def tree():\n"
+        "    return sorted(os.path.relpath(os.path.join(d, n), mount) for d, ds, fs in "
+        "os.walk(mount) for n in ds + fs)\n"
+        "before = tree()\n"
+        f"done = subprocess.run([{PS_LAB!r}, *{args!r}], capture_output=True)\n"
+        "json.dump({'before': before, 'after': tree(), 'code': done.returncode, "
+        f"'stderr': done.stderr.decode('utf-8', 'replace')}}, open({str(listing)!r}, 'w'))\n"
+    )
+    finished = subprocess.run([*prefix, sys.executable, "-c", script], env=environment(home),
+                              capture_output=True, timeout=timeout, check=False)
+    assert finished.returncode == 0, finished.stderr.decode(errors="replace")
+    record = json.loads(listing.read_text())
+    return Result(record["code"], "", record["stderr"], 0), record["before"], record["after"]
