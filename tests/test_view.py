@@ -321,6 +321,23 @@ def assert_shown(browser, panel: int, expected: np.ndarray, mask: np.ndarray) ->
     assert difference.max() <= 2.0, (difference.mean(), difference.max())
 
 
+def assert_relit_as(browser, fit, light, view, mask: np.ndarray, label: str) -> None:
+    """Panel 0 (shown 1:1) relit from ``light`` is the appearance ``fit`` of the view's normals
+    as numpy evaluates it (a fit whose coefficients carry the albedo: hsh3, rbf), sRGB-encoded,
+    within 2 levels in the mask; prints the levels' mean and max after ``label``."""
+    from ps_lab.appearance.models import evaluate_appearance
+
+    browser.evaluate(f"psView.setLight({json.dumps(light)})")
+    settle(browser)
+    linear = np.clip(evaluate_appearance(fit, np.asarray(light), view.layers[..., :3],
+                                         np.zeros(view.shape)).astype(np.float64), 0, 1)
+    difference = np.abs(shown_rgb(browser, 0, view.shape) - 255 * linear_to_srgb(linear))
+    difference = difference[interior(mask)]
+    print(f"{label} vs numpy (levels): mean", float(difference.mean()), "max",
+          float(difference.max()))
+    assert difference.max() <= 2.0
+
+
 def lambertian(browser) -> None:
     """Relight Lambertian (results reconstructed by default carry an appearance fit)."""
     browser.evaluate("psView.ready")
@@ -715,7 +732,7 @@ def test_appearance_relight_in_chromium_matches_the_model(browser, colour_result
 
 def test_a_relightlab_export_relights_in_chromium(browser, colour_result, tmp_path):
     """ps-lab view opens RelightLab's web layout (its own export) and relights it as its fit."""
-    from ps_lab.appearance.models import Appearance, evaluate_appearance
+    from ps_lab.appearance.models import Appearance
     from ps_lab.appearance.relightlab import read_relightlab
     from ps_lab.view.relightlab import load_view_result
 
@@ -736,17 +753,8 @@ def test_a_relightlab_export_relights_in_chromium(browser, colour_result, tmp_pa
         assert entry["appearance"]["model"] == "hsh3" and len(entry["captured_lights"]) == 16
         browser.evaluate("psView.pixelScale(0, 1)")
         browser.evaluate("psView.setView({cx: 0.5, cy: 0.5})")
-        light = [0.4, -0.2, float(np.sqrt(1 - 0.2))]
-        browser.evaluate(f"psView.setLight({json.dumps(light)})")
-        settle(browser)
-        linear = np.clip(evaluate_appearance(rounded, np.asarray(light), view.layers[..., :3],
-                                             np.zeros(view.shape)).astype(np.float64), 0, 1)
-        expected = 255 * linear_to_srgb(linear)
-        shown = shown_rgb(browser, 0, view.shape)
-        difference = np.abs(shown - expected)[interior(mask)]
-        print("RelightLab folder relight vs numpy (levels): mean", float(difference.mean()),
-              "max", float(difference.max()))
-        assert difference.max() <= 2.0
+        assert_relit_as(browser, rounded, [0.4, -0.2, float(np.sqrt(1 - 0.2))], view, mask,
+                        "RelightLab folder relight")
     finally:
         server.stop()
 
@@ -757,7 +765,7 @@ def test_a_default_result_exported_for_openlime_relights_in_chromium_as_the_expo
     """A default result (model ps) exported with --format relight (converted to RelightLab's
     rbf layout): ps-lab view of the export shows what the export relights (the numpy read of
     its planes, as OpenLIME reads them), within 2 levels."""
-    from ps_lab.appearance.models import Appearance, evaluate_appearance
+    from ps_lab.appearance.models import Appearance
     from ps_lab.appearance.store import read_appearance
     from ps_lab.appearance.relightlab import read_relightlab
     from ps_lab.view.relightlab import load_view_result
@@ -784,15 +792,7 @@ def test_a_default_result_exported_for_openlime_relights_in_chromium_as_the_expo
         browser.evaluate("psView.pixelScale(0, 1)")
         browser.evaluate("psView.setView({cx: 0.5, cy: 0.5})")
         for light in ([0.4, -0.2, float(np.sqrt(1 - 0.2))], [-0.1, 0.3, float(np.sqrt(0.9))]):
-            browser.evaluate(f"psView.setLight({json.dumps(light)})")
-            settle(browser)
-            linear = np.clip(evaluate_appearance(rounded, np.asarray(light), view.layers[..., :3],
-                                                 np.zeros(view.shape)).astype(np.float64), 0, 1)
-            expected = 255 * linear_to_srgb(linear)
-            shown = shown_rgb(browser, 0, view.shape)
-            difference = np.abs(shown - expected)[interior(mask)]
-            print("default result's OpenLIME export in the viewer vs numpy (levels): mean",
-                  float(difference.mean()), "max", float(difference.max()))
-            assert difference.max() <= 2.0
+            assert_relit_as(browser, rounded, light, view, mask,
+                            "default result's OpenLIME export in the viewer")
     finally:
         server.stop()
