@@ -20,6 +20,7 @@ import socket
 import subprocess
 import sys
 import time
+from contextlib import contextmanager
 from pathlib import Path
 
 import cv2
@@ -336,6 +337,19 @@ def assert_relit_as(browser, fit, light, view, mask: np.ndarray, label: str) -> 
     print(f"{label} vs numpy (levels): mean", float(difference.mean()), "max",
           float(difference.max()))
     assert difference.max() <= 2.0
+
+
+@contextmanager
+def opened(browser, result: Path):
+    """``result`` served by ``ps-lab view``, open in ``browser`` and ready: yields its entry
+    (``psView.results()[0]``); the server is stopped (Ctrl-C) after."""
+    server = ViewServer(result)
+    try:
+        browser.open(server.url)
+        assert browser.evaluate("psView.ready") is True
+        yield browser.evaluate("psView.results()[0]")
+    finally:
+        server.stop()
 
 
 def lambertian(browser) -> None:
@@ -689,11 +703,7 @@ def test_appearance_relight_in_chromium_matches_the_model(browser, colour_result
     mask = norm > 0.5
     unit = normals / np.where(mask, norm, 1)[..., None]
     albedo = (np.load(result / "albedo.npy") / scale).astype(np.float16).astype(np.float64)
-    server = ViewServer(result)
-    try:
-        browser.open(server.url)
-        assert browser.evaluate("psView.ready") is True
-        entry = browser.evaluate("psView.results()[0]")
+    with opened(browser, result) as entry:
         assert entry["appearance"]["model"] == fit.model and entry["appearance"]["planes"]
         assert entry["appearance"]["note"] is None
         assert entry["appearance"]["space"] == ("srgb" if srgb else "linear")
@@ -726,8 +736,6 @@ def test_appearance_relight_in_chromium_matches_the_model(browser, colour_result
         assert numbers["model_vs_lambertian"] > 3.0, numbers
         print(f"{model} ({fit.model}, {fit.meta.get('space', 'linear')}) relight vs numpy "
               f"(mean, max levels): {numbers}")
-    finally:
-        server.stop()
 
 
 def test_a_relightlab_export_relights_in_chromium(browser, colour_result, tmp_path):
@@ -745,18 +753,12 @@ def test_a_relightlab_export_relights_in_chromium(browser, colour_result, tmp_pa
     rounded = Appearance("hsh3", (fit.coefficients / view.albedo_scale).astype(np.float16)
                          .astype(np.float32), fit.meta)
     mask = np.linalg.norm(view.layers[..., :3], axis=2) > 0.5
-    server = ViewServer(out)
-    try:
-        browser.open(server.url)
-        assert browser.evaluate("psView.ready") is True
-        entry = browser.evaluate("psView.results()[0]")
+    with opened(browser, out) as entry:
         assert entry["appearance"]["model"] == "hsh3" and len(entry["captured_lights"]) == 16
         browser.evaluate("psView.pixelScale(0, 1)")
         browser.evaluate("psView.setView({cx: 0.5, cy: 0.5})")
         assert_relit_as(browser, rounded, [0.4, -0.2, float(np.sqrt(1 - 0.2))], view, mask,
                         "RelightLab folder relight")
-    finally:
-        server.stop()
 
 
 def test_a_default_result_exported_for_openlime_relights_in_chromium_as_the_export(
@@ -782,11 +784,7 @@ def test_a_default_result_exported_for_openlime_relights_in_chromium_as_the_expo
     coefficients = (fit.coefficients / view.albedo_scale).astype(np.float16).astype(np.float32)
     rounded = Appearance("rbf", coefficients, fit.meta, fit.extra)
     mask = np.linalg.norm(view.layers[..., :3], axis=2) > 0.5
-    server = ViewServer(out)
-    try:
-        browser.open(server.url)
-        assert browser.evaluate("psView.ready") is True
-        entry = browser.evaluate("psView.results()[0]")
+    with opened(browser, out) as entry:
         assert entry["appearance"]["model"] == "rbf" and entry["appearance"]["shared"] is True
         assert entry["appearance"]["note"] is None
         browser.evaluate("psView.pixelScale(0, 1)")
@@ -794,5 +792,3 @@ def test_a_default_result_exported_for_openlime_relights_in_chromium_as_the_expo
         for light in ([0.4, -0.2, float(np.sqrt(1 - 0.2))], [-0.1, 0.3, float(np.sqrt(0.9))]):
             assert_relit_as(browser, rounded, light, view, mask,
                             "default result's OpenLIME export in the viewer")
-    finally:
-        server.stop()
