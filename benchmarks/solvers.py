@@ -31,7 +31,8 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
 
-from helpers.solver_oracles import sbl_pixel, solve_oracle  # noqa: E402
+from helpers.solver_oracles import oracle_params, sbl_pixel, solve_oracle  # noqa: E402
+from helpers.solver_scenes import corrupt  # noqa: E402
 
 from ps_lab import render as R  # noqa: E402
 from ps_lab.reconstruct import (  # noqa: E402
@@ -42,9 +43,6 @@ from ps_lab.reconstruct import (  # noqa: E402
     solve,
 )
 from ps_lab.reconstruct._shadows import black_threshold  # noqa: E402
-
-ORACLE_KEYS = ("max_iter", "tol", "delta", "outlier_threshold", "sigma_x2", "gamma_floor",
-               "gamma_start")
 
 
 def machine() -> str:
@@ -65,22 +63,10 @@ def synthetic(n_lights: int, n_pixels: int, seed: int = 0):
         nrm[:, 2] = np.abs(nrm[:, 2]) + 0.3
         nrm /= np.linalg.norm(nrm, axis=1, keepdims=True)
         y = np.maximum(lights @ nrm.T, 0.0) * rng.uniform(0.3, 1.0, b - a)
-        hit = rng.random(y.shape) < 0.1
-        y[hit] += rng.uniform(0.0, 1.0, hit.sum())
+        y, _ = corrupt(y, rng, 0.0)
         y += rng.normal(0.0, 0.005, y.shape)
         obs[:, a:b] = y
     return obs, lights
-
-
-def oracle_params(sol):
-    p = {k: v for k, v in sol.params.items() if k in ORACLE_KEYS}
-    if "lambda" in sol.params:
-        p["lam"] = sol.params["lambda"]
-        if p["lam"] is None:  # SBL's per-pixel default
-            p["noise_sigma"] = sol.params["noise_sigma"]
-            p["noise_floor"] = sol.params["noise_floor"]
-            p["light_noise"] = sol.params["light_noise"]
-    return p
 
 
 # Methods timed against the SBL oracle (the authors' per-pixel SBL, issue 23's yardstick).

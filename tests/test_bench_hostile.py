@@ -21,7 +21,6 @@ import pytest
 sys.path.insert(0, str(Path(__file__).parent))
 from helpers.bad_input import CaseTable  # noqa: E402
 from helpers.hostile import (  # noqa: E402 - the sweeps' runner
-    Result,
     assert_one_error_line,
     assert_quiet,
     run,
@@ -31,18 +30,13 @@ from helpers.hostile import (  # noqa: E402 - the sweeps' runner
 from ps_lab.commands.bench import finite_json  # noqa: E402
 
 
-def _cli(args: list[str], cwd: Path, home: Path) -> Result:
-    home.mkdir(parents=True, exist_ok=True)
-    return run(args, cwd, home)
-
-
 @pytest.fixture(scope="session")
 def captures(tmp_path_factory) -> Path:
     """``few`` (5 lights: none can be held out of eight folds) and ``ok`` (9 lights), 16x16."""
     root = tmp_path_factory.mktemp("bench")
     for name, lights in (("few", "5"), ("ok", "9")):
-        result = _cli(["simulate", str(root / name), "--size", "16", "--lights", lights], root,
-                      root / "home")
+        result = run(["simulate", str(root / name), "--size", "16", "--lights", lights], root,
+                     root / "home")
         assert result.code == 0, result.stderr
     return root
 
@@ -101,7 +95,7 @@ def test_bench_refuses_before_work(case: Case, captures: Path, tmp_path: Path) -
     work.mkdir()
     args = case.args(work, captures)
     before, inputs = snapshot(work), snapshot(captures)
-    result = _cli(["bench", *args], work, tmp_path / "home")
+    result = run(["bench", *args], work, tmp_path / "home")
     assert_one_error_line(result, case.names(work, captures))
     assert_quiet(result)
     assert result.stdout == "", "the benchmark ran before the input was refused"
@@ -111,8 +105,8 @@ def test_bench_refuses_before_work(case: Case, captures: Path, tmp_path: Path) -
 def test_bench_relight_json_is_strict(captures: Path, tmp_path: Path) -> None:
     """A sound capture: the table, and ``--json`` that a strict parser reads."""
     out = tmp_path / "relight.json"
-    result = _cli(["bench", "relight", str(captures / "ok"), "--json", str(out)], tmp_path,
-                  tmp_path / "home")
+    result = run(["bench", "relight", str(captures / "ok"), "--json", str(out)], tmp_path,
+                 tmp_path / "home")
     assert result.code == 0, result.stderr
     assert_quiet(result)
 

@@ -20,7 +20,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from helpers.capture_runs import N_FRAMES, N_LIGHTS, frame_hashes, write_rig
+from helpers.capture_runs import N_FRAMES, N_LIGHTS, frame_hashes, write_rig, write_tethered_rig
 
 from ps_lab.capture.rig import load_rig
 from ps_lab.capture.session import CaptureSession, make_plan
@@ -368,24 +368,7 @@ def test_folder_camera_with_serial_url_controller(tmp_path: Path) -> None:
     """A real-rig path: serial driver on a pyserial URL, frames dropped into a watched folder."""
     tether = tmp_path / "tether"
     tether.mkdir()
-    rig_path = tmp_path / "folder.toml"
-    rig_path.write_text(
-        f"""
-[controller]
-driver = "serial"
-port = "pslabsim://folder-test?lights=3"
-lights = 3
-timeout_s = 0.2
-[camera]
-driver = "folder"
-folder = "{tether}"
-pattern = "*.dng"
-prompt = true
-exposure_s = 0.01
-file_type = "dng"
-timeout_s = 10.0
-"""
-    )
+    rig_path = write_tethered_rig(tmp_path / "folder.toml", tether, 3, "folder-test")
     rng = np.random.default_rng(5)
     shots: list[str] = []
 

@@ -9,8 +9,6 @@ from __future__ import annotations
 
 import json
 import shutil
-import subprocess
-import sys
 from pathlib import Path
 
 import pytest
@@ -19,14 +17,11 @@ from typer.testing import CliRunner
 from ps_lab.cli import app
 from tests.helpers.hostile import (
     IS_ROOT,
-    PS_LAB,
-    Result,
     assert_one_error_line,
     assert_quiet,
-    environment,
+    refused,
     run,
-    snapshot,
-    temporary_leftovers,
+    run_on_tmpfs,
     tmpfs_prefix,
 )
 
@@ -71,14 +66,10 @@ def test_a_folder_with_the_users_files_is_refused_and_kept(made, tmp_path, conte
         (out / "notes.txt").write_text("my notes")
     if content == "planes-only":
         (out / "plane_0.jpg").write_bytes(b"my picture")
-    before = snapshot(case)
-    result = run(_export(made["result"], out), case, home)
-    line = assert_one_error_line(result, (str(out),))
+    line = refused(_export(made["result"], out), case, home, (str(out),))
     named = {"info-and-notes": "notes.txt", "info-only": "info.json", "notes-only": "notes.txt",
              "planes-only": "plane_0.jpg"}[content]
     assert named in line and "did not write" in line, line
-    assert snapshot(case) == before
-    assert not temporary_leftovers(home)
 
 
 def test_an_earlier_export_is_replaced(made, tmp_path):
@@ -100,10 +91,7 @@ def test_an_output_that_cannot_be_a_folder(made, tmp_path, where):
     out = {"onto-a-file": file, "under-a-file": file / "out"}.get(where, case / "link")
     if where == "link-to-a-file":
         out.symlink_to(file)
-    before = snapshot(case)
-    result = run(_export(made["result"], out), case, home)
-    assert_one_error_line(result, (str(out), str(file)))
-    assert snapshot(case) == before
+    refused(_export(made["result"], out), case, home, (str(out), str(file)))
 
 
 @pytest.mark.skipif(IS_ROOT, reason="root writes into read-only folders")
@@ -138,12 +126,8 @@ def test_a_moved_dataset_is_named_not_exported_without_lights(made, tmp_path):
     write_appearance(result, Appearance("ptm", np.zeros((h, w, 3, 6), np.float32),
                                         {"basis": "ptm", "K": 6}))
     data.rename(case / "moved")
-    before = snapshot(case)
-    out = case / "out"
-    outcome = run(_export(result, out), case, home)
-    line = assert_one_error_line(outcome, (str(data),))
+    line = refused(_export(result, case / "out"), case, home, (str(data),))
     assert "missing" in line, line
-    assert snapshot(case) == before
 
 
 # ---- info.json read back -----------------------------------------------------------------------
@@ -179,10 +163,8 @@ def test_a_damaged_info_json_is_one_line_naming_it(made, tmp_path, damage):
     shutil.copytree(made["export"], folder)
     info = json.loads((folder / "info.json").read_text())
     (folder / "info.json").write_text(json.dumps(DAMAGED_INFO[damage](info)))
-    before = snapshot(case)
-    result = run(["view", str(folder), "--export", str(case / "site")], case, home)
-    assert_one_error_line(result, (str(folder / "info.json"),))
-    assert snapshot(case) == before
+    refused(["view", str(folder), "--export", str(case / "site")], case, home,
+            (str(folder / "info.json"),))
 
 
 @pytest.mark.parametrize("damage", ["deep", "not-utf8", "empty", "a-directory"])
@@ -200,10 +182,7 @@ def test_an_unreadable_info_json_is_one_line_naming_it(made, tmp_path, damage):
     else:
         info.unlink()
         info.mkdir()
-    before = snapshot(case)
-    result = run(["view", str(folder), "--export", str(case / "site")], case, home)
-    assert_one_error_line(result, (str(folder),))
-    assert snapshot(case) == before
+    refused(["view", str(folder), "--export", str(case / "site")], case, home, (str(folder),))
 
 
 def test_the_export_opens_as_a_result(made, tmp_path):
@@ -223,27 +202,8 @@ def test_a_full_disk_names_the_users_folder_not_a_staging_one(made, tmp_path):
     if prefix is None:
         pytest.skip("cannot mount a tmpfs here (unshare -rm not allowed): full disk not tested")
     out = full / "export"
-    listing = home / "listing.json"
-    script = (
-        "import json, os, subprocess\n"
-        f"full = {str(full)!r}\n"
-        "space = os.statvfs(full)\n"
-        "with open(os.path.join(full, 'filler'), 'wb') as filler:\n"
-        "    filler.write(bytes(max(0, space.f_bavail * space.f_frsize - 8192)))\n"
-        "def tree():\n"
-        "    return sorted(os.path.relpath(os.path.join(d, n), full) for d, ds, fs in "
-        "os.walk(full) for n in ds + fs)\n"
-        "before = tree()\n"
-        f"done = subprocess.run([{PS_LAB!r}, *{_export(made['result'], out)!r}], "
-        "capture_output=True)\n"
-        f"json.dump({{'before': before, 'after': tree(), 'code': done.returncode, "
-        f"'stderr': done.stderr.decode('utf-8', 'replace')}}, open({str(listing)!r}, 'w'))\n"
-    )
-    finished = subprocess.run([*prefix, sys.executable, "-c", script], env=environment(home),
-                              capture_output=True, timeout=300, check=False)
-    assert finished.returncode == 0, finished.stderr.decode(errors="replace")
-    record = json.loads(listing.read_text())
-    outcome = Result(record["code"], "", record["stderr"], 0)
+    outcome, before, after = run_on_tmpfs(prefix, full, _export(made["result"], out), home,
+                                          leave=8192)
     line = assert_one_error_line(outcome, (str(out),))
     assert "space" in line and ".partial" not in line, line
-    assert record["after"] == record["before"]
+    assert after == before

@@ -12,6 +12,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
+from helpers.capture_runs import write_tethered_rig
 
 import ps_lab
 import ps_lab.calibration
@@ -108,23 +109,7 @@ print(json.dumps(sorted(sys.modules)))
 def test_a_real_rig_capture_loads_no_renderer_and_writes_no_truth(tmp_path):
     tether = tmp_path / "tether"
     tether.mkdir()
-    rig_path = tmp_path / "real.toml"
-    rig_path.write_text(
-        f"""
-[controller]
-driver = "serial"
-port = "pslabsim://layout-test?lights=2"
-lights = 2
-timeout_s = 0.2
-[camera]
-driver = "folder"
-folder = "{tether}"
-pattern = "*.dng"
-prompt = true
-exposure_s = 0.01
-timeout_s = 10.0
-"""
-    )
+    rig_path = write_tethered_rig(tmp_path / "real.toml", tether, 2, "layout-test")
     run = tmp_path / "run"
     out = subprocess.run(
         [sys.executable, "-c", _REAL_CAPTURE_RUN, str(tether), str(rig_path), str(run)],

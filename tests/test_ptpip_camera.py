@@ -663,20 +663,23 @@ def _reset_in_a_session(port):
     _reset(event)
 
 
-def _reset_in_a_data_phase(port):
-    command, event = _both(port)
+def _start_data_phase(command, size: int) -> None:
+    """A SetDevicePropValue request for property 0x500D and the start of its ``size``-byte data."""
     payload = ptp.u32(2) + ptp.u16(ptp.SET_DEVICE_PROP_VALUE) + ptp.u32(1) + ptp.u32(0x500D)
     Initiator._send(command, ptp.OPERATION_REQUEST, payload)
-    Initiator._send(command, ptp.START_DATA, ptp.u32(1) + ptp.u64(4))
+    Initiator._send(command, ptp.START_DATA, ptp.u32(1) + ptp.u64(size))
+
+
+def _reset_in_a_data_phase(port):
+    command, event = _both(port)
+    _start_data_phase(command, 4)
     _reset(command)
     return event
 
 
 def _oversized_data_phase(port):
     command, event = _both(port)
-    payload = ptp.u32(2) + ptp.u16(ptp.SET_DEVICE_PROP_VALUE) + ptp.u32(1) + ptp.u32(0x500D)
-    Initiator._send(command, ptp.OPERATION_REQUEST, payload)
-    Initiator._send(command, ptp.START_DATA, ptp.u32(1) + ptp.u64(1 << 30))
+    _start_data_phase(command, 1 << 30)
     chunk = ptp.u32(1) + bytes(8 << 20)
     try:
         for _ in range(3):  # 24 MiB for a property of 4 bytes: the camera hangs up

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 from helpers.solver_checks import assert_equals_oracle
-from helpers.solver_scenes import lights_upper, scene
+from helpers.solver_scenes import corrupt, lights_upper, scene
 from helpers.tolerances import assert_within, least_squares, light_conditioning
 
 from ps_lab.errors import DatasetError
@@ -28,9 +28,7 @@ def corrupted():
     rng = np.random.default_rng(7)
     lights = lights_upper(24, rng)
     y, normals, _ = scene("relief", (28, 28), lights, rng, specular=0.3)
-    hit = rng.random(y.shape) < 0.1
-    y = y.copy()
-    y[hit] += rng.uniform(0.2, 1.0, hit.sum())
+    y, _ = corrupt(y, rng, 0.2)
     valid = rng.random(y.shape) > 0.08
     return y, lights, valid, normals
 
@@ -63,9 +61,7 @@ def test_robust_methods_beat_least_squares_on_sparse_corruptions():
     rng = np.random.default_rng(2)
     lights = lights_upper(40, rng)
     y, normals, _ = scene("relief", (40, 40), lights, rng, specular=0.2)
-    hit = rng.random(y.shape) < 0.1
-    y = y.copy()
-    y[hit] += rng.uniform(0.0, 1.0, hit.sum())
+    y, _ = corrupt(y, rng, 0.0)
     err = {m: error_summary(angular_errors_deg(solve(y, lights, method=m).normals, normals))
            for m in METHODS}
     assert err["sbl"]["mean"] < err["l1"]["mean"] < err["ls"]["mean"]
@@ -79,9 +75,7 @@ def test_sbl_flags_injected_corruptions_and_recovers_normals():
     lights = lights_upper(30, rng)
     y, normals, _ = scene("sphere", (30, 30), lights, rng)
     valid = y > 0
-    hit = (rng.random(y.shape) < 0.1) & valid
-    y = y.copy()
-    y[hit] += rng.uniform(0.5, 1.0, hit.sum())
+    y, hit = corrupt(y, rng, 0.5, where=valid)
     sol = solve(y, lights, method="sbl", valid=valid)
     assert sol.outliers[hit].mean() > 0.95
     assert sol.outliers[valid & ~hit].mean() < 0.02

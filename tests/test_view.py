@@ -20,6 +20,7 @@ import socket
 import subprocess
 import sys
 import time
+from contextlib import contextmanager
 from pathlib import Path
 
 import cv2
@@ -28,6 +29,7 @@ import pytest
 from typer.testing import CliRunner
 
 from ps_lab.cli import app
+from ps_lab.io.encoding import linear_to_srgb
 from ps_lab.view import ViewSite, export_site, load_result
 from ps_lab.view.result import CHANNELS, decimate_mesh, vertex_normals
 from ps_lab.view.tiles import TILE, pyramid
@@ -284,7 +286,7 @@ def expected_shading(result: Path, light, exposure: float = 1.0, use_albedo: boo
         linear = np.clip(shade[..., None] * colour * exposure, 0, 1)
     else:
         linear = np.clip(shade * albedo * exposure, 0, 1)
-    srgb = np.where(linear <= 0.0031308, linear * 12.92, 1.055 * linear ** (1 / 2.4) - 0.055)
+    srgb = linear_to_srgb(linear)
     srgb = srgb.mean(axis=-1) if srgb.ndim == 3 else srgb
     return srgb * 255.0, mask
 
@@ -297,6 +299,12 @@ def shown_pixels(browser, panel: int, shape) -> tuple[np.ndarray, np.ndarray, np
     rows = np.floor(y0 + np.arange(h)).astype(int)
     cols = np.floor(x0 + np.arange(w)).astype(int)
     return rows, cols, picture
+
+
+def shown_rgb(browser, panel: int, shape) -> np.ndarray:
+    """Panel ``panel`` shown 1:1: its (h, w, 3) RGB levels (0..255, float64) on the screenshot."""
+    rows, cols, picture = shown_pixels(browser, panel, shape)
+    return picture[rows][:, cols].astype(np.float64)[..., :3]
 
 
 def interior(mask: np.ndarray) -> np.ndarray:
@@ -312,6 +320,36 @@ def assert_shown(browser, panel: int, expected: np.ndarray, mask: np.ndarray) ->
     shown = picture[rows][:, cols].astype(np.float64).mean(axis=2)
     difference = np.abs(shown - expected)[interior(mask)]
     assert difference.max() <= 2.0, (difference.mean(), difference.max())
+
+
+def assert_relit_as(browser, fit, light, view, mask: np.ndarray, label: str) -> None:
+    """Panel 0 (shown 1:1) relit from ``light`` is the appearance ``fit`` of the view's normals
+    as numpy evaluates it (a fit whose coefficients carry the albedo: hsh3, rbf), sRGB-encoded,
+    within 2 levels in the mask; prints the levels' mean and max after ``label``."""
+    from ps_lab.appearance.models import evaluate_appearance
+
+    browser.evaluate(f"psView.setLight({json.dumps(light)})")
+    settle(browser)
+    linear = np.clip(evaluate_appearance(fit, np.asarray(light), view.layers[..., :3],
+                                         np.zeros(view.shape)).astype(np.float64), 0, 1)
+    difference = np.abs(shown_rgb(browser, 0, view.shape) - 255 * linear_to_srgb(linear))
+    difference = difference[interior(mask)]
+    print(f"{label} vs numpy (levels): mean", float(difference.mean()), "max",
+          float(difference.max()))
+    assert difference.max() <= 2.0
+
+
+@contextmanager
+def opened(browser, result: Path):
+    """``result`` served by ``ps-lab view``, open in ``browser`` and ready: yields its entry
+    (``psView.results()[0]``); the server is stopped (Ctrl-C) after."""
+    server = ViewServer(result)
+    try:
+        browser.open(server.url)
+        assert browser.evaluate("psView.ready") is True
+        yield browser.evaluate("psView.results()[0]")
+    finally:
+        server.stop()
 
 
 def lambertian(browser) -> None:
@@ -551,10 +589,8 @@ def test_colour_relight_in_chromium_shows_the_albedo_colour(browser, colour_resu
         mask = norm > 0.5
         shade = np.maximum((normals / np.where(mask, norm, 1)[..., None]) @ light, 0)
         linear = np.clip(shade[..., None] * colour, 0, 1)
-        expected = 255 * np.where(linear <= 0.0031308, linear * 12.92,
-                                  1.055 * linear ** (1 / 2.4) - 0.055)
-        rows, cols, picture = shown_pixels(browser, 0, view.shape)
-        shown = picture[rows][:, cols].astype(np.float64)[..., :3]
+        expected = 255 * linear_to_srgb(linear)
+        shown = shown_rgb(browser, 0, view.shape)
         inner = interior(mask)
         difference = np.abs(shown - expected)[inner]
         print("colour relight vs numpy (levels, per channel): mean",
@@ -572,7 +608,6 @@ def _with_appearance(result: Path, folder: Path, model: str) -> Path:
     fit of its Lambertian renders plus a gloss, or ps / rbf with seeded coefficients."""
     from ps_lab.appearance.models import PS_TERMS, Appearance, appearance_basis
     from ps_lab.appearance.store import write_appearance
-    from ps_lab.io.encoding import linear_to_srgb
 
     shutil.copytree(result, folder)
     normals = np.load(result / "normals.npy").astype(np.float64)
@@ -668,11 +703,7 @@ def test_appearance_relight_in_chromium_matches_the_model(browser, colour_result
     mask = norm > 0.5
     unit = normals / np.where(mask, norm, 1)[..., None]
     albedo = (np.load(result / "albedo.npy") / scale).astype(np.float16).astype(np.float64)
-    server = ViewServer(result)
-    try:
-        browser.open(server.url)
-        assert browser.evaluate("psView.ready") is True
-        entry = browser.evaluate("psView.results()[0]")
+    with opened(browser, result) as entry:
         assert entry["appearance"]["model"] == fit.model and entry["appearance"]["planes"]
         assert entry["appearance"]["note"] is None
         assert entry["appearance"]["space"] == ("srgb" if srgb else "linear")
@@ -692,10 +723,8 @@ def test_appearance_relight_in_chromium_matches_the_model(browser, colour_result
             else:
                 linear = np.maximum(unit @ light, 0)[..., None] * albedo
             linear = np.clip(linear.astype(np.float64), 0, 1)
-            expected = 255 * np.where(linear <= 0.0031308, linear * 12.92,
-                                      1.055 * linear ** (1 / 2.4) - 0.055)
-            rows, cols, picture = shown_pixels(browser, 0, view.shape)
-            shown = picture[rows][:, cols].astype(np.float64)[..., :3]
+            expected = 255 * linear_to_srgb(linear)
+            shown = shown_rgb(browser, 0, view.shape)
             inner = interior(mask)
             difference = np.abs(shown - expected)[inner]
             numbers[key] = (float(difference.mean()), float(difference.max()))
@@ -707,13 +736,11 @@ def test_appearance_relight_in_chromium_matches_the_model(browser, colour_result
         assert numbers["model_vs_lambertian"] > 3.0, numbers
         print(f"{model} ({fit.model}, {fit.meta.get('space', 'linear')}) relight vs numpy "
               f"(mean, max levels): {numbers}")
-    finally:
-        server.stop()
 
 
 def test_a_relightlab_export_relights_in_chromium(browser, colour_result, tmp_path):
     """ps-lab view opens RelightLab's web layout (its own export) and relights it as its fit."""
-    from ps_lab.appearance.models import Appearance, evaluate_appearance
+    from ps_lab.appearance.models import Appearance
     from ps_lab.appearance.relightlab import read_relightlab
     from ps_lab.view.relightlab import load_view_result
 
@@ -726,29 +753,12 @@ def test_a_relightlab_export_relights_in_chromium(browser, colour_result, tmp_pa
     rounded = Appearance("hsh3", (fit.coefficients / view.albedo_scale).astype(np.float16)
                          .astype(np.float32), fit.meta)
     mask = np.linalg.norm(view.layers[..., :3], axis=2) > 0.5
-    server = ViewServer(out)
-    try:
-        browser.open(server.url)
-        assert browser.evaluate("psView.ready") is True
-        entry = browser.evaluate("psView.results()[0]")
+    with opened(browser, out) as entry:
         assert entry["appearance"]["model"] == "hsh3" and len(entry["captured_lights"]) == 16
         browser.evaluate("psView.pixelScale(0, 1)")
         browser.evaluate("psView.setView({cx: 0.5, cy: 0.5})")
-        light = [0.4, -0.2, float(np.sqrt(1 - 0.2))]
-        browser.evaluate(f"psView.setLight({json.dumps(light)})")
-        settle(browser)
-        linear = np.clip(evaluate_appearance(rounded, np.asarray(light), view.layers[..., :3],
-                                             np.zeros(view.shape)).astype(np.float64), 0, 1)
-        expected = 255 * np.where(linear <= 0.0031308, linear * 12.92,
-                                  1.055 * linear ** (1 / 2.4) - 0.055)
-        rows, cols, picture = shown_pixels(browser, 0, view.shape)
-        shown = picture[rows][:, cols].astype(np.float64)[..., :3]
-        difference = np.abs(shown - expected)[interior(mask)]
-        print("RelightLab folder relight vs numpy (levels): mean", float(difference.mean()),
-              "max", float(difference.max()))
-        assert difference.max() <= 2.0
-    finally:
-        server.stop()
+        assert_relit_as(browser, rounded, [0.4, -0.2, float(np.sqrt(1 - 0.2))], view, mask,
+                        "RelightLab folder relight")
 
 
 def test_a_default_result_exported_for_openlime_relights_in_chromium_as_the_export(
@@ -757,7 +767,7 @@ def test_a_default_result_exported_for_openlime_relights_in_chromium_as_the_expo
     """A default result (model ps) exported with --format relight (converted to RelightLab's
     rbf layout): ps-lab view of the export shows what the export relights (the numpy read of
     its planes, as OpenLIME reads them), within 2 levels."""
-    from ps_lab.appearance.models import Appearance, evaluate_appearance
+    from ps_lab.appearance.models import Appearance
     from ps_lab.appearance.store import read_appearance
     from ps_lab.appearance.relightlab import read_relightlab
     from ps_lab.view.relightlab import load_view_result
@@ -774,27 +784,11 @@ def test_a_default_result_exported_for_openlime_relights_in_chromium_as_the_expo
     coefficients = (fit.coefficients / view.albedo_scale).astype(np.float16).astype(np.float32)
     rounded = Appearance("rbf", coefficients, fit.meta, fit.extra)
     mask = np.linalg.norm(view.layers[..., :3], axis=2) > 0.5
-    server = ViewServer(out)
-    try:
-        browser.open(server.url)
-        assert browser.evaluate("psView.ready") is True
-        entry = browser.evaluate("psView.results()[0]")
+    with opened(browser, out) as entry:
         assert entry["appearance"]["model"] == "rbf" and entry["appearance"]["shared"] is True
         assert entry["appearance"]["note"] is None
         browser.evaluate("psView.pixelScale(0, 1)")
         browser.evaluate("psView.setView({cx: 0.5, cy: 0.5})")
         for light in ([0.4, -0.2, float(np.sqrt(1 - 0.2))], [-0.1, 0.3, float(np.sqrt(0.9))]):
-            browser.evaluate(f"psView.setLight({json.dumps(light)})")
-            settle(browser)
-            linear = np.clip(evaluate_appearance(rounded, np.asarray(light), view.layers[..., :3],
-                                                 np.zeros(view.shape)).astype(np.float64), 0, 1)
-            expected = 255 * np.where(linear <= 0.0031308, linear * 12.92,
-                                      1.055 * linear ** (1 / 2.4) - 0.055)
-            rows, cols, picture = shown_pixels(browser, 0, view.shape)
-            shown = picture[rows][:, cols].astype(np.float64)[..., :3]
-            difference = np.abs(shown - expected)[interior(mask)]
-            print("default result's OpenLIME export in the viewer vs numpy (levels): mean",
-                  float(difference.mean()), "max", float(difference.max()))
-            assert difference.max() <= 2.0
-    finally:
-        server.stop()
+            assert_relit_as(browser, rounded, light, view, mask,
+                            "default result's OpenLIME export in the viewer")

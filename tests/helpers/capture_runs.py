@@ -1,4 +1,5 @@
-"""The tiny simulated rig the capture-session and capture CLI tests run (8 lights, 64x48)."""
+"""The tiny simulated rig the capture-session and capture CLI tests run (8 lights, 64x48), and a
+real rig's file driven by simulators (a serial controller URL, a watched tether folder)."""
 
 from __future__ import annotations
 
@@ -63,6 +64,31 @@ def write_rig(
     path.write_text(
         TINY_RIG.format(faults=faults, retries=retries, settle_ms=settle_ms, lights=lights)
     )
+    return path
+
+
+TETHERED_RIG = """
+[controller]
+driver = "serial"
+port = "pslabsim://{name}?lights={lights}"
+lights = {lights}
+timeout_s = 0.2
+[camera]
+driver = "folder"
+folder = "{tether}"
+pattern = "*.dng"
+prompt = true
+exposure_s = 0.01
+file_type = "dng"
+timeout_s = 10.0
+"""
+
+
+def write_tethered_rig(path: Path, tether: Path, lights: int, name: str) -> Path:
+    """A real rig's file at ``path``: the serial driver on the in-process simulated board
+    ``pslabsim://name`` with ``lights`` lights, and a folder camera that prompts for each frame
+    and waits for a DNG in ``tether`` (what an operator's tethering software drops there)."""
+    path.write_text(TETHERED_RIG.format(name=name, lights=lights, tether=tether))
     return path
 
 

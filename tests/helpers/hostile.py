@@ -10,6 +10,7 @@ nothing created or changed in the case's folder (:func:`snapshot`).
 
 from __future__ import annotations
 
+import json
 import os
 import re
 import shutil
@@ -50,7 +51,11 @@ def environment(home: Path) -> dict[str, str]:
 
 
 def start(args: list[str], cwd: Path, home: Path, prefix: tuple[str, ...] = ()):
-    """Start ``ps-lab args`` with stdout/stderr to files (so that wait4 gives its rusage)."""
+    """Start ``ps-lab args`` with stdout/stderr to files (so that wait4 gives its rusage).
+
+    ``home`` (made if missing) holds those files, the cache and ``TMPDIR``.
+    """
+    home.mkdir(parents=True, exist_ok=True)
     out, err = home / "stdout.txt", home / "stderr.txt"
     with out.open("wb") as o, err.open("wb") as e:
         proc = subprocess.Popen(
@@ -79,8 +84,10 @@ def finish(proc: subprocess.Popen, out: Path, err: Path, timeout: float = 120) -
     )  # fmt: skip
 
 
-def run(args: list[str], cwd: Path, home: Path, timeout: float = 120) -> Result:
-    proc, out, err = start(args, cwd, home)
+def run(
+    args: list[str], cwd: Path, home: Path, timeout: float = 120, prefix: tuple[str, ...] = ()
+) -> Result:
+    proc, out, err = start(args, cwd, home, prefix)
     return finish(proc, out, err, timeout)
 
 
@@ -120,6 +127,27 @@ def assert_one_error_line(result: Result, names: tuple[str, ...], code: int = 2)
     return line
 
 
+def refused(
+    args: list[str], cwd: Path, home: Path, names: tuple[str, ...], watch: Path | None = None,
+    prefix: tuple[str, ...] = (),
+) -> str:
+    """Run ``ps-lab args`` (after ``prefix``, e.g. :func:`tmpfs_prefix`) and check the whole
+    failure promise; return the ``error:`` line.
+
+    Exit 2 with one ``error:`` line naming one of ``names`` (:func:`assert_one_error_line`),
+    nothing noisy (:func:`assert_quiet`), nothing created or changed under ``watch`` (default
+    ``cwd``) and no temporary file left in ``home``.
+    """
+    folder = cwd if watch is None else watch
+    before = snapshot(folder)
+    result = run(args, cwd, home, prefix=prefix)
+    line = assert_one_error_line(result, names)
+    assert_quiet(result)
+    assert snapshot(folder) == before, "files created or changed"
+    assert not temporary_leftovers(home), "temporary files left behind"
+    return line
+
+
 def _alive(pid: int) -> bool:
     try:
         state = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0]
@@ -136,13 +164,14 @@ def wait_until(predicate: Callable[[], bool], proc: subprocess.Popen, timeout: f
         time.sleep(0.005)
 
 
-def tmpfs_prefix(mountpoint: Path) -> tuple[str, ...] | None:
-    """``unshare`` arguments that run a command with a 256 KiB tmpfs on ``mountpoint``."""
+def tmpfs_prefix(mountpoint: Path, options: str = "rw") -> tuple[str, ...] | None:
+    """``unshare`` arguments that run a command with a 256 KiB tmpfs on ``mountpoint`` mounted
+    with ``options`` (``"ro"``: a read-only disk); None where ``unshare -rm`` is not allowed."""
     unshare = shutil.which("unshare")
     if unshare is None:
         return None
     mountpoint.mkdir(exist_ok=True)
-    script = 'mount -t tmpfs -o size=256k tmpfs "$0" && exec "$@"'
+    script = f'mount -t tmpfs -o size=256k,{options} tmpfs "$0" && exec "$@"'
     probe = subprocess.run(
         [unshare, "-rm", "sh", "-c", script, str(mountpoint), "true"], capture_output=True,
         check=False,
@@ -150,3 +179,36 @@ def tmpfs_prefix(mountpoint: Path) -> tuple[str, ...] | None:
     if probe.returncode != 0:
         return None
     return (unshare, "-rm", "sh", "-c", script, str(mountpoint))
+
+
+def run_on_tmpfs(
+    prefix: tuple[str, ...], mount: Path, args: list[str], home: Path, leave: int | None = None,
+    timeout: float = 300,
+) -> tuple[Result, list[str], list[str]]:
+    """Run ``ps-lab args`` inside ``prefix`` (:func:`tmpfs_prefix` on ``mount``), first filling
+    the tmpfs (a file ``filler``) to all but ``leave`` bytes unless ``leave`` is None.
+
+    Returns the run's result (its stderr and exit code) and the paths under ``mount`` (the
+    filler's included) before and after the run; a file in ``home`` carries them out.
+    """
+    listing = home / "tmpfs-listing.json"
+    script = (
+        "import json, os, subprocess\n"
+        f"mount = {str(mount)!r}\n"
+        f"if {leave is not None}:\n"
+        "    space = os.statvfs(mount)\n"
+        "    with open(os.path.join(mount, 'filler'), 'wb') as filler:\n"
+        f"        filler.write(bytes(max(0, space.f_bavail * space.f_frsize - {leave or 0})))\n"
+        "def tree():\n"
+        "    return sorted(os.path.relpath(os.path.join(d, n), mount) for d, ds, fs in "
+        "os.walk(mount) for n in ds + fs)\n"
+        "before = tree()\n"
+        f"done = subprocess.run([{PS_LAB!r}, *{args!r}], capture_output=True)\n"
+        "json.dump({'before': before, 'after': tree(), 'code': done.returncode, "
+        f"'stderr': done.stderr.decode('utf-8', 'replace')}}, open({str(listing)!r}, 'w'))\n"
+    )
+    finished = subprocess.run([*prefix, sys.executable, "-c", script], env=environment(home),
+                              capture_output=True, timeout=timeout, check=False)
+    assert finished.returncode == 0, finished.stderr.decode(errors="replace")
+    record = json.loads(listing.read_text())
+    return Result(record["code"], "", record["stderr"], 0), record["before"], record["after"]

@@ -5,25 +5,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from helpers.solver_oracles import solve_oracle
+from helpers.solver_oracles import oracle_params, solve_oracle
 from helpers.tolerances import PL_ALBEDO, assert_flags_agree, assert_within, solver_bounds
-
-ORACLE_PARAMS = ("max_iter", "tol", "delta", "outlier_threshold", "sigma_x2", "gamma_floor",
-                 "gamma_start", "lam_sparse", "rho", "segments", "sbl_max_iter", "gate_noise",
-                 "gate_false_alarm")
-
-
-def oracle_params(sol):
-    p = {k: v for k, v in sol.params.items() if k in ORACLE_PARAMS}
-    if "lambda" in sol.params:
-        p["lam"] = sol.params["lambda"]
-        if p["lam"] is None:  # SBL's per-pixel default
-            p["noise_sigma"] = sol.params["noise_sigma"]
-            p["noise_floor"] = sol.params["noise_floor"]
-            p["light_noise"] = sol.params["light_noise"]
-            if "noise_sigma_pl" in sol.params:
-                p["noise_sigma_pl"] = sol.params["noise_sigma_pl"]
-    return p
 
 
 def assert_equals_oracle(sol, y, lights, valid, method):

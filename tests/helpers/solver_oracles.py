@@ -16,6 +16,25 @@ import numpy as np
 from scipy.stats import chi2
 
 
+ORACLE_PARAMS = ("max_iter", "tol", "delta", "outlier_threshold", "sigma_x2", "gamma_floor",
+                 "gamma_start", "lam_sparse", "rho", "segments", "sbl_max_iter", "gate_noise",
+                 "gate_false_alarm")
+
+
+def oracle_params(sol) -> dict:
+    """The parameters a solution ``sol`` was solved with, as :func:`solve_oracle` takes them."""
+    p = {k: v for k, v in sol.params.items() if k in ORACLE_PARAMS}
+    if "lambda" in sol.params:
+        p["lam"] = sol.params["lambda"]
+        if p["lam"] is None:  # SBL's per-pixel default
+            p["noise_sigma"] = sol.params["noise_sigma"]
+            p["noise_floor"] = sol.params["noise_floor"]
+            p["light_noise"] = sol.params["light_noise"]
+            if "noise_sigma_pl" in sol.params:
+                p["noise_sigma_pl"] = sol.params["noise_sigma_pl"]
+    return p
+
+
 def pixel_scale(y: np.ndarray) -> float:
     """Median of |y| over a pixel's usable observations (mean if the median is 0)."""
     if y.size == 0:

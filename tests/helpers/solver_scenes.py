@@ -15,3 +15,16 @@ def scene(kind, shape, lights, rng, *, specular=0.0):
     images = render(surface, lights, specular=specular, rng=rng)
     albedo = surface.albedo if surface.albedo.ndim == 2 else surface.albedo.mean(axis=-1)
     return images[:, surface.mask], surface.normals[surface.mask], albedo[surface.mask]
+
+
+def corrupt(y, rng, low, where=None):
+    """Sparse gross outliers (speculars, hot pixels): a copy of ``y`` (n, P) with each
+    observation (of those in ``where``, a bool (n, P)) raised with probability 0.1 by a uniform
+    draw in [low, 1). Returns the copy and the (n, P) bool mask of the raised observations.
+    """
+    hit = rng.random(y.shape) < 0.1
+    if where is not None:
+        hit &= where
+    raised = y.copy()
+    raised[hit] += rng.uniform(low, 1.0, hit.sum())
+    return raised, hit
