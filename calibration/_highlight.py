@@ -311,13 +311,19 @@ def _core_centroid(
     core = blob & (img >= level + share * contrast)
     if not core.any():
         return None
-    dist = ndimage.distance_transform_edt(np.pad(core, 1))[1:-1, 1:-1]
+    # On the core's bounding box: the distances, the opening (never larger than the core) and
+    # its pieces are those of the whole frame, at the box's cost rather than the frame's.
+    rows, cols = np.flatnonzero(core.any(axis=1)), np.flatnonzero(core.any(axis=0))
+    box = np.s_[rows[0] : rows[-1] + 1, cols[0] : cols[-1] + 1]
+    part = core[box]
+    dist = ndimage.distance_transform_edt(np.pad(part, 1))[1:-1, 1:-1]
     widest = np.unravel_index(int(np.argmax(dist)), dist.shape)
     if dist[widest] >= 2.0:
-        opened = ndimage.binary_opening(core, structure=_disc(0.5 * dist[widest]))
+        opened = ndimage.binary_opening(part, structure=_disc(0.5 * dist[widest]))
         labels, _ = ndimage.label(opened, structure=_EIGHT)
         if labels[widest]:
-            core = labels == labels[widest]
+            core = np.zeros_like(core)
+            core[box] = labels == labels[widest]
     x, y = xx[core].astype(np.float64), yy[core].astype(np.float64)
     lam = float(np.linalg.eigvalsh(np.cov(np.vstack([x, y]), bias=True))[-1]) if len(x) > 1 else 0
     return float(x.mean()), float(y.mean()), lam
