@@ -49,13 +49,11 @@ demo: $(WARM)
 lint-imports: $(STAMP)
 	$(BIN)/lint-imports --no-cache
 
-# The files whose tests compare two numerical paths through the numba kernels (kernels and
-# kernels, near and directional, oracle, bands, cluster): run once more for a generic x86-64
-# (NUMBA_CPU_NAME=generic: no SIMD beyond SSE2, other vector widths than the host's), since
-# fastmath splits sums by vector width. Numba's cache keys its entries by CPU name and
-# features, so the second run compiles its own and leaves the host's alone.
-NUMERICAL_TESTS := tests/test_solvers.py tests/test_pl_solvers.py tests/test_near.py \
-	tests/test_refine.py tests/test_streaming.py tests/test_distributed.py
+# The tests marked `numerical` (pyproject.toml: they compare two numerical paths through the numba
+# kernels: kernel and oracle, tiles, bands, near and directional, cluster and one process) run
+# once more for a generic x86-64 (NUMBA_CPU_NAME=generic: no SIMD beyond SSE2, other vector widths
+# than the host's), since fastmath splits sums by vector width. Numba's cache keys its entries by
+# CPU name and features, so the second run compiles its own and leaves the host's alone.
 
 # Import contracts first, then the tests, then the numerical ones for the second CPU target.
 # The tests run on every core (pytest-xdist, one test file per worker at a time: a file's
@@ -66,7 +64,7 @@ PYTEST_WORKERS ?= auto
 PYTEST := $(BIN)/python -m pytest -q -n $(PYTEST_WORKERS) --maxprocesses=8 --dist loadfile
 test: lint-imports $(WARM) $(WARM_GENERIC)
 	$(PYTEST)
-	NUMBA_CPU_NAME=generic $(PYTEST) $(NUMERICAL_TESTS)
+	NUMBA_CPU_NAME=generic $(PYTEST) -m numerical
 
 test-slow: $(STAMP)
 	$(BIN)/python -m pytest -q -m slow

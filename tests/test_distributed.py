@@ -139,6 +139,7 @@ CASES = [
 ]
 
 
+@pytest.mark.numerical
 @pytest.mark.parametrize(("method", "refine", "fixed"), CASES)
 def test_cluster_result_equals_the_in_process_run(
     capture, cluster, tmp_path, method, refine, fixed
@@ -159,6 +160,7 @@ def test_cluster_result_equals_the_in_process_run(
     assert sorted(p.name for p in tmp_path.iterdir()) == ["here", "there"]  # no staging left
 
 
+@pytest.mark.numerical
 def test_one_band_in_process_is_cut_for_the_workers(capture, cluster, tmp_path):
     options = ReconstructOptions(method="sbl")  # 1 GB: one band here
     here = reconstruct_to_folder(capture, tmp_path / "here", options)
@@ -170,6 +172,7 @@ def test_one_band_in_process_is_cut_for_the_workers(capture, cluster, tmp_path):
     assert_same_result(tmp_path / "here", tmp_path / "there")
 
 
+@pytest.mark.numerical
 def test_a_worker_killed_mid_run_changes_nothing(capture, cluster, client, tmp_path):
     options = ReconstructOptions(method="sbl", refine_lights=1, memory_budget=BUDGET)
     reconstruct_to_folder(capture, tmp_path / "here", options)

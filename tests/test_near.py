@@ -47,6 +47,7 @@ def _relief() -> render.Surface:
     return render.relief_surface(SHAPE, seed=3, center=((w - 1) / 2, (h - 1) / 2), radius=50)
 
 
+@pytest.mark.numerical
 def test_near_light_vectors_tend_to_directional() -> None:
     rng = np.random.default_rng(0)
     directions = render.random_light_directions(6, rng)
@@ -117,6 +118,7 @@ def test_calibrate_finds_both_spheres_and_the_intensities() -> None:
     assert np.std(relative / relative.mean()) < 0.01
 
 
+@pytest.mark.numerical
 def test_per_pixel_kernels_equal_the_directional_ones() -> None:
     rng = np.random.default_rng(1)
     lights = render.random_light_directions(20, rng)
@@ -167,6 +169,7 @@ def _near_scene(radius: float, z_offset: float = 0.0):
     return surface, obs, NearLights(positions, directions, np.full(24, 1.0)), rows, cols
 
 
+@pytest.mark.numerical
 def test_depth_offset_is_recovered_from_the_shading() -> None:
     surface, obs, lights, rows, cols = _near_scene(300.0, z_offset=6.0)
     points = scene_points(SHAPE, rows, cols, surface.height[rows, cols])  # 6 px too low
@@ -175,6 +178,7 @@ def test_depth_offset_is_recovered_from_the_shading() -> None:
     assert abs(shift - 6.0) < 0.5
 
 
+@pytest.mark.numerical
 def test_near_light_sbl_against_directional() -> None:
     surface, obs, lights, rows, cols = _near_scene(300.0)  # dome = 3x the object
     gt = surface.normals[rows, cols]

@@ -9,6 +9,7 @@ the same directions at infinity. Only the two ``--sphere`` circles are given, as
 from __future__ import annotations
 
 import json
+import shutil
 from dataclasses import replace
 from pathlib import Path
 
@@ -69,10 +70,22 @@ def test_equal_leds_give_the_inverse_square_at_the_origin() -> None:
         led_intensities_at_origin(positions, np.array([1.0, -1.0, 1.0]))
 
 
-def test_table_rig_end_to_end(tmp_path: Path) -> None:
+@pytest.fixture(scope="module")
+def rendered(tmp_path_factory) -> tuple[Path, dict]:
+    """The table rig rendered once (its folder and scene); each test calibrates a copy."""
+    folder = tmp_path_factory.mktemp("table-rig") / "near"
+    return folder, write_table_rig(folder, RIG)
+
+
+def _copy(rendered: tuple[Path, dict], target: Path) -> dict:
+    shutil.copytree(rendered[0], target)
+    return rendered[1]
+
+
+def test_table_rig_end_to_end(rendered, tmp_path: Path) -> None:
     """The issue's targets, with margin, on a rig the near-light path was not written against."""
     near, far = tmp_path / "near", tmp_path / "far"
-    scene = write_table_rig(near, RIG)
+    scene = _copy(rendered, near)
     write_table_rig(far, RIG, far=True, reference_peak=scene["raw_peak"])
     spheres = [arg for circle in SPHERES for arg in ("--sphere", circle)]
     _invoke(["calibrate", str(near), *spheres])
@@ -102,10 +115,10 @@ def test_table_rig_end_to_end(tmp_path: Path) -> None:
           f"{e_near:.3f} directional {e_dir:.3f} far {e_far:.3f}, height bias {bias:+.2f} px")
 
 
-def test_table_rig_stated_outline(tmp_path: Path) -> None:
+def test_table_rig_stated_outline(rendered, tmp_path: Path) -> None:
     """``--object table``: the outline at minus the spheres' radius, used as stated."""
     near = tmp_path / "near"
-    write_table_rig(near, RIG)
+    _copy(rendered, near)
     spheres = [arg for circle in SPHERES for arg in ("--sphere", circle)]
     _invoke(["calibrate", str(near), *spheres, "--object", "table"])
     assert float(np.loadtxt(near / "object_outline.txt")) == pytest.approx(-40.0, abs=0.01)
@@ -141,11 +154,11 @@ def test_intensities_from_the_object_itself() -> None:
         fit_near_intensities(flat, flat > 0, vectors)
 
 
-def test_table_rig_refined_intensities(tmp_path: Path) -> None:
+def test_table_rig_refined_intensities(rendered, tmp_path: Path) -> None:
     """Wrong intensities (the old convention), the outline stated: --refine-lights recovers
     the identical LEDs' intensities from the object's images."""
     near = tmp_path / "near"
-    write_table_rig(near, RIG)
+    _copy(rendered, near)
     spheres = [arg for circle in SPHERES for arg in ("--sphere", circle)]
     _invoke(["calibrate", str(near), *spheres, "--object", "table", "--led-intensities",
              "origin"])

@@ -16,6 +16,9 @@ from ps_lab.reconstruct import SolverInputError, angular_errors_deg, estimate_no
 from ps_lab.reconstruct._noise import pl_noise_level
 from ps_lab.render import random_light_directions, relief_surface, render, sphere_surface
 
+# Every test here goes through the numba kernels: run again for a generic CPU (Makefile).
+pytestmark = pytest.mark.numerical
+
 
 def _lambertian(shape=(32, 32), n_lights=40, seed=0):
     rng = np.random.default_rng(seed)

@@ -17,6 +17,9 @@ from ps_lab.reconstruct import (
 )
 from ps_lab.render import perturb_light_directions
 
+# Every test here goes through the numba kernels: run again for a generic CPU (Makefile).
+pytestmark = pytest.mark.numerical
+
 
 @pytest.fixture(scope="module")
 def perturbed():

@@ -22,6 +22,9 @@ from ps_lab.reconstruct._noise import _noise_residuals, _stable_order, light_noi
 from ps_lab.reconstruct._solution import check_inputs as _check_inputs
 from ps_lab.reconstruct._tiles import sbl_lambda
 
+# Every test here goes through the numba kernels: run again for a generic CPU (Makefile).
+pytestmark = pytest.mark.numerical
+
 
 @pytest.fixture(scope="module")
 def corrupted():

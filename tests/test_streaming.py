@@ -79,6 +79,7 @@ def _assert_store_is(store, data, mask) -> None:
                                   data.images[:, mask][:, store.sample_index])
 
 
+@pytest.mark.numerical
 @pytest.mark.parametrize("colour", [False, True])
 @pytest.mark.parametrize("in_memory", [False, True])
 @pytest.mark.parametrize("max_pixels", [5, 97, 100_000])
@@ -116,6 +117,7 @@ def _without_dark(folder: Path, target: Path, suffix: str, colour: bool) -> None
             cv2.imwrite(str(target / f"{i:03d}.png"), counts)
 
 
+@pytest.mark.numerical
 @pytest.mark.parametrize(("suffix", "colour", "dtype"), [
     (".jpg", True, np.uint8), (".jpg", False, np.uint8), (".png", True, np.uint16)])
 @pytest.mark.parametrize("in_memory", [False, True])
@@ -203,6 +205,7 @@ def outputs(out: Path) -> dict:
     }
 
 
+@pytest.mark.numerical
 @pytest.mark.parametrize("method", ["ls", "l1", "sbl"])
 def test_any_band_height_gives_the_single_band_result(capture, tmp_path, method):
     single = run(capture, tmp_path / "single", method=method, threads=1)
@@ -238,6 +241,7 @@ def test_any_band_height_gives_the_single_band_result(capture, tmp_path, method)
             assert parameters["noise_sigma"] > 0
 
 
+@pytest.mark.numerical
 @pytest.mark.parametrize("method", ["ls", "l1", "sbl"])
 def test_streamed_result_equals_the_in_memory_solve(capture, tmp_path, method):
     data = load_dataset(capture, shadow_threshold=0.005)
@@ -278,6 +282,7 @@ def perturb(lights: np.ndarray, degrees: float, rng: np.random.Generator) -> np.
     return lights * np.cos(angle) + np.cross(axis, lights) * np.sin(angle)
 
 
+@pytest.mark.numerical
 @pytest.mark.parametrize("fixed_intensities", [False, True])
 def test_streamed_light_refinement_equals_refine_lights(tmp_path, fixed_intensities):
     folder = tmp_path / "d"
@@ -440,6 +445,7 @@ def test_cli_memory_budget(capture, tmp_path):
     assert not (tmp_path / "c").exists()
 
 
+@pytest.mark.numerical
 def test_rpca_bands_share_the_whole_image_noise_level(capture, tmp_path):
     # R-PCA's low-rank model is fitted per band (documented); its noise level and outlier
     # threshold are still the whole-image ones.
