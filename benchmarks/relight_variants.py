@@ -8,7 +8,7 @@ Per fold (lights ``i % 8 == f`` held out): each variant's choice by leave-one-li
 pixels of the training lights, then the held-out grey sRGB PSNR (the judged metric) of its full
 smoother weights on 40 000 random pixels. Prints one line per fold (docs/results.md, "Eight folds against RelightLab").
 """
-import argparse, itertools, json, sys, time
+import argparse, itertools, json, time
 
 import numpy as np
 from pathlib import Path

@@ -14,6 +14,7 @@ import math
 import numpy as np
 
 from . import _kernels, _pl_kernels
+from ._solution import SolverInputError
 from ._solution import check_inputs as _check_inputs
 from ._tiles import LAMBDA_FLOOR, _prepare_tile
 
@@ -59,10 +60,11 @@ def light_noise_factors(light_intensities: np.ndarray, channel: str = "mean") ->
     """
     intensity = np.asarray(light_intensities, dtype=np.float64)
     pick = {"r": 0, "g": 1, "b": 2}
-    if channel == "mean":
-        f2 = (1.0 / intensity**2).sum(axis=1)
-    else:
-        f2 = 1.0 / intensity[:, pick[channel]] ** 2
+    with np.errstate(divide="ignore", over="ignore", invalid="ignore"):  # refused just below
+        if channel == "mean":
+            f2 = (1.0 / intensity**2).sum(axis=1)
+        else:
+            f2 = 1.0 / intensity[:, pick[channel]] ** 2
     if not np.all(np.isfinite(f2)) or not np.all(f2 > 0):
         raise SolverInputError("light intensities must be finite and positive")
     return np.sqrt(f2 / f2.mean())

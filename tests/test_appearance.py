@@ -486,7 +486,7 @@ def test_streamed_fit_equals_the_whole_array_fit(tmp_path, rng, model):
 
 def _reference_visibility(obs, directions, normals, albedo):
     """fit_visibility's maths pixel by pixel with numpy's solve (the implementation before 37)."""
-    from ps_lab.appearance.blocks import VIS_LABEL, VIS_MARGIN, VIS_RIDGE, VIS_ROUNDS
+    from ps_lab.appearance._ps_kernel import VIS_LABEL, VIS_MARGIN, VIS_RIDGE, VIS_ROUNDS
 
     n, p, _ = obs.shape
     rho = albedo.mean(axis=1) if albedo.ndim == 2 else albedo

@@ -452,8 +452,6 @@ def _(w):
 )
 def test_tiff_profile_damage_keeps_the_tiff_rule_and_warns(profile, label, warned, tmp_path,
                                                            warnings_logged):  # fmt: skip
-    import tifffile
-
     path = tmp_path / "frame.tif"
     tifffile.imwrite(path, np.full((4, 4), 128, np.uint8),
                      extratags=[(34675, 7, len(profile), profile, True)])  # fmt: skip

@@ -39,7 +39,6 @@ from ps_lab import render  # noqa: E402
 from ps_lab.appearance.blocks import fit_rbf  # noqa: E402
 from ps_lab.appearance.design import (  # noqa: E402
     SAME_LIGHT,
-    determined_columns,
     determined_terms,
     distinct_lights,
     saturated_observations,

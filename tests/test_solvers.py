@@ -208,6 +208,8 @@ def test_light_noise_per_observation_equals_oracle(corrupted):
     assert np.allclose(green, [0.6325, 1.2649], atol=1e-4)
     with pytest.raises(SolverInputError, match="light_noise"):
         solve(y, lights, method="sbl", light_noise=factors[:3])
+    with pytest.raises(SolverInputError, match="finite and positive"):
+        light_noise_factors(np.array([[1.0, 1, 1], [0, 0, 0]]))
 
 
 def test_solution_shapes_and_params(corrupted):

@@ -32,7 +32,6 @@ formulas up to float64 rounding. See docs/appearance.md (Large captures) for the
 
 from __future__ import annotations
 
-import math
 from functools import lru_cache
 
 import numpy as np
@@ -42,19 +41,12 @@ from ps_lab.appearance.models import (
     BASIS_TERMS,
     PS_TERMS,
     appearance_basis,
-    is_direct,
 )
 
 from .design import determined_terms, distinct_lights
 from .choice import encode
-from ._ps_kernel import (  # noqa: F401 (the constants are read from here too)
-    PS_FLOOR,
+from ._ps_kernel import (
     PS_RIDGE,
-    VIS_LABEL,
-    VIS_MARGIN,
-    VIS_RIDGE,
-    VIS_RIDGE_CONSTANT,
-    VIS_ROUNDS,
     _as_block,
     _fit_ps_block,
     _scale,
