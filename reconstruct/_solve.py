@@ -19,11 +19,8 @@ from ._noise import _noise_floor, _noise_level, _noise_residuals, pl_noise_level
 from ._solution import ALBEDO_DEFINITION, Solution, SolverInputError, _albedo_rows
 from ._solution import check_inputs as _check_inputs
 from ._tiles import DEFAULT_TILE_SIZE, solve_tiles, tile_pixels
-from .methods import SBL_MAX_ITER, SOLVERS, solver
+from .methods import SBL_MAX_ITER, solver
 
-# Defaults of each method's parameters (in units of the pixel's robust scale, see `pixel_scale`):
-# the solver table's (methods.py).
-DEFAULTS: dict[str, dict] = {row.name: dict(row.defaults) for row in SOLVERS}
 # Smallest outlier threshold (relative to the pixel scale); _pl_model.GATE_NOISE is its third.
 MIN_OUTLIER_THRESHOLD = 0.05
 # SBL's default tolerance: a change of the corruption estimate this small against the noise level
@@ -32,14 +29,13 @@ SBL_TOL_NOISE_SHARE = 1.0 / 200.0
 SBL_TOL_MIN = 1e-4
 
 
-
 def _method_params(method: str, given: dict) -> dict:
-    allowed = set(solver(method).defaults)
-    unknown = sorted(set(given) - allowed)
+    defaults = solver(method).defaults  # the solver table's (pixel-scale units, `pixel_scale`)
+    unknown = sorted(set(given) - set(defaults))
     if unknown:
         raise SolverInputError(f"method {method!r} has no parameter(s) {', '.join(unknown)}; "
-                               f"it takes {', '.join(sorted(allowed))}")
-    params = dict(DEFAULTS[method])
+                               f"it takes {', '.join(sorted(defaults))}")
+    params = dict(defaults)
     params.update(given)
     if "segments" in params:
         k = params["segments"]
@@ -49,7 +45,6 @@ def _method_params(method: str, given: dict) -> dict:
                                    f"{_pl_model.MAX_SEGMENTS}, got {k!r}")
         params["segments"] = int(k)
     return params
-
 
 
 def solve(

@@ -11,23 +11,21 @@ from __future__ import annotations
 
 import json
 import math
-import sys
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
 import pytest
 
-sys.path.insert(0, str(Path(__file__).parent))
-from helpers.bad_input import CaseTable  # noqa: E402
-from helpers.hostile import (  # noqa: E402 - the sweeps' runner
+from helpers.bad_input import CaseTable
+from helpers.hostile import (
     assert_one_error_line,
     assert_quiet,
     run,
     snapshot,
 )
 
-from ps_lab.commands.bench import finite_json  # noqa: E402
+from ps_lab.commands.bench import finite_json
 
 
 @pytest.fixture(scope="session")

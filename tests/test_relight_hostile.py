@@ -15,7 +15,6 @@ import json
 import logging
 import math
 import shutil
-import sys
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
@@ -25,8 +24,7 @@ import numpy as np
 import pytest
 from typer.testing import CliRunner
 
-sys.path.insert(0, str(Path(__file__).parent))
-from helpers.hostile import (  # noqa: E402 - the sweeps' runner
+from helpers.hostile import (
     assert_one_error_line,
     assert_quiet,
     refused,
@@ -35,19 +33,19 @@ from helpers.hostile import (  # noqa: E402 - the sweeps' runner
     tmpfs_prefix,
 )
 
-from ps_lab import render  # noqa: E402
-from ps_lab.appearance.blocks import fit_rbf  # noqa: E402
-from ps_lab.appearance.design import (  # noqa: E402
+from ps_lab import render
+from ps_lab.appearance.blocks import fit_rbf
+from ps_lab.appearance.design import (
     SAME_LIGHT,
     determined_terms,
     distinct_lights,
     saturated_observations,
 )
-from ps_lab.appearance.fit import fit_appearance  # noqa: E402
-from ps_lab.appearance.models import APPEARANCE_FILE, appearance_basis  # noqa: E402
-from ps_lab.appearance.store import read_appearance, write_appearance  # noqa: E402
-from ps_lab.cli import app  # noqa: E402
-from ps_lab.io.result import RESULT_FORMAT  # noqa: E402
+from ps_lab.appearance.fit import fit_appearance
+from ps_lab.appearance.models import APPEARANCE_FILE, appearance_basis
+from ps_lab.appearance.store import read_appearance, write_appearance
+from ps_lab.cli import app
+from ps_lab.io.result import RESULT_FORMAT
 
 SIZE = 16
 runner = CliRunner()

@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import io
 import shutil
-import sys
 import zipfile
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
@@ -22,9 +21,8 @@ import cv2
 import numpy as np
 import pytest
 
-sys.path.insert(0, str(Path(__file__).parent))
-from helpers.bad_input import CaseTable  # noqa: E402
-from helpers.hostile import (  # noqa: E402 - the sweeps' runner
+from helpers.bad_input import CaseTable
+from helpers.hostile import (
     Result,
     assert_one_error_line,
     assert_quiet,
@@ -34,7 +32,7 @@ from helpers.hostile import (  # noqa: E402 - the sweeps' runner
     temporary_leftovers,
 )
 
-from ps_lab.render.table_rig import (  # noqa: E402
+from ps_lab.render.table_rig import (
     TableRig,
     write_board_frames,
     write_table_rig,

@@ -4,13 +4,13 @@ from __future__ import annotations
 
 import sys
 from collections.abc import Collection, Mapping
-from enum import Enum
 from pathlib import Path
 from typing import Annotated, Any
 
 import typer
 
 from ps_lab._cli_util import choices, from_params, lab_command, progress_bar
+from ps_lab.appearance.models import APPEARANCE_MODELS
 from ps_lab.commands._shared_options import Encoding, EncodingOption
 from ps_lab.errors import DatasetError
 from ps_lab.io.frames import FolderOfDatasetsError
@@ -22,15 +22,13 @@ from ps_lab.reconstruct.pipeline import (
 )
 
 
-# Solver choices: the solver table's methods (ps_lab/reconstruct/methods.py); typer needs
-# str-valued choices.
-Method = Enum("Method", [(name, name) for name in METHODS], type=str)  # type: ignore[misc]
+Method = choices("Method", " ".join(METHODS), "The solver table's methods (reconstruct/methods.py).")
 
 
 AppearanceModel = choices(
     "AppearanceModel",
-    "auto ps ptm hsh2 hsh3 rbf bln gp none",
-    "Appearance models fitted per pixel (``ps_lab.appearance.fit``).",
+    " ".join(("auto", *APPEARANCE_MODELS)),
+    "Appearance models fitted per pixel (``ps_lab.appearance.fit``), or auto (chosen per capture).",
 )
 
 
